@@ -1,0 +1,56 @@
+"""labkit: robust adjustment of 3D point clouds for engineering geodesy.
+
+The public names below are imported lazily (PEP 562), so ``import labkit`` is
+fast and does not pull in pyvista or laspy until they are needed.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+__version__ = "0.1.0"
+
+# public name -> module that defines it
+_EXPORTS = {
+    # errors
+    "LabkitError": "labkit.errors",
+    "DegenerateGeometryError": "labkit.errors",
+    "ConvergenceError": "labkit.errors",
+    "EmptyRegionError": "labkit.errors",
+    "CloudFileError": "labkit.errors",
+    # data
+    "PointCloud": "labkit.cloud",
+    "read_cloud": "labkit.io",
+    "write_cloud": "labkit.io",
+    # sphere (issues 2, 3)
+    "gauss_helmert_model": "labkit.adjustment",
+    "ransac_sphere": "labkit.ransac",
+    # transforms
+    "make_transform": "labkit.transforms",
+    "compose": "labkit.transforms",
+    "invert": "labkit.transforms",
+    "apply_transform": "labkit.transforms",
+    # registration (issues 5, 6)
+    "RegistrationResult": "labkit.registration",
+    "match": "labkit.registration",
+    "icp": "labkit.registration",
+    "consensus_cube": "labkit.registration",
+    "max_consensus": "labkit.registration",
+    # notebooks
+    "setup_notebook": "labkit.notebook",
+}
+
+__all__ = sorted(_EXPORTS) + ["__version__"]
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'labkit' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return __all__

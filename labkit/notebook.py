@@ -1,0 +1,43 @@
+"""One setup call for the notebooks and for headless runs."""
+
+from __future__ import annotations
+
+import os
+
+
+def setup_headless() -> None:
+    """Make matplotlib and pyvista render without a display.
+
+    Sets VTK's EGL window (no X server needed with the PyPI vtk wheel),
+    pyvista's off-screen mode and static Jupyter backend, and matplotlib's Agg
+    backend when no display is present.
+    """
+    os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+    os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
+    if not os.environ.get("DISPLAY"):
+        import matplotlib
+
+        if "inline" not in matplotlib.get_backend().lower():
+            matplotlib.use("Agg")
+    import pyvista
+
+    pyvista.OFF_SCREEN = True
+    try:
+        pyvista.set_jupyter_backend("static")
+    except Exception:  # pragma: no cover - jupyter extras missing
+        pass
+
+
+def setup_notebook(seed: int = 2026) -> "np.random.Generator":  # noqa: F821
+    """Setup cell of every labkit notebook; returns a seeded random generator.
+
+    Headless rendering (see :func:`setup_headless`), numpy print options, and
+    matplotlib figure defaults in one call.
+    """
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    setup_headless()
+    np.set_printoptions(precision=5, suppress=True, linewidth=110)
+    plt.rcParams.update({"figure.figsize": (7.5, 4.5), "figure.dpi": 100, "axes.grid": True})
+    return np.random.default_rng(seed)

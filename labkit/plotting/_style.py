@@ -1,0 +1,34 @@
+"""Colours, sizes and the off-screen pyvista plotter shared by all plots."""
+
+from __future__ import annotations
+
+COLORS = {
+    "inlier": "#1b9e77",
+    "outlier": "#d95f02",
+    "sphere": "#7570b3",
+    "source": "#e7298a",
+    "target": "#66a61e",
+    "reference": "#333333",
+    "rejected": "#bbbbbb",
+}
+CMAP_DIVERGING = "RdBu_r"
+CMAP_SEQUENTIAL = "viridis"
+POINT_SIZE = 4.0
+WINDOW_SIZE = (900, 650)
+
+
+def new_plotter(plotter=None, window_size=WINDOW_SIZE):
+    """Return ``plotter`` or a new off-screen ``pyvista.Plotter``."""
+    if plotter is not None:
+        return plotter
+    from ..notebook import setup_headless
+
+    setup_headless()
+    import pyvista as pv
+
+    return pv.Plotter(off_screen=True, window_size=list(window_size))
+
+
+def screenshot(plotter, path=None):
+    """Render off screen; write a PNG to ``path`` if given and return the image array."""
+    return plotter.screenshot(str(path) if path is not None else None, return_img=True)

@@ -1,0 +1,191 @@
+"""One result type for every registration method (ICP, maximum consensus).
+
+The transformation maps the *source* cloud onto the *target* cloud:
+``target ~ R @ source + t`` in the caller's frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .._report import ReportMixin, fmt
+from ..transforms import make_transform
+
+AXES = ("X", "Y", "Z")
+
+
+@dataclass(frozen=True, eq=False)
+class Degeneracy(ReportMixin):
+    """Which directions the data constrain, from the eigen decomposition of N.
+
+    Attributes
+    ----------
+    eigenvalues : ndarray (p,)
+        Eigenvalues of the normal matrix N, ascending (``numpy.linalg.eigh``).
+    eigenvectors : ndarray (p, p)
+        Matching unit eigenvectors in the columns.
+    constrained : ndarray of bool (p,)
+        Per eigen-direction: eigenvalue / largest eigenvalue >= ``rel_threshold``.
+    axis_determined : ndarray of bool (3,)
+        Per translation axis X, Y, Z: True when the axis has (almost) no share
+        in any unconstrained translation direction.
+    rel_threshold : float
+        The relative eigenvalue threshold used.
+    names : tuple of str
+        Parameter names in the order of N.
+    """
+
+    eigenvalues: np.ndarray
+    eigenvectors: np.ndarray
+    constrained: np.ndarray
+    axis_determined: np.ndarray
+    rel_threshold: float
+    names: tuple
+
+    @property
+    def well_posed(self) -> bool:
+        """True when every direction is constrained."""
+        return bool(self.constrained.all())
+
+    @property
+    def undetermined_axes(self) -> tuple:
+        """Names of the translation axes the data do not determine, e.g. ('Y',)."""
+        return tuple(a for a, ok in zip(AXES, self.axis_determined) if not ok)
+
+    def _report(self):
+        rows = []
+        for lam, ok, vec in zip(self.eigenvalues, self.constrained, self.eigenvectors.T):
+            direction = ", ".join(f"{n}:{c:+.2f}" for n, c in zip(self.names, vec) if abs(c) > 0.05)
+            rows.append((f"lambda = {lam:.4g}", f"{'constrained' if ok else 'UNDETERMINED'} along {direction}"))
+        rows.append(("undetermined axes", ", ".join(self.undetermined_axes) or "none"))
+        return "Degeneracy report", [("", rows)]
+
+
+def degeneracy_report(N, names, rel_threshold: float = 1e-2, translation_slice=slice(None)) -> Degeneracy:
+    """Eigen-analysis of a normal matrix N (p x p, symmetric).
+
+    Parameters
+    ----------
+    N : ndarray (p, p)
+        Normal matrix of the last adjustment (A^T P A).
+    names : sequence of str
+        Parameter names in the order of N.
+    rel_threshold : float
+        A direction with eigenvalue below ``rel_threshold * max eigenvalue`` is
+        called undetermined.
+    translation_slice : slice
+        Which parameters are the translation (tx, ty, tz) for the per-axis verdict.
+    """
+    N = np.asarray(N, dtype=np.float64)
+    lam, vecs = np.linalg.eigh(0.5 * (N + N.T))
+    top = lam[-1] if lam[-1] > 0 else 1.0
+    constrained = lam >= rel_threshold * top
+    loose = vecs[:, ~constrained][translation_slice]  # translation part of weak directions
+    share = (loose**2).sum(axis=1) if loose.size else np.zeros(3)
+    axis_determined = share < 0.5
+    return Degeneracy(lam, vecs, constrained, axis_determined, float(rel_threshold), tuple(names))
+
+
+@dataclass(frozen=True, eq=False)
+class RegistrationResult(ReportMixin):
+    """Outcome of a registration of ``source`` onto ``target``.
+
+    Attributes
+    ----------
+    translation : ndarray (3,)
+        Shift (dX, dY, dZ) in metres, in the caller's frame.
+    rotation : ndarray (3, 3)
+        Rotation (identity for ``dof="translation"``), about ``origin``.
+    origin : ndarray (3,)
+        Local origin the rotation refers to: ``p' = R (p - origin) + origin + t``.
+    covariance : ndarray (p, p)
+        Covariance of the estimated parameters, sigma0^2 N^-1 of the last adjustment.
+    parameter_names : tuple of str
+        Names of the estimated parameters, e.g. ('tx', 'ty', 'tz') or
+        ('rx', 'ry', 'rz', 'tx', 'ty', 'tz') (angles in radians).
+    sigma0 : float
+        A posteriori standard deviation of unit weight.
+    n_used : int
+        Number of correspondences (or consensus points) in the final adjustment.
+    share_used : float
+        n_used divided by the number of source points considered.
+    converged : bool
+        Whether the method met its convergence criterion.
+    iterations : int
+        Iterations (ICP) or branch-and-bound steps (consensus) performed.
+    degeneracy : Degeneracy or None
+        Constrained and undetermined directions.
+    method : str
+        'icp', 'max_consensus', ...
+    history : tuple
+        Method-specific per-iteration records (frozen dataclasses).
+    runtime_s : float
+        Wall-clock time of the estimation in seconds.
+    message : str
+        Why the method stopped, and any warning.
+    """
+
+    translation: np.ndarray
+    rotation: np.ndarray
+    origin: np.ndarray
+    covariance: np.ndarray
+    parameter_names: tuple
+    sigma0: float
+    n_used: int
+    share_used: float
+    converged: bool
+    iterations: int
+    degeneracy: Degeneracy | None = None
+    method: str = ""
+    history: tuple = field(default_factory=tuple)
+    runtime_s: float = float("nan")
+    message: str = ""
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """The 4x4 matrix in the caller's frame: p' = R p + (t + origin - R origin)."""
+        R = np.asarray(self.rotation)
+        t_world = self.translation + self.origin - R @ self.origin
+        return make_transform(R, t_world)
+
+    @property
+    def std(self) -> np.ndarray:
+        """Standard deviations of the estimated parameters (sqrt of the covariance diagonal)."""
+        return np.sqrt(np.clip(np.diag(self.covariance), 0, None))
+
+    @property
+    def translation_std(self) -> np.ndarray:
+        """Standard deviations of tx, ty, tz."""
+        idx = [self.parameter_names.index(n) for n in ("tx", "ty", "tz")]
+        return self.std[idx]
+
+    def apply(self, points) -> np.ndarray:
+        """Map source points (n, 3) into the target frame."""
+        from ..transforms import apply_transform
+
+        return apply_transform(self.matrix, points)
+
+    def _report(self):
+        std = self.translation_std
+        rows = [
+            (f"d{a}", f"{t:+.4f} m  +- {s:.4f} m") for a, t, s in zip(AXES, self.translation, std)
+        ]
+        if not np.allclose(self.rotation, np.eye(3)):
+            from ..transforms import angles_from_rotation
+
+            ang = np.degrees(angles_from_rotation(self.rotation)) * 3600
+            rows.append(("rotation rx, ry, rz", fmt(ang, 2, "arcsec")))
+        rows += [
+            ("sigma0", fmt(self.sigma0, 4)),
+            ("correspondences used", f"{self.n_used} ({100 * self.share_used:.1f} %)"),
+            ("converged", f"{self.converged} after {self.iterations} iterations"),
+            ("runtime", fmt(self.runtime_s, 3, "s")),
+        ]
+        if self.message:
+            rows.append(("message", self.message))
+        sections = [("Transformation (source -> target)", rows)]
+        if self.degeneracy is not None:
+            sections += self.degeneracy._report()[1]
+        return f"Registration result ({self.method or 'unknown method'})", sections

@@ -1,0 +1,31 @@
+"""Reproducible synthetic point clouds with known truth.
+
+- ``sphere_on_tripod``: a TLS sphere target on a tripod with base, ground and clutter.
+- ``room_scene``: a small sphere in a scanned room (walls, floor, furniture).
+- ``als_epochs``: two airborne laser scanning epochs of a named test region.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+_EXPORTS = {
+    "sphere_on_tripod": "labkit.synthetic.tripod",
+    "TripodScene": "labkit.synthetic.tripod",
+    "room_scene": "labkit.synthetic.room",
+    "als_scene": "labkit.synthetic.als",
+    "als_epochs": "labkit.synthetic.als",
+    "EpochPair": "labkit.synthetic.als",
+    "REGIONS": "labkit.synthetic.als",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'labkit.synthetic' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value

@@ -1,0 +1,93 @@
+"""4x4 homogeneous transformations: build, compose, invert, apply.
+
+A transform ``T`` maps a point ``p`` (column vector) to ``R p + t``; the
+convention throughout labkit is that a registration result maps the *source*
+cloud onto the *target* cloud.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._checks import as_points
+from .errors import LabkitError
+
+
+def make_transform(rotation=None, translation=None) -> np.ndarray:
+    """Build a 4x4 matrix from a 3x3 rotation (default identity) and a translation (3,)."""
+    T = np.eye(4)
+    if rotation is not None:
+        R = np.asarray(rotation, dtype=np.float64)
+        if R.shape != (3, 3):
+            raise LabkitError(f"rotation must have shape (3, 3), got {R.shape}")
+        T[:3, :3] = R
+    if translation is not None:
+        t = np.asarray(translation, dtype=np.float64)
+        if t.shape != (3,):
+            raise LabkitError(f"translation must have shape (3,), got {t.shape}")
+        T[:3, 3] = t
+    return T
+
+
+def check_transform(T) -> np.ndarray:
+    """Return ``T`` as a float64 4x4 rigid-body matrix or raise a clear error."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise LabkitError(f"a transformation must be a 4x4 matrix, got shape {T.shape}")
+    if not np.isfinite(T).all():
+        raise LabkitError("the transformation contains NaN or infinite values")
+    if not np.allclose(T[3], [0, 0, 0, 1]):
+        raise LabkitError("the last row of a homogeneous transformation must be [0, 0, 0, 1]")
+    R = T[:3, :3]
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise LabkitError("the upper-left 3x3 block is not a proper rotation matrix")
+    return T
+
+
+def compose(*transforms) -> np.ndarray:
+    """Compose transforms so that ``compose(A, B)`` applies ``B`` first, then ``A``."""
+    out = np.eye(4)
+    for T in transforms:
+        out = out @ check_transform(T)
+    return out
+
+
+def invert(T) -> np.ndarray:
+    """Inverse of a rigid-body transform (uses R^T, no general inversion)."""
+    T = check_transform(T)
+    R, t = T[:3, :3], T[:3, 3]
+    return make_transform(R.T, -R.T @ t)
+
+
+def apply_transform(T, points, *, origin=None) -> np.ndarray:
+    """Apply ``T`` to (n, 3) points and return a new array.
+
+    With ``origin`` given, ``T`` is understood in the frame reduced to that
+    origin: ``p' = R (p - o) + t + o``. This keeps rotations about a local point
+    numerically sound for UTM coordinates.
+    """
+    T = check_transform(T)
+    xyz = as_points(points)
+    R, t = T[:3, :3], T[:3, 3]
+    if origin is None:
+        return xyz @ R.T + t
+    o = np.asarray(origin, dtype=np.float64)
+    return (xyz - o) @ R.T + t + o
+
+
+def rotation_from_angles(rx: float, ry: float, rz: float) -> np.ndarray:
+    """Rotation matrix R = Rz(rz) Ry(ry) Rx(rx) from angles in radians."""
+    cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
+    Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return Rz @ Ry @ Rx
+
+
+def angles_from_rotation(R) -> np.ndarray:
+    """Angles (rx, ry, rz) in radians with R = Rz Ry Rx (inverse of :func:`rotation_from_angles`)."""
+    R = np.asarray(R, dtype=np.float64)
+    ry = -np.arcsin(np.clip(R[2, 0], -1.0, 1.0))
+    rx = np.arctan2(R[2, 1], R[2, 2])
+    rz = np.arctan2(R[1, 0], R[0, 0])
+    return np.array([rx, ry, rz])
