@@ -1,0 +1,326 @@
+"""Comparing transformations with references (seed 003, step 5; notebook 07).
+
+The table method x region x case: the shift of every method at the centre of
+the region, its error against the reference, and whether that error lies
+inside the uncertainty the method states for itself (plus the reference's).
+References live in :mod:`labkit.references`, distances in
+:mod:`labkit.distances`; both are re-exported here.
+
+Equation numbers refer to ``notebooks/07-comparing-transformations.ipynb``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import time
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import numpy as np
+from scipy import linalg, stats
+
+from ._atomic import atomic_write_text
+from ._checks import as_points, probability
+from ._report import ReportMixin
+from .distances import (  # noqa: F401  (re-exported)
+    DistanceChange, as_matrix, check_overlap, cloud_to_cloud, distances_before_after, point_to_plane_distance,
+)
+from .errors import LabkitError
+from .references import (  # noqa: F401  (re-exported)
+    Reference, average_references, load_references, manual_reference, reference_from_pairs,
+    reference_from_targets, save_references, truth_reference,
+)
+
+AXES = ("X", "Y", "Z")
+
+
+@dataclass(frozen=True, eq=False)
+class ComparisonRow:
+    """One method on one region and case. Shifts are at the source centroid (eq. 5), metres.
+
+    ``dx, dy, dz`` estimated shift and ``sx, sy, sz`` its standard deviations;
+    ``ref_*`` the reference and its standard deviations; ``ex, ey, ez`` the error
+    (estimate - reference); ``error_norm`` over all axes and
+    ``error_norm_constrained`` over the axes the data constrain (``constrained``,
+    e.g. ``"XZ"``); ``chi2`` with ``dof`` and ``p_value`` of the test of eq. 6,
+    ``inside`` True when the error lies inside the combined stated uncertainty.
+    """
+
+    method: str
+    region: str
+    case: str
+    dx: float
+    dy: float
+    dz: float
+    sx: float
+    sy: float
+    sz: float
+    ref_dx: float
+    ref_dy: float
+    ref_dz: float
+    ref_sx: float
+    ref_sy: float
+    ref_sz: float
+    ex: float
+    ey: float
+    ez: float
+    error_norm: float
+    error_norm_constrained: float
+    constrained: str
+    chi2: float
+    dof: int
+    p_value: float
+    inside: bool
+    rotation_error_arcsec: float
+    n_used: int
+    share_used: float
+    converged: bool
+    runtime_s: float
+    message: str = ""
+
+    @property
+    def shift(self) -> np.ndarray:
+        return np.array([self.dx, self.dy, self.dz])
+
+    @property
+    def shift_std(self) -> np.ndarray:
+        return np.array([self.sx, self.sy, self.sz])
+
+    @property
+    def reference(self) -> np.ndarray:
+        return np.array([self.ref_dx, self.ref_dy, self.ref_dz])
+
+    @property
+    def reference_std(self) -> np.ndarray:
+        return np.array([self.ref_sx, self.ref_sy, self.ref_sz])
+
+    @property
+    def error(self) -> np.ndarray:
+        return np.array([self.ex, self.ey, self.ez])
+
+    @property
+    def ok(self) -> bool:
+        """False when the method failed (its numbers are NaN; see ``message``)."""
+        return bool(np.isfinite(self.dx))
+
+
+COLUMNS = tuple(f.name for f in fields(ComparisonRow))
+_TEXT_COLUMNS = (("method", "{}"), ("region", "{}"), ("case", "{}"), ("dx", "{:+.4f}"), ("dy", "{:+.4f}"),
+                 ("dz", "{:+.4f}"), ("ex", "{:+.4f}"), ("ey", "{:+.4f}"), ("ez", "{:+.4f}"),
+                 ("error_norm_constrained", "{:.4f}"), ("constrained", "{}"), ("inside", "{}"),
+                 ("n_used", "{}"), ("runtime_s", "{:.2f}"))
+
+
+@dataclass(frozen=True, eq=False)
+class ComparisonTable(ReportMixin):
+    """Rows method x region x case with CSV export and a text rendering."""
+
+    rows: tuple
+    alpha: float = 0.05
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def __iter__(self):
+        return iter(self.rows)
+
+    @property
+    def methods(self) -> tuple:
+        return tuple(dict.fromkeys(r.method for r in self.rows))
+
+    @property
+    def regions(self) -> tuple:
+        return tuple(dict.fromkeys(r.region for r in self.rows))
+
+    @property
+    def cases(self) -> tuple:
+        return tuple(dict.fromkeys(r.case for r in self.rows))
+
+    def select(self, method=None, region=None, case=None) -> "ComparisonTable":
+        """The rows matching every given label."""
+        keep = [r for r in self.rows if (method is None or r.method == method)
+                and (region is None or r.region == region) and (case is None or r.case == case)]
+        return ComparisonTable(tuple(keep), self.alpha)
+
+    def to_records(self) -> list:
+        """The rows as dictionaries."""
+        return [asdict(r) for r in self.rows]
+
+    def to_csv(self, path) -> Path:
+        """Write all columns to a CSV file (atomically)."""
+        buf = io.StringIO()
+        writer = csv.DictWriter(buf, fieldnames=COLUMNS, lineterminator="\n")
+        writer.writeheader()
+        for rec in self.to_records():
+            writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in rec.items()})
+        return atomic_write_text(path, buf.getvalue())
+
+    def text(self) -> str:
+        """A fixed-width text table of the main columns (m, s)."""
+        head = [name for name, _ in _TEXT_COLUMNS]
+        body = [[_cell(fmt_, getattr(r, name)) for name, fmt_ in _TEXT_COLUMNS] for r in self.rows]
+        width = [max(len(h), *(len(b[i]) for b in body)) if body else len(h) for i, h in enumerate(head)]
+        line = lambda cells: "  ".join(c.rjust(w) for c, w in zip(cells, width))  # noqa: E731
+        return "\n".join([line(head), line(["-" * w for w in width])] + [line(b) for b in body])
+
+    def _report(self):
+        rows = []
+        for m in self.methods:
+            sel = [r for r in self.rows if r.method == m]
+            good = [r for r in sel if r.ok]
+            med = np.median([r.error_norm_constrained for r in good]) if good else float("nan")
+            inside = sum(r.inside for r in good)
+            rows.append((m, f"{len(good)}/{len(sel)} ran; median error {med:.4f} m (constrained axes); "
+                            f"{inside}/{len(sel)} inside stated uncertainty"))
+        title = f"Comparison: {len(self.methods)} methods x {len(self.regions)} regions x {len(self.cases)} cases"
+        return title, [(f"per method (test level alpha = {self.alpha})", rows)]
+
+    def _repr_html_(self) -> str:
+        head = "".join(f"<th>{n}</th>" for n, _ in _TEXT_COLUMNS)
+        body = "".join("<tr>" + "".join(f"<td>{_cell(f, getattr(r, n))}</td>" for n, f in _TEXT_COLUMNS) + "</tr>"
+                       for r in self.rows)
+        return super()._repr_html_() + f"<table><tr>{head}</tr>{body}</table>"
+
+
+def compare_methods(pairs, methods, *, references=None, alpha: float = 0.05) -> ComparisonTable:
+    """Run every method on every epoch pair and compare with the references (notebook 07).
+
+    Parameters
+    ----------
+    pairs : mapping or sequence
+        Epoch pairs with attributes ``source`` and ``target`` (e.g.
+        :class:`labkit.synthetic.EpochPair`), optional ``truth`` (4x4),
+        ``region``, ``case`` and ``constrained`` (3 bools: which axes the data
+        determine). A mapping's key labels the pair: ``(region, case)`` or a region name.
+    methods : mapping of str -> callable(source, target) -> RegistrationResult
+        E.g. ``{"icp": partial(icp, dof="translation"), "consensus": max_consensus}``.
+    references : mapping (region, case) -> Reference, optional
+        From :func:`load_references`; pairs without one use their ``truth``.
+    alpha : float
+        Level of the chi-square test of eq. 6.
+
+    Returns
+    -------
+    ComparisonTable
+        One row per method and pair. A method that raises a labkit error gets
+        a row with NaN numbers and the error in ``message``.
+    """
+    alpha = probability(alpha, "alpha")
+    if not isinstance(methods, Mapping) or not methods:
+        raise LabkitError("methods must be a non-empty mapping name -> callable(source, target)")
+    rows = []
+    for (region, case), pair in _labelled(pairs):
+        check_overlap(pair.source, pair.target, name=f"source and target of region {region!r} ({case})")
+        ref = _reference_for(pair, region, case, references)
+        for name, method in methods.items():
+            result, runtime, error = _run(method, pair)
+            rows.append(_row(name, region, case, pair, ref, result, runtime, error, alpha))
+    return ComparisonTable(tuple(rows), alpha)
+
+
+def _labelled(pairs):
+    items = pairs.items() if isinstance(pairs, Mapping) else ((None, p) for p in pairs)
+    for key, pair in items:
+        if not (hasattr(pair, "source") and hasattr(pair, "target")):
+            raise LabkitError(f"each pair needs .source and .target, got {type(pair).__name__}")
+        region = getattr(pair, "region", "") or ""
+        case = getattr(pair, "case", "") or ""
+        if isinstance(key, tuple) and len(key) == 2:
+            region, case = map(str, key)
+        elif key is not None:
+            region = str(key)
+        yield (region, case), pair
+
+
+def _reference_for(pair, region, case, references):
+    if references is not None and (region, case) in references:
+        return references[(region, case)]
+    if getattr(pair, "truth", None) is not None:
+        return truth_reference(pair.truth, region=region, case=case)
+    raise LabkitError(f"no reference for region {region!r}, case {case!r}: give references= or pairs with .truth")
+
+
+def _run(method, pair):
+    t0 = time.perf_counter()
+    try:
+        result = method(pair.source, pair.target)
+    except (LabkitError, np.linalg.LinAlgError) as exc:
+        return None, time.perf_counter() - t0, f"{type(exc).__name__}: {exc}"
+    wall = time.perf_counter() - t0
+    runtime = getattr(result, "runtime_s", float("nan"))
+    return result, (runtime if np.isfinite(runtime) else wall), ""
+
+
+def _row(name, region, case, pair, ref, result, runtime, error, alpha) -> ComparisonRow:
+    src = as_points(pair.source, name="source")
+    c = src.mean(axis=0)
+    r_shift = shift_at(ref.matrix, c)
+    mask = _constrained_axes(pair, result)
+    labels = "".join(a for a, m in zip(AXES, mask) if m)
+    ref_std = ref.std
+    if result is None:
+        nan = float("nan")
+        return ComparisonRow(name, region, case, *[nan] * 6, *r_shift, *ref_std, nan, nan, nan, nan, nan, labels,
+                             nan, int(mask.sum()), nan, False, nan, 0, 0.0, False, runtime, error)
+    T = as_matrix(result)
+    shift = shift_at(T, c)  # (eq. 5)
+    Sigma_m = shift_covariance(result, c)
+    e = shift - r_shift
+    chi2, p = _chi2_test(e[mask], (Sigma_m + ref.covariance)[np.ix_(mask, mask)])  # (eq. 6)
+    inside = bool(np.isfinite(chi2) and chi2 <= stats.chi2.ppf(1 - alpha, mask.sum()))
+    dR = T[:3, :3] @ ref.rotation.T
+    rot_err = np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))) * 3600
+    return ComparisonRow(
+        name, region, case, *shift, *np.sqrt(np.clip(np.diag(Sigma_m), 0, None)), *r_shift, *ref_std, *e,
+        float(np.linalg.norm(e)), float(np.linalg.norm(e[mask])), labels, chi2, int(mask.sum()), p, inside,
+        float(rot_err), int(getattr(result, "n_used", 0)), float(getattr(result, "share_used", np.nan)),
+        bool(getattr(result, "converged", False)), float(runtime), str(getattr(result, "message", "")),
+    )
+
+
+def shift_at(T, c) -> np.ndarray:
+    """Shift of the point c under T: R c + t - c (eq. 5)."""
+    return T[:3, :3] @ c + T[:3, 3] - c
+
+
+def shift_covariance(result, c) -> np.ndarray:
+    """Covariance of the shift at c by propagating the parameter covariance: J Sigma J^T."""
+    names = tuple(getattr(result, "parameter_names", ("tx", "ty", "tz")))
+    Sigma = np.asarray(getattr(result, "covariance", np.full((3, 3), np.nan)), dtype=float)
+    if Sigma.shape != (len(names), len(names)):
+        return np.full((3, 3), np.nan)
+    arm = c - np.asarray(getattr(result, "origin", np.zeros(3)), dtype=float)
+    # d(shift)/d(angle): a small rotation dtheta moves c by dtheta x arm = -[arm]x dtheta
+    dtheta = -np.array([[0, -arm[2], arm[1]], [arm[2], 0, -arm[0]], [-arm[1], arm[0], 0]])
+    cols = {"tx": np.eye(3)[:, 0], "ty": np.eye(3)[:, 1], "tz": np.eye(3)[:, 2],
+            "rx": dtheta[:, 0], "ry": dtheta[:, 1], "rz": dtheta[:, 2]}
+    J = np.column_stack([cols.get(n, np.zeros(3)) for n in names])
+    return J @ Sigma @ J.T
+
+
+def _chi2_test(e: np.ndarray, C: np.ndarray):
+    """T = e^T C^-1 e (eq. 6) by Cholesky; NaN when C is not positive definite."""
+    if e.size == 0 or not np.isfinite(C).all():
+        return float("nan"), float("nan")
+    try:
+        factor = linalg.cho_factor(C)
+    except linalg.LinAlgError:
+        return float("nan"), float("nan")
+    T = float(e @ linalg.cho_solve(factor, e))
+    return T, float(stats.chi2.sf(T, e.size))
+
+
+def _constrained_axes(pair, result) -> np.ndarray:
+    c = getattr(pair, "constrained", None)
+    if c is None and result is not None and getattr(result, "degeneracy", None) is not None:
+        c = result.degeneracy.axis_determined
+    mask = np.ones(3, bool) if c is None else np.asarray(c, dtype=bool).reshape(3)
+    return mask
+
+
+def _cell(fmt_: str, value) -> str:
+    if isinstance(value, float) and not np.isfinite(value):
+        return "nan"
+    return fmt_.format(value)

@@ -1,0 +1,479 @@
+"""Shift fields over tiles: coherent areas at survey scale (seed 003, step 6; notebook 08).
+
+A survey is cut into square tiles (e.g. 100 m); every tile is registered on its
+own, giving one shift per tile (the *shift field*). Neighbouring tiles whose
+shifts differ by more than their combined uncertainty do not move together;
+tiles linked by agreeing neighbours form *coherent areas*.
+
+The per-tile work runs on Dask: one ``dask.delayed`` task per tile, computed by
+the local threaded scheduler, or by any ``dask.distributed`` Client passed in.
+Tiles of LAS/LAZ files are read lazily inside their task (only the files whose
+header extent meets the tile, filtered by the tile's box while reading), so a
+survey of hundreds of files never has to fit in memory.
+
+Equation numbers refer to ``notebooks/08-shift-field-over-tiles.ipynb``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import time
+from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+from scipy import linalg, stats
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from ._atomic import atomic_write_text
+from ._checks import as_points, positive, probability
+from ._report import ReportMixin
+from .errors import CloudFileError, EmptyRegionError, LabkitError
+
+LAS_SUFFIXES = (".las", ".laz")
+
+
+# --------------------------------------------------------------------------- tiles
+@dataclass(frozen=True, eq=False)
+class Tile:
+    """One square tile: ``bounds`` = (xmin, ymin, xmax, ymax) of its core, read with ``buffer`` around it."""
+
+    row: int
+    col: int
+    bounds: tuple
+    buffer: float = 0.0
+
+    @property
+    def centre(self) -> np.ndarray:
+        x0, y0, x1, y1 = self.bounds
+        return np.array([(x0 + x1) / 2, (y0 + y1) / 2])
+
+    @property
+    def read_bounds(self) -> tuple:
+        """The core enlarged by the buffer on every side."""
+        x0, y0, x1, y1 = self.bounds
+        b = self.buffer
+        return (x0 - b, y0 - b, x1 + b, y1 + b)
+
+    def contains(self, xyz: np.ndarray) -> np.ndarray:
+        """Mask of points inside the buffered box; the core is half-open so tiles without buffer never share points."""
+        x0, y0, x1, y1 = self.read_bounds
+        x, y = xyz[:, 0], xyz[:, 1]
+        if self.buffer > 0:
+            return (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
+        return (x >= x0) & (x < x1) & (y >= y0) & (y < y1)
+
+
+def tile_grid(bounds, size: float = 100.0, *, buffer: float = 0.0) -> tuple:
+    """Square tiles of ``size`` metres covering ``bounds`` = (xmin, ymin, xmax, ymax).
+
+    The grid is anchored at multiples of ``size`` (a 100 m grid starts at
+    round hundreds), as survey tiling schemes are.
+    """
+    size = positive(size, "size")
+    if buffer < 0:
+        raise LabkitError(f"buffer must be >= 0, got {buffer}")
+    x0, y0, x1, y1 = map(float, bounds)
+    if not (x1 >= x0 and y1 >= y0):
+        raise LabkitError(f"bounds must be (xmin, ymin, xmax, ymax) with min <= max, got {bounds}")
+    gx0, gy0 = np.floor(x0 / size) * size, np.floor(y0 / size) * size
+    ncol = max(1, int(np.floor((x1 - gx0) / size)) + 1)
+    nrow = max(1, int(np.floor((y1 - gy0) / size)) + 1)
+    return tuple(Tile(r, c, (gx0 + c * size, gy0 + r * size, gx0 + (c + 1) * size, gy0 + (r + 1) * size),
+                      float(buffer)) for r in range(nrow) for c in range(ncol))
+
+
+# --------------------------------------------------------------------------- survey input
+@dataclass(frozen=True, eq=False)
+class _Files:
+    """LAS/LAZ files with their header extents (xmin, ymin, xmax, ymax)."""
+
+    paths: tuple
+    extents: np.ndarray
+    classes: tuple | None = None
+
+    def bounds(self) -> np.ndarray:
+        return np.r_[self.extents[:, :2].min(axis=0), self.extents[:, 2:].max(axis=0)]
+
+    def for_tile(self, tile: Tile) -> "_Files":
+        x0, y0, x1, y1 = tile.read_bounds
+        e = self.extents
+        hit = (e[:, 0] <= x1) & (e[:, 2] >= x0) & (e[:, 1] <= y1) & (e[:, 3] >= y0)
+        return _Files(tuple(p for p, h in zip(self.paths, hit) if h), e[hit], self.classes)
+
+    def load(self, tile: Tile):
+        """Read the tile's points from each file, filtered while reading."""
+        parts = [_read_part(p, tile.read_bounds, self.classes) for p in self.paths]
+        return _concat([c.subset(tile.contains(c.xyz)) for c in parts if c is not None])
+
+
+def _read_part(path: str, bbox: tuple, classes):
+    """The points of one file inside ``bbox`` (read in chunks, filtered while reading), or None."""
+    from .io import read_cloud
+
+    try:
+        return read_cloud(path, bbox=bbox, classes=classes)
+    except EmptyRegionError:
+        return None
+
+
+def _survey(data, classes=None):
+    """PointCloud/array -> itself; path or list of paths -> _Files (LAS/LAZ lazily, others read now)."""
+    if isinstance(data, (str, Path)) or (isinstance(data, (list, tuple)) and data
+                                         and all(isinstance(p, (str, Path)) for p in data)):
+        paths = [Path(p) for p in ([data] if isinstance(data, (str, Path)) else data)]
+        missing = [str(p) for p in paths if not p.is_file()]
+        if missing:
+            raise CloudFileError(f"point-cloud file(s) not found: {', '.join(missing)}")
+        if all(p.suffix.lower() in LAS_SUFFIXES for p in paths):
+            return _Files(tuple(str(p) for p in paths), np.array([_las_extent(p) for p in paths]),
+                          None if classes is None else tuple(classes))
+        from .io import read_cloud
+
+        return _concat([read_cloud(p, classes=classes) for p in paths])
+    if classes is not None and "classification" in getattr(data, "attributes", {}):
+        return data.subset(np.isin(data["classification"], list(classes)))
+    return data
+
+
+def _las_extent(path: Path) -> tuple:
+    """(xmin, ymin, xmax, ymax) from the LAS header, without reading points."""
+    import laspy
+
+    try:
+        with laspy.open(path) as reader:
+            lo, hi = reader.header.mins, reader.header.maxs
+    except Exception as exc:  # laspy raises several types for corrupt headers
+        raise CloudFileError(f"cannot read the LAS header of {path}: {exc}") from None
+    return (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+
+
+def _bounds_of(data) -> np.ndarray:
+    if isinstance(data, _Files):
+        return data.bounds()
+    xyz = as_points(data, name="survey cloud")
+    return np.r_[xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)]
+
+
+def _for_tile(data, tile: Tile):
+    """What a tile task receives: the file list to read, or the points already cut out."""
+    if isinstance(data, _Files):
+        return data.for_tile(tile)
+    xyz = as_points(data, name="survey cloud")
+    mask = tile.contains(xyz)
+    return data.subset(mask) if hasattr(data, "subset") else xyz[mask]
+
+
+def _concat(clouds):
+    from .cloud import PointCloud
+
+    if not clouds:
+        return np.zeros((0, 3))
+    if len(clouds) == 1:
+        return clouds[0]
+    keys = set.intersection(*(set(c.attributes) for c in clouds))
+    return PointCloud(np.vstack([c.xyz for c in clouds]),
+                      {k: np.concatenate([c[k] for c in clouds]) for k in keys}, crs=clouds[0].crs)
+
+
+# --------------------------------------------------------------------------- per-tile registration
+@dataclass(frozen=True, eq=False)
+class TileShift:
+    """The registration of one tile, reduced to what the shift field needs.
+
+    ``translation`` is the shift at the centroid of the tile's source points
+    (eq. 1) with its 3x3 ``covariance``; ``status`` is ``"ok"``,
+    ``"too few points"`` or ``"failed"`` (then the numbers are NaN and
+    ``message`` says why).
+    """
+
+    tile: Tile
+    translation: np.ndarray
+    covariance: np.ndarray
+    axis_determined: np.ndarray
+    n_source: int
+    n_target: int
+    n_used: int
+    sigma0: float
+    converged: bool
+    runtime_s: float
+    status: str
+    message: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+
+def register_tile(tile: Tile, source, target, method, min_points: int = 200) -> TileShift:
+    """Load (if needed) and register one tile; never raises for a labkit error, reports it instead."""
+    from .compare import shift_at, shift_covariance
+
+    t0 = time.perf_counter()
+    # Load the tile's points (lazily read for files)
+    src = source.load(tile) if isinstance(source, _Files) else source
+    tgt = target.load(tile) if isinstance(target, _Files) else target
+    ns, nt = len(src), len(tgt)
+    nan3, nan33 = np.full(3, np.nan), np.full((3, 3), np.nan)
+    if min(ns, nt) < min_points:
+        msg = f"{ns} source and {nt} target points; at least {min_points} of each needed"
+        return TileShift(tile, nan3, nan33, np.zeros(3, bool), ns, nt, 0, np.nan, False,
+                         time.perf_counter() - t0, "too few points", msg)
+    # Register, and express the result as the shift at the source centroid (eq. 1)
+    try:
+        result = method(src, tgt)
+    except (LabkitError, np.linalg.LinAlgError) as exc:
+        return TileShift(tile, nan3, nan33, np.zeros(3, bool), ns, nt, 0, np.nan, False,
+                         time.perf_counter() - t0, "failed", f"{type(exc).__name__}: {exc}")
+    c = as_points(src).mean(axis=0)
+    deg = getattr(result, "degeneracy", None)
+    determined = np.ones(3, bool) if deg is None else np.asarray(deg.axis_determined, bool)
+    return TileShift(tile, shift_at(result.matrix, c), shift_covariance(result, c), determined, ns, nt,
+                     int(result.n_used), float(result.sigma0), bool(result.converged),
+                     time.perf_counter() - t0, "ok", str(getattr(result, "message", "")))
+
+
+def register_tiles(source, target, method=None, *, size: float = 100.0, buffer: float = 0.0,
+                   min_points: int = 200, classes=None, client=None, scheduler: str = "threads",
+                   progress: bool = True) -> "ShiftField":
+    """Split a survey into tiles and register every tile; the per-tile work runs on Dask.
+
+    Parameters
+    ----------
+    source, target : PointCloud, array (n, 3), path, or list of paths
+        The two epochs. LAS/LAZ paths are read lazily per tile (header extents
+        decide which files a tile touches; points are filtered by the tile's
+        box while reading).
+    method : callable(source, target) -> RegistrationResult, optional
+        Default: ``labkit.icp`` with ``dof="translation"``. With a distributed
+        cluster of processes it must be picklable by cloudpickle.
+    size : float
+        Tile edge in metres.
+    buffer : float
+        Extra margin read around each tile (m). Tiles with a buffer share points,
+        which correlates neighbouring shifts; the neighbour test ignores that.
+    min_points : int
+        Tiles with fewer source or target points are reported, not registered.
+    classes : sequence of int, optional
+        Keep only these ASPRS classes (e.g. ground and buildings).
+    client : distributed.Client, optional
+        Run on this cluster; otherwise Dask's local ``scheduler``.
+    scheduler : {'threads', 'processes', 'sync', 'serial'}
+        The local Dask scheduler; ``'serial'`` is a plain loop without Dask.
+    progress : bool
+        Show a progress bar counting tiles.
+
+    Returns
+    -------
+    ShiftField
+    """
+    method = _default_method() if method is None else method
+    if scheduler not in ("threads", "processes", "sync", "serial"):
+        raise LabkitError(f"scheduler must be 'threads', 'processes', 'sync' or 'serial', got {scheduler!r}")
+    # Describe the survey and cut the grid
+    src, tgt = _survey(source, classes), _survey(target, classes)
+    b_src, b_tgt = _bounds_of(src), _bounds_of(tgt)
+    common = np.r_[np.maximum(b_src[:2], b_tgt[:2]), np.minimum(b_src[2:], b_tgt[2:])]
+    if (common[2:] < common[:2]).any():
+        raise LabkitError("source and target surveys do not overlap in x, y")
+    tiles = tile_grid(common, size, buffer=buffer)
+    # One job per tile: its inputs are cut out (clouds) or listed (files) here, read in the job
+    jobs = [(t, _for_tile(src, t), _for_tile(tgt, t)) for t in tiles]
+    run = partial(register_tile, method=method, min_points=int(min_points))
+    shifts = _run_jobs(run, jobs, client, scheduler, progress)
+    return ShiftField(tuple(shifts), float(size), getattr(method, "__name__", type(method).__name__))
+
+
+def _default_method():
+    from .registration import icp
+
+    return partial(icp, dof="translation")
+
+
+def _run_jobs(run, jobs, client, scheduler, progress) -> list:
+    if scheduler == "serial" and client is None:
+        return [run(*job) for job in jobs]
+    import dask
+
+    tasks = [dask.delayed(run, pure=True)(*j, dask_key_name=f"tile-{j[0].row}-{j[0].col}") for j in jobs]
+    if client is not None:
+        futures = client.compute(tasks)
+        if progress:
+            from distributed import as_completed
+
+            for done, _ in enumerate(as_completed(futures), 1):
+                _print_bar(done, len(futures))
+        return client.gather(futures)
+    if progress:
+        from dask.diagnostics import ProgressBar
+
+        with ProgressBar():
+            return list(dask.compute(*tasks, scheduler=scheduler))
+    return list(dask.compute(*tasks, scheduler=scheduler))
+
+
+def _print_bar(done: int, total: int, width: int = 40) -> None:
+    """A text progress bar counting tiles (for runs on a distributed Client)."""
+    fill = int(width * done / max(total, 1))
+    end = "\n" if done == total else ""
+    print(f"\r[{'#' * fill}{' ' * (width - fill)}] {done}/{total} tiles", end=end, flush=True)
+
+
+# --------------------------------------------------------------------------- the field and its test
+@dataclass(frozen=True, eq=False)
+class NeighbourTest(ReportMixin):
+    """Agreement of neighbouring tiles within their uncertainty (eq. 2, 3).
+
+    ``pairs`` (k, 2) indices into the field's tiles, ``difference`` (k, 3) of
+    their shifts, ``chi2`` with ``dof`` and ``p_value``, ``agree`` per pair;
+    ``areas`` labels each tile with its coherent area (connected through agreeing
+    neighbours; -1 for tiles without a shift).
+    """
+
+    pairs: np.ndarray
+    difference: np.ndarray
+    chi2: np.ndarray
+    dof: np.ndarray
+    p_value: np.ndarray
+    agree: np.ndarray
+    areas: np.ndarray
+    alpha: float
+    extra_std: float
+
+    @property
+    def n_areas(self) -> int:
+        return int(self.areas.max() + 1) if (self.areas >= 0).any() else 0
+
+    def _report(self):
+        k = len(self.pairs)
+        rows = [("neighbour pairs tested", str(k)),
+                ("agree within uncertainty", f"{int(self.agree.sum())} of {k}"),
+                ("coherent areas", str(self.n_areas)),
+                ("test", f"chi-square, alpha = {self.alpha}, extra std per tile {self.extra_std:.4f} m")]
+        return "Neighbouring-tile agreement", [("", rows)]
+
+
+@dataclass(frozen=True, eq=False)
+class ShiftField(ReportMixin):
+    """The shift of every tile of a survey."""
+
+    tiles: tuple
+    size: float
+    method: str = ""
+
+    def __len__(self) -> int:
+        return len(self.tiles)
+
+    @property
+    def ok(self) -> np.ndarray:
+        return np.array([t.ok for t in self.tiles], bool)
+
+    @property
+    def centres(self) -> np.ndarray:
+        return np.array([t.tile.centre for t in self.tiles]).reshape(-1, 2)
+
+    @property
+    def translations(self) -> np.ndarray:
+        return np.array([t.translation for t in self.tiles]).reshape(-1, 3)
+
+    @property
+    def covariances(self) -> np.ndarray:
+        return np.array([t.covariance for t in self.tiles]).reshape(-1, 3, 3)
+
+    @property
+    def std(self) -> np.ndarray:
+        return np.sqrt(np.clip(np.einsum("nii->ni", self.covariances), 0, None))
+
+    def neighbour_test(self, alpha: float = 0.05, *, extra_std: float = 0.0, diagonal: bool = False) -> NeighbourTest:
+        """Test whether neighbouring tiles shift alike (eq. 2, 3); see :func:`neighbour_test`."""
+        return neighbour_test(self, alpha, extra_std=extra_std, diagonal=diagonal)
+
+    def to_csv(self, path) -> Path:
+        """One line per tile: index, bounds, shift, standard deviations, counts, status (atomic write)."""
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(["row", "col", "xmin", "ymin", "xmax", "ymax", "dx", "dy", "dz", "sx", "sy", "sz",
+                    "n_source", "n_target", "n_used", "sigma0", "converged", "runtime_s", "status", "message"])
+        for t, s in zip(self.tiles, self.std):
+            w.writerow([t.tile.row, t.tile.col, *t.tile.bounds, *(f"{v:.6g}" for v in (*t.translation, *s)),
+                        t.n_source, t.n_target, t.n_used, f"{t.sigma0:.6g}", t.converged, f"{t.runtime_s:.3f}",
+                        t.status, t.message])
+        return atomic_write_text(path, buf.getvalue())
+
+    def _report(self):
+        ok = self.ok
+        tr = self.translations[ok]
+        rows = [("tiles", f"{len(self)} of {self.size:g} m; {int(ok.sum())} registered"),
+                ("method", self.method or "?")]
+        if ok.any():
+            rows += [("median shift", "[" + ", ".join(f"{v:+.4f}" for v in np.median(tr, axis=0)) + "] m"),
+                     ("spread (std) of shifts", "[" + ", ".join(f"{v:.4f}" for v in tr.std(axis=0)) + "] m")]
+        for status in ("too few points", "failed"):
+            n = sum(t.status == status for t in self.tiles)
+            if n:
+                rows.append((status, f"{n} tiles"))
+        return "Shift field", [("", rows)]
+
+
+def neighbour_test(field: ShiftField, alpha: float = 0.05, *, extra_std: float = 0.0,
+                   diagonal: bool = False) -> NeighbourTest:
+    """Do neighbouring tiles agree within their uncertainty? (notebook 08, eq. 2, 3)
+
+    For tiles i, j sharing an edge (or a corner with ``diagonal``) the
+    difference d = t_i - t_j has covariance C = Sigma_i + Sigma_j + 2 s^2 I
+    (eq. 2; s = ``extra_std``, an uncertainty per tile beyond the formal one,
+    e.g. for systematic effects the covariance of ICP does not see). On the
+    axes both tiles determine, T = d^T C^-1 d is chi-square distributed with as
+    many degrees of freedom (eq. 3); the pair agrees when T <= chi2_{1-alpha}.
+    Tiles connected by agreeing pairs form coherent areas.
+    """
+    alpha = probability(alpha, "alpha")
+    if extra_std < 0:
+        raise LabkitError(f"extra_std must be >= 0, got {extra_std}")
+    pairs = _neighbour_pairs(field, diagonal)
+    t, C = field.translations, field.covariances + extra_std**2 * np.eye(3)
+    det = np.array([s.axis_determined for s in field.tiles], bool).reshape(-1, 3)
+    k = len(pairs)
+    chi2, p, dof = np.full(k, np.nan), np.full(k, np.nan), np.zeros(k, int)
+    for n, (i, j) in enumerate(pairs):
+        axes = det[i] & det[j]
+        d = (t[i] - t[j])[axes]  # (eq. 2)
+        Cd = (C[i] + C[j])[np.ix_(axes, axes)]
+        dof[n] = axes.sum()
+        chi2[n], p[n] = _chi2(d, Cd)  # (eq. 3)
+    crit = stats.chi2.ppf(1 - alpha, np.maximum(dof, 1))
+    agree = np.isfinite(chi2) & (chi2 <= crit)
+    areas = _areas(len(field), pairs[agree], field.ok)
+    diff = (t[pairs[:, 0]] - t[pairs[:, 1]]) if k else np.zeros((0, 3))
+    return NeighbourTest(pairs, diff, chi2, dof, p, agree, areas, alpha, float(extra_std))
+
+
+def _neighbour_pairs(field: ShiftField, diagonal: bool) -> np.ndarray:
+    index = {(s.tile.row, s.tile.col): n for n, s in enumerate(field.tiles) if s.ok}
+    steps = [(0, 1), (1, 0)] + ([(1, 1), (1, -1)] if diagonal else [])
+    pairs = [(n, index[(r + dr, c + dc)]) for (r, c), n in index.items() for dr, dc in steps
+             if (r + dr, c + dc) in index]
+    return np.array(sorted(pairs), int).reshape(-1, 2)
+
+
+def _chi2(d: np.ndarray, C: np.ndarray):
+    if d.size == 0:
+        return np.nan, np.nan
+    try:
+        factor = linalg.cho_factor(C)
+    except linalg.LinAlgError:
+        return np.nan, np.nan
+    T = float(d @ linalg.cho_solve(factor, d))
+    return T, float(stats.chi2.sf(T, d.size))
+
+
+def _areas(n: int, edges: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    labels = np.where(ok, labels, -1)
+    # renumber 0..k-1 over registered tiles, in order of first appearance
+    uniq = {lab: i for i, lab in enumerate(dict.fromkeys(labels[ok]))}
+    return np.array([uniq.get(lab, -1) if o else -1 for lab, o in zip(labels, ok)], int)
