@@ -151,10 +151,12 @@ def _las_extent(path: Path) -> tuple:
     return (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
 
 
-def _bounds_of(data) -> np.ndarray:
+def _bounds_of(data, name: str) -> np.ndarray:
     if isinstance(data, _Files):
         return data.bounds()
-    xyz = as_points(data, name="survey cloud")
+    if len(data) == 0:
+        raise EmptyRegionError(f"the {name} survey has no points (after the class filter, if any)")
+    xyz = as_points(data, name=f"{name} survey")
     return np.r_[xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)]
 
 
@@ -275,7 +277,7 @@ def register_tiles(source, target, method=None, *, size: float = 100.0, buffer: 
         raise LabkitError(f"scheduler must be 'threads', 'processes', 'sync' or 'serial', got {scheduler!r}")
     # Describe the survey and cut the grid
     src, tgt = _survey(source, classes), _survey(target, classes)
-    b_src, b_tgt = _bounds_of(src), _bounds_of(tgt)
+    b_src, b_tgt = _bounds_of(src, "source"), _bounds_of(tgt, "target")
     common = np.r_[np.maximum(b_src[:2], b_tgt[:2]), np.minimum(b_src[2:], b_tgt[2:])]
     if (common[2:] < common[:2]).any():
         raise LabkitError("source and target surveys do not overlap in x, y")

@@ -1,0 +1,171 @@
+"""Tiles, the shift field, the neighbour test, and the Dask paths (labkit.tiles)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from labkit import tiles
+from labkit.cloud import PointCloud
+from labkit.errors import CloudFileError, LabkitError
+from labkit.registration.result import RegistrationResult
+
+ORIGIN = np.array([612_000.0, 5_701_000.0, 80.0])
+
+
+def _terrain(xy):
+    return 3 * np.sin(xy[:, 0] / 9.0) + 2 * np.cos(xy[:, 1] / 7.0) + 0.5 * np.sin((xy[:, 0] + xy[:, 1]) / 4.0)
+
+
+def _survey(n=24_000, extent=(200.0, 100.0), seed=0, jump=0.08):
+    """Two epochs of a wavy terrain; the target's right half (x >= 100 m) moved by `jump` more in X."""
+    rng = np.random.default_rng(seed)
+    xy_s = rng.uniform(0, 1, (n, 2)) * extent
+    xy_t = rng.uniform(0, 1, (2 * n, 2)) * extent
+    shift = np.array([0.05, -0.03, 0.02])
+    tgt = np.c_[xy_t, _terrain(xy_t)]
+    src = np.c_[xy_s, _terrain(xy_s)] - shift  # source + shift lies on the target surface
+    moved = tgt[:, 0] >= 100.0
+    tgt[moved, 0] += jump  # the right half slid in X (a "landslide" of the target epoch)
+    cls_s = np.where(rng.uniform(size=len(src)) < 0.1, 5, 2).astype(np.uint8)
+    cls_t = np.where(rng.uniform(size=len(tgt)) < 0.1, 5, 2).astype(np.uint8)
+    return (PointCloud(src + ORIGIN, {"classification": cls_s}),
+            PointCloud(tgt + ORIGIN, {"classification": cls_t}), shift)
+
+
+def plane_translation(source, target):
+    """A small independent point-to-plane translation estimator (Gauss-Newton, 5 iterations)."""
+    s = np.asarray(getattr(source, "xyz", source))
+    q = np.asarray(getattr(target, "xyz", target))
+    o = q.mean(axis=0).round()
+    s, q = s - o, q - o
+    tree = cKDTree(q)
+    _, nb = tree.query(q, k=10)
+    nbp = q[nb] - q[nb].mean(axis=1, keepdims=True)
+    normals = np.linalg.eigh(np.einsum("nki,nkj->nij", nbp, nbp))[1][:, :, 0]
+    t = np.zeros(3)
+    for _ in range(5):
+        _, j = tree.query(s + t, k=1)
+        A = normals[j]
+        w = np.einsum("ij,ij->i", A, s + t - q[j])
+        N = A.T @ A
+        t = t - np.linalg.solve(N, A.T @ w)
+    _, j = tree.query(s + t, k=1)
+    v = np.einsum("ij,ij->i", normals[j], s + t - q[j])
+    s0 = np.sqrt(v @ v / (len(v) - 3))
+    cov = s0**2 * np.linalg.solve(N, np.eye(3))
+    return RegistrationResult(t, np.eye(3), o, cov, ("tx", "ty", "tz"), s0, len(s), 1.0, True, 5, method="plane")
+
+
+def test_tile_grid_anchors_and_partitions():
+    grid = tiles.tile_grid((612_030.0, 5_701_010.0, 612_250.0, 5_701_090.0), 100.0)
+    assert len(grid) == 3 and grid[0].bounds == (612_000.0, 5_701_000.0, 612_100.0, 5_701_100.0)
+    xyz = np.random.default_rng(1).uniform([612_030, 5_701_010, 0], [612_250, 5_701_090, 1], (5000, 3))
+    xyz[:3, 0] = [612_100.0, 612_200.0, 612_030.0]  # points on tile borders
+    counts = sum(t.contains(xyz).astype(int) for t in grid)
+    assert (counts == 1).all()
+    buffered = tiles.tile_grid((0, 0, 250, 90), 100.0, buffer=5.0)
+    assert buffered[1].read_bounds == (95.0, -5.0, 205.0, 105.0)
+    with pytest.raises(LabkitError, match="size"):
+        tiles.tile_grid((0, 0, 1, 1), 0)
+    with pytest.raises(LabkitError, match="min <= max"):
+        tiles.tile_grid((0, 0, -1, 1), 10)
+
+
+def test_shift_field_recovers_shifts_and_finds_the_moved_half():
+    src, tgt, shift = _survey()
+    field = tiles.register_tiles(src, tgt, plane_translation, size=50.0, scheduler="serial", progress=False)
+    assert len(field) == 8 and field.ok.all()
+    left = field.centres[:, 0] < ORIGIN[0] + 100
+    np.testing.assert_allclose(field.translations[left], np.tile(shift, (left.sum(), 1)), atol=0.01)
+    np.testing.assert_allclose(field.translations[~left], np.tile(shift + [0.08, 0, 0], ((~left).sum(), 1)), atol=0.01)
+    test = field.neighbour_test(alpha=0.01, extra_std=0.005)
+    cross = left[test.pairs[:, 0]] != left[test.pairs[:, 1]]
+    assert not test.agree[cross].any() and test.agree[~cross].all()
+    assert test.n_areas == 2 and len(set(test.areas[left])) == 1 and len(set(test.areas[~left])) == 1
+    assert "coherent areas" in test.summary() and "8 registered" in field.summary()
+
+
+def test_neighbour_test_closed_form():
+    grid = tiles.tile_grid((0, 0, 299, 99), 100.0)  # 1 x 3 tiles
+    t = np.array([[0.0, 0, 0], [0.01, 0, 0], [0.5, 0, 0]])
+    C = np.array([np.eye(3) * 1e-4, np.diag([4e-4, 1e-4, 1e-4]), np.eye(3) * 1e-4])
+    det = [np.ones(3, bool), np.array([True, False, True]), np.ones(3, bool)]
+    shifts = tuple(tiles.TileShift(g, ti, Ci, d, 1000, 1000, 900, 0.01, True, 0.1, "ok")
+                   for g, ti, Ci, d in zip(grid, t, C, det))
+    test = tiles.ShiftField(shifts, 100.0).neighbour_test(alpha=0.05)
+    np.testing.assert_array_equal(test.pairs, [[0, 1], [1, 2]])
+    # pair (0, 1): only X and Z enter (Y undetermined in tile 1); chi2 = 0.01^2 / 5e-4
+    assert test.dof.tolist() == [2, 2]
+    assert test.chi2[0] == pytest.approx(0.01**2 / 5e-4, rel=1e-12)
+    assert test.chi2[1] == pytest.approx(0.49**2 / 5e-4, rel=1e-12)
+    assert test.agree.tolist() == [True, False] and test.areas.tolist() == [0, 0, 1]
+    widened = tiles.neighbour_test(tiles.ShiftField(shifts, 100.0), extra_std=0.5)
+    assert widened.agree.all() and widened.n_areas == 1
+
+
+def test_dask_local_and_distributed_equal_serial():
+    distributed = pytest.importorskip("distributed")
+    src, tgt, _ = _survey(n=8000, extent=(100.0, 100.0), seed=3)
+    kw = dict(size=50.0, min_points=100)
+    serial = tiles.register_tiles(src, tgt, plane_translation, scheduler="serial", progress=False, **kw)
+    threads = tiles.register_tiles(src, tgt, plane_translation, scheduler="threads", progress=True, **kw)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        dist = tiles.register_tiles(src, tgt, plane_translation, client=client, progress=True, **kw)
+    for other in (threads, dist):
+        assert [s.tile.bounds for s in other.tiles] == [s.tile.bounds for s in serial.tiles]
+        np.testing.assert_array_equal(other.translations, serial.translations)
+        np.testing.assert_array_equal(other.covariances, serial.covariances)
+
+
+def test_tiles_read_lazily_from_las_files(tmp_path):
+    io = pytest.importorskip("labkit.io")
+    src, tgt, _ = _survey(n=6000, extent=(100.0, 100.0), seed=4)
+    # the source in two files split at x = 30 m (not on the tile grid), the target in one file
+    left = src.xyz[:, 0] < ORIGIN[0] + 30
+    paths = [io.write_cloud(src.subset(left), tmp_path / "s1.laz"), io.write_cloud(src.subset(~left), tmp_path / "s2.las")]
+    tpath = io.write_cloud(tgt, tmp_path / "t.laz")
+    from_files = tiles.register_tiles(paths, tpath, plane_translation, size=50.0, scheduler="sync", progress=False)
+    # the same points, read whole, in memory
+    parts = [io.read_cloud(p) for p in paths]
+    s_mem = PointCloud(np.vstack([c.xyz for c in parts]),
+                       {"classification": np.concatenate([c["classification"] for c in parts])})
+    t_mem = io.read_cloud(tpath)
+    in_memory = tiles.register_tiles(s_mem, t_mem, plane_translation, size=50.0, scheduler="serial", progress=False)
+    assert [s.n_source for s in from_files.tiles] == [s.n_source for s in in_memory.tiles]
+    np.testing.assert_allclose(from_files.translations, in_memory.translations, atol=1e-12)
+    # classes filter while reading: only ground (2) of the source
+    ground = tiles.register_tiles(paths, tpath, plane_translation, size=50.0, classes=[2], scheduler="serial",
+                                  progress=False, min_points=10)
+    ground_mem = tiles.register_tiles(s_mem, t_mem, plane_translation, size=50.0, classes=[2], scheduler="serial",
+                                      progress=False, min_points=10)
+    assert [s.n_source for s in ground.tiles] == [s.n_source for s in ground_mem.tiles]
+    assert sum(s.n_source for s in ground.tiles) < 0.95 * sum(s.n_source for s in from_files.tiles)
+
+
+def test_bad_input_and_reported_failures(tmp_path):
+    src, tgt, _ = _survey(n=4000, extent=(100.0, 100.0), seed=5)
+    with pytest.raises(CloudFileError, match="not found"):
+        tiles.register_tiles(tmp_path / "missing.laz", tgt, plane_translation)
+    with pytest.raises(LabkitError, match="do not overlap"):
+        tiles.register_tiles(src, tgt.with_xyz(tgt.xyz + [1000, 0, 0]), plane_translation)
+    with pytest.raises(LabkitError, match="scheduler"):
+        tiles.register_tiles(src, tgt, plane_translation, scheduler="gpu")
+
+    def broken(s, t):
+        raise LabkitError("degenerate tile")
+
+    failed = tiles.register_tiles(src, tgt, broken, size=50.0, scheduler="serial", progress=False)
+    assert [s.status for s in failed.tiles] == ["failed"] * 4 and "degenerate tile" in failed.tiles[0].message
+    sparse = tiles.register_tiles(src, tgt, plane_translation, size=50.0, min_points=5000, scheduler="serial",
+                                  progress=False)
+    assert all(s.status == "too few points" for s in sparse.tiles) and np.isnan(sparse.translations).all()
+    assert sparse.neighbour_test().n_areas == 0
+    # the CSV: one line per tile; a failed write leaves nothing behind
+    path = failed.to_csv(tmp_path / "field.csv")
+    assert len(path.read_text().splitlines()) == 5
+    with pytest.raises(LabkitError, match="does not exist"):
+        failed.to_csv(tmp_path / "no" / "field.csv")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["field.csv"]
