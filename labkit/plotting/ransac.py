@@ -1,0 +1,127 @@
+"""Plots for RANSAC sphere detection (notebook 02).
+
+Every helper takes an optional ``ax`` or ``plotter`` and returns it; none calls ``show()``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._style import COLORS, POINT_SIZE, new_plotter
+
+
+def _axes(ax):
+    if ax is None:
+        import matplotlib.pyplot as plt
+
+        _, ax = plt.subplots()
+    return ax
+
+
+def plot_required_iterations(ax=None, p_values=(0.9, 0.99, 0.999), s=4, max_ratio=0.9):
+    """N(eps, p) of eq. (27) over the outlier ratio eps, one curve per p, log scale."""
+    from ..ransac import required_iterations
+
+    ax = _axes(ax)
+    eps = np.linspace(0.0, max_ratio, 181)
+    for p in p_values:
+        ax.semilogy(eps, required_iterations(eps, p, s), label=f"p = {p}")
+    ax.set_xlabel("outlier ratio $\\varepsilon$")
+    ax.set_ylabel("required samples $N$ (eq. 27)")
+    ax.set_title(f"Samples needed for a minimal sample of s = {s}")
+    ax.legend()
+    return ax
+
+
+def plot_adaptive_trace(result, ax=None):
+    """The required N after each new best (a falling staircase) against the samples drawn.
+
+    The loop stops where the staircase meets the diagonal N = iteration.
+    """
+    ax = _axes(ax)
+    hist = np.asarray(result.n_required_history)
+    if len(hist):
+        it, N = hist[:, 0], hist[:, 1]
+        end = max(result.iterations, it.max())
+        finite = np.isfinite(N)
+        ax.step(np.append(it[finite], end), np.append(N[finite], N[finite][-1:]) if finite.any() else [],
+                where="post", color=COLORS["sphere"], label="required N after a new best")
+        ax.plot(it[finite], N[finite], "o", color=COLORS["sphere"], ms=4)
+        top = max(end, N[finite].max() if finite.any() else end)
+        ax.plot([1, top], [1, top], "--", color=COLORS["reference"], lw=1, label="samples drawn")
+        ax.axvline(result.iterations, color=COLORS["outlier"], lw=1, label=f"stop after {result.iterations}")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+    ax.set_xlabel("valid samples drawn")
+    ax.set_ylabel("required N")
+    ax.set_title("Adaptive number of samples")
+    ax.legend()
+    return ax
+
+
+def plot_section(points, spheres, ax=None, labels=None, width=None, axis=1, inliers=None):
+    """A slab through the first sphere's centre, with the circles of one or more spheres.
+
+    Parameters
+    ----------
+    points : ndarray (n, 3)
+    spheres : sequence of array_like (4,)
+        Spheres [xc, yc, zc, r]; the slab is centred on the first one.
+    labels : sequence of str, optional
+        Legend text per sphere.
+    width : float, optional
+        Slab half-width (default: a third of the first radius).
+    axis : int
+        Axis normal to the slab (1: the x-z plane).
+    inliers : ndarray of bool (n,), optional
+        Colour inliers and outliers differently.
+    """
+    ax = _axes(ax)
+    spheres = [np.asarray(s, dtype=np.float64) for s in spheres]
+    c0, r0 = spheres[0][:3], spheres[0][3]
+    width = r0 / 3 if width is None else width
+    h, v = [k for k in range(3) if k != axis]
+    pts = np.asarray(points)
+    sel = np.abs(pts[:, axis] - c0[axis]) < width
+    near = sel & (np.abs(pts[:, h] - c0[h]) < 4 * r0) & (np.abs(pts[:, v] - c0[v]) < 4 * r0)
+    if inliers is None:
+        ax.plot(pts[near, h], pts[near, v], ".", ms=2, color=COLORS["reference"], label="points in the slab")
+    else:
+        for mask, key in ((near & inliers, "inlier"), (near & ~inliers, "outlier")):
+            ax.plot(pts[mask, h], pts[mask, v], ".", ms=2, color=COLORS[key], label=f"{key}s")
+    phi = np.linspace(0, 2 * np.pi, 361)
+    labels = labels or [None] * len(spheres)
+    for s, lab in zip(spheres, labels):
+        rr = np.sqrt(max(s[3] ** 2 - (c0[axis] - s[axis]) ** 2, 0.0))  # circle cut by the slab's mid-plane
+        ax.plot(s[h] + rr * np.cos(phi), s[v] + rr * np.sin(phi), lw=1.5, label=lab)
+    ax.set_aspect("equal")
+    ax.set_xlabel("xyz"[h] + " (m)")
+    ax.set_ylabel("xyz"[v] + " (m)")
+    ax.legend(fontsize=8, loc="upper right")
+    return ax
+
+
+def render_inliers(points, result, plotter=None, max_points=200_000, show_sphere=True, rng=0):
+    """Inliers and outliers of a RANSAC result as coloured points, with the adjusted sphere.
+
+    At most ``max_points`` points are drawn (a random subset) to keep rendering fast.
+    """
+    import pyvista as pv
+
+    plotter = new_plotter(plotter)
+    pts = np.asarray(points, dtype=np.float64)
+    origin = np.round(pts.mean(axis=0))  # render in a local frame (float32 inside VTK)
+    keep = np.arange(len(pts))
+    if len(pts) > max_points:
+        keep = np.sort(np.random.default_rng(rng).choice(len(pts), max_points, replace=False))
+    inl = result.inliers[keep]
+    for mask, key in ((inl, "inlier"), (~inl, "outlier")):
+        if mask.any():
+            plotter.add_points(pts[keep][mask] - origin, color=COLORS[key], point_size=POINT_SIZE,
+                               render_points_as_spheres=True, label=f"{key}s")
+    if show_sphere and result.found:
+        x = result.fit.x
+        mesh = pv.Sphere(radius=float(x[3]), center=x[:3] - origin, theta_resolution=48, phi_resolution=48)
+        plotter.add_mesh(mesh, color=COLORS["sphere"], opacity=0.25, label="adjusted sphere")
+    plotter.add_legend(bcolor="white", size=(0.22, 0.15))
+    return plotter
