@@ -1,0 +1,503 @@
+"""Sphere adjustment in the Gauss-Helmert model (notebook 01, seed 000 section 1).
+
+Functional model (eq. 4): ``f_i(l + v, x) = |p_i + v_i - c| - r = 0`` with the
+observations l = point coordinates and the parameters x = [xc, yc, zc, r].
+
+Every condition involves one point only, so ``B Sigma_ll B^T`` is diagonal with
+elements ``b_i^T Sigma_i b_i`` even for a full 3x3 covariance per point; the
+normal matrix ``N = A^T (B Sigma_ll B^T)^-1 A`` is 4x4. Nothing of size n x n
+or n x 3n is ever built: memory is O(n) and one iteration costs a few passes
+over the points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve
+
+from ._checks import as_points, positive, probability
+from ._frame import local_origin, reduce
+from ._report import ReportMixin, fmt
+from ._stats import ConfidenceEllipsoid, GlobalTest, confidence_ellipsoid, global_test, w_critical
+from .errors import DegenerateGeometryError, LabkitError
+from .sphere import algebraic_sphere
+
+_EPS = np.finfo(np.float64).eps
+_RCOND_MIN = 1e-12  # smallest reciprocal condition of the scaled N (the seed's det test)
+_X0_SAMPLE = 20_000  # points used for the algebraic initial values
+_FLAT_RATIO = 100.0  # radius above this many times the extent of the points: no curvature
+
+
+@dataclass(frozen=True, eq=False)
+class SphereFit(ReportMixin):
+    """Adjusted sphere with the statistics of the Gauss-Helmert model.
+
+    Attributes
+    ----------
+    x : ndarray (4,)
+        Adjusted parameters [xc, yc, zc, r] in the caller's frame (m).
+    Sigma_xx : ndarray (4, 4)
+        Covariance of x: sigma0^2 N^-1 (eq. 24, corrected), with the a priori
+        variance factor when there is no redundancy. Zero row/column for a
+        fixed radius.
+    sigma0 : float
+        A posteriori standard deviation of unit weight (eq. 23); NaN without redundancy.
+    v : ndarray (n, 3)
+        Residuals (Verbesserungen) of the coordinates (m).
+    converged : bool
+        max|dx| fell below the tolerance.
+    iterations : int
+        Number of iterations run.
+    main_check : float
+        Main check (Hauptprobe): max_i |f_i(l + v, x)| of eq. 4 (m).
+    main_check_passed : bool
+        main_check below the tolerance.
+    redundancy : int
+        n - u (u = 4, or 3 with a fixed radius).
+    dx_history : ndarray (k, 4)
+        The parameter increments dx of every iteration.
+    omega_history : ndarray (k,)
+        v^T Sigma_ll^-1 v after every iteration.
+    redundancy_numbers : ndarray (n,)
+        Share r_i of each condition in the redundancy; sum = redundancy.
+    w_test : ndarray (n,)
+        Baarda's w statistic per point (N(0, 1) under H0, a priori sigma0);
+        positive for points outside the sphere; NaN where r_i = 0.
+    normal_residuals : ndarray (n,)
+        Residual component along the surface normal, -b_i^T v_i (m); positive
+        outside the sphere.
+    global_test : GlobalTest
+        Chi-square test of sigma0^2 against sigma0_apriori^2.
+    w_critical : float
+        Critical value of the w-test (two-sided, level ``alpha_w``).
+    N : ndarray (u, u)
+        Normal matrix of the last iteration (local frame; the values do not depend on it).
+    fixed_radius : bool
+        The radius was held at a nominal value.
+    sigma0_apriori : float
+        A priori standard deviation of unit weight.
+    reason : str
+        Empty when everything is fine; otherwise why the result must not be trusted.
+    """
+
+    x: np.ndarray
+    Sigma_xx: np.ndarray
+    sigma0: float
+    v: np.ndarray
+    converged: bool
+    iterations: int
+    main_check: float
+    main_check_passed: bool
+    redundancy: int
+    dx_history: np.ndarray
+    omega_history: np.ndarray
+    redundancy_numbers: np.ndarray
+    w_test: np.ndarray
+    normal_residuals: np.ndarray
+    global_test: GlobalTest
+    w_critical: float
+    N: np.ndarray
+    fixed_radius: bool
+    sigma0_apriori: float
+    reason: str = ""
+
+    @property
+    def center(self) -> np.ndarray:
+        """Adjusted centre [xc, yc, zc] (m)."""
+        return self.x[:3]
+
+    @property
+    def radius(self) -> float:
+        """Adjusted (or fixed) radius (m)."""
+        return float(self.x[3])
+
+    @property
+    def std(self) -> np.ndarray:
+        """Standard deviations of [xc, yc, zc, r] (m)."""
+        return np.sqrt(np.diag(self.Sigma_xx))
+
+    @property
+    def ok(self) -> bool:
+        """Converged, main check passed and no other complaint."""
+        return self.converged and self.main_check_passed and not self.reason
+
+    @property
+    def n(self) -> int:
+        return self.v.shape[0]
+
+    @property
+    def standardized_residuals(self) -> np.ndarray:
+        """w statistics scaled with the a posteriori sigma0 (Pope's tau), NaN without redundancy."""
+        return self.w_test * self.sigma0_apriori / self.sigma0
+
+    @property
+    def flagged(self) -> np.ndarray:
+        """Points whose |w| exceeds the critical value (candidate gross errors)."""
+        return np.abs(np.nan_to_num(self.w_test)) > self.w_critical
+
+    @property
+    def largest_w(self) -> int:
+        """Index of the point with the largest |w| (-1 when no w is defined)."""
+        w = np.abs(self.w_test)
+        return -1 if np.isnan(w).all() else int(np.nanargmax(w))
+
+    def confidence_ellipsoid(self, level: float = 0.95) -> ConfidenceEllipsoid:
+        """Confidence ellipsoid of the centre at ``level`` (semi-axes and directions)."""
+        return confidence_ellipsoid(self.center, self.Sigma_xx[:3, :3], level, self.redundancy)
+
+    def _report(self):
+        std = self.std * 1e3
+        status = "converged" if self.converged else "NOT converged"
+        ell = self.confidence_ellipsoid(0.95)
+        j = self.largest_w
+        w_row = "no redundancy" if j < 0 else (
+            f"{self.w_test[j]:+.2f} at point {j} (critical {self.w_critical:.2f}): "
+            + ("GROSS ERROR SUSPECTED" if self.flagged[j] else "no gross error"))
+        sections = [
+            ("Sphere", [
+                ("centre", fmt(self.center, 5, "m")),
+                ("std centre", fmt(std[:3], 3, "mm")),
+                ("radius", fmt(self.radius, 5, "m") + ("  (held fixed)" if self.fixed_radius else "")),
+                ("std radius", fmt(std[3], 3, "mm")),
+            ]),
+            ("Adjustment", [
+                ("points", f"{self.n:d}"),
+                ("redundancy", f"{self.redundancy:d}"),
+                ("iterations", f"{self.iterations:d} ({status})"),
+                ("main check", f"max|f(l+v, x)| = {self.main_check:.2e} m ({'passed' if self.main_check_passed else 'FAILED'})"),
+                ("sigma0", f"{self.sigma0:.4g} (a priori {self.sigma0_apriori:g})"),
+            ]),
+            ("Tests", [
+                ("global test", f"T = {self.global_test.statistic:.1f}, accepted "
+                 f"[{self.global_test.lower:.1f}, {self.global_test.upper:.1f}]: "
+                 + {True: "passed", False: "REJECTED", None: "not testable"}[self.global_test.passed]),
+                ("largest w", w_row),
+                ("flagged points", f"{int(self.flagged.sum()):d}"),
+                ("95% ellipsoid", fmt(ell.semi_axes * 1e3, 3, "mm")),
+            ]),
+        ]
+        if self.reason:
+            sections.insert(0, ("WARNING", [("reason", self.reason)]))
+        return "Sphere adjustment (Gauss-Helmert model)", sections
+
+
+def gauss_helmert_model(
+    points,
+    x0=None,
+    sigma=None,
+    *,
+    radius: float | None = None,
+    tol: float = 1e-10,
+    max_iter: int = 50,
+    alpha: float = 0.05,
+    sigma0_apriori: float = 1.0,
+    alpha_w: float = 0.001,
+) -> SphereFit:
+    """Adjust a sphere to points in the Gauss-Helmert model (eqs. 1-24).
+
+    Parameters
+    ----------
+    points : array_like (n, 3) or PointCloud
+        Observed coordinates l (m), n >= 4. Exactly 4 points give the circumsphere.
+    x0 : array_like (4,), optional
+        Initial values [xc, yc, zc, r]; default: algebraic sphere fit.
+    sigma : None, float, array_like (n,), (n, 3) or (n, 3, 3), optional
+        A priori precision of the coordinates: None (unit weights), one
+        standard deviation for all, one per point, one per coordinate, or one
+        3x3 covariance matrix per point (m, m^2).
+    radius : float, optional
+        Hold the radius fixed at this nominal value; only the centre is estimated.
+    tol : float
+        Convergence threshold on max|dx| (m); also the main-check tolerance.
+    max_iter : int
+        Maximum number of iterations.
+    alpha : float
+        Significance level of the global test.
+    sigma0_apriori : float
+        A priori standard deviation of unit weight.
+    alpha_w : float
+        Significance level of each w-test (Baarda: 0.001, critical value 3.29).
+
+    Returns
+    -------
+    SphereFit
+        ``converged=False`` with a ``reason`` when the iteration fails.
+
+    Raises
+    ------
+    LabkitError
+        Bad shape, NaN/inf, fewer than 4 points, bad sigma or options.
+    DegenerateGeometryError
+        Coplanar, collinear, concyclic or duplicate points; singular N.
+
+    Notes
+    -----
+    Rigorous iteration: linearize at l + v0 and x0 (eqs. 6-11) with the
+    misclosures w = -B v0 + f(l + v0, x0) (eq. 8), solve
+    dx = -N^-1 A^T (B Sigma B^T)^-1 w (eq. 21), k (eq. 19), v = Sigma B^T k
+    (eq. 13), repeat until max|dx| < tol, then the main check (eq. 4).
+    """
+    # Check input and reduce to a local origin
+    l_in = as_points(points, min_points=4)
+    origin = local_origin(l_in)
+    l = reduce(l_in, origin)
+    cov = _Stochastic(sigma, len(l))
+    r_fix = None if radius is None else positive(radius, "radius")
+    tol, sigma0_apriori = positive(tol, "tol"), positive(sigma0_apriori, "sigma0_apriori")
+    alpha, alpha_w = probability(alpha, "alpha"), probability(alpha_w, "alpha_w")
+    if int(max_iter) != max_iter or max_iter < 1:
+        raise LabkitError(f"max_iter must be a whole number >= 1, got {max_iter!r}")
+    x_start = _initial_values(l, x0, origin, r_fix)
+
+    # Iterate (eqs. 6-22)
+    it = _iterate(np.ascontiguousarray(l.T), x_start, cov, r_fix is not None, tol, int(max_iter))
+
+    # Main check and statistics
+    return _result(l, it, cov, origin, r_fix is not None, tol, alpha, alpha_w, sigma0_apriori)
+
+
+# --------------------------------------------------------------- stochastic model
+class _Stochastic:
+    """Sigma_ll of independent points: diag(B Sigma B^T) and v = Sigma B^T k, point by point.
+
+    The rows b_i of B come as a (3, n) array (one coordinate per row, contiguous).
+    """
+
+    def __init__(self, sigma, n):
+        self.kind, self.C = _parse_sigma(sigma, n)
+
+    def qbb(self, b):
+        """Diagonal of B Sigma_ll B^T: b_i^T Sigma_i b_i, shape (n,)."""
+        if self.kind == "scalar":  # |b_i| = 1
+            return np.full(b.shape[1], self.C)
+        if self.kind == "point":
+            return self.C.copy()
+        if self.kind == "axis":
+            return (b * b * self.C).sum(axis=0)
+        return (b * self._Cb(b)).sum(axis=0)
+
+    def v(self, b, k):
+        """Residuals v = Sigma_ll B^T k (eq. 13), shape (3, n)."""
+        if self.kind in ("scalar", "point"):
+            return b * (self.C * k)
+        if self.kind == "axis":
+            return b * self.C * k
+        return self._Cb(b) * k
+
+    def _Cb(self, b):
+        return np.einsum("nij,jn->in", self.C, b)
+
+
+def _parse_sigma(sigma, n):
+    """(kind, variances) from the user's sigma; kinds: scalar, point, axis, full."""
+    if sigma is None:
+        return "scalar", 1.0
+    try:
+        s = np.asarray(sigma, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise LabkitError(f"sigma must be numeric, got {type(sigma).__name__}") from None
+    if not np.isfinite(s).all():
+        raise LabkitError("sigma contains NaN or infinite values")
+    if s.ndim == 0 or s.shape in ((n,), (n, 3)):
+        if (s <= 0).any():
+            raise LabkitError("sigma (standard deviations) must be > 0")
+        kind = {0: "scalar", 1: "point", 2: "axis"}[s.ndim]
+        return kind, float(s**2) if s.ndim == 0 else np.ascontiguousarray((s**2).T)
+    if s.shape == (n, 3, 3):
+        scale = np.abs(s).max(axis=(1, 2))
+        if (np.abs(s - s.transpose(0, 2, 1)).max(axis=(1, 2)) > 1e-9 * scale).any():
+            raise LabkitError("sigma covariance matrices (n, 3, 3) must be symmetric")
+        try:
+            np.linalg.cholesky(s)
+        except np.linalg.LinAlgError:
+            raise LabkitError("sigma covariance matrices (n, 3, 3) must be positive definite") from None
+        return "full", s
+    raise LabkitError(
+        f"sigma must be None, a scalar, or of shape ({n},), ({n}, 3) or ({n}, 3, 3); got {s.shape}"
+    )
+
+
+# --------------------------------------------------------------- iteration
+def _initial_values(l, x0, origin, r_fix):
+    """x0 in the local frame: the caller's values or the algebraic sphere."""
+    if x0 is None:  # a regular subsample of at most ~20 000 points is plenty for initial values
+        x = algebraic_sphere(l[:: max(1, len(l) // _X0_SAMPLE)])
+    else:
+        x = np.asarray(x0, dtype=np.float64).ravel()
+        if x.shape != (4,) or not np.isfinite(x).all():
+            raise LabkitError(f"x0 must be 4 finite numbers [xc, yc, zc, r], got {x0!r}")
+        x = np.concatenate([x[:3] - origin, x[3:]])
+    if r_fix is not None:
+        x = np.concatenate([x[:3], [r_fix]])
+    return x
+
+
+@dataclass(frozen=True, eq=False)
+class _Iteration:
+    """State after the last iteration (local frame; b and v as (3, n))."""
+
+    x: np.ndarray
+    v: np.ndarray
+    k: np.ndarray
+    b: np.ndarray
+    qbb: np.ndarray
+    N_chol: tuple
+    N: np.ndarray
+    dx_history: np.ndarray
+    omega_history: np.ndarray
+    converged: bool
+    reason: str
+
+
+def _linearize(L, v0, x0):
+    """Rows of B (eq. 10) and misclosures w (eq. 8) at l + v0, x0; L, v0 as (3, n)."""
+    u = L + v0
+    u -= x0[:3, None]
+    ri = np.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])  # (eq. 11)
+    b = u
+    b /= ri  # (eq. 10): b_i = (p_i + v0_i - c) / r_i
+    # (eq. 8): w_i = [(l_i + v0_i - c) . (l_i - c)] / r_i - r  =  -b_i . v0_i + (r_i - r)
+    w = ri - x0[3] - (b[0] * v0[0] + b[1] * v0[1] + b[2] * v0[2])
+    return b, w, ri
+
+
+def _normal_equations(b, P, w, fixed):
+    """N = A^T P A and n = A^T P w (eq. 21) with A = [-b_i, -1] (eq. 9), never forming A."""
+    Pb = b * P
+    u = 3 if fixed else 4
+    N, rhs = np.empty((u, u)), np.empty(u)
+    N[:3, :3] = Pb @ b.T
+    rhs[:3] = -(Pb @ w)
+    if not fixed:
+        N[:3, 3] = N[3, :3] = Pb.sum(axis=1)
+        N[3, 3] = P.sum()
+        rhs[3] = -(P @ w)
+    return N, rhs
+
+
+def _A_times(b, dx):
+    """A dx with the rows a_i = [-b_i, -1] of eq. (9)."""
+    Adx = dx[:3] @ b
+    if len(dx) == 4:
+        Adx += dx[3]
+    return np.negative(Adx, out=Adx)
+
+
+def _factor(N):
+    """Cholesky factor of N after a conditioning check (the seed's det test)."""
+    d = np.sqrt(np.diag(N))
+    if not np.isfinite(N).all() or (d <= 0).any():
+        raise DegenerateGeometryError("the normal matrix N is singular: the points do not determine a sphere")
+    lam = np.linalg.eigvalsh(N / np.outer(d, d))
+    if lam[0] < _RCOND_MIN * lam[-1]:
+        raise DegenerateGeometryError(
+            f"the normal matrix N is singular (reciprocal condition {lam[0] / lam[-1]:.1e}): "
+            "the points lie on a plane, a circle or coincide"
+        )
+    return cho_factor(N)
+
+
+def _iterate(L, x0, cov, fixed, tol, max_iter):
+    """Rigorous Gauss-Helmert iteration (eqs. 6-22) until max|dx| < tol; L is (3, n)."""
+    u = 3 if fixed else 4
+    v0, x = np.zeros_like(L), x0.copy()
+    tol_eff = max(tol, 64 * _EPS * (np.abs(L).max() + abs(x0[3])))
+    dxs, omegas, converged, reason, state = [], [], False, "", None
+    for _ in range(max_iter):
+        b, w, ri = _linearize(L, v0, x)
+        if not (ri.min() > 0 and np.isfinite(w @ w)):
+            reason = "the iteration diverged (a point reached the centre or values became infinite)"
+            break
+        qbb = cov.qbb(b)  # diag(B Sigma_ll B^T)
+        P = 1.0 / qbb
+        N, rhs = _normal_equations(b, P, w, fixed)
+        N_chol = _factor(N)
+        dx = -cho_solve(N_chol, rhs)  # (eq. 21) dx = -N^-1 A^T P w
+        k = -P * (_A_times(b, dx) + w)  # (eq. 19)
+        v0 = cov.v(b, k)  # (eq. 13) v = Sigma_ll B^T k
+        x = x.copy()
+        x[:u] += dx  # (eq. 22)
+        state = (b, qbb, k, N, N_chol)
+        dxs.append(np.pad(dx, (0, 4 - u)))
+        omegas.append(float(qbb @ k**2))  # v^T Sigma^-1 v = sum k_i^2 b_i^T Sigma_i b_i
+        if np.abs(dx).max() < tol_eff:
+            converged = True
+            break
+    else:
+        reason = f"no convergence after {max_iter} iterations (last max|dx| = {np.abs(dxs[-1]).max():.2e} m)"
+    if state is None:
+        raise DegenerateGeometryError("the initial values put a point exactly on the sphere centre")
+    b, qbb, k, N, N_chol = state
+    return _Iteration(x, v0, k, b, qbb, N_chol, N, np.array(dxs), np.array(omegas), converged, reason)
+
+
+# --------------------------------------------------------------- statistics
+def _result(l, it, cov, origin, fixed, tol, alpha, alpha_w, sigma0_apriori):
+    """Main check, sigma0, Sigma_xx, redundancy numbers, w-test; back to the caller's frame."""
+    n, u = len(l), (3 if fixed else 4)
+    dof = n - u
+    # Main check (Hauptprobe): eq. 4 with the adjusted l + v and x
+    q = l + it.v.T - it.x[:3]
+    f = np.sqrt(np.einsum("ij,ij->i", q, q)) - it.x[3]
+    main_check = float(np.abs(f).max())
+    check_tol = max(tol, 1e3 * _EPS * (np.abs(l).max() + abs(it.x[3])))
+    # sigma0 (eq. 23) and Sigma_xx = sigma0^2 N^-1 (eq. 24 corrected)
+    omega = float(it.qbb @ it.k**2)
+    sigma0 = float(np.sqrt(omega / dof)) if dof > 0 else np.nan
+    Qxx = cho_solve(it.N_chol, np.eye(u))
+    Sigma_xx = np.zeros((4, 4))
+    Sigma_xx[:u, :u] = (sigma0 if dof > 0 else sigma0_apriori) ** 2 * Qxx
+    # Redundancy numbers r_i = 1 - p_i a_i^T N^-1 a_i and Baarda's w-test
+    P = 1.0 / it.qbb
+    ri = np.clip(1.0 - P * _leverage(it.b, Qxx), 0.0, 1.0)
+    e = -it.qbb * it.k  # -b_i^T v_i: residual along the normal, positive outside
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(ri > 1e-10, e / (sigma0_apriori * np.sqrt(it.qbb * ri)), np.nan)
+    reason = it.reason or _plausibility(l, it.x, main_check, check_tol, it.converged)
+    return SphereFit(
+        x=np.concatenate([it.x[:3] + origin, it.x[3:]]),
+        Sigma_xx=Sigma_xx,
+        sigma0=sigma0,
+        v=np.ascontiguousarray(it.v.T),
+        converged=it.converged,
+        iterations=len(it.dx_history),
+        main_check=main_check,
+        main_check_passed=main_check <= check_tol,
+        redundancy=dof,
+        dx_history=it.dx_history,
+        omega_history=it.omega_history,
+        redundancy_numbers=ri,
+        w_test=w,
+        normal_residuals=e,
+        global_test=global_test(omega, dof, sigma0_apriori, alpha),
+        w_critical=w_critical(alpha_w),
+        N=it.N,
+        fixed_radius=fixed,
+        sigma0_apriori=sigma0_apriori,
+        reason=reason,
+    )
+
+
+def _leverage(b, Qxx):
+    """a_i^T N^-1 a_i for the rows a_i = [-b_i, -1] of A (eq. 9), b as (3, n)."""
+    h = ((Qxx[:3, :3] @ b) * b).sum(axis=0)
+    if len(Qxx) == 4:
+        h += 2.0 * (Qxx[3, :3] @ b) + Qxx[3, 3]
+    return h
+
+
+def _plausibility(l, x, main_check, check_tol, converged):
+    """Reason why a converged result must not be trusted ('' if none)."""
+    if not converged:
+        return "no convergence"
+    if main_check > check_tol:
+        return f"main check failed: max|f(l+v, x)| = {main_check:.2e} m exceeds {check_tol:.1e} m"
+    if x[3] <= 0:
+        return f"the adjusted radius {x[3]:.4g} m is not positive"
+    extent = np.ptp(l, axis=0).max()
+    if x[3] > _FLAT_RATIO * extent:
+        return (f"the points barely curve: radius {x[3]:.4g} m exceeds {_FLAT_RATIO:.0f}x their extent "
+                f"({extent:.3g} m); a plane may fit as well")
+    return ""
