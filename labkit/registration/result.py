@@ -125,6 +125,8 @@ class RegistrationResult(ReportMixin):
         Wall-clock time of the estimation in seconds.
     message : str
         Why the method stopped, and any warning.
+    correspondences : object, optional
+        The correspondences of the final adjustment (ICP: ``Correspondences``).
     """
 
     translation: np.ndarray
@@ -142,6 +144,7 @@ class RegistrationResult(ReportMixin):
     history: tuple = field(default_factory=tuple)
     runtime_s: float = float("nan")
     message: str = ""
+    correspondences: object = None  # method-specific final correspondences (ICP: Correspondences)
 
     @property
     def matrix(self) -> np.ndarray:

@@ -1,0 +1,550 @@
+"""Correspondences between two clouds: the seed's ``Matching`` (seed 003, steps 2 and 4).
+
+One call of :func:`match` runs the steps of notebook 05, section 2:
+
+1. sampling of the source (density differences; random, voxel or normal-space);
+2. exclusion of source points by class and by local noise;
+3. nearest-neighbour assignment on a kd-tree of the target (the ALS base);
+4. gating: distance, angle between the normals, class and noise of the target point;
+5. weights from the a priori precision per class and from the local noise
+   (eq. 5.6: p_i = 1 / (sigma_s,i^2 + sigma_t,j^2)).
+
+Every sampled source point gets one row; ``rule`` says which rule (if any)
+rejected it, so a plot can colour the points by rule and the report can count them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .._checks import as_points, as_rng, choice, positive
+from .._frame import local_origin, reduce
+from .._report import ReportMixin, fmt
+from ..errors import LabkitError
+
+#: Row labels, in the order the rules are applied; code 0 is an accepted correspondence.
+RULES = ("accepted", "class", "noise", "distance", "normal_angle", "duplicate", "outlier")
+_CODE = {name: code for code, name in enumerate(RULES)}
+#: Floor for a point's standard deviation in the weights (m), keeps weights finite.
+MIN_SIGMA = 0.005
+
+
+@dataclass(frozen=True, eq=False)
+class Correspondences(ReportMixin):
+    """Source-to-target correspondences with their rejection rule and weight.
+
+    One row per sampled source point. Rows that a rule rejected keep their
+    values (NaN where nothing was computed, target index -1 when no neighbour
+    was searched) so they can be plotted.
+
+    Attributes
+    ----------
+    source_index : ndarray of int (m,)
+        Row of the source cloud.
+    target_index : ndarray of int (m,)
+        Row of the nearest target point (-1 when excluded before the search).
+    source_xyz : ndarray (m, 3)
+        Source points after the current transformation, caller's frame.
+    d : ndarray (m, 3)
+        Difference vectors q_j - p_i (dx, dy, dz) in metres.
+    plane_distance : ndarray (m,)
+        Signed point-to-plane distance n_j . (q_j - p_i) (eq. 5.2), metres.
+    normal_angle : ndarray (m,)
+        Angle between the source and target normals in degrees (orientation-free;
+        NaN without source normals).
+    target_normal : ndarray (m, 3)
+        Unit normal of the target point (NaN where not computed).
+    weight : ndarray (m,)
+        Weight p_i of the correspondence (0 for rejected rows).
+    rule : ndarray of int8 (m,)
+        Code into :data:`RULES`: 0 accepted, otherwise the first rule that rejected it.
+    n_source : int
+        Points in the source cloud before sampling.
+    """
+
+    source_index: np.ndarray
+    target_index: np.ndarray
+    source_xyz: np.ndarray
+    d: np.ndarray
+    plane_distance: np.ndarray
+    normal_angle: np.ndarray
+    target_normal: np.ndarray
+    weight: np.ndarray
+    rule: np.ndarray
+    n_source: int
+    settings: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.rule)
+
+    @property
+    def accepted(self) -> np.ndarray:
+        """Boolean mask of the rows that no rule rejected."""
+        return self.rule == 0
+
+    @property
+    def n_accepted(self) -> int:
+        return int(self.accepted.sum())
+
+    @property
+    def distance(self) -> np.ndarray:
+        """Point-to-point distance |q_j - p_i| (eq. 5.1), metres."""
+        return np.linalg.norm(self.d, axis=1)
+
+    @property
+    def dx(self) -> np.ndarray:
+        return self.d[:, 0]
+
+    @property
+    def dy(self) -> np.ndarray:
+        return self.d[:, 1]
+
+    @property
+    def dz(self) -> np.ndarray:
+        return self.d[:, 2]
+
+    @property
+    def rejected(self) -> tuple:
+        """(rule, count) pairs for every rejection rule, including zero counts."""
+        counts = np.bincount(self.rule, minlength=len(RULES))
+        thinned = (("sampling", self.n_source - len(self.rule)),)
+        return thinned + tuple((name, int(c)) for name, c in zip(RULES[1:], counts[1:]))
+
+    def with_outliers(self, mask) -> "Correspondences":
+        """A copy in which the accepted rows selected by ``mask`` are marked 'outlier' (weight 0)."""
+        mask = np.asarray(mask, dtype=bool) & self.accepted
+        rule = self.rule.copy()
+        rule[mask] = _CODE["outlier"]
+        weight = np.where(mask, 0.0, self.weight)
+        return _replace(self, rule=rule, weight=weight)
+
+    def with_weights(self, weight) -> "Correspondences":
+        """A copy with other weights (e.g. robust IRLS weights); rejected rows stay at 0."""
+        weight = np.where(self.accepted, np.asarray(weight, dtype=np.float64), 0.0)
+        return _replace(self, weight=weight)
+
+    def table(self) -> np.ndarray:
+        """All rows as a numpy structured array (no pandas needed)."""
+        dtype = [
+            ("source_index", "i8"), ("target_index", "i8"),
+            ("dx", "f8"), ("dy", "f8"), ("dz", "f8"), ("distance", "f8"),
+            ("plane_distance", "f8"), ("normal_angle", "f8"), ("weight", "f8"), ("rule", "U12"),
+        ]  # fmt: skip
+        out = np.empty(len(self), dtype=dtype)
+        out["source_index"], out["target_index"] = self.source_index, self.target_index
+        out["dx"], out["dy"], out["dz"] = self.d.T
+        out["distance"], out["plane_distance"] = self.distance, self.plane_distance
+        out["normal_angle"], out["weight"] = self.normal_angle, self.weight
+        out["rule"] = np.asarray(RULES)[self.rule]
+        return out
+
+    def _report(self):
+        ok = self.accepted
+        counts = [(f"rejected by {name}", str(c)) for name, c in self.rejected]
+        rows = [("source points", str(self.n_source)), ("candidates (after sampling)", str(len(self)))]
+        rows += counts + [("accepted", f"{ok.sum()} ({100 * ok.mean() if len(self) else 0:.1f} %)")]
+        if ok.any():
+            pd = self.plane_distance[ok]
+            rows += [
+                ("median |point-to-plane|", fmt(np.median(np.abs(pd)), 4, "m")),
+                ("median point-to-point", fmt(np.median(self.distance[ok]), 4, "m")),
+                ("weights min / median / max", fmt(np.percentile(self.weight[ok], [0, 50, 100]), 3)),
+            ]
+        return "Correspondences", [("", rows)]
+
+
+def _replace(corr: Correspondences, **changes) -> Correspondences:
+    values = {name: getattr(corr, name) for name in corr.__dataclass_fields__}
+    values.update(changes)
+    return Correspondences(**values)
+
+
+# --------------------------------------------------------------------- geometry
+
+
+def _local_geometry(points, tree, index, k):
+    """Normals and local noise of ``points[index]`` from their k neighbours in ``points``.
+
+    Noise is the standard deviation along the normal, sqrt(lambda_min) (seed step 4).
+    """
+    _, nb = tree.query(points[index], k=k, workers=-1)
+    nbh = points[nb]
+    nbh = nbh - nbh.mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", nbh, nbh) / (k - 3)  # 3 dof used by the plane
+    lam, vecs = np.linalg.eigh(cov)  # ascending: normal = eigenvector of lambda_min
+    n = vecs[:, :, 0]
+    n = np.where(n[:, 2:3] < 0, -n, n)
+    return n, np.sqrt(np.clip(lam[:, 0], 0, None))
+
+
+class _Geometry:
+    """Normals and noise of one cloud, computed on demand and cached (private).
+
+    ICP with a thinned source needs the target normals only at the few target
+    points that are ever matched; computing them lazily saves most of the work.
+    """
+
+    def __init__(self, points, tree, k, normals=None):
+        self.points, self.tree, self.k = points, tree, k
+        n = len(points)
+        self.normals = np.full((n, 3), np.nan) if normals is None else normals
+        self.noise = np.full(n, np.nan)
+        self._given = normals is not None
+
+    def at(self, index, need_noise=False):
+        missing = np.isnan(self.noise[index]) if need_noise or not self._given else None
+        if missing is not None:
+            todo = np.unique(index[missing])
+            if todo.size:
+                n, s = _local_geometry(self.points, self.tree, todo, self.k)
+                self.noise[todo] = s
+                if not self._given:
+                    self.normals[todo] = n
+        return self.normals[index], self.noise[index]
+
+
+# --------------------------------------------------------------------- sampling
+
+
+def _sample(points, geometry, spec, rng):
+    """Indices of the sampled source points (step 1)."""
+    n = len(points)
+    if spec is None:
+        return np.arange(n)
+    if isinstance(spec, (int, np.integer)):
+        spec = ("random", int(spec))
+    kind, value = spec
+    choice(kind, ("random", "voxel", "normal_space"), "sample method")
+    if kind == "voxel":
+        return _voxel_sample(points, positive(value, "voxel size"), rng)
+    m = int(positive(value, "sample size"))
+    if m >= n:
+        return np.arange(n)
+    if kind == "random":
+        return np.sort(rng.choice(n, m, replace=False))
+    pool = np.sort(rng.choice(n, min(n, 8 * m), replace=False))  # candidates for the normals
+    normals, _ = geometry.at(pool)
+    return pool[_normal_space_sample(normals, m, rng)]
+
+
+def _voxel_sample(points, size, rng):
+    """One random point per cubic voxel of edge ``size``."""
+    order = rng.permutation(len(points))
+    keys = np.floor(points[order] / size).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return np.sort(order[first])
+
+
+def _normal_space_sample(normals, m, rng, bins=8):
+    """Rusinkiewicz & Levoy (2001): as even a share as possible for each normal-direction bin."""
+    nrm = np.where(normals[:, 2:3] < 0, -normals, normals)  # orientation-free
+    theta = np.arccos(np.clip(nrm[:, 2], 0, 1))  # polar angle 0..90 deg
+    phi = np.arctan2(nrm[:, 1], nrm[:, 0]) % np.pi  # axial azimuth 0..180 deg
+    key = np.minimum((theta / (np.pi / 2) * bins).astype(int), bins - 1) * 2 * bins
+    key += np.minimum((phi / np.pi * 2 * bins).astype(int), 2 * bins - 1)
+    key = np.where(theta < np.pi / (4 * bins), -1, key)  # all near-horizontal surfaces share one bin
+    order = rng.permutation(len(key))
+    order = order[np.argsort(key[order], kind="stable")]
+    ks = key[order]
+    starts = np.r_[0, np.flatnonzero(np.diff(ks)) + 1]
+    sizes = np.diff(np.r_[starts, len(ks)])
+    rank = np.arange(len(ks)) - np.repeat(starts, sizes)
+    quota = _quota(sizes, m)
+    return np.sort(order[rank < quota])
+
+
+def _quota(sizes, m):
+    """Largest per-bin quota q with sum(min(size, q)) <= m."""
+    lo, hi = 0, int(sizes.max())
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        lo, hi = (mid, hi) if np.minimum(sizes, mid).sum() <= m else (lo, mid - 1)
+    return max(lo, 1)
+
+
+# --------------------------------------------------------------------- the matcher
+
+
+def _classes_of(cloud, n):
+    if hasattr(cloud, "attributes") and "classification" in cloud.attributes:
+        return np.asarray(cloud.attributes["classification"])
+    return None
+
+
+def _class_sigma(cls, class_sigma):
+    """A priori standard deviation per point from its class (NaN where the class is not listed)."""
+    out = np.full(len(cls), np.nan)
+    for c, s in class_sigma.items():
+        out[cls == c] = positive(s, f"class_sigma[{c}]")
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class _Matcher:
+    """Everything that stays fixed over the ICP iterations (private)."""
+
+    source: np.ndarray  # sampled source points, local frame, untransformed
+    source_index: np.ndarray
+    source_normals: np.ndarray | None
+    source_sigma: np.ndarray  # per sampled source point, from class and noise
+    source_rule: np.ndarray  # pre-assignment exclusions (class, noise)
+    target: np.ndarray
+    tree: cKDTree
+    geometry: _Geometry
+    target_class: np.ndarray | None
+    options: dict
+    origin: np.ndarray
+    n_source: int
+
+    def __call__(self, R=None, t=None) -> Correspondences:
+        """Correspondences of the source moved by p' = R p + t (local frame)."""
+        opt = self.options
+        R = np.eye(3) if R is None else R
+        t = np.zeros(3) if t is None else t
+        p = self.source @ R.T + t
+        rule = self.source_rule.copy()
+        live = np.flatnonzero(rule == 0)
+        m = len(p)
+        tidx = np.full(m, -1)
+        d = np.full((m, 3), np.nan)
+        nt = np.full((m, 3), np.nan)
+        noise_t = np.full(m, np.nan)
+        # (3) nearest neighbour in the target kd-tree, within max_distance
+        dist, j = self.tree.query(p[live], k=1, distance_upper_bound=opt["max_distance"], workers=-1)
+        found = np.isfinite(dist)
+        rule[live[~found]] = _CODE["distance"]
+        live, j = live[found], j[found]
+        tidx[live] = j
+        d[live] = self.target[j] - p[live]
+        nt[live], noise_t[live] = self.geometry.at(j, need_noise=opt["need_noise"])
+        # (4) gates on the target point: class, noise, normal angle
+        if opt["classes"] is not None and self.target_class is not None:
+            bad = ~np.isin(self.target_class[j], opt["classes"])
+            rule[live[bad & (rule[live] == 0)]] = _CODE["class"]
+        if opt["max_noise"] is not None:
+            bad = noise_t[live] > opt["max_noise"]
+            rule[live[bad & (rule[live] == 0)]] = _CODE["noise"]
+        angle = np.full(m, np.nan)
+        if self.source_normals is not None:
+            ns = self.source_normals[live] @ R.T
+            cosang = np.abs(np.einsum("ij,ij->i", ns, nt[live]))
+            angle[live] = np.degrees(np.arccos(np.clip(cosang, 0, 1)))
+            if opt["max_angle_deg"] is not None:
+                bad = angle[live] > opt["max_angle_deg"]
+                rule[live[bad & (rule[live] == 0)]] = _CODE["normal_angle"]
+        if opt["unique"]:
+            _reject_duplicates(rule, tidx, d)
+        # (5) weights p = 1 / (sigma_s^2 + sigma_t^2)  (eq. 5.6)
+        weight = np.zeros(m)
+        weight[live] = 1.0 / (self.source_sigma[live] ** 2 + self._target_sigma(j, noise_t[live]) ** 2)
+        weight[rule != 0] = 0.0
+        plane = np.einsum("ij,ij->i", nt, d)
+        return Correspondences(
+            self.source_index, tidx, p + self.origin, d, plane, angle, nt, weight, rule,
+            self.n_source, dict(opt),
+        )  # fmt: skip
+
+    def _target_sigma(self, j, noise):
+        opt = self.options
+        var = np.zeros(len(j))
+        if opt["class_sigma"] and self.target_class is not None:
+            s = _class_sigma(self.target_class[j], opt["class_sigma"])
+            var += np.where(np.isnan(s), opt["default_sigma"], s) ** 2
+        if opt["noise_weighting"]:
+            var += noise**2
+        if not opt["class_sigma"] and not opt["noise_weighting"]:
+            return np.full(len(j), np.sqrt(0.5))  # unit weights: p = 1
+        return np.sqrt(np.maximum(var, MIN_SIGMA**2))
+
+
+def _reject_duplicates(rule, tidx, d):
+    """One source point per target point: keep the closest, mark the others 'duplicate' (in place).
+
+    A target point used twice would put its own noise into two residuals; the
+    residuals would be correlated and sigma0^2 N^-1 too optimistic.
+    """
+    live = np.flatnonzero(rule == 0)
+    order = live[np.lexsort(((d[live] ** 2).sum(axis=1), tidx[live]))]
+    first = np.r_[True, tidx[order[1:]] != tidx[order[:-1]]]
+    rule[order[~first]] = _CODE["duplicate"]
+
+
+def prepare(
+    source,
+    target,
+    *,
+    target_normals=None,
+    source_normals=None,
+    max_distance=1.0,
+    max_angle_deg=30.0,
+    classes=None,
+    class_sigma=None,
+    default_sigma=0.1,
+    noise_weighting=True,
+    max_noise=None,
+    sample=None,
+    unique=True,
+    k=20,
+    rng=None,
+    tree=None,
+    origin=None,
+) -> _Matcher:
+    """Build the fixed part of the matching once (kd-tree, sampling, exclusions).
+
+    The arguments are those of :func:`match`; ``origin`` is the shared local
+    origin (default: from the target). ICP calls this once and the returned
+    matcher in every iteration.
+    """
+    src = as_points(source, min_points=3, name="source")
+    tgt = as_points(target, min_points=3, name="target")
+    if not 3 <= int(k) <= len(tgt):
+        raise LabkitError(f"k must lie between 3 and the number of target points ({len(tgt)}), got {k}")
+    rng = as_rng(rng)
+    origin = local_origin(tgt) if origin is None else np.asarray(origin, dtype=np.float64)
+    src_l, tgt_l = reduce(src, origin), reduce(tgt, origin)
+    tree = cKDTree(tgt_l) if tree is None else tree
+    if tree.n != len(tgt_l):
+        raise LabkitError(f"the given tree holds {tree.n} points, the target has {len(tgt_l)}")
+    tgt_geo = _Geometry(tgt_l, tree, int(k), _given_normals(target_normals, len(tgt_l), "target_normals"))
+    need_src_geo = (
+        max_angle_deg is not None or noise_weighting or max_noise is not None
+        or (isinstance(sample, (tuple, list)) and sample[0] == "normal_space")
+    )  # fmt: skip
+    src_geo = None
+    if need_src_geo:
+        src_tree = cKDTree(src_l) if len(src_l) >= k else None
+        if src_tree is None:
+            raise LabkitError(f"the source needs at least k = {k} points for its normals, got {len(src_l)}")
+        src_geo = _Geometry(src_l, src_tree, int(k), _given_normals(source_normals, len(src_l), "source_normals"))
+    # (1) sampling
+    idx = _sample(src_l, src_geo, sample, rng)
+    options = dict(
+        max_distance=np.inf if max_distance is None else positive(max_distance, "max_distance"),
+        max_angle_deg=None if max_angle_deg is None else positive(max_angle_deg, "max_angle_deg"),
+        classes=None if classes is None else np.asarray(list(classes)),
+        class_sigma=dict(class_sigma or {}),
+        default_sigma=positive(default_sigma, "default_sigma"),
+        noise_weighting=bool(noise_weighting),
+        max_noise=None if max_noise is None else positive(max_noise, "max_noise"),
+        need_noise=bool(noise_weighting or max_noise is not None),
+        sample=sample,
+        unique=bool(unique),
+        k=int(k),
+    )
+    # (2) exclusions on the source side and a priori sigma per source point
+    src_normals, src_noise = (None, None) if src_geo is None else src_geo.at(idx, need_noise=True)
+    rule, sigma = _source_rules(_classes_of(source, len(src)), idx, src_noise, options)
+    return _Matcher(
+        src_l[idx], idx, src_normals, sigma, rule, tgt_l, tree, tgt_geo,
+        _classes_of(target, len(tgt)), options, origin, len(src),
+    )  # fmt: skip
+
+
+def _given_normals(normals, n, name):
+    if normals is None:
+        return None
+    arr = as_points(normals, name=name)
+    if len(arr) != n:
+        raise LabkitError(f"{name} must have one normal per point ({n}), got {len(arr)}")
+    length = np.linalg.norm(arr, axis=1, keepdims=True)
+    if (length < 1e-12).any():
+        raise LabkitError(f"{name} contains zero-length normals")
+    return arr / length
+
+
+def _source_rules(cls, idx, noise, opt):
+    """Rule codes (class, noise) and a priori sigma for the sampled source points."""
+    rule = np.zeros(len(idx), dtype=np.int8)
+    var = np.zeros(len(idx))
+    if cls is not None:
+        c = cls[idx]
+        if opt["classes"] is not None:
+            rule[~np.isin(c, opt["classes"])] = _CODE["class"]
+        if opt["class_sigma"]:
+            s = _class_sigma(c, opt["class_sigma"])
+            var += np.where(np.isnan(s), opt["default_sigma"], s) ** 2
+    if opt["max_noise"] is not None:
+        rule[(noise > opt["max_noise"]) & (rule == 0)] = _CODE["noise"]
+    if opt["noise_weighting"]:
+        var += noise**2
+    if not opt["class_sigma"] and not opt["noise_weighting"]:
+        return rule, np.full(len(idx), np.sqrt(0.5))  # with the target's 0.5: p = 1
+    return rule, np.sqrt(np.maximum(var, MIN_SIGMA**2))
+
+
+def match(
+    source,
+    target,
+    *,
+    target_normals=None,
+    source_normals=None,
+    max_distance=1.0,
+    max_angle_deg=30.0,
+    classes=None,
+    class_sigma=None,
+    default_sigma=0.1,
+    noise_weighting=True,
+    max_noise=None,
+    sample=None,
+    unique=True,
+    k=20,
+    rng=None,
+    tree=None,
+) -> Correspondences:
+    """Find, gate and weight correspondences from ``source`` to ``target`` (seed: ``Matching``).
+
+    Parameters
+    ----------
+    source, target : array_like (n, 3) or PointCloud
+        Clouds in the same (e.g. UTM) frame; a PointCloud's ``classification``
+        is used by ``classes`` and ``class_sigma``.
+    target_normals, source_normals : array_like (n, 3), optional
+        Given normals; otherwise PCA normals of k neighbours, computed only where needed.
+    max_distance : float or None
+        Gate on the nearest-neighbour distance in metres (eq. 5.1); None: no gate.
+    max_angle_deg : float or None
+        Gate on the angle between the normals (orientation-free); None: no gate.
+    classes : sequence of int, optional
+        Allowed ASPRS classes (e.g. (2, 6, 11)); others are rejected by rule 'class'.
+    class_sigma : dict int -> float, optional
+        A priori standard deviation per class in metres (roof precise, vegetation not);
+        classes not listed get ``default_sigma``.
+    noise_weighting : bool
+        Add each point's local noise (std along its normal) to its variance.
+    max_noise : float, optional
+        Reject points whose local noise exceeds this (m), e.g. vegetation.
+    sample : None, int or (method, value)
+        ``("random", n)``, ``("voxel", size_m)`` or ``("normal_space", n)``; an int means random.
+    unique : bool
+        At most one source point per target point (the closest; the others are
+        rejected as 'duplicate'), so that no target point's noise enters two
+        residuals and the residuals stay uncorrelated.
+    k : int
+        Neighbours for normals and local noise.
+    rng : int or Generator, optional
+        For the sampling.
+    tree : scipy.spatial.cKDTree, optional
+        A kd-tree of the target reduced to ``local_origin(target)`` (to reuse).
+
+    Returns
+    -------
+    Correspondences
+        One row per sampled source point with dx, dy, dz, the point-to-plane
+        distance, the normal angle, the weight and the rule that rejected it.
+
+    Notes
+    -----
+    Weights follow eq. (5.6), p_i = 1 / (sigma_s,i^2 + sigma_t,j^2): the variance of
+    a point-to-plane residual between two independently measured points. Without
+    ``class_sigma`` and ``noise_weighting`` all weights are 1.
+    """
+    matcher = prepare(
+        source, target, target_normals=target_normals, source_normals=source_normals,
+        max_distance=max_distance, max_angle_deg=max_angle_deg, classes=classes,
+        class_sigma=class_sigma, default_sigma=default_sigma, noise_weighting=noise_weighting,
+        max_noise=max_noise, sample=sample, unique=unique, k=k, rng=rng, tree=tree,
+    )  # fmt: skip
+    return matcher()
