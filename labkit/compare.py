@@ -184,6 +184,40 @@ class ComparisonTable(ReportMixin):
         return super()._repr_html_() + f"<table><tr>{head}</tr>{body}</table>"
 
 
+CASES = ("als-als", "changes", "als-dim")
+CHANGE_REGIONS = ("demolished", "new_building", "trees_felled", "trees_planted")
+
+
+def synthetic_cases(regions=None, cases=CASES, *, size=(60.0, 60.0), density=10.0, dim_density=None,
+                    shift=(0.23, -0.17, 0.11), rotation_deg=None, rng=None) -> dict:
+    """The seed's three cases on synthetic regions: ``{(region, case): EpochPair}``.
+
+    ``"als-als"``: two ALS epochs of the stable regions; ``"changes"``: two ALS
+    epochs of the regions with changes (demolished, new building, trees felled
+    or planted); ``"als-dim"``: ALS against dense image matching on the stable
+    regions. ``regions`` restricts the regions (default: all of
+    :data:`labkit.synthetic.REGIONS`).
+    """
+    from ._checks import as_rng, choice
+    from .synthetic import REGIONS, als_epochs
+
+    regions = REGIONS if regions is None else tuple(choice(r, REGIONS, "region") for r in regions)
+    gen = as_rng(rng)
+    out = {}
+    for case in cases:
+        choice(case, CASES, "case")
+        for region in regions:
+            if (region in CHANGE_REGIONS) != (case == "changes"):
+                continue
+            dim = case == "als-dim"
+            out[(region, case)] = als_epochs(region, shift=shift, rotation_deg=rotation_deg, size=size,
+                                             density=density, source_density=dim_density if dim else None,
+                                             dim=dim, rng=gen.spawn(1)[0])
+    if not out:
+        raise LabkitError(f"no region among {regions} belongs to the cases {cases}")
+    return out
+
+
 def compare_methods(pairs, methods, *, references=None, alpha: float = 0.05) -> ComparisonTable:
     """Run every method on every epoch pair and compare with the references (notebook 07).
 
@@ -297,7 +331,10 @@ def shift_covariance(result, c) -> np.ndarray:
     cols = {"tx": np.eye(3)[:, 0], "ty": np.eye(3)[:, 1], "tz": np.eye(3)[:, 2],
             "rx": dtheta[:, 0], "ry": dtheta[:, 1], "rz": dtheta[:, 2]}
     J = np.column_stack([cols.get(n, np.zeros(3)) for n in names])
-    return J @ Sigma @ J.T
+    # J Sigma J^T term by term, so that inf/NaN of undetermined parameters stay where J touches them
+    terms = np.einsum("ik,kl,jl->ijkl", J, np.nan_to_num(Sigma, nan=0.0, posinf=0.0, neginf=0.0), J)
+    bad = ~np.isfinite(Sigma)[None, None] & (J[:, None, :, None] != 0) & (J[None, :, None, :] != 0)
+    return np.where(bad.any(axis=(2, 3)), np.inf, terms.sum(axis=(2, 3)))
 
 
 def _chi2_test(e: np.ndarray, C: np.ndarray):

@@ -287,3 +287,59 @@ def test_table_uses_given_references_and_rejects_bad_pairs():
         compare.compare_methods({"a": pair}, {})
     with pytest.raises(LabkitError, match="source"):
         compare.compare_methods([object()], {"exact": exact})
+
+
+def test_undetermined_axis_with_infinite_covariance_is_left_out():
+    """ICP reports inf/NaN covariance for an undetermined axis; the test runs on the other two."""
+    truth = make_transform(translation=[0.2, -0.1, 0.05])
+    pair = _pair("ridge", truth, (True, False, True))
+    cov = np.array([[1e-6, np.nan, 0.0], [np.nan, np.inf, np.nan], [0.0, np.nan, 4e-6]])
+    err = np.array([0.002, 0.1, -0.001])
+
+    def method(src, tgt):
+        return _result(make_transform(translation=pair.truth[:3, 3] + err), cov)
+
+    row = compare.compare_methods({"ridge": pair}, {"m": method}).rows[0]
+    assert np.isinf(row.sy) and row.sx == pytest.approx(1e-3) and row.dof == 2
+    assert row.chi2 == pytest.approx(0.002**2 / 1e-6 + 0.001**2 / 4e-6, rel=1e-6)
+
+
+def test_synthetic_cases_follow_the_seed():
+    cases = compare.synthetic_cases(["xz", "trees_felled"], size=(40.0, 40.0), density=3.0, dim_density=6.0, rng=7)
+    assert list(cases) == [("xz", "als-als"), ("trees_felled", "changes"), ("xz", "als-dim")]
+    assert cases[("xz", "als-dim")].source.name.startswith("DIM")
+    with pytest.raises(LabkitError, match="region"):
+        compare.synthetic_cases(["moon"])
+
+
+def test_plots_return_their_targets(tmp_path):
+    import matplotlib.pyplot as plt
+
+    from labkit.plotting import compare as pc
+    from labkit.plotting import screenshot
+    from labkit.tiles import ShiftField, TileShift, neighbour_test, tile_grid
+
+    rng = np.random.default_rng(8)
+    xyz = rng.uniform(0, 20, (500, 3)) + UTM
+    d = rng.normal(0, 0.05, 500)
+    plotter = pc.plot_distance_cloud(xyz, d)
+    img = screenshot(plotter, tmp_path / "cloud.png")
+    assert img.ndim == 3 and (tmp_path / "cloud.png").stat().st_size > 0
+    plotter.close()
+    assert pc.symmetric_limits(d)[0] == -pc.symmetric_limits(d)[1]
+    fig, ax = plt.subplots()
+    assert pc.plot_distance_map(xyz, d, ax=ax) is ax
+    assert pc.plot_profile([xyz, xyz + 0.1], UTM, UTM + [20, 20, 0], width=2.0, ax=ax) is ax
+    assert pc.plot_class_histograms(d, rng.choice([2, 6], 500), ax=ax) is ax
+    truth = make_transform(translation=[0.2, -0.1, 0.05])
+    pair = _pair("a", truth)
+    table = compare.compare_methods({("a", "c"): pair}, {"m": lambda s, t: _result(pair.truth)})
+    axes = pc.plot_transformation_components(table.rows)
+    assert len(axes) == 3
+    assert pc.plot_transformation_arrows(table.rows, exaggerate=50).name == "3d"
+    assert pc.plot_error_overview(table, ax=ax) is ax
+    grid = tile_grid((0, 0, 199, 99), 100.0)
+    field = ShiftField(tuple(TileShift(g, np.array([0.01 * i, 0, 0]), np.eye(3) * 1e-6, np.ones(3, bool), 9, 9, 9,
+                                       0.1, True, 0.0, "ok") for i, g in enumerate(grid)), 100.0)
+    assert pc.plot_shift_field(field, ax=ax, test=neighbour_test(field)) is ax
+    plt.close("all")

@@ -1,0 +1,255 @@
+"""Plots for comparing transformations and for shift fields (notebooks 07, 08).
+
+Every helper takes an optional ``ax``/``axes`` or ``plotter`` and returns it; none calls ``show()``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .._checks import as_points
+from .._frame import local_origin
+from ._style import CMAP_DIVERGING, CMAP_SEQUENTIAL, COLORS, POINT_SIZE, new_plotter
+
+ASPRS_NAMES = {0: "never classified", 1: "unclassified", 2: "ground", 3: "low vegetation", 4: "medium vegetation",
+               5: "high vegetation", 6: "building", 7: "low point", 9: "water", 11: "road surface", 17: "bridge"}
+AXES = ("X", "Y", "Z")
+
+
+def _axes(ax, **kw):
+    if ax is None:
+        import matplotlib.pyplot as plt
+
+        _, ax = plt.subplots(**kw)
+    return ax
+
+
+def symmetric_limits(values, quantile: float = 0.98) -> tuple:
+    """(-a, a) with a the ``quantile`` of |values|: a diverging colour map centred on zero."""
+    a = float(np.quantile(np.abs(np.asarray(values)[np.isfinite(values)]), quantile)) if np.size(values) else 1.0
+    return (-a, a) if a > 0 else (-1.0, 1.0)
+
+
+# --------------------------------------------------------------------------- distances
+def plot_distance_cloud(points, distances, *, plotter=None, clim=None, title="distance (m)", cmap=CMAP_DIVERGING,
+                        point_size=POINT_SIZE, view="iso"):
+    """The cloud coloured by its (signed) distances, diverging colour map with a scale bar.
+
+    Coordinates are reduced to a local origin first (VTK renders in float32).
+    ``clim`` defaults to symmetric limits at the 98 % quantile of |d|.
+    """
+    import pyvista as pv
+
+    xyz = as_points(points, name="points")
+    d = np.asarray(distances, dtype=float)
+    plotter = new_plotter(plotter)
+    poly = pv.PolyData(xyz - local_origin(xyz))
+    poly[title] = d
+    clim = symmetric_limits(d) if clim is None else clim
+    plotter.add_mesh(poly, scalars=title, cmap=cmap, clim=clim, point_size=point_size,
+                     render_points_as_spheres=False, scalar_bar_args={"title": title, "n_labels": 5, "fmt": "%.3f"})
+    if view == "iso":
+        plotter.view_isometric()
+    elif view == "top":
+        plotter.view_xy()
+    return plotter
+
+
+def plot_distance_map(points, distances, *, ax=None, clim=None, title="distance (m)", cmap=CMAP_DIVERGING, s=1.0):
+    """Top view (matplotlib) of the cloud coloured by distance, with a colour bar; x, y in m from a local origin."""
+    xyz = as_points(points, name="points")
+    ax = _axes(ax)
+    o = local_origin(xyz)
+    clim = symmetric_limits(distances) if clim is None else clim
+    sc = ax.scatter(xyz[:, 0] - o[0], xyz[:, 1] - o[1], c=distances, s=s, cmap=cmap, vmin=clim[0], vmax=clim[1],
+                    rasterized=True)
+    ax.figure.colorbar(sc, ax=ax, label=title)
+    ax.set_aspect("equal")
+    ax.set_xlabel(f"x - {o[0]:.0f} (m)")
+    ax.set_ylabel(f"y - {o[1]:.0f} (m)")
+    return ax
+
+
+def plot_profile(clouds, start, end, *, width=1.0, ax=None, labels=None, colors=None, s=2.0):
+    """A vertical profile: points within ``width``/2 of the xy segment start -> end, as (along, z).
+
+    ``clouds`` is a sequence of (n, 3) arrays or PointClouds (e.g. target,
+    source before, source after the transformation).
+    """
+    ax = _axes(ax, figsize=(9, 3.5))
+    a, b = np.asarray(start, float)[:2], np.asarray(end, float)[:2]
+    length = float(np.linalg.norm(b - a))
+    u = (b - a) / length
+    labels = labels or [getattr(c, "name", "") or f"cloud {i}" for i, c in enumerate(clouds)]
+    default = [COLORS["target"], COLORS["source"], COLORS["inlier"], COLORS["sphere"]]
+    colors = colors or default
+    for i, cloud in enumerate(clouds):
+        xyz = as_points(cloud, name="cloud")
+        rel = xyz[:, :2] - a
+        along = rel @ u
+        across = rel @ np.array([-u[1], u[0]])
+        sel = (np.abs(across) <= width / 2) & (along >= 0) & (along <= length)
+        ax.scatter(along[sel], xyz[sel, 2], s=s, color=colors[i % len(colors)], label=f"{labels[i]} ({sel.sum()})")
+    ax.set_xlabel("distance along the profile (m)")
+    ax.set_ylabel("height z (m)")
+    ax.set_title(f"Profile, {length:.0f} m long, {width:g} m wide")
+    ax.legend(markerscale=4, fontsize="small")
+    return ax
+
+
+def plot_class_histograms(distances, classes, *, ax=None, bins=60, limits=None, min_count=20):
+    """Histograms of distances per ASPRS class (step lines, densities), with the median of each class."""
+    ax = _axes(ax)
+    d = np.asarray(distances, dtype=float)
+    cls = np.asarray(classes)
+    limits = symmetric_limits(d, 0.99) if limits is None else limits
+    edges = np.linspace(*limits, bins + 1)
+    for code in np.unique(cls):
+        sel = cls == code
+        if sel.sum() < min_count:
+            continue
+        name = ASPRS_NAMES.get(int(code), f"class {int(code)}")
+        ax.hist(d[sel], bins=edges, density=True, histtype="step", lw=1.5,
+                label=f"{name} (n={sel.sum()}, median {np.median(d[sel]):+.3f} m)")
+    ax.axvline(0, color=COLORS["reference"], lw=0.8)
+    ax.set_xlabel("distance (m)")
+    ax.set_ylabel("density")
+    ax.legend(fontsize="small")
+    return ax
+
+
+# --------------------------------------------------------------------------- transformation vectors
+def plot_transformation_components(rows, *, axes=None, k=2.0, title=None):
+    """dX, dY, dZ of every method (estimate +- k sigma) against the reference (line +- k sigma band).
+
+    ``rows`` are the :class:`labkit.compare.ComparisonRow` of one region and
+    case (e.g. ``table.select(region=..., case=...)``). Axes the data do not
+    constrain are marked; an infinite standard deviation draws no error bar.
+    """
+    rows = list(rows)
+    if axes is None:
+        import matplotlib.pyplot as plt
+
+        _, axes = plt.subplots(1, 3, figsize=(11, 3.8), layout="constrained")
+    x = np.arange(len(rows))
+    for i, ax in enumerate(axes):
+        ref, ref_s = rows[0].reference[i], rows[0].reference_std[i]
+        ax.axhline(ref, color=COLORS["reference"], lw=1.2, label="reference")
+        if ref_s > 0:
+            ax.axhspan(ref - k * ref_s, ref + k * ref_s, color=COLORS["reference"], alpha=0.15)
+        for j, r in enumerate(rows):
+            s = r.shift_std[i]
+            ok = AXES[i] in r.constrained
+            ax.errorbar(j, r.shift[i], yerr=k * s if np.isfinite(s) else None, fmt="o" if ok else "x", capsize=4,
+                        color=f"C{j}", mfc=f"C{j}" if ok else "none")
+        ax.set_xticks(x, [r.method for r in rows], rotation=30, ha="right")
+        ax.set_xlim(-0.6, len(rows) - 0.4)
+        constrained = all(AXES[i] in r.constrained for r in rows)
+        ax.set_title(f"d{AXES[i]} (m)" + ("" if constrained else "  - not constrained"))
+        ax.ticklabel_format(axis="y", useOffset=False)
+    axes[0].legend(fontsize="small")
+    if title or rows:
+        axes[0].figure.suptitle(title or f"Shift at the region centre, +-{k:g} sigma: {rows[0].region} ({rows[0].case})")
+    return axes
+
+
+def plot_transformation_arrows(rows, *, ax=None, title=None, exaggerate=1.0):
+    """3D view of the shift vectors of every method (coloured) and the reference (black), from one origin.
+
+    Errors of a few millimetres vanish beside a shift of decimetres: with
+    ``exaggerate`` = e each method's arrow ends at reference + e * (shift - reference).
+    """
+    rows = list(rows)
+    if ax is None:
+        import matplotlib.pyplot as plt
+
+        ax = plt.figure(figsize=(6, 5.5)).add_subplot(projection="3d")
+    ref = rows[0].reference
+    vecs = [ref] + [ref + exaggerate * (r.shift - ref) for r in rows]
+    for j, (v, label) in enumerate(zip(vecs, ["reference"] + [r.method for r in rows])):
+        if not np.isfinite(v).all():
+            continue
+        color = COLORS["reference"] if j == 0 else f"C{j - 1}"
+        ax.quiver(0, 0, 0, *v, color=color, lw=2.5 if j == 0 else 1.5, arrow_length_ratio=0.08, label=label)
+    m = max(np.abs(np.array([v for v in vecs if np.isfinite(v).all()])).max(), 1e-3) * 1.1
+    for setter in (ax.set_xlim, ax.set_ylim, ax.set_zlim):
+        setter(-m, m)
+    ax.set_xlabel("dX (m)")
+    ax.set_ylabel("dY (m)")
+    ax.set_zlabel("dZ (m)")
+    extra = f", errors x {exaggerate:g}" if exaggerate != 1 else ""
+    ax.set_title(title or f"Shift vectors: {rows[0].region} ({rows[0].case}{extra})")
+    ax.legend(fontsize="small")
+    return ax
+
+
+def plot_error_overview(table, *, ax=None, metric="error_norm_constrained"):
+    """Error norm (constrained axes) per region and case, one marker per method; hollow = outside its uncertainty."""
+    ax = _axes(ax, figsize=(10, 4))
+    labels = list(dict.fromkeys((r.region, r.case) for r in table.rows))
+    for j, m in enumerate(table.methods):
+        for r in table.select(method=m).rows:
+            x = labels.index((r.region, r.case)) + (j - (len(table.methods) - 1) / 2) * 0.12
+            ax.plot(x, getattr(r, metric), "o", color=f"C{j}", mfc=f"C{j}" if r.inside else "none",
+                    label=m if r is table.select(method=m).rows[0] else None)
+    ax.set_xticks(range(len(labels)), [f"{r}\n{c}" for r, c in labels], fontsize="small")
+    ax.set_xlim(-0.5, len(labels) - 0.5)
+    ax.set_yscale("log")
+    ax.set_ylabel("|error| on constrained axes (m)")
+    ax.set_title("Error against the reference (filled: inside the stated uncertainty)")
+    ax.legend(fontsize="small")
+    return ax
+
+
+# --------------------------------------------------------------------------- shift field
+def plot_shift_field(field, *, ax=None, test=None, scale=None, cmap=CMAP_SEQUENTIAL):
+    """Arrows of the horizontal shift per tile, coloured by the 3D shift magnitude (mm).
+
+    With ``test`` (a :class:`labkit.tiles.NeighbourTest`), borders between
+    neighbours that do NOT agree within their uncertainty are drawn in red and
+    each tile is labelled with its coherent area.
+    """
+    import matplotlib.patches as mpatches
+
+    ax = _axes(ax, figsize=(7, 6))
+    c, t, ok = field.centres, field.translations, field.ok
+    o = np.floor(c.min(axis=0) / field.size) * field.size if len(c) else np.zeros(2)
+    xy = c - o
+    for s, (x, y) in zip(field.tiles, xy):
+        face = "none" if s.ok else "#dddddd"
+        ax.add_patch(mpatches.Rectangle((x - field.size / 2, y - field.size / 2), field.size, field.size,
+                                        fc=face, ec="#999999", lw=0.6))
+        if not s.ok:
+            ax.text(x, y, s.status, ha="center", va="center", fontsize=7, color="#666666")
+    mag = 1000 * np.linalg.norm(t[ok], axis=1)
+    if ok.any():
+        h = np.linalg.norm(t[ok, :2], axis=1).max()
+        scale = scale or (h / (0.45 * field.size) if h > 0 else 1.0)
+        q = ax.quiver(xy[ok, 0], xy[ok, 1], t[ok, 0], t[ok, 1], mag, cmap=cmap, angles="xy", scale_units="xy",
+                      scale=scale, width=0.006, pivot="middle")
+        ax.figure.colorbar(q, ax=ax, label="|shift| (mm)", shrink=0.8)
+        ref = 10 ** np.floor(np.log10(max(h, 1e-6)))
+        ax.quiverkey(q, 0.92, 1.04, ref, f"{1000 * ref:g} mm horizontal", labelpos="W", coordinates="axes",
+                     fontproperties={"size": "small"})
+    if test is not None:
+        _draw_disagreement(ax, field, test, xy)
+    ax.set_aspect("equal")
+    ax.autoscale_view()
+    ax.set_xlabel(f"x - {o[0]:.0f} (m)")
+    ax.set_ylabel(f"y - {o[1]:.0f} (m)")
+    ax.set_title(f"Shift field: {int(ok.sum())} tiles of {field.size:g} m", loc="left")
+    return ax
+
+
+def _draw_disagreement(ax, field, test, xy):
+    half = field.size / 2
+    for (i, j), agree in zip(test.pairs, test.agree):
+        if agree:
+            continue
+        mid = (xy[i] + xy[j]) / 2
+        d = (xy[j] - xy[i]) / np.linalg.norm(xy[j] - xy[i])
+        perp = np.array([-d[1], d[0]]) * half
+        ax.plot(*np.c_[mid - perp, mid + perp], color=COLORS["outlier"], lw=3, solid_capstyle="butt")
+    for n, (x, y) in enumerate(xy):
+        if test.areas[n] >= 0:
+            ax.text(x - 0.45 * field.size, y + 0.38 * field.size, f"area {test.areas[n]}", fontsize=7)
