@@ -36,6 +36,7 @@ _CELLS_PER_BATCH = 4_000_000  # hypotheses x points scored at once (about 32 MB)
 _LO_STEPS = 4
 _SNOOP_ROUNDS = 10
 _PLANE_RATIO = 3.0  # a sphere must fit its inliers clearly better than a plane
+_MAX_NORMAL_ANGLE = 20.0  # deg: inlier normals must point to the centre (true spheres: < 10)
 
 
 def required_iterations(outlier_ratio, p=0.99, s=S):
@@ -312,7 +313,7 @@ def ransac_sphere(
     final = _refit(xyz, x0, t, sigma, radius, min_inliers, snooping, alpha)
     if final.reason:
         return _not_found(len(xyz), final.reason, n_snooped=final.n_snooped, sigma=final.sigma, **common)
-    reason = _check_sphere(xyz[final.inliers], final.fit, r_min, r_max)
+    reason = _check_sphere(xyz[final.inliers], final.fit, r_min, r_max, gen)
     if reason:
         return _not_found(len(xyz), reason, n_snooped=final.n_snooped, sigma=final.sigma, **common)
     return RansacResult(
@@ -564,10 +565,9 @@ def _search(W, sampler, cfg, gen):
             break
         # Draw and solve a batch; degenerate samples do not count
         idx = sampler.draw(gen, batch)
-        n_drawn += batch
         X, valid = _hypotheses(W[idx], cfg.minimal_solver)
-        n_invalid += int((~valid).sum())
-        X = X[valid][: cfg.max_iterations - n_valid]
+        position = np.flatnonzero(valid)[: cfg.max_iterations - n_valid]  # batch position of each valid sample
+        X = X[position]
 
         # Score hypotheses inside the radius range (the others count but cannot win)
         scores = np.full(len(X), -np.inf)
@@ -576,7 +576,10 @@ def _search(W, sampler, cfg, gen):
             scores[ok] = _score(W, Wsq, X[ok], cfg.threshold, cfg.scoring)[0]
 
         # Replay in sample order: new bests, N after each (eq. 27), stop at N
-        keep, new_bests, N_new = _replay(X, scores, best["score"], n_valid, N, W, sampler, cfg)
+        keep, stopped, new_bests, N_new = _replay(X, scores, best["score"], n_valid, N, W, sampler, cfg)
+        drawn = int(position[keep - 1]) + 1 if stopped else batch  # samples the sequential loop drew
+        n_drawn += drawn
+        n_invalid += drawn - keep
         for j, N_j in zip(new_bests, N_new):
             history.append((n_valid + j + 1, N_j))
         if new_bests:
@@ -599,7 +602,12 @@ def _search(W, sampler, cfg, gen):
 
 
 def _replay(X, scores, best_score, n_valid, N, W, sampler, cfg):
-    """Sequential bookkeeping of one batch: (samples kept, new-best positions, N after each)."""
+    """Sequential bookkeeping of one batch.
+
+    Returns the number of valid samples the one-at-a-time loop would have used,
+    whether it stopped inside this batch, the positions of the new bests and the
+    required N after each of them.
+    """
     running = np.maximum.accumulate(np.concatenate([[best_score], scores]))[:-1]
     candidates = np.flatnonzero(scores > running)
     N_after = np.full(len(X), float(N))
@@ -614,7 +622,8 @@ def _replay(X, scores, best_score, n_valid, N, W, sampler, cfg):
         N_new.append(N_j)
     stop = np.flatnonzero(it >= N_after)
     keep = int(stop[0]) + 1 if stop.size else len(X)
-    return keep, new_bests, N_new
+    stopped = bool(stop.size) or (keep > 0 and n_valid + keep >= cfg.max_iterations)
+    return keep, stopped, new_bests, N_new
 
 
 def _next_batch(N, cfg, n_valid, n_drawn, cap):
@@ -714,11 +723,18 @@ def _sigma_scalar(sigma):
     return float(sigma) if np.ndim(sigma) == 0 else None
 
 
-def _check_sphere(P, fit, r_min, r_max):
-    """Reasons to reject the refitted sphere: radius outside the range, or no real curvature."""
+def _check_sphere(P, fit, r_min, r_max, gen):
+    """Reasons to reject the refitted sphere: radius outside the range, no real curvature,
+    or inliers that are pieces of other surfaces cut by the sphere's shell."""
     r = float(fit.x[3])
     if not r_min <= r <= r_max:
         return f"the adjusted radius {r:.5g} m lies outside [{r_min:.5g}, {r_max:.5g}] m"
+    angle = _median_normal_angle(P, fit.x, gen)
+    if angle > _MAX_NORMAL_ANGLE:
+        return (
+            f"the inliers' surface normals do not point to the centre (median angle {angle:.0f} deg): "
+            "they are pieces of other surfaces cut by the sphere, not a sphere"
+        )
     q = P - P.mean(axis=0)
     rms_plane = np.sqrt(np.linalg.eigvalsh(q.T @ q / len(q))[0])
     rms_sphere = np.sqrt(np.mean(sphere_residuals(P, fit.x) ** 2))
@@ -728,6 +744,26 @@ def _check_sphere(P, fit, r_min, r_max):
             f"{rms_sphere * 1e3:.3g} mm): no sphere, a plane patch"
         )
     return ""
+
+
+def _median_normal_angle(P, x, gen, m=400, k=12):
+    """Median angle (deg) between local PCA normals of the inliers and the sphere's radial direction.
+
+    On a sphere both agree up to noise; where planes or edges merely cut
+    through the shell |d| < t, the local normals are those of the planes.
+    The normals come from k-neighbourhoods in a random subset of at most m
+    inliers, so each patch spans a sizeable part of the cap (noise matters less).
+    """
+    if len(P) > m:
+        P = P[gen.choice(len(P), m, replace=False)]
+    _, idx = cKDTree(P).query(P, k=min(k, len(P)))
+    nb = P[idx] - P[idx].mean(axis=1, keepdims=True)
+    _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
+    normal = vecs[:, :, 0]  # smallest eigenvalue
+    radial = P - x[:3]
+    radial /= np.linalg.norm(radial, axis=1, keepdims=True)
+    cos = np.abs(np.einsum("ij,ij->i", normal, radial))
+    return float(np.degrees(np.arccos(np.clip(np.median(cos), 0.0, 1.0))))
 
 
 def _not_found(n, reason, **common) -> RansacResult:

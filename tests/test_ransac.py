@@ -1,0 +1,272 @@
+"""RANSAC sphere detection against synthetic truth and independent routes."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+
+from labkit.cloud import PointCloud
+from labkit.errors import LabkitError
+from labkit.ransac import _LocalSampler, _hypotheses, ransac_sphere, required_iterations
+from labkit.synthetic.room import room_scene
+from labkit.synthetic.tripod import sphere_on_tripod
+
+
+def _on_sphere(rng, n, c, r, noise=0.0):
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    return np.asarray(c) + r * u + noise * rng.normal(size=(n, 3))
+
+
+def _errors(result, sphere):
+    return np.linalg.norm(result.fit.x[:3] - sphere[:3]), abs(result.fit.x[3] - sphere[3])
+
+
+def _orthogonal_fit_scipy(P, x0):
+    """Independent route: scipy's least_squares on the orthogonal distances."""
+    fun = lambda x: np.linalg.norm(P - x[:3], axis=1) - x[3]  # noqa: E731
+    return least_squares(fun, x0, xtol=1e-15, ftol=1e-15, gtol=1e-15).x
+
+
+# ----------------------------------------------------------------- eq. 27
+def test_required_iterations_closed_form_values():
+    # independent arithmetic: log(0.01) / log(1 - 0.5^4) = 71.35.. -> 72
+    assert required_iterations(0.5, 0.99) == math.ceil(math.log(0.01) / math.log(1 - 0.5**4)) == 72
+    assert required_iterations(0.8, 0.99) == math.ceil(math.log(0.01) / math.log(1 - 0.2**4))
+    assert required_iterations(0.0, 0.99) == 1
+    assert required_iterations(1.0, 0.99) == math.inf
+    # exact integer case must not be rounded up: log(0.25) / log(0.5) = 2
+    assert required_iterations(0.5, 0.75, s=1) == 2
+    N = required_iterations(np.linspace(0, 0.9, 10), 0.99)
+    assert N.shape == (10,) and np.all(np.diff(N) >= 0)
+    with pytest.raises(LabkitError):
+        required_iterations(1.5)
+    with pytest.raises(LabkitError):
+        required_iterations(0.5, p=1.0)
+
+
+def test_adaptive_N_equals_eq27_for_a_known_ratio():
+    # k exact sphere points among far outliers: the best hypothesis has exactly k inliers
+    rng = np.random.default_rng(0)
+    k, n = 300, 1000
+    sphere = _on_sphere(rng, k, [0, 0, 0], 0.5)
+    clutter = rng.uniform(-20, 20, size=(n - k, 3))
+    clutter = clutter[np.linalg.norm(clutter, axis=1) > 2.0][: n - k]
+    pts = np.concatenate([sphere, clutter])
+    for lo in (False, True):
+        res = ransac_sphere(pts, 1e-6, p=0.99, rng=1, preliminary_size=None, sampling="uniform",
+                            local_optimization=lo, snooping=False)
+        expected = required_iterations(1 - k / len(pts), 0.99)
+        assert res.found and res.inliers.sum() == k
+        assert res.n_required == expected == res.n_required_history[-1, 1]
+        # the loop stops at the first sample where the count reaches N
+        assert res.iterations == max(expected, int(res.n_required_history[-1, 0]))
+        assert np.all(np.diff(res.n_required_history[:, 1]) <= 0)
+
+
+def test_local_sampling_N_matches_a_monte_carlo_estimate():
+    # the local outlier-free probability w that sets N, checked by simulation
+    rng = np.random.default_rng(2)
+    W = np.concatenate([_on_sphere(rng, 150, [0, 0, 0], 0.3), rng.uniform(-1.5, 1.5, size=(850, 3))])
+    inl = np.zeros(len(W), dtype=bool)
+    inl[:150] = True
+    sampler = _LocalSampler(W, 0.6)
+    N = sampler.required(inl, 0.99)
+    idx = sampler.draw(rng, 200_000)
+    assert np.all(np.sort(idx, axis=1)[:, 1:] != np.sort(idx, axis=1)[:, :-1])  # distinct points
+    assert np.all(np.linalg.norm(W[idx[:, 1:]] - W[idx[:, :1]], axis=2) <= 0.6)  # in the neighbourhood
+    w_mc = inl[idx].all(axis=1).mean()
+    assert N == required_iterations(1 - w_mc ** 0.25, 0.99) or abs(N / (np.log(0.01) / np.log1p(-w_mc)) - 1) < 0.05
+
+
+# ----------------------------------------------------------------- recovery
+@pytest.mark.parametrize("ratio", [0.3, 0.5, 0.8, 0.9])
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("sampling", ["uniform", "local"])
+def test_recovers_the_tripod_sphere(ratio, seed, sampling):
+    scene = sphere_on_tripod(n_sphere=800, outlier_ratio=ratio, rng=seed)
+    res = ransac_sphere(scene.points, 0.003, rng=seed, radius_range=(0.05, 0.1), sampling=sampling)
+    assert res.found, res.reason
+    dc, dr = _errors(res, scene.sphere)
+    assert dc < 0.002 and dr < 0.002
+    recall = (res.inliers & scene.is_sphere).sum() / scene.is_sphere.sum()
+    assert recall > 0.95
+    assert abs(res.outlier_ratio - (1 - res.inliers.mean())) < 1e-12
+    # the refit equals an independent orthogonal-distance fit of the same inliers
+    x_ref = _orthogonal_fit_scipy(scene.points[res.inliers], res.fit.x)
+    np.testing.assert_allclose(res.fit.x, x_ref, atol=1e-8)
+
+
+def test_recovery_without_radius_prior_msac_and_ghm_solver():
+    scene = sphere_on_tripod(n_sphere=300, outlier_ratio=0.6, rng=4)
+    base = ransac_sphere(scene.points, 0.003, rng=3)
+    msac = ransac_sphere(scene.points, 0.003, rng=3, scoring="msac")
+    for res in (base, msac):
+        assert res.found and max(_errors(res, scene.sphere)) < 0.002
+    # the seed's GHM minimal solver and the closed form see the same samples and give the same
+    # spheres (without LO, whose timing depends on the batch size, the runs are identical)
+    base = ransac_sphere(scene.points, 0.003, rng=3, local_optimization=False)
+    ghm = ransac_sphere(scene.points, 0.003, rng=3, local_optimization=False, minimal_solver="ghm")
+    assert ghm.found and max(_errors(ghm, scene.sphere)) < 0.002
+    assert ghm.iterations == base.iterations  # (the GHM may call a few more near-flat samples degenerate)
+    np.testing.assert_allclose(ghm.fit.x, base.fit.x, atol=1e-9)
+    assert np.array_equal(ghm.inliers, base.inliers)
+
+
+def test_room_scene_with_a_two_percent_sphere():
+    for seed in range(3):
+        scene = room_scene(n_points=20000, sphere_share=0.02, rng=seed)
+        res = ransac_sphere(scene.points, 0.006, rng=seed, radius_range=(0.2, 0.4))
+        assert res.found and res.sampling == "local", res.reason
+        dc, dr = _errors(res, scene.sphere)
+        assert dc < 0.003 and dr < 0.003
+        assert (res.inliers & scene.is_sphere).sum() > 0.95 * scene.is_sphere.sum()
+        assert (res.inliers & ~scene.is_sphere).sum() < 10
+        assert res.iterations < 5000  # uniform sampling would need ~3e7
+
+
+def test_room_uniform_sampling_needs_far_more_samples():
+    scene = room_scene(n_points=20000, sphere_share=0.02, rng=1)
+    res = ransac_sphere(scene.points, 0.006, rng=1, radius_range=(0.2, 0.4), sampling="uniform", max_iterations=3000)
+    assert res.iterations == 3000 and (not res.found or res.n_required > 3000)
+    assert required_iterations(0.98, 0.99) > 10**7
+
+
+# ----------------------------------------------------------------- checks and failures
+def test_degenerate_samples_are_rejected_and_do_not_count():
+    flat = np.array([[[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]]], dtype=float)
+    dup = np.array([[[0, 0, 0], [0, 0, 0], [0, 1, 0], [1, 1, 1]]], dtype=float)
+    good = np.array([[[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, 0, 1]]], dtype=float)
+    for solver in ("closed_form", "ghm"):
+        X, valid = _hypotheses(np.concatenate([flat, dup, good]), solver)
+        assert valid.tolist() == [False, False, True]
+        np.testing.assert_allclose(X[2], [0, 0, 0, 1], atol=1e-9)
+    # a noise-free plane: every sample is coplanar
+    rng = np.random.default_rng(0)
+    plane = np.column_stack([rng.uniform(size=(500, 2)), np.zeros(500)])
+    res = ransac_sphere(plane, 0.001, rng=0)
+    assert not res.found and res.iterations == 0 and res.n_invalid > 0
+    assert "degenerate" in res.reason
+
+
+def test_no_sphere_in_a_noisy_plane_or_an_empty_room():
+    rng = np.random.default_rng(1)
+    plane = np.column_stack([rng.uniform(size=(3000, 2)), 0.001 * rng.normal(size=3000)])
+    res = ransac_sphere(plane, 0.003, rng=1)
+    assert not res.found and res.fit is None and not res.inliers.any() and res.reason
+    room = room_scene(n_points=5000, sphere_share=0.0, rng=2)
+    res = ransac_sphere(room.points, 0.006, rng=2, radius_range=(0.2, 0.4))
+    assert not res.found and res.reason
+    assert "no" in res.summary().lower()
+
+
+def test_radius_limits_hold_after_the_refit():
+    scene = sphere_on_tripod(n_sphere=500, outlier_ratio=0.5, rng=5)
+    wrong = ransac_sphere(scene.points, 0.003, rng=0, radius_range=(0.074, 0.2))
+    assert not wrong.found or 0.074 <= wrong.fit.x[3] <= 0.2
+    right = ransac_sphere(scene.points, 0.003, rng=0, radius_range=(0.07, 0.075))
+    assert right.found and 0.07 <= right.fit.x[3] <= 0.075
+    held = ransac_sphere(scene.points, 0.003, rng=0, nominal_radius=0.0725, hold_radius=True)
+    assert held.found and held.fit.x[3] == 0.0725 and held.fit.fixed_radius
+
+
+def test_refitted_radius_outside_the_range_is_reported():
+    rng = np.random.default_rng(6)
+    pts = _on_sphere(rng, 400, [0, 0, 0], 0.1, noise=0.0005)
+    res = ransac_sphere(pts, 0.002, rng=0, radius_range=(0.101, 0.2), sampling="uniform")
+    assert not res.found
+    assert "outside" in res.reason or "radius" in res.reason
+
+
+def test_data_snooping_removes_gross_errors_inside_the_threshold():
+    rng = np.random.default_rng(7)
+    c, r = np.array([1.0, 2.0, 3.0]), 0.2
+    good = _on_sphere(rng, 2000, c, r, noise=0.001)
+    u = _on_sphere(rng, 15, [0, 0, 0], 1.0)
+    gross = c + (r + rng.choice([-1, 1], 15)[:, None] * rng.uniform(0.006, 0.009, (15, 1))) * u
+    pts = np.concatenate([good, gross])
+    on = ransac_sphere(pts, 0.01, rng=0, sigma=0.001)
+    off = ransac_sphere(pts, 0.01, rng=0, sigma=0.001, snooping=False)
+    assert off.inliers[2000:].all() and not on.inliers[2000:].any()
+    assert on.n_snooped >= 15 and on.n_snooped < 40
+    assert abs(on.fit.sigma0 - 1) < 0.1
+
+
+def test_reproducible_with_a_seed_and_with_the_recorded_seed():
+    scene = sphere_on_tripod(n_sphere=400, outlier_ratio=0.7, rng=8)
+    a = ransac_sphere(scene.points, 0.003, rng=11)
+    b = ransac_sphere(scene.points, 0.003, rng=11)
+    assert a.seed == 11 and np.array_equal(a.inliers, b.inliers) and np.array_equal(a.fit.x, b.fit.x)
+    c = ransac_sphere(scene.points, 0.003, rng=np.random.default_rng(3))
+    d = ransac_sphere(scene.points, 0.003, rng=c.seed)
+    assert np.array_equal(c.inliers, d.inliers) and c.iterations == d.iterations
+    assert np.array_equal(c.n_required_history, d.n_required_history)
+
+
+def test_utm_coordinates_pointcloud_input_and_no_mutation():
+    scene = sphere_on_tripod(n_sphere=400, outlier_ratio=0.7, rng=9)
+    shift = np.array([600000.0, 5400000.0, 300.0])
+    local = ransac_sphere(scene.points, 0.003, rng=2)
+    utm_pts = scene.points + shift
+    before = utm_pts.copy()
+    utm = ransac_sphere(PointCloud(utm_pts), 0.003, rng=2)
+    assert np.array_equal(utm_pts, before)
+    assert np.array_equal(local.inliers, utm.inliers)
+    np.testing.assert_allclose(utm.fit.x - np.append(shift, 0), local.fit.x, atol=1e-7)
+
+
+@pytest.mark.parametrize(
+    "points, kwargs",
+    [
+        (np.zeros((3, 3)), dict(threshold=0.01)),
+        (np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, np.nan], [1, 1, 1]]), dict(threshold=0.01)),
+        (np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, np.inf], [1, 1, 1]]), dict(threshold=0.01)),
+        (np.zeros((10, 2)), dict(threshold=0.01)),
+        (None, dict(threshold=0.0)),
+        (None, dict(threshold=-1.0)),
+        (None, dict(threshold=0.01, p=0.0)),
+        (None, dict(threshold=0.01, p=1.0)),
+        (None, dict(threshold=0.01, p=1.5)),
+        (None, dict(threshold=0.01, radius_range=(0.2, 0.1))),
+        (None, dict(threshold=0.01, radius_range=(0.1,))),
+        (None, dict(threshold=0.01, scoring="lmeds")),
+        (None, dict(threshold=0.01, minimal_solver="svd")),
+        (None, dict(threshold=0.01, sampling="local")),  # local needs a radius prior
+        (None, dict(threshold=0.01, hold_radius=True)),
+        (None, dict(threshold=0.01, preliminary_size=2)),
+        (None, dict(threshold=0.01, rng="seed")),
+        (None, dict(threshold=0.01, sigma=np.ones(3))),
+    ],
+)
+def test_bad_input_raises_a_clear_error(points, kwargs):
+    if points is None:
+        points = _on_sphere(np.random.default_rng(0), 50, [0, 0, 0], 1.0)
+    threshold = kwargs.pop("threshold")
+    with pytest.raises(LabkitError):
+        ransac_sphere(points, threshold, **kwargs)
+
+
+def test_report_and_plots_and_headless_widget():
+    import matplotlib.pyplot as plt
+
+    from labkit.plotting.ransac import plot_adaptive_trace, plot_required_iterations, plot_section, render_inliers
+    from labkit.widgets import ransac_explorer
+
+    scene = sphere_on_tripod(n_sphere=300, outlier_ratio=0.5, rng=10)
+    res = ransac_sphere(scene.points, 0.003, rng=0)
+    text = res.summary()
+    assert "RANSAC" in text and "radius" in text and "<table>" in res._repr_html_()
+    fig, axes = plt.subplots(1, 3)
+    assert plot_required_iterations(ax=axes[0]) is axes[0]
+    assert plot_adaptive_trace(res, ax=axes[1]) is axes[1]
+    assert plot_section(scene.points, [res.fit.x, scene.sphere], ax=axes[2], inliers=res.inliers) is axes[2]
+    plt.close(fig)
+    plotter = render_inliers(scene.points, res)
+    img = plotter.screenshot(return_img=True)
+    plotter.close()
+    assert img.ndim == 3 and img.std() > 0
+    box = ransac_explorer(scene.points, threshold=0.003, truth=scene.sphere)
+    assert box.last_result.found and len(box.figure.value) > 1000
+    box.p_slider.value = 0.9  # observers rerun the detection headless
+    assert box.last_result.p == 0.9
