@@ -1,0 +1,136 @@
+"""Benchmark: labkit.features.normals vs Open3D estimate_normals (KNN 20) at 10^5 and 10^6 points.
+
+The scene is a synthetic ALS epoch (``labkit.synthetic.als_scene``, village on
+undulating terrain, 20 pts/m^2) cut to n points; if the synthetic module is
+unavailable, a noisy undulating terrain with box buildings is used instead.
+
+Each method runs in its own fresh process (same input file), so the peak
+resident memory (``ru_maxrss``) belongs to that method alone; for labkit the
+numpy peak seen by ``tracemalloc`` is printed as well. Normals are compared up
+to sign (Open3D does not orient them). Targets (issue 4): median angle < 1 deg,
+labkit time <= 1.5 x Open3D time, memory < 2 GB at 10^6 points.
+
+Usage::
+
+    python benchmarks/bench_features.py            # 10^5 and 10^6
+    python benchmarks/bench_features.py --quick    # 10^4 and 10^5
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+K = 20
+
+
+def make_scene(n: int, seed: int = 0) -> np.ndarray:
+    """n points of an ALS-like scene, UTM-sized coordinates."""
+    rng = np.random.default_rng(seed)
+    try:
+        from labkit.synthetic import als_scene
+
+        side = float(np.sqrt(n / 20.0 * 0.8))  # the scene adds returns and a margin
+        xyz = als_scene("xyz", size=(side, side), rng=seed).xyz
+        while len(xyz) < n:  # top up with a neighbouring tile
+            extra = als_scene("xyz", size=(side, side), rng=seed + len(xyz)).xyz + [side + 5.0, 0.0, 0.0]
+            xyz = np.vstack([xyz, extra])
+        return xyz[rng.choice(len(xyz), n, replace=False)]
+    except ImportError:
+        return _fallback_scene(n, rng)
+
+
+def _fallback_scene(n, rng):
+    side = np.sqrt(n / 20.0)
+    xy = rng.uniform(0, side, (n, 2))
+    z = 2.0 * np.sin(xy[:, 0] / 25.0) + 1.5 * np.cos(xy[:, 1] / 18.0) + rng.normal(0, 0.03, n)
+    centres = rng.uniform(0, side, (max(1, n // 20000), 2))
+    for cx, cy in centres:  # flat-roofed boxes 12 m x 8 m, 6 m high
+        inside = (np.abs(xy[:, 0] - cx) < 6) & (np.abs(xy[:, 1] - cy) < 4)
+        z[inside] += 6.0
+    return np.column_stack([xy, z]) + [600000.0, 5400000.0, 300.0]
+
+
+def run_worker(method: str, path: str, out: str) -> None:
+    """Compute normals with one method; write time, memory and normals."""
+    xyz = np.load(path)
+    if method == "labkit":
+        import tracemalloc
+
+        from labkit.features import normals
+
+        normals(xyz[:1000], k=K)  # warm up imports
+        tracemalloc.start()
+        t0 = time.perf_counter()
+        N = normals(xyz, k=K, orient="none")
+        seconds = time.perf_counter() - t0
+        traced = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    else:
+        import open3d as o3d
+
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz[:1000]))
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(K))  # warm up
+        t0 = time.perf_counter()
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))  # Open3D needs its own copy
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(K))
+        N = np.asarray(pcd.normals)
+        seconds = time.perf_counter() - t0
+        traced = float("nan")
+    np.save(out + ".npy", N)
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # kB on Linux
+    Path(out + ".json").write_text(json.dumps({"seconds": seconds, "rss": rss, "traced": traced}))
+
+
+def run_method(method: str, path: str, tmp: str) -> tuple[dict, np.ndarray]:
+    out = os.path.join(tmp, method)
+    subprocess.run([sys.executable, __file__, "--worker", method, path, out], check=True)
+    return json.loads(Path(out + ".json").read_text()), np.load(out + ".npy")
+
+
+def angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle between normals up to sign, degrees."""
+    c = np.abs(np.einsum("ij,ij->i", a, b)) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))
+    return np.degrees(np.arccos(np.clip(c, 0.0, 1.0)))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="10^4 and 10^5 points")
+    args = parser.parse_args()
+    sizes = (10_000, 100_000) if args.quick else (100_000, 1_000_000)
+    print(f"normals, k = {K}; {os.cpu_count()} CPU(s); times are wall clock of one run (shared machine)")
+    header = f"{'n':>9} {'method':>7} {'time s':>8} {'ratio':>6} {'median deg':>10} {'p95 deg':>8} {'peak RSS MB':>11} {'numpy peak MB':>13}"
+    print(header)
+    print("-" * len(header))
+    ok = True
+    with tempfile.TemporaryDirectory() as tmp:
+        for n in sizes:
+            path = os.path.join(tmp, f"scene_{n}.npy")
+            np.save(path, make_scene(n))
+            lab, N_lab = run_method("labkit", path, tmp)
+            o3d, N_o3d = run_method("open3d", path, tmp)
+            ang = angles_deg(N_lab, N_o3d)
+            ratio = lab["seconds"] / o3d["seconds"]
+            for name, r, rat in (("open3d", o3d, 1.0), ("labkit", lab, ratio)):
+                med, p95 = (f"{np.median(ang):10.4f}", f"{np.percentile(ang, 95):8.4f}") if name == "labkit" else ("", "")
+                traced = "" if not np.isfinite(r["traced"]) else f"{r['traced'] / 2**20:13.0f}"
+                print(f"{n:>9} {name:>7} {r['seconds']:8.2f} {rat:6.2f} {med:>10} {p95:>8} {r['rss'] / 2**20:11.0f} {traced:>13}")
+            ok &= np.median(ang) < 1.0 and ratio <= 1.5 and lab["rss"] < 2 * 2**30
+    print("targets (median < 1 deg, time <= 1.5 x Open3D, RSS < 2 GB):", "met" if ok else "NOT met")
+
+
+if __name__ == "__main__":
+    if len(sys.argv) > 1 and sys.argv[1] == "--worker":
+        run_worker(*sys.argv[2:5])
+    else:
+        main()
