@@ -15,7 +15,8 @@ import csv
 import io
 import time
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -215,6 +216,99 @@ def synthetic_cases(regions=None, cases=CASES, *, size=(60.0, 60.0), density=10.
                                              dim=dim, rng=gen.spawn(1)[0])
     if not out:
         raise LabkitError(f"no region among {regions} belongs to the cases {cases}")
+    return out
+
+
+METHODS = ("icp", "icp-point", "icp-huber", "icp-tukey", "consensus", "consensus+icp")
+
+
+def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "translation", extent: float = 1.0,
+                     max_points: int | None = 5000, rng=0) -> dict:
+    """Ready-made registration methods by name, for :func:`compare_methods`, tiles and the command line.
+
+    ``icp`` (point to plane), ``icp-point`` (point to point), ``icp-huber`` and
+    ``icp-tukey`` (robust weights) with ``dof``; ``consensus`` (maximum consensus,
+    a translation within +-``extent`` m, on at most ``max_points`` random source
+    points); ``consensus+icp`` (consensus, then a Tukey ICP with ``dof`` from there).
+    The callables are picklable (for Dask workers in other processes).
+    """
+    from ._checks import choice
+
+    choice(dof, ("translation", "rigid"), "dof")
+    out = {}
+    for name in names:
+        choice(name, METHODS, "method")
+        out[name] = partial(_standard, name=name, dof=dof, extent=float(extent), max_points=max_points, rng=rng)
+    return out
+
+
+def _standard(source, target, *, name, dof, extent, max_points, rng):
+    from .registration import icp, max_consensus
+
+    if name.startswith("icp"):
+        kind = name.partition("-")[2]
+        metric = "point_to_point" if kind == "point" else "point_to_plane"
+        return icp(source, target, dof=dof, metric=metric, robust=kind if kind in ("huber", "tukey") else None, rng=rng)
+    src = _random_subset(source, max_points, rng)
+    result = max_consensus(src, target, extent=extent)
+    if name == "consensus":
+        return result
+    refined = icp(source, target, dof=dof, robust="tukey", initial=result.matrix, rng=rng)
+    return replace(refined, method=f"max_consensus + {refined.method}",
+                   runtime_s=result.runtime_s + refined.runtime_s)
+
+
+def _random_subset(cloud, n, rng):
+    from ._checks import as_rng
+
+    size = len(as_points(cloud, name="source"))
+    if n is None or size <= n:
+        return cloud
+    idx = np.sort(as_rng(rng).choice(size, int(n), replace=False))
+    return cloud.subset(idx) if hasattr(cloud, "subset") else as_points(cloud)[idx]
+
+
+@dataclass(frozen=True, eq=False)
+class FilePair:
+    """Two epochs of one region read from files (see :func:`load_pairs`)."""
+
+    source: object
+    target: object
+    region: str
+    case: str = ""
+    constrained: tuple | None = None
+    truth: np.ndarray | None = None
+
+
+def load_pairs(path) -> dict:
+    """Read a JSON list of epoch pairs ``{(region, case): FilePair}``.
+
+    Each entry: ``{"region": ..., "case": ..., "source": file, "target": file}``
+    with optional ``"constrained": [true, false, true]`` and ``"bbox": [xmin,
+    ymin, xmax, ymax]`` (crop while reading). Relative file names are taken
+    relative to the JSON file.
+    """
+    import json
+
+    from .io import read_cloud
+
+    path = Path(path)
+    if not path.is_file():
+        raise LabkitError(f"pair file not found: {path}")
+    try:
+        entries = json.loads(path.read_text(encoding="utf-8"))
+        entries = entries["pairs"] if isinstance(entries, dict) else entries
+    except (json.JSONDecodeError, KeyError, UnicodeDecodeError) as exc:
+        raise LabkitError(f"{path} is not a list of epoch pairs: {exc}") from None
+    out = {}
+    for i, e in enumerate(entries):
+        if not isinstance(e, dict) or not {"region", "source", "target"} <= set(e):
+            raise LabkitError(f"{path}: pair {i} needs 'region', 'source' and 'target'")
+        files = [(path.parent / e[k]) for k in ("source", "target")]
+        src, tgt = (read_cloud(f, bbox=e.get("bbox")) for f in files)
+        c = e.get("constrained")
+        out[(str(e["region"]), str(e.get("case", "")))] = FilePair(
+            src, tgt, str(e["region"]), str(e.get("case", "")), None if c is None else tuple(map(bool, c)))
     return out
 
 

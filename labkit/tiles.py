@@ -292,7 +292,7 @@ def register_tiles(source, target, method=None, *, size: float = 100.0, buffer: 
 def _default_method():
     from .registration import icp
 
-    return partial(icp, dof="translation")
+    return partial(icp, dof="translation", rng=0)
 
 
 def _run_jobs(run, jobs, client, scheduler, progress) -> list:

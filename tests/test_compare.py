@@ -343,3 +343,24 @@ def test_plots_return_their_targets(tmp_path):
                                        0.1, True, 0.0, "ok") for i, g in enumerate(grid)), 100.0)
     assert pc.plot_shift_field(field, ax=ax, test=neighbour_test(field)) is ax
     plt.close("all")
+
+
+def test_standard_methods_and_pair_file(tmp_path):
+    io = pytest.importorskip("labkit.io")
+    with pytest.raises(LabkitError, match="method"):
+        compare.standard_methods(["ndt"])
+    with pytest.raises(LabkitError, match="dof"):
+        compare.standard_methods(["icp"], dof="affine")
+    pair = compare.synthetic_cases(["xyz"], ["als-als"], size=(40.0, 40.0), density=4.0, rng=3)[("xyz", "als-als")]
+    io.write_cloud(pair.source, tmp_path / "s.laz")
+    io.write_cloud(pair.target, tmp_path / "t.laz")
+    (tmp_path / "pairs.json").write_text(json.dumps(
+        [{"region": "xyz", "case": "als-als", "source": "s.laz", "target": "t.laz", "constrained": [1, 1, 1]}]))
+    pairs = compare.load_pairs(tmp_path / "pairs.json")
+    refs = {("xyz", "als-als"): compare.truth_reference(pair.truth)}
+    table = compare.compare_methods(pairs, compare.standard_methods(["icp"]), references=refs)
+    row = table.rows[0]
+    assert row.ok and row.constrained == "XYZ" and row.error_norm < 0.01  # ICP on a well-constrained region
+    (tmp_path / "bad.json").write_text(json.dumps([{"region": "xyz", "source": "s.laz"}]))
+    with pytest.raises(LabkitError, match="pair 0"):
+        compare.load_pairs(tmp_path / "bad.json")
