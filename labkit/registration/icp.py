@@ -105,7 +105,7 @@ def icp(
     max_angle_deg=30.0,
     classes=None,
     class_sigma=None,
-    default_sigma=0.1,
+    default_sigma=0.0,
     noise_weighting=True,
     max_noise=None,
     sample=None,
@@ -127,7 +127,9 @@ def icp(
         Residual per correspondence: eq. (5.2) or the three components of eq. (5.1).
     max_iterations : int
     tol : float
-        Convergence when the update is smaller than ``tol`` metres (at the cloud's radius for rotations).
+        Convergence when the update is smaller than ``tol`` metres (at the cloud's radius for
+        rotations), or when the iteration cycles between a few sets of correspondences with
+        updates below ``100 tol``.
     robust : {None, 'huber', 'tukey'}
         IRLS weights on the standardized residuals (eq. 5.9).
     reject_sigma : float or None
@@ -196,11 +198,26 @@ def icp(
         adj = _adjust(corr, R, t, opts if robust_stage else plain)
         R, t, step = _update(R, t, adj.dx, dof, L)
         history.append(_record(it, R, t, adj, step))
-        if step < tol and (robust_stage or (robust is None and kval is None)):
+        final_stage = robust_stage or (robust is None and kval is None)
+        cycle = _cycle(history)
+        if final_stage and (step < tol or (cycle and max(h.step for h in history[-cycle:]) < 100 * tol)):
             converged = True
             break
     # 4. final report from the last adjustment
     return _result(R, t, origin, adj, history, converged, matcher, opts, time.perf_counter() - t_start)
+
+
+def _cycle(history, longest=4):
+    """Period p if the state repeats the one p iterations ago (nearest neighbours can alternate), else 0."""
+    x = history[-1]
+    for p in range(2, longest + 1):
+        if len(history) > p:
+            y = history[-1 - p]
+            if np.allclose(x.translation, y.translation, rtol=0, atol=1e-10) and np.allclose(
+                x.rotation_deg, y.rotation_deg, rtol=0, atol=1e-10
+            ):
+                return p
+    return 0
 
 
 def _initial_local(initial, origin):

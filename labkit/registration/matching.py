@@ -165,12 +165,18 @@ def _replace(corr: Correspondences, **changes) -> Correspondences:
 # --------------------------------------------------------------------- geometry
 
 
-def _local_geometry(points, tree, index, k):
+def _local_geometry(points, tree, index, k, rank):
     """Normals and local noise of ``points[index]`` from their k neighbours in ``points``.
 
-    Noise is the standard deviation along the normal, sqrt(lambda_min) (seed step 4).
+    The same PCA as :func:`labkit.features.local_pca` (notebook 04, eqs. 1-5), but
+    evaluated only at the query points ``index`` (the features API works on whole
+    clouds). Noise is sigma_n = sqrt(k lambda_min / (k - 3)). Queries run in the
+    tree's leaf order (``rank``), which keeps the visited leaves in cache.
     """
-    _, nb = tree.query(points[index], k=k, workers=-1)
+    order = np.argsort(rank[index], kind="stable")
+    nb = np.empty((len(index), k), dtype=np.intp)
+    workers = -1 if len(index) > 2000 else 1  # threads cost more than they save on small queries
+    nb[order] = tree.query(points[index[order]], k=k, workers=workers)[1]
     nbh = points[nb]
     nbh = nbh - nbh.mean(axis=1, keepdims=True)
     cov = np.einsum("nki,nkj->nij", nbh, nbh) / (k - 3)  # 3 dof used by the plane
@@ -189,6 +195,8 @@ class _Geometry:
 
     def __init__(self, points, tree, k, normals=None):
         self.points, self.tree, self.k = points, tree, k
+        self.rank = np.empty(tree.n, dtype=np.intp)
+        self.rank[tree.indices] = np.arange(tree.n)  # leaf order of every point
         n = len(points)
         self.normals = np.full((n, 3), np.nan) if normals is None else normals
         self.noise = np.full(n, np.nan)
@@ -199,11 +207,15 @@ class _Geometry:
         if missing is not None:
             todo = np.unique(index[missing])
             if todo.size:
-                n, s = _local_geometry(self.points, self.tree, todo, self.k)
+                n, s = self.compute(todo, self.k)
                 self.noise[todo] = s
                 if not self._given:
                     self.normals[todo] = n
         return self.normals[index], self.noise[index]
+
+    def compute(self, index, k):
+        """Normals and noise at ``index`` with k neighbours (no caching)."""
+        return _local_geometry(self.points, self.tree, index, k, self.rank)
 
 
 # --------------------------------------------------------------------- sampling
@@ -225,9 +237,9 @@ def _sample(points, geometry, spec, rng):
         return np.arange(n)
     if kind == "random":
         return np.sort(rng.choice(n, m, replace=False))
-    pool = np.sort(rng.choice(n, min(n, 8 * m), replace=False))  # candidates for the normals
-    normals, _ = geometry.at(pool)
-    return pool[_normal_space_sample(normals, m, rng)]
+    pool = np.sort(rng.choice(n, min(n, 3 * m), replace=False))  # candidates for the normals
+    coarse, _ = geometry.compute(pool, min(8, geometry.k))  # coarse normals suffice for the bins
+    return pool[_normal_space_sample(coarse, m, rng)]
 
 
 def _voxel_sample(points, size, rng):
@@ -313,7 +325,8 @@ class _Matcher:
         nt = np.full((m, 3), np.nan)
         noise_t = np.full(m, np.nan)
         # (3) nearest neighbour in the target kd-tree, within max_distance
-        dist, j = self.tree.query(p[live], k=1, distance_upper_bound=opt["max_distance"], workers=-1)
+        workers = -1 if len(live) > 20000 else 1  # thread start-up dominates small queries
+        dist, j = self.tree.query(p[live], k=1, distance_upper_bound=opt["max_distance"], workers=workers)
         found = np.isfinite(dist)
         rule[live[~found]] = _CODE["distance"]
         live, j = live[found], j[found]
@@ -382,7 +395,7 @@ def prepare(
     max_angle_deg=30.0,
     classes=None,
     class_sigma=None,
-    default_sigma=0.1,
+    default_sigma=0.0,
     noise_weighting=True,
     max_noise=None,
     sample=None,
@@ -426,7 +439,7 @@ def prepare(
         max_angle_deg=None if max_angle_deg is None else positive(max_angle_deg, "max_angle_deg"),
         classes=None if classes is None else np.asarray(list(classes)),
         class_sigma=dict(class_sigma or {}),
-        default_sigma=positive(default_sigma, "default_sigma"),
+        default_sigma=_non_negative(default_sigma, "default_sigma"),
         noise_weighting=bool(noise_weighting),
         max_noise=None if max_noise is None else positive(max_noise, "max_noise"),
         need_noise=bool(noise_weighting or max_noise is not None),
@@ -441,6 +454,10 @@ def prepare(
         src_l[idx], idx, src_normals, sigma, rule, tgt_l, tree, tgt_geo,
         _classes_of(target, len(tgt)), options, origin, len(src),
     )  # fmt: skip
+
+
+def _non_negative(value, name):
+    return 0.0 if value == 0 else positive(value, name)
 
 
 def _given_normals(normals, n, name):
@@ -485,7 +502,7 @@ def match(
     max_angle_deg=30.0,
     classes=None,
     class_sigma=None,
-    default_sigma=0.1,
+    default_sigma=0.0,
     noise_weighting=True,
     max_noise=None,
     sample=None,
@@ -511,7 +528,7 @@ def match(
         Allowed ASPRS classes (e.g. (2, 6, 11)); others are rejected by rule 'class'.
     class_sigma : dict int -> float, optional
         A priori standard deviation per class in metres (roof precise, vegetation not);
-        classes not listed get ``default_sigma``.
+        classes not listed get ``default_sigma`` (default 0: only their local noise counts).
     noise_weighting : bool
         Add each point's local noise (std along its normal) to its variance.
     max_noise : float, optional
