@@ -6,6 +6,7 @@ Generic helpers shared by the adjustments (notebook 01, section "Statistics").
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from scipy import stats
@@ -62,13 +63,24 @@ def global_test(omega: float, dof: int, sigma0_apriori: float, alpha: float) -> 
     if dof <= 0:
         return GlobalTest(np.nan, int(dof), np.nan, np.nan, alpha, None, np.nan)
     T = omega / sigma0_apriori**2
-    lower, upper = stats.chi2.ppf([alpha / 2, 1 - alpha / 2], dof)
+    lower, upper = _chi2_bounds(int(dof), alpha)
     return GlobalTest(float(T), int(dof), float(lower), float(upper), alpha, bool(lower <= T <= upper), float(T / dof))
+
+
+@lru_cache(maxsize=256)
+def _chi2_bounds(dof: int, alpha: float) -> tuple:
+    lower, upper = stats.chi2.ppf([alpha / 2, 1 - alpha / 2], dof)
+    return float(lower), float(upper)
+
+
+@lru_cache(maxsize=64)
+def _norm_quantile(p: float) -> float:
+    return float(stats.norm.ppf(p))
 
 
 def w_critical(alpha_w: float) -> float:
     """Two-sided critical value of Baarda's w-test (normal quantile), e.g. 3.29 for 0.001."""
-    return float(stats.norm.ppf(1 - probability(alpha_w, "alpha_w") / 2))
+    return _norm_quantile(1 - probability(alpha_w, "alpha_w") / 2)
 
 
 @dataclass(frozen=True, eq=False)

@@ -26,6 +26,7 @@ from .sphere import algebraic_sphere
 
 _EPS = np.finfo(np.float64).eps
 _RCOND_MIN = 1e-12  # smallest reciprocal condition of the scaled N (the seed's det test)
+_BLOCK = 32_768  # points per block in the sweeps of an iteration
 _X0_SAMPLE = 20_000  # points used for the algebraic initial values
 _FLAT_RATIO = 100.0  # radius above this many times the extent of the points: no curvature
 
@@ -252,42 +253,45 @@ def gauss_helmert_model(
     x_start = _initial_values(l, x0, origin, r_fix)
 
     # Iterate (eqs. 6-22)
-    it = _iterate(np.ascontiguousarray(l.T), x_start, cov, r_fix is not None, tol, int(max_iter))
+    L = np.ascontiguousarray(l.T)  # one row per coordinate: contiguous, cache-friendly sweeps
+    it = _iterate(L, x_start, cov, r_fix is not None, tol, int(max_iter))
 
     # Main check and statistics
-    return _result(l, it, cov, origin, r_fix is not None, tol, alpha, alpha_w, sigma0_apriori)
+    return _result(L, it, cov, origin, r_fix is not None, tol, alpha, alpha_w, sigma0_apriori)
 
 
 # --------------------------------------------------------------- stochastic model
 class _Stochastic:
     """Sigma_ll of independent points: diag(B Sigma B^T) and v = Sigma B^T k, point by point.
 
-    The rows b_i of B come as a (3, n) array (one coordinate per row, contiguous).
+    The rows b_i of B come as a (3, m) array for the points of the slice ``sl``.
     """
 
     def __init__(self, sigma, n):
         self.kind, self.C = _parse_sigma(sigma, n)
 
-    def qbb(self, b):
-        """Diagonal of B Sigma_ll B^T: b_i^T Sigma_i b_i, shape (n,)."""
-        if self.kind == "scalar":  # |b_i| = 1
-            return np.full(b.shape[1], self.C)
+    def qbb(self, b, sl):
+        """Diagonal of B Sigma_ll B^T: b_i^T Sigma_i b_i, shape (m,) (a scalar if all are equal)."""
+        if self.kind == "scalar":  # |b_i| = 1: the same value for every point
+            return self.C
         if self.kind == "point":
-            return self.C.copy()
+            return self.C[sl]
         if self.kind == "axis":
-            return (b * b * self.C).sum(axis=0)
-        return (b * self._Cb(b)).sum(axis=0)
+            return (b * b * self.C[:, sl]).sum(axis=0)
+        return (b * self._Cb(b, sl)).sum(axis=0)
 
-    def v(self, b, k):
-        """Residuals v = Sigma_ll B^T k (eq. 13), shape (3, n)."""
-        if self.kind in ("scalar", "point"):
+    def v(self, b, k, sl):
+        """Residuals v = Sigma_ll B^T k (eq. 13), shape (3, m)."""
+        if self.kind == "scalar":
             return b * (self.C * k)
+        if self.kind == "point":
+            return b * (self.C[sl] * k)
         if self.kind == "axis":
-            return b * self.C * k
-        return self._Cb(b) * k
+            return b * self.C[:, sl] * k
+        return self._Cb(b, sl) * k
 
-    def _Cb(self, b):
-        return np.einsum("nij,jn->in", self.C, b)
+    def _Cb(self, b, sl):
+        return np.einsum("nij,jn->in", self.C[sl], b)
 
 
 def _parse_sigma(sigma, n):
@@ -351,29 +355,42 @@ class _Iteration:
     reason: str
 
 
+def _blocks(n):
+    """Slices of at most _BLOCK points: the temporaries of one block stay in the CPU cache."""
+    return [slice(s, min(s + _BLOCK, n)) for s in range(0, n, _BLOCK)]
+
+
 def _linearize(L, v0, x0):
-    """Rows of B (eq. 10) and misclosures w (eq. 8) at l + v0, x0; L, v0 as (3, n)."""
+    """Rows of B (eq. 10) and misclosures w (eq. 8) at l + v0, x0; L, v0 as (3, m)."""
     u = L + v0
     u -= x0[:3, None]
-    ri = np.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])  # (eq. 11)
+    ri = np.sqrt(np.einsum("ij,ij->j", u, u))  # (eq. 11)
     b = u
     b /= ri  # (eq. 10): b_i = (p_i + v0_i - c) / r_i
     # (eq. 8): w_i = [(l_i + v0_i - c) . (l_i - c)] / r_i - r  =  -b_i . v0_i + (r_i - r)
-    w = ri - x0[3] - (b[0] * v0[0] + b[1] * v0[1] + b[2] * v0[2])
+    w = ri - x0[3] - np.einsum("ij,ij->j", b, v0)
     return b, w, ri
 
 
-def _normal_equations(b, P, w, fixed):
-    """N = A^T P A and n = A^T P w (eq. 21) with A = [-b_i, -1] (eq. 9), never forming A."""
-    Pb = b * P
+def _normal_equations(b, q, w, fixed):
+    """N = A^T P A and n = A^T P w (eq. 21) with A = [-b_i, -1] (eq. 9), never forming A.
+
+    ``q`` is diag(B Sigma_ll B^T) for the block, P = 1/q; a scalar q (same
+    precision for all points) scales the 4x4 sums instead of every row. The sums
+    run in numpy's einsum loops, not BLAS: for 3 x m by m x 3 products BLAS gains
+    nothing and its threads stall on a busy machine.
+    """
+    scalar = np.ndim(q) == 0
+    P = 1.0 / q
+    Pb, s = (b, P) if scalar else (b * P, 1.0)
     u = 3 if fixed else 4
     N, rhs = np.empty((u, u)), np.empty(u)
-    N[:3, :3] = Pb @ b.T
-    rhs[:3] = -(Pb @ w)
+    N[:3, :3] = s * np.einsum("ij,kj->ik", Pb, b)
+    rhs[:3] = -s * np.einsum("ij,j->i", Pb, w)
     if not fixed:
-        N[:3, 3] = N[3, :3] = Pb.sum(axis=1)
-        N[3, 3] = P.sum()
-        rhs[3] = -(P @ w)
+        N[:3, 3] = N[3, :3] = s * Pb.sum(axis=1)
+        N[3, 3] = P * b.shape[1] if scalar else P.sum()
+        rhs[3] = -(P * w.sum() if scalar else np.einsum("j,j->", P, w))
     return N, rhs
 
 
@@ -396,57 +413,69 @@ def _factor(N):
             f"the normal matrix N is singular (reciprocal condition {lam[0] / lam[-1]:.1e}): "
             "the points lie on a plane, a circle or coincide"
         )
-    return cho_factor(N)
+    return cho_factor(N, check_finite=False)
 
 
 def _iterate(L, x0, cov, fixed, tol, max_iter):
-    """Rigorous Gauss-Helmert iteration (eqs. 6-22) until max|dx| < tol; L is (3, n)."""
-    u = 3 if fixed else 4
+    """Rigorous Gauss-Helmert iteration (eqs. 6-22) until max|dx| < tol; L is (3, n).
+
+    Each iteration makes two sweeps over blocks of points: (1) linearize and
+    accumulate N and A^T P w, (2) after solving for dx, the correlates k and
+    residuals v. Arrays of length n are written block by block.
+    """
+    n, u = L.shape[1], (3 if fixed else 4)
+    blocks = _blocks(n)
     v0, x = np.zeros_like(L), x0.copy()
+    b, w, qbb, k = np.empty_like(L), np.empty(n), np.empty(n), np.zeros(n)
     tol_eff = max(tol, 64 * _EPS * (np.abs(L).max() + abs(x0[3])))
-    dxs, omegas, converged, reason, state = [], [], False, "", None
+    dxs, omegas, converged, reason, N = [], [], False, "", None
     for _ in range(max_iter):
-        b, w, ri = _linearize(L, v0, x)
-        if not (ri.min() > 0 and np.isfinite(w @ w)):
+        # (1) linearize at l + v0, x0 (eqs. 8-11) and accumulate the normal equations (eq. 21)
+        N_new, rhs, finite = np.zeros((u, u)), np.zeros(u), True
+        for sl in blocks:
+            b[:, sl], w[sl], ri = _linearize(L[:, sl], v0[:, sl], x)
+            qbb[sl] = q = cov.qbb(b[:, sl], sl)  # diag(B Sigma_ll B^T)
+            Nb, rb = _normal_equations(b[:, sl], q, w[sl], fixed)
+            N_new += Nb
+            rhs += rb
+            finite &= bool(ri.min() > 0)
+        if not (finite and np.isfinite(rhs).all()):
             reason = "the iteration diverged (a point reached the centre or values became infinite)"
             break
-        qbb = cov.qbb(b)  # diag(B Sigma_ll B^T)
-        P = 1.0 / qbb
-        N, rhs = _normal_equations(b, P, w, fixed)
+        N = N_new
         N_chol = _factor(N)
-        dx = -cho_solve(N_chol, rhs)  # (eq. 21) dx = -N^-1 A^T P w
-        k = -P * (_A_times(b, dx) + w)  # (eq. 19)
-        v0 = cov.v(b, k)  # (eq. 13) v = Sigma_ll B^T k
+        dx = -cho_solve(N_chol, rhs, check_finite=False)  # (eq. 21) dx = -N^-1 A^T P w
+        # (2) correlates and residuals
+        for sl in blocks:
+            q = cov.C if cov.kind == "scalar" else qbb[sl]
+            k[sl] = -(_A_times(b[:, sl], dx) + w[sl]) / q  # (eq. 19)
+            v0[:, sl] = cov.v(b[:, sl], k[sl], sl)  # (eq. 13) v = Sigma_ll B^T k
         x = x.copy()
         x[:u] += dx  # (eq. 22)
-        state = (b, qbb, k, N, N_chol)
-        dxs.append(np.pad(dx, (0, 4 - u)))
-        omegas.append(float(qbb @ k**2))  # v^T Sigma^-1 v = sum k_i^2 b_i^T Sigma_i b_i
+        dxs.append(dx if u == 4 else np.append(dx, 0.0))
+        omegas.append(float(np.einsum("i,i,i->", qbb, k, k)))  # v^T Sigma^-1 v = sum k_i^2 b_i^T Sigma_i b_i
         if np.abs(dx).max() < tol_eff:
             converged = True
             break
     else:
         reason = f"no convergence after {max_iter} iterations (last max|dx| = {np.abs(dxs[-1]).max():.2e} m)"
-    if state is None:
-        raise DegenerateGeometryError("the initial values put a point exactly on the sphere centre")
-    b, qbb, k, N, N_chol = state
+    if N is None:
+        raise DegenerateGeometryError("the initial values give no valid linearization (a point at the sphere centre)")
     return _Iteration(x, v0, k, b, qbb, N_chol, N, np.array(dxs), np.array(omegas), converged, reason)
 
 
 # --------------------------------------------------------------- statistics
-def _result(l, it, cov, origin, fixed, tol, alpha, alpha_w, sigma0_apriori):
+def _result(L, it, cov, origin, fixed, tol, alpha, alpha_w, sigma0_apriori):
     """Main check, sigma0, Sigma_xx, redundancy numbers, w-test; back to the caller's frame."""
-    n, u = len(l), (3 if fixed else 4)
+    n, u = L.shape[1], (3 if fixed else 4)
     dof = n - u
     # Main check (Hauptprobe): eq. 4 with the adjusted l + v and x
-    q = l + it.v.T - it.x[:3]
-    f = np.sqrt(np.einsum("ij,ij->i", q, q)) - it.x[3]
-    main_check = float(np.abs(f).max())
-    check_tol = max(tol, 1e3 * _EPS * (np.abs(l).max() + abs(it.x[3])))
+    main_check = max(_max_misclosure(L[:, sl] + it.v[:, sl], it.x) for sl in _blocks(n))
+    check_tol = max(tol, 1e3 * _EPS * (np.abs(L).max() + abs(it.x[3])))
     # sigma0 (eq. 23) and Sigma_xx = sigma0^2 N^-1 (eq. 24 corrected)
-    omega = float(it.qbb @ it.k**2)
+    omega = float(np.einsum("i,i,i->", it.qbb, it.k, it.k))
     sigma0 = float(np.sqrt(omega / dof)) if dof > 0 else np.nan
-    Qxx = cho_solve(it.N_chol, np.eye(u))
+    Qxx = cho_solve(it.N_chol, np.eye(u), check_finite=False)
     Sigma_xx = np.zeros((4, 4))
     Sigma_xx[:u, :u] = (sigma0 if dof > 0 else sigma0_apriori) ** 2 * Qxx
     # Redundancy numbers r_i = 1 - p_i a_i^T N^-1 a_i and Baarda's w-test
@@ -455,7 +484,7 @@ def _result(l, it, cov, origin, fixed, tol, alpha, alpha_w, sigma0_apriori):
     e = -it.qbb * it.k  # -b_i^T v_i: residual along the normal, positive outside
     with np.errstate(divide="ignore", invalid="ignore"):
         w = np.where(ri > 1e-10, e / (sigma0_apriori * np.sqrt(it.qbb * ri)), np.nan)
-    reason = it.reason or _plausibility(l, it.x, main_check, check_tol, it.converged)
+    reason = it.reason or _plausibility(L, it.x, main_check, check_tol, it.converged)
     return SphereFit(
         x=np.concatenate([it.x[:3] + origin, it.x[3:]]),
         Sigma_xx=Sigma_xx,
@@ -480,15 +509,21 @@ def _result(l, it, cov, origin, fixed, tol, alpha, alpha_w, sigma0_apriori):
     )
 
 
+def _max_misclosure(lv, x):
+    """max_i |f_i(l + v, x)| of eq. (4) for one block, lv = l + v as (3, m)."""
+    q = lv - x[:3, None]
+    return float(np.abs(np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2]) - x[3]).max())
+
+
 def _leverage(b, Qxx):
     """a_i^T N^-1 a_i for the rows a_i = [-b_i, -1] of A (eq. 9), b as (3, n)."""
-    h = ((Qxx[:3, :3] @ b) * b).sum(axis=0)
+    h = np.einsum("ij,in,jn->n", Qxx[:3, :3], b, b)
     if len(Qxx) == 4:
-        h += 2.0 * (Qxx[3, :3] @ b) + Qxx[3, 3]
+        h += 2.0 * np.einsum("i,in->n", Qxx[3, :3], b) + Qxx[3, 3]
     return h
 
 
-def _plausibility(l, x, main_check, check_tol, converged):
+def _plausibility(L, x, main_check, check_tol, converged):
     """Reason why a converged result must not be trusted ('' if none)."""
     if not converged:
         return "no convergence"
@@ -496,7 +531,7 @@ def _plausibility(l, x, main_check, check_tol, converged):
         return f"main check failed: max|f(l+v, x)| = {main_check:.2e} m exceeds {check_tol:.1e} m"
     if x[3] <= 0:
         return f"the adjusted radius {x[3]:.4g} m is not positive"
-    extent = np.ptp(l, axis=0).max()
+    extent = np.ptp(L, axis=1).max()
     if x[3] > _FLAT_RATIO * extent:
         return (f"the points barely curve: radius {x[3]:.4g} m exceeds {_FLAT_RATIO:.0f}x their extent "
                 f"({extent:.3g} m); a plane may fit as well")
