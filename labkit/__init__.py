@@ -24,6 +24,7 @@ _EXPORTS = {
     "write_cloud": "labkit.io",
     # sphere (issues 2, 3)
     "gauss_helmert_model": "labkit.adjustment",
+    "SphereFit": "labkit.adjustment",
     "ransac_sphere": "labkit.ransac",
     # transforms
     "make_transform": "labkit.transforms",
