@@ -286,7 +286,13 @@ def register_tiles(source, target, method=None, *, size: float = 100.0, buffer: 
     jobs = [(t, _for_tile(src, t), _for_tile(tgt, t)) for t in tiles]
     run = partial(register_tile, method=method, min_points=int(min_points))
     shifts = _run_jobs(run, jobs, client, scheduler, progress)
-    return ShiftField(tuple(shifts), float(size), getattr(method, "__name__", type(method).__name__))
+    return ShiftField(tuple(shifts), float(size), _method_name(method))
+
+
+def _method_name(method) -> str:
+    if isinstance(method, partial):
+        return str(method.keywords.get("name") or getattr(method.func, "__name__", "method"))
+    return getattr(method, "__name__", type(method).__name__)
 
 
 def _default_method():
