@@ -1,0 +1,245 @@
+"""Branch and bound over translations and the least-squares refinement of maximum consensus.
+
+Used by :func:`labkit.registration.max_consensus` (notebook 06, eq. 6.7-6.10).
+"""
+
+from __future__ import annotations
+
+import heapq
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .._report import ReportMixin, fmt
+from . import _consensus_kernels as K
+from .result import RegistrationResult, degeneracy_report
+
+NAMES = ("tx", "ty", "tz")
+OCTANTS = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], dtype=np.float64)
+
+
+@dataclass(frozen=True, eq=False)
+class BnBOutcome(ReportMixin):
+    """Summary of the branch and bound.
+
+    Attributes
+    ----------
+    translation : ndarray (3,)
+        Centre of the best box found (m).
+    lower : float
+        Consensus at ``translation`` (exact): a lower bound of the maximum.
+    upper : float
+        Certified upper bound of the maximum over the whole search box.
+    gap : float
+        ``upper - lower``; 0 when the bounds met.
+    splits : int
+        Boxes split into octants.
+    open_boxes : int
+        Boxes left unresolved (smaller than tol, or left when the budget ran out).
+    converged : bool
+        True when the bounds met or every open box is smaller than tol.
+    reason : str
+        Why the search stopped.
+    runtime_s : float
+    """
+
+    translation: np.ndarray
+    lower: float
+    upper: float
+    gap: float
+    splits: int
+    open_boxes: int
+    converged: bool
+    reason: str
+    runtime_s: float
+
+    def _report(self):
+        rows = [
+            ("best translation", fmt(self.translation, 4, "m")),
+            ("consensus (lower bound)", f"{self.lower:.6g}"),
+            ("certified upper bound", f"{self.upper:.6g} (gap {self.gap:.6g})"),
+            ("boxes split / left open", f"{self.splits} / {self.open_boxes}"),
+            ("stopped", self.reason),
+            ("runtime", fmt(self.runtime_s, 3, "s")),
+        ]
+        return "Branch and bound", [("", rows)]
+
+
+@dataclass(frozen=True, eq=False)
+class AdjustmentRecord(ReportMixin):
+    """One least-squares adjustment of the refinement (eq. 6.10)."""
+
+    iteration: int
+    translation: np.ndarray
+    sigma0: float
+    n_used: int
+    n_deleted: int
+
+    def _report(self):
+        rows = [("translation", fmt(self.translation, 4, "m")), ("sigma0", fmt(self.sigma0, 4, "m")),
+                ("used / deleted", f"{self.n_used} / {self.n_deleted}")]
+        return f"Adjustment {self.iteration}", [("", rows)]
+
+
+def branch_and_bound(ptr, src_of, D, nrm, pb, center, ext, tol, max_boxes, init_step=0.05, gap_tol=0.0,
+                     use_numba=None) -> BnBOutcome:
+    """Best-first branch and bound over the box ``center +- ext`` (eq. 6.7, 6.8).
+
+    Upper bound of a box with centre c and half diagonal h: the consensus at c
+    with radius + h and eps + h; lower bound: the exact consensus at c. The
+    first level (boxes of about ``init_step``) is bounded all at once by two
+    rasterized cubes; a box is then split into octants, each tested only on
+    the pairs that passed its parent's enlarged test.
+    """
+    t0 = time.perf_counter()
+    R, E, w = pb.radius, pb.eps, pb.w
+    # First level: bounds of all boxes from two cubes at the box centres (the box is rounded up to whole boxes)
+    s = float((2 * ext / np.ceil(2 * ext / init_step - 1e-9)).min())
+    n0 = np.ceil(2 * ext / s - 1e-9).astype(int)
+    a0 = center - n0 * s / 2 + s / 2
+    h0 = s * np.sqrt(3) / 2
+    U = (D - a0) / s
+    shape = tuple(int(n) for n in n0)
+    with ThreadPoolExecutor(max_workers=2) as pool:  # the compiled kernel releases the GIL
+        jobs = [pool.submit(K.raster, ptr, U, nrm, r / s, e / s, w, shape, use_numba=use_numba)
+                for r, e in ((R + h0, E + h0), (R, E))]
+        ub0, lb0 = (j.result() for j in jobs)
+    k = np.unravel_index(np.argmax(lb0), shape)
+    best, best_t = float(lb0[k]), a0 + s * np.array(k)
+    half0 = np.full(3, s / 2)
+    heap = [(-ub0[i], -1, n, a0 + s * np.array(i), half0, None, 0.0)
+            for n, i in enumerate(zip(*np.nonzero(ub0 > best + gap_tol)))]
+    heapq.heapify(heap)
+    tree = cKDTree(D)
+
+    def evaluate(act, centres, h):
+        return K.children(act, src_of, D, nrm, centres, R, E, h, w, use_numba=use_numba)
+
+    counter, splits, small_ub, n_small = len(heap), 0, -np.inf, 0
+    dropped = float(ub0[ub0 <= best + gap_tol].max(initial=best))  # bounds of boxes not split (gap_tol)
+    reason = "bounds met" if gap_tol == 0 else f"bounds within gap_tol = {gap_tol:g}"
+    while heap:
+        neg_ub, depth, _, c, half, act, base = heap[0]
+        if -neg_ub <= best + gap_tol:
+            dropped = max(dropped, -neg_ub)
+            break
+        if splits >= max_boxes:
+            reason = f"budget exhausted ({splits} splits)"
+            break
+        heapq.heappop(heap)
+        if 2 * half.max() < tol:  # too small to split: stays open, counts for the gap
+            small_ub, n_small = max(small_ub, -neg_ub), n_small + 1
+            continue
+        if act is None:  # pairs that can be consistent somewhere in this first-level box
+            act = np.sort(np.asarray(tree.query_ball_point(c, R + float(np.linalg.norm(half))), dtype=np.int64))
+        # Split into octants and bound each
+        hh = half / 2
+        centres = c + OCTANTS * hh
+        acts, ub, lb, sure = evaluate(act, centres, float(np.linalg.norm(hh)))
+        ub, lb, sure = ub + sure + base, lb + sure + base, sure + base
+        splits += 1
+        j = int(np.argmax(lb))
+        if lb[j] > best:
+            best, best_t = float(lb[j]), centres[j].copy()
+        dropped = max(dropped, float(ub[ub <= best + gap_tol].max(initial=-np.inf)))
+        for i in np.flatnonzero(ub > best + gap_tol):
+            heapq.heappush(heap, (-ub[i], depth - 1, counter, centres[i], hh, acts[i], sure[i]))
+            counter += 1
+    left = [-item[0] for item in heap if -item[0] > best + gap_tol]
+    upper = max([best, small_ub, min(dropped, best + gap_tol), *left])
+    converged = not left
+    if converged and n_small and small_ub > best:
+        reason = f"boxes smaller than tol = {tol} m"
+    return BnBOutcome(best_t, float(best), float(upper), float(upper - best), splits, len(left) + n_small,
+                      converged, reason, time.perf_counter() - t0)
+
+
+def _consensus_set(t, src_of, D, nrm, R, E):
+    """Per source point the best consistent pair at translation t (eq. 6.3, 6.4)."""
+    e = t - D
+    d2 = np.einsum("ij,ij->i", e, e)
+    if nrm is None:
+        ok, score = d2 < R * R, d2
+    else:
+        r = np.abs(np.einsum("ij,ij->i", nrm, e))
+        ok, score = (d2 < R * R) & (r < E), r
+    idx = np.flatnonzero(ok)
+    idx = idx[np.lexsort((score[idx], src_of[idx]))]
+    first = np.concatenate(([True], src_of[idx][1:] != src_of[idx][:-1])) if idx.size else idx.astype(bool)
+    return idx[first]
+
+
+def _design(sel, D, nrm, w, src_of):
+    """A, l, p of the translation model: n.t = n.d (plane) or t = d (point), eq. 6.10."""
+    p = w[src_of[sel]]
+    if nrm is None:
+        A = np.tile(np.eye(3), (sel.size, 1))
+        return A, D[sel].reshape(-1), np.repeat(p, 3), 3
+    return nrm[sel], np.einsum("ij,ij->i", nrm[sel], D[sel]), p, 1
+
+
+def _adjust(A, l, p, t_ref, box_var):
+    """Weighted LS in the constrained subspace of N; undetermined directions keep t_ref."""
+    N = A.T @ (p[:, None] * A)
+    deg = degeneracy_report(N, NAMES)
+    lam, V = deg.eigenvalues, deg.eigenvectors
+    Vc, lc = V[:, deg.constrained], lam[deg.constrained]
+    n_vec = A.T @ (p * (l - A @ t_ref))
+    x = t_ref + Vc @ ((Vc.T @ n_vec) / lc)  # x = t_ref + N^+ A^T P (l - A t_ref)
+    v = A @ x - l
+    dof = max(len(l) - int(deg.constrained.sum()), 1)
+    sigma0 = float(np.sqrt(v @ (p * v) / dof))
+    Qc = (Vc / lc) @ Vc.T
+    Vu = V[:, ~deg.constrained]
+    cov = sigma0**2 * Qc + box_var * (Vu @ Vu.T)
+    qvv = 1.0 / p - np.einsum("ij,jk,ik->i", A, Qc, A)  # cofactors of the residuals
+    return x, v, sigma0, cov, deg, qvv
+
+
+def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: int = 10):
+    """Least squares on the consensus set with weights and iterative deletion (eq. 6.10)."""
+    R, E = pb.radius, pb.eps
+    box_var = float((2 * ext.max()) ** 2 / 12)  # undetermined directions: uniform over the search box
+    t, records, it, ls_ok = bb.translation.copy(), [], 0, False
+    x, sigma0, cov, deg, n_used = t.copy(), float("nan"), np.full((3, 3), np.nan), None, 0
+    for _ in range(max_outer):
+        sel = _consensus_set(t, src_of, D, nrm, R, E)
+        if sel.size < 3:
+            break
+        A, l, p, rows = _design(sel, D, nrm, pb.w, src_of)
+        keep = np.ones(sel.size, bool)
+        while True:  # iterative deletion of the worst observations
+            rk = np.repeat(keep, rows)
+            x, v, sigma0, cov, deg, qvv = _adjust(A[rk], l[rk], p[rk], bb.translation, box_var)
+            z = np.abs(v) / (sigma0 * np.sqrt(np.clip(qvv, 1e-12, None))) if sigma0 > 0 else np.zeros_like(v)
+            worst = z.reshape(-1, rows).max(axis=1) > deletion_k
+            if not worst.any() or keep.sum() - worst.sum() < 3:
+                break
+            keep[np.flatnonzero(keep)[worst]] = False
+        it += 1
+        n_used = int(keep.sum())
+        records.append(AdjustmentRecord(it, x.copy(), sigma0, n_used, int(sel.size - n_used)))
+        moved = np.linalg.norm(x - t)
+        t = x
+        if moved < 1e-5:
+            ls_ok = True
+            break
+    undetermined = deg.undetermined_axes if deg is not None else NAMES
+    msg = (f"branch and bound: consensus {bb.lower:.6g}, certified upper bound {bb.upper:.6g} "
+           f"(gap {bb.gap:.6g}) after {bb.splits} splits, {bb.reason}")
+    if deg is None:
+        msg += "; too few consistent points for the least-squares refinement"
+    elif not deg.well_posed:
+        msg += (f"; undetermined along {', '.join(undetermined)}: kept the branch-and-bound value there, "
+                f"variance = uniform over the search box")
+    if not ls_ok:
+        msg += "; refinement did not settle"
+    return RegistrationResult(
+        translation=t, rotation=np.eye(3), origin=pb.origin.copy(), covariance=cov, parameter_names=NAMES,
+        sigma0=sigma0, n_used=n_used, share_used=n_used / len(pb.src), converged=bool(bb.converged and ls_ok),
+        iterations=bb.splits, degeneracy=deg, method="max_consensus", history=(bb, *records),
+        runtime_s=time.perf_counter() - t0, message=msg,
+    )

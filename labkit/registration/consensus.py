@@ -1,0 +1,522 @@
+"""Maximum consensus over translations and the consensus cube (notebook 06, seed 003 step 3).
+
+For a translation t the consensus is (eq. 6.1, 6.2)
+
+    C(t) = sum_p w_p * [ exists q in target: pair (p, q) consistent at t ]
+
+with "consistent" meaning |p + t - q| < eps (point-to-point) or
+|n_q . (p + t - q)| < eps and |p + t - q| < radius (point-to-plane, eq. 6.3,
+6.4), optionally with the angle between the normals of p and q below
+``max_angle``. Each source point counts at most once per t.
+
+Only the difference vectors d = q - p with d inside the search window (grown
+by the search radius) can ever be consistent, so both the cube and the branch
+and bound work on this list of pairs (:func:`_pairs`), never on 8 million
+nearest-neighbour searches.
+"""
+
+from __future__ import annotations
+
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from itertools import chain
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from .._checks import as_points, choice, positive
+from .._frame import local_origin, reduce
+from .._report import ReportMixin, fmt
+from ..errors import EmptyRegionError, LabkitError
+from . import _consensus_kernels as K
+
+CRITERIA = ("point_to_plane", "point_to_point")
+MAX_CELLS = 100_000_000
+AXES = ("X", "Y", "Z")
+
+
+# --------------------------------------------------------------------------- result types
+@dataclass(frozen=True, eq=False)
+class PeakShape(ReportMixin):
+    """Which translation directions the consensus peak determines.
+
+    The cells whose count lies within ``level`` of the peak (relative to the
+    peak-to-median contrast) and that are connected to the peak form the *top
+    region*; a principal component analysis of their positions tells whether it
+    is a point, a ridge (one free direction) or a plane (two free directions).
+
+    Attributes
+    ----------
+    kind : str
+        'point', 'ridge', 'plane' or 'flat' (no peak at all: undetermined).
+    spreads : ndarray (3,)
+        Standard deviations (m) of the top region along its principal directions, ascending.
+    directions : ndarray (3, 3)
+        The principal directions in the columns, in the order of ``spreads``.
+    free : ndarray of bool (3,)
+        Per principal direction: spread at least ``free_spread`` (not determined).
+    axis_constrained : ndarray of bool (3,)
+        Per axis X, Y, Z: the free directions have less than half their weight on it.
+    contrast : float
+        (peak - median) / peak: near 0 for a consensus that barely distinguishes shifts.
+    n_top : int
+        Number of cells in the top region.
+    free_spread : float
+        Threshold (m) on the spread that separates determined from free directions.
+    """
+
+    kind: str
+    spreads: np.ndarray
+    directions: np.ndarray
+    free: np.ndarray
+    axis_constrained: np.ndarray
+    contrast: float
+    n_top: int
+    free_spread: float
+
+    @property
+    def constrained_axes(self) -> tuple:
+        """Names of the axes the peak determines, e.g. ('X', 'Z')."""
+        return tuple(a for a, ok in zip(AXES, self.axis_constrained) if ok)
+
+    def describe(self) -> str:
+        """One line: the shape and the free direction(s)."""
+        if self.kind == "flat":
+            return "flat: no peak, the translation is undetermined"
+        free = [self.directions[:, i] for i in np.flatnonzero(self.free)]
+        along = "; ".join(", ".join(f"{a}:{c:+.2f}" for a, c in zip(AXES, v) if abs(c) > 0.1) for v in free)
+        return self.kind + (f" (free along {along})" if free else " (all directions determined)")
+
+    def _report(self):
+        rows = [
+            ("shape", self.describe()),
+            ("constrained axes", ", ".join(self.constrained_axes) or "none"),
+            ("spreads of the top region", fmt(self.spreads, 4, "m")),
+            ("contrast (peak - median) / peak", fmt(self.contrast, 3)),
+            ("cells in the top region", str(self.n_top)),
+        ]
+        return "Consensus peak", [("", rows)]
+
+
+@dataclass(frozen=True, eq=False)
+class ConsensusCube(ReportMixin):
+    """The consensus C(t) on a regular grid of translations (eq. 6.5).
+
+    Attributes
+    ----------
+    counts : ndarray (nx, ny, nz)
+        Consensus per cell: number of source points (int) or their weight sum (float).
+    axes : tuple of three ndarrays
+        Translations (m) along X, Y, Z; ``counts[i, j, k]`` belongs to
+        ``(axes[0][i], axes[1][j], axes[2][k])``.
+    best_translation : ndarray (3,)
+        Translation of the highest cell, NaN in every axis the peak does not determine.
+    argmax_translation : ndarray (3,)
+        Translation of the highest cell (the first one on a plateau), without that caution.
+    best_count : float
+        The highest consensus.
+    peak : PeakShape
+        Shape of the peak: which directions are constrained.
+    criterion : str
+        'point_to_plane' or 'point_to_point'.
+    eps : float
+        Distance tolerance (m).
+    radius : float
+        Search radius (m) around target points (point-to-plane); eps for point-to-point.
+    max_angle : float or None
+        Largest angle (degrees) between source and target normals.
+    n_source, n_pairs : int
+        Source points and candidate pairs considered.
+    step : float
+        Grid step (m).
+    kernel : str
+        'numba' or 'numpy'.
+    runtime_s : float
+        Wall-clock time (s).
+    """
+
+    counts: np.ndarray
+    axes: tuple
+    best_translation: np.ndarray
+    argmax_translation: np.ndarray
+    best_count: float
+    peak: PeakShape
+    criterion: str
+    eps: float
+    radius: float
+    max_angle: float | None
+    n_source: int
+    n_pairs: int
+    step: float
+    kernel: str
+    runtime_s: float
+
+    @property
+    def peak_index(self) -> tuple:
+        """Index (i, j, k) of the highest cell."""
+        return tuple(int(i) for i in np.unravel_index(np.argmax(self.counts), self.counts.shape))
+
+    @property
+    def undetermined(self) -> bool:
+        """True when the consensus has no peak at all."""
+        return self.peak.kind == "flat"
+
+    def count_at(self, translation) -> float:
+        """Count of the cell nearest to ``translation`` (3,)."""
+        idx = [int(np.clip(np.rint((t - a[0]) / self.step), 0, a.size - 1)) for t, a in zip(translation, self.axes)]
+        return float(self.counts[tuple(idx)])
+
+    def _report(self):
+        shape = "x".join(str(n) for n in self.counts.shape)
+        rows = [
+            ("criterion", f"{self.criterion}, eps = {self.eps:.3f} m"
+             + (f", radius = {self.radius:.3f} m" if self.criterion == "point_to_plane" else "")
+             + (f", max angle = {self.max_angle:.1f} deg" if self.max_angle is not None else "")),
+            ("grid", f"{shape} = {self.counts.size:,} translations, step {self.step * 100:.2f} cm"),
+            ("range", ", ".join(f"{a}: {ax[0]:+.3f}..{ax[-1]:+.3f} m" for a, ax in zip(AXES, self.axes))),
+            ("best translation", fmt(self.best_translation, 4, "m")),
+            ("highest cell", fmt(self.argmax_translation, 4, "m")),
+            ("best consensus", f"{self.best_count:.6g} of {self.n_source} source points"),
+            ("pairs", f"{self.n_pairs:,} (kernel: {self.kernel})"),
+            ("runtime", fmt(self.runtime_s, 2, "s")),
+        ]
+        return "Consensus cube", [("", rows)] + self.peak._report()[1]
+
+
+# --------------------------------------------------------------------------- inputs
+@dataclass(frozen=True, eq=False)
+class _Problem:
+    """Reduced coordinates, normals, weights and the candidate pairs of one registration."""
+
+    src: np.ndarray  # (n, 3) reduced source
+    tgt: np.ndarray  # (m, 3) reduced target
+    origin: np.ndarray
+    w: np.ndarray  # (n,) weights
+    tgt_normals: np.ndarray | None
+    src_normals: np.ndarray | None
+    criterion: str
+    eps: float
+    radius: float
+    max_angle: float | None
+
+
+def _prepare(source, target, criterion, eps, radius, max_angle, weights, normals, normal_k) -> _Problem:
+    criterion = choice(criterion, CRITERIA, "criterion")
+    eps = positive(eps, "eps")
+    xyz_s = as_points(source, min_points=1, name="source")
+    xyz_t = as_points(target, min_points=3, name="target")
+    origin = local_origin(xyz_t)
+    src, tgt = reduce(xyz_s, origin), reduce(xyz_t, origin)
+    w = _weights(weights, source, len(src))
+    plane = criterion == "point_to_plane"
+    n_src, n_tgt = (None, None) if normals is None else normals
+    if max_angle is not None:
+        max_angle = positive(max_angle, "max_angle")
+        n_src = _normals(n_src, src, normal_k, "source")
+    if plane or max_angle is not None:
+        n_tgt = _normals(n_tgt, tgt, normal_k, "target")
+    if plane:
+        radius = _default_radius(tgt) if radius is None else positive(radius, "radius")
+        radius = max(radius, eps)
+    else:
+        radius = eps
+    return _Problem(src, tgt, origin, w, n_tgt, n_src, criterion, eps, float(radius), max_angle)
+
+
+def _weights(weights, source, n):
+    if weights is None:
+        return np.ones(n)
+    if isinstance(weights, dict):  # weight per class code
+        if "classification" not in getattr(source, "attributes", {}):
+            raise LabkitError("weights given per class need a source PointCloud with a 'classification' attribute")
+        cls = np.asarray(source["classification"])
+        w = np.array([float(weights.get(int(c), 0.0)) for c in np.unique(cls)])
+        w = w[np.searchsorted(np.unique(cls), cls)]
+    else:
+        w = np.array(weights, dtype=np.float64).reshape(-1)
+    if w.shape != (n,) or not np.isfinite(w).all() or (w < 0).any():
+        raise LabkitError(f"weights must be {n} finite values >= 0 (one per source point)")
+    if w.sum() <= 0:
+        raise LabkitError("all weights are zero: no source point can vote")
+    return w
+
+
+def _normals(given, xyz, k, name):
+    if given is not None:
+        n = np.asarray(given, dtype=np.float64)
+        if n.shape != xyz.shape or not np.isfinite(n).all():
+            raise LabkitError(f"{name} normals must be finite with shape {xyz.shape}")
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
+    from ..features import normals
+
+    return normals(xyz, k=min(max(3, int(k)), len(xyz)))
+
+
+def _default_radius(tgt) -> float:
+    """Search radius: median distance to the 4th neighbour, so a disc rarely misses the surface."""
+    sample = tgt[:: max(1, len(tgt) // 20000)]
+    d, _ = cKDTree(tgt).query(sample, k=min(5, len(tgt)), workers=-1)
+    return float(np.median(d[:, -1]))
+
+
+def _box(extent, center):
+    try:
+        ext = np.broadcast_to(np.asarray(extent, dtype=np.float64), (3,)).copy()
+        c = np.zeros(3) if center is None else np.asarray(center, dtype=np.float64).reshape(3)
+    except (TypeError, ValueError):
+        raise LabkitError(f"extent must be one or three numbers > 0 (m) and center three numbers") from None
+    if not np.isfinite(ext).all() or (ext <= 0).any() or not np.isfinite(c).all():
+        raise LabkitError(f"extent must be one or three finite numbers > 0 (m), got {extent!r}")
+    return ext, c
+
+
+def _grid(extent, step, center):
+    ext, c = _box(extent, center)
+    step = positive(step, "step")
+    half = np.floor(ext / step + 1e-9).astype(np.int64)
+    n = 2 * half + 1
+    if np.prod(n.astype(float)) > MAX_CELLS:
+        raise LabkitError(
+            f"the grid would have {int(np.prod(n)):,} cells (> {MAX_CELLS:,}); use a larger step or a smaller extent"
+        )
+    return tuple(c[i] + step * np.arange(-half[i], half[i] + 1) for i in range(3)), step
+
+
+def _pairs(pb: _Problem, lo, hi, reach):
+    """Pairs (p, q) whose difference d = q - p lies in [lo - reach, hi + reach] (eq. 6.6).
+
+    Returns ``ptr`` (CSR over source points), source index and d per pair, and
+    the target normals per pair (or None).
+    """
+    tree = cKDTree(pb.tgt)
+    mid, half = (lo + hi) / 2, (hi - lo) / 2
+    hits = tree.query_ball_point(pb.src + mid, float(half.max() + reach) * (1 + 1e-12), p=np.inf, workers=-1)
+    lens = np.fromiter(map(len, hits), dtype=np.int64, count=len(hits))
+    j = np.fromiter(chain.from_iterable(hits), dtype=np.int64, count=int(lens.sum()))
+    i = np.repeat(np.arange(len(pb.src)), lens)
+    D = pb.tgt[j] - pb.src[i]
+    keep = ((D >= lo - reach) & (D <= hi + reach)).all(axis=1) & (pb.w[i] > 0)
+    if pb.max_angle is not None:  # normal angle test does not depend on t
+        cos = np.abs(np.einsum("ij,ij->i", pb.src_normals[i], pb.tgt_normals[j]))
+        keep &= cos > np.cos(np.radians(pb.max_angle))
+    i, j, D = i[keep], j[keep], D[keep]
+    if i.size == 0:
+        raise EmptyRegionError(
+            "no source point has a target point within the search window: the clouds do not overlap "
+            "for these translations (check the frames, extent and center)"
+        )
+    ptr = np.concatenate(([0], np.cumsum(np.bincount(i, minlength=len(pb.src)))))
+    nrm = pb.tgt_normals[j] if pb.criterion == "point_to_plane" else None
+    return ptr, i, D, nrm
+
+
+# --------------------------------------------------------------------------- the cube
+def consensus_cube(
+    source,
+    target,
+    extent=1.0,
+    step: float = 0.01,
+    criterion: str = "point_to_plane",
+    eps: float = 0.05,
+    max_angle: float | None = None,
+    weights=None,
+    *,
+    radius: float | None = None,
+    center=None,
+    normals=None,
+    normal_k: int = 12,
+    level: float = 0.1,
+    use_numba: bool | None = None,
+    workers: int = 2,
+) -> ConsensusCube:
+    """Consensus of every translation on a regular grid, exactly (eq. 6.5).
+
+    Parameters
+    ----------
+    source, target : array_like (n, 3) or PointCloud
+        The cloud to move and the reference, same frame (UTM is fine).
+    extent : float or (3,) float
+        Half-width (m) of the search box per axis around ``center``.
+    step : float
+        Grid step (m); at most 1e8 cells are allowed.
+    criterion : {'point_to_plane', 'point_to_point'}
+        Consistency test of a pair (eq. 6.3 or 6.4).
+    eps : float
+        Distance tolerance (m), > 0.
+    max_angle : float, optional
+        Largest angle (deg) between source and target normals for a consistent pair.
+    weights : array_like (n,) or dict, optional
+        Weight per source point, or per class code (needs ``source['classification']``).
+    radius : float, optional
+        Search radius (m) around target points for point-to-plane; default: the
+        median distance of target points to their 5th neighbour.
+    center : (3,) float, optional
+        Centre of the search box (an a-priori shift); default zero.
+    normals : (source_normals, target_normals), optional
+        Precomputed unit normals (either may be None); otherwise PCA normals.
+    normal_k : int
+        Neighbours for PCA normals.
+    level : float
+        The top region of the peak: counts above ``peak - level * (peak - median)``.
+    use_numba : bool, optional
+        Force (True) or forbid (False) the compiled kernel; default: use it if installed.
+    workers : int
+        Threads for the compiled kernel.
+
+    Returns
+    -------
+    ConsensusCube
+
+    Raises
+    ------
+    LabkitError
+        Grid too large, eps <= 0, bad weights or normals; EmptyRegionError if the clouds do not overlap.
+    """
+    t0 = time.perf_counter()
+    # Grid, reduced coordinates, normals, weights
+    axes, step = _grid(extent, step, center)
+    pb = _prepare(source, target, criterion, eps, radius, max_angle, weights, normals, normal_k)
+    # Candidate pairs in the window
+    a0 = np.array([a[0] for a in axes])
+    a1 = np.array([a[-1] for a in axes])
+    ptr, _, D, nrm = _pairs(pb, a0, a1, pb.radius)
+    # Rasterize the consistent set of every pair, one count per source point and cell
+    shape = tuple(a.size for a in axes)
+    counts, kernel = _raster_parallel(ptr, (D - a0) / step, nrm, pb, step, shape, use_numba, workers)
+    if weights is None:
+        counts = np.rint(counts).astype(np.int32)
+    # Peak and its shape
+    peak = peak_shape(counts, axes, pb.eps, level)
+    idx = np.unravel_index(np.argmax(counts), shape)
+    t_max = np.array([a[i] for a, i in zip(axes, idx)])
+    best = np.where(peak.axis_constrained, t_max, np.nan) if peak.kind != "flat" else np.full(3, np.nan)
+    return ConsensusCube(
+        counts, axes, best, t_max, float(counts[idx]), peak, pb.criterion, pb.eps, pb.radius, pb.max_angle,
+        len(pb.src), int(D.shape[0]), step, kernel, time.perf_counter() - t0,
+    )
+
+
+def _raster_parallel(ptr, U, nrm, pb, step, shape, use_numba, workers):
+    numba_ok = K.HAVE_NUMBA if use_numba is None else bool(use_numba) and K.HAVE_NUMBA
+    R, E = pb.radius / step, pb.eps / step
+    if not numba_ok or workers <= 1:
+        return K.raster(ptr, U, nrm, R, E, pb.w, shape, use_numba=numba_ok), "numba" if numba_ok else "numpy"
+    # split the source points into parts with about the same number of pairs; threads release the GIL
+    n = ptr.size - 1
+    cuts = np.unique(np.searchsorted(ptr, np.linspace(0, ptr[-1], workers + 1)[1:-1]).clip(0, n))
+    bounds = np.concatenate(([0], cuts, [n]))
+
+    def part(a, b):
+        sub_ptr = ptr[a : b + 1] - ptr[a]
+        sl = slice(ptr[a], ptr[b])
+        return K.raster(sub_ptr, U[sl], None if nrm is None else nrm[sl], R, E, pb.w[a:b], shape, use_numba=True)
+
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        parts = list(pool.map(part, bounds[:-1], bounds[1:]))
+    return sum(parts[1:], parts[0]), "numba"
+
+
+def peak_shape(counts, axes, eps: float, level: float = 0.1) -> PeakShape:
+    """Shape of the consensus peak: point, ridge, plane or flat (eq. 6.9).
+
+    Parameters
+    ----------
+    counts : ndarray (nx, ny, nz)
+    axes : tuple of three 1D arrays
+    eps : float
+        Tolerance of the criterion; a peak narrower than the box by far is "determined".
+    level : float
+        Top region: counts >= peak - level * (peak - median).
+    """
+    c = np.asarray(counts, dtype=np.float64)
+    top, med = c.max(), np.median(c)
+    contrast = (top - med) / top if top > 0 else 0.0
+    width = np.array([a[-1] - a[0] for a in axes])
+    free_spread = max(0.15 * float(width.min()), 1.5 * eps / np.sqrt(3))
+    # no peak: the best cells are hardly better than the typical one
+    noise = 3.0 * np.sqrt(max(top, 1.0)) if np.allclose(c, np.rint(c)) else 0.01 * top
+    if top <= 0 or top - med <= noise:
+        return PeakShape("flat", np.full(3, np.nan), np.eye(3), np.ones(3, bool), np.zeros(3, bool),
+                         float(contrast), int(c.size), free_spread)
+    # top region connected to the peak
+    labels, _ = ndimage.label(c >= top - level * (top - med))
+    region = labels == labels[np.unravel_index(np.argmax(c), c.shape)]
+    X = np.column_stack([a[i] for a, i in zip(axes, np.nonzero(region))])
+    lam, vec = np.linalg.eigh(np.cov(X.T, bias=True) if len(X) > 1 else np.zeros((3, 3)))
+    spreads = np.sqrt(np.clip(lam, 0, None))
+    free = spreads >= free_spread
+    share = (vec[:, free] ** 2).sum(axis=1)
+    kind = ("point", "ridge", "plane", "flat")[int(free.sum())]
+    return PeakShape(kind, spreads, vec, free, share < 0.5, float(contrast), int(region.sum()), free_spread)
+
+
+# --------------------------------------------------------------------------- maximum consensus
+def max_consensus(
+    source,
+    target,
+    extent=1.0,
+    criterion: str = "point_to_plane",
+    eps: float = 0.05,
+    tol: float = 0.001,
+    max_angle: float | None = None,
+    weights=None,
+    *,
+    radius: float | None = None,
+    center=None,
+    normals=None,
+    normal_k: int = 12,
+    max_boxes: int = 20000,
+    gap_tol: float = 0.0,
+    init_step: float = 0.05,
+    deletion_k: float = 3.0,
+    use_numba: bool | None = None,
+):
+    """Globally best translation by branch and bound, then least squares on the consensus set.
+
+    Branch and bound (eq. 6.7, 6.8) splits the search box into octants; a box
+    with centre c and half diagonal h cannot hold a translation with more
+    consensus than C(c) evaluated with eps + h (and radius + h). Boxes whose
+    bound does not exceed the best consensus found so far are dropped; the
+    search stops when the bounds meet or every open box is smaller than
+    ``tol``, and reports the certified gap. The consensus set of the optimum is
+    then adjusted by weighted least squares with iterative deletion of
+    observations whose standardized residual exceeds ``deletion_k`` (eq. 6.10).
+
+    Parameters
+    ----------
+    source, target, extent, criterion, eps, max_angle, weights, radius, center, normals, normal_k
+        As in :func:`consensus_cube`.
+    tol : float
+        Boxes with an edge below ``tol`` (m) are not split further.
+    max_boxes : int
+        Budget of box splits; when exhausted the result says so (converged = False).
+    gap_tol : float
+        Boxes whose upper bound exceeds the best consensus by at most ``gap_tol`` are
+        not split (0: search until the bounds meet or the boxes are below ``tol``).
+    init_step : float
+        Edge (m) of the first-level boxes, bounded all at once by two rasterized cubes.
+    deletion_k : float
+        Deletion threshold for standardized residuals in the refinement.
+
+    Returns
+    -------
+    RegistrationResult
+        method 'max_consensus'; ``history`` holds the branch-and-bound summary
+        (:class:`labkit.registration.bnb.BnBOutcome`) and one record per
+        adjustment; the message names the certified gap.
+    """
+    from .bnb import branch_and_bound, refine
+
+    t0 = time.perf_counter()
+    # Search box, reduced coordinates, pairs
+    tol = positive(tol, "tol")
+    ext, c = _box(extent, center)
+    pb = _prepare(source, target, criterion, eps, radius, max_angle, weights, normals, normal_k)
+    init_step = positive(init_step, "init_step")
+    ptr, src_of, D, nrm = _pairs(pb, c - ext, c + ext, pb.radius + 2 * init_step)
+    # Branch and bound over continuous translations
+    bb = branch_and_bound(ptr, src_of, D, nrm, pb, c, ext, tol, max_boxes, init_step, gap_tol, use_numba)
+    # Least squares with weights and iterative deletion on the consensus set
+    return refine(bb, src_of, D, nrm, pb, deletion_k, ext, time.perf_counter() - t0, t0)
