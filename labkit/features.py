@@ -57,7 +57,7 @@ ORIENTATIONS = ("up", "viewpoint", "none")
 # --------------------------------------------------------------------------- neighbourhoods
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, repr=False)
 class Neighbourhoods(ReportMixin):
     """Neighbour indices of every point in compressed rows: point i owns ``indices[offsets[i]:offsets[i+1]]``.
 
@@ -71,6 +71,9 @@ class Neighbourhoods(ReportMixin):
 
     def __len__(self) -> int:
         return len(self.offsets) - 1
+
+    def __repr__(self) -> str:
+        return f"Neighbourhoods({len(self)} points, {_scale_text(self.k, self.radius)})"
 
     def __getitem__(self, i: int) -> np.ndarray:
         return self.indices[self.offsets[i] : self.offsets[i + 1]]
@@ -89,8 +92,7 @@ class Neighbourhoods(ReportMixin):
 
     def _report(self):
         c = self.counts
-        kind = f"k = {self.k}" if self.k is not None else f"radius = {fmt(self.radius, 3, 'm')}"
-        rows = [("points", str(len(self))), ("search", kind)]
+        rows = [("points", str(len(self))), ("search", _scale_text(self.k, self.radius))]
         if len(c):
             rows.append(("neighbours min / median / max", f"{c.min()} / {np.median(c):.0f} / {c.max()}"))
         return "Neighbourhoods", [("", rows)]
@@ -136,7 +138,7 @@ def neighbourhoods(points, k: int | None = None, radius: float | None = None, *,
 # --------------------------------------------------------------------------- local PCA
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, repr=False)
 class LocalPCA(ReportMixin):
     """Result of :func:`local_pca`: per point eigenvalues, eigenvectors, normal and centroid.
 
@@ -163,6 +165,9 @@ class LocalPCA(ReportMixin):
     k: int | None
     radius: float | None
 
+    def __repr__(self) -> str:
+        return f"LocalPCA({len(self.counts)} points, {_scale_text(self.k, self.radius)})"
+
     @property
     def noise(self) -> np.ndarray:
         """Local noise sigma_n (eq. 5), metres; NaN where m <= 3."""
@@ -186,10 +191,9 @@ class LocalPCA(ReportMixin):
 
     def _report(self):
         noise, f = self.noise, self.features
-        kind = f"k = {self.k}" if self.k is not None else f"radius = {fmt(self.radius, 3, 'm')}"
         rows = [
             ("points", str(len(self.counts))),
-            ("search", kind),
+            ("search", _scale_text(self.k, self.radius)),
             ("neighbours median", f"{np.median(self.counts):.0f}"),
             ("normal undetermined", str(int((~self.valid).sum()))),
             ("local noise median", fmt(np.nanmedian(noise) if np.isfinite(noise).any() else np.nan, 4, "m")),
@@ -291,7 +295,7 @@ def local_noise(points, k: int = 20, radius: float | None = None, *, chunk_size:
 # --------------------------------------------------------------------------- eigenvalue features
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, repr=False)
 class EigenFeatures(ReportMixin):
     """Eigenvalue features on normalized eigenvalues e_i = l_i / sum(l) (eq. 6-8).
 
@@ -313,6 +317,9 @@ class EigenFeatures(ReportMixin):
         "linearity", "planarity", "scattering", "omnivariance",
         "anisotropy", "eigenentropy", "change_of_curvature", "sum",
     )  # fmt: skip
+
+    def __repr__(self) -> str:
+        return f"EigenFeatures({np.shape(self.sum)}: {', '.join(self.NAMES)})"
 
     def __getitem__(self, name: str) -> np.ndarray:
         if name not in self.NAMES:
@@ -367,7 +374,7 @@ def eigen_features(eigenvalues) -> EigenFeatures:
 # --------------------------------------------------------------------------- several scales
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, repr=False)
 class MultiScaleFeatures(ReportMixin):
     """Local PCA at several scales and, per point, the scale of least eigenentropy.
 
@@ -388,6 +395,9 @@ class MultiScaleFeatures(ReportMixin):
     eigenvalues: np.ndarray
     best: np.ndarray
     pca: LocalPCA
+
+    def __repr__(self) -> str:
+        return f"MultiScaleFeatures({len(self.best)} points, {self.by} = {self.scales})"
 
     @property
     def entropy(self) -> np.ndarray:
@@ -455,7 +465,7 @@ def multiscale_features(
 # --------------------------------------------------------------------------- robust normals
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, repr=False)
 class RobustNormals(ReportMixin):
     """Result of :func:`robust_normals`.
 
@@ -479,6 +489,9 @@ class RobustNormals(ReportMixin):
     k: int
     iterations: int
     threshold: float | None
+
+    def __repr__(self) -> str:
+        return f"RobustNormals({len(self.inliers)} points, k = {self.k}, {self.iterations} hypotheses)"
 
     def _report(self):
         rows = [
@@ -602,6 +615,12 @@ def _random_triples(rng, shape, k) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- private steps
+
+
+def _scale_text(k, radius) -> str:
+    if k is not None:
+        return f"k = {k}"
+    return f"radius = {fmt(radius, 3, 'm')}" if radius is not None else "k or radius per point (multi-scale)"
 
 
 def _reduced(points):
