@@ -30,7 +30,7 @@ from .errors import LabkitError
 from .sphere import algebraic_sphere, circumspheres, sphere_residuals
 
 S = 4  # minimal sample size of a sphere
-_FIRST_BATCH = 256
+_FIRST_BATCH = 128
 _MIN_BATCH = 64
 _CELLS_PER_BATCH = 4_000_000  # hypotheses x points scored at once (about 32 MB)
 _LO_STEPS = 4
@@ -533,7 +533,8 @@ def _orthogonal_fit(P, x, steps=3):
         J = np.column_stack([-diff / dist[:, None], -np.ones(len(P))])  # d d_i / d x
         d = dist - x[3]
         JtJ = J.T @ J
-        if np.linalg.cond(JtJ) > 1e12:
+        eig = np.linalg.eigvalsh(JtJ)
+        if eig[0] <= 1e-12 * eig[-1]:
             return None
         x = x + np.linalg.solve(JtJ, -(J.T @ d))
     x[:3] += shift
@@ -554,7 +555,7 @@ class _Search:
 def _search(W, sampler, cfg, gen):
     """The adaptive RANSAC loop on the working set W, in replayed vectorized batches."""
     Wsq = np.einsum("ij,ij->i", W, W)
-    best = dict(x=None, score=-np.inf)
+    best = _Best(x=None, score=-np.inf)
     n_valid = n_drawn = n_invalid = 0
     N = math.inf  # the seed starts with N = infinity
     history: list[tuple[int, float]] = []
@@ -575,65 +576,67 @@ def _search(W, sampler, cfg, gen):
         if ok.any():
             scores[ok] = _score(W, Wsq, X[ok], cfg.threshold, cfg.scoring)[0]
 
-        # Replay in sample order: new bests, N after each (eq. 27), stop at N
-        keep, stopped, new_bests, N_new = _replay(X, scores, best["score"], n_valid, N, W, sampler, cfg)
+        # Replay in sample order: new bests (with LO), N after each (eq. 27), stop at N
+        keep, stopped, best, N, events = _replay(X, scores, best, n_valid, N, W, Wsq, sampler, cfg)
+        history += [(n_valid + j + 1, N_j) for j, N_j in events]
         drawn = int(position[keep - 1]) + 1 if stopped else batch  # samples the sequential loop drew
         n_drawn += drawn
         n_invalid += drawn - keep
-        for j, N_j in zip(new_bests, N_new):
-            history.append((n_valid + j + 1, N_j))
-        if new_bests:
-            j = new_bests[-1]
-            best.update(x=X[j], score=scores[j])
-            N = N_new[-1]
-            if cfg.local_optimization:
-                x, score, improved = _local_optimization(W, Wsq, X[j], scores[j], cfg)
-                if improved:
-                    best.update(x=x, score=score)
-                    N = min(N, sampler.required(_inlier_mask(W, x, cfg.threshold), cfg.p))
-                    history.append((n_valid + j + 1, N))
         n_valid += keep
         batch = _next_batch(N, cfg, n_valid, n_drawn, cap)
     return _Search(
-        x=best["x"], iterations=n_valid, N=N, n_invalid=n_invalid,
+        x=best.x, iterations=n_valid, N=N, n_invalid=n_invalid,
         history=np.array(history, dtype=np.float64).reshape(-1, 2),
-        reason=_search_reason(best["x"], n_valid, n_drawn, N, cfg),
+        reason=_search_reason(best.x, n_valid, n_drawn, N, cfg),
     )
 
 
-def _replay(X, scores, best_score, n_valid, N, W, sampler, cfg):
-    """Sequential bookkeeping of one batch.
+@dataclass(frozen=True)
+class _Best:
+    x: np.ndarray | None
+    score: float
 
-    Returns the number of valid samples the one-at-a-time loop would have used,
-    whether it stopped inside this batch, the positions of the new bests and the
-    required N after each of them.
+
+def _replay(X, scores, best, n_valid, N, W, Wsq, sampler, cfg):
+    """Sequential bookkeeping of one batch, exactly as the one-sample-at-a-time loop.
+
+    Walks through the samples that beat the running best in order; each new
+    best is refined by LO (if enabled) and sets the required N. Returns the
+    number of valid samples the loop used, whether it stopped inside the batch,
+    the best hypothesis, the current N and the (position, N) events.
     """
-    running = np.maximum.accumulate(np.concatenate([[best_score], scores]))[:-1]
-    candidates = np.flatnonzero(scores > running)
-    N_after = np.full(len(X), float(N))
-    new_bests, N_new = [], []
-    it = n_valid + np.arange(1, len(X) + 1)
+    candidates = np.flatnonzero(scores > np.maximum.accumulate(np.concatenate([[best.score], scores]))[:-1])
+    events = []
+    it = n_valid + np.arange(1, len(X) + 1)  # iteration number of each valid sample
     for j in candidates:
-        if np.any(it[:j] >= N_after[:j]):
-            break  # the sequential loop had already stopped before sample j
-        N_j = sampler.required(_inlier_mask(W, X[j], cfg.threshold), cfg.p)
-        N_after[j:] = N_j
-        new_bests.append(int(j))
-        N_new.append(N_j)
-    stop = np.flatnonzero(it >= N_after)
-    keep = int(stop[0]) + 1 if stop.size else len(X)
-    stopped = bool(stop.size) or (keep > 0 and n_valid + keep >= cfg.max_iterations)
-    return keep, stopped, new_bests, N_new
+        if it[j] > N:
+            break  # the loop stopped at sample N, before sample j
+        if scores[j] <= best.score:
+            continue  # beaten by an LO-refined best meanwhile
+        best = _Best(X[j], scores[j])
+        N = sampler.required(_inlier_mask(W, best.x, cfg.threshold), cfg.p)  # (eq. 27)
+        events.append((int(j), N))
+        if cfg.local_optimization:
+            x, score, improved = _local_optimization(W, Wsq, best.x, best.score, cfg)
+            if improved:
+                best = _Best(x, score)
+                N = min(N, sampler.required(_inlier_mask(W, x, cfg.threshold), cfg.p))
+                events.append((int(j), N))
+    keep = int(min(len(X), max(N - n_valid, 0))) if np.isfinite(N) else len(X)
+    if events:  # a new best at sample j is always used, even if its N is already exceeded
+        keep = max(keep, events[-1][0] + 1)
+    stopped = keep < len(X) or (keep > 0 and n_valid + keep >= min(N, cfg.max_iterations))
+    return keep, stopped, best, N, events
 
 
 def _next_batch(N, cfg, n_valid, n_drawn, cap):
+    """Enough samples to reach N at the observed validity rate, growing at most geometrically."""
     if cfg.minimal_solver == "ghm":
         return _MIN_BATCH
     remaining = min(N, cfg.max_iterations) - n_valid
     rate = max(n_valid / max(n_drawn, 1), 0.05)
-    if not np.isfinite(remaining):
-        return cap
-    return int(np.clip(np.ceil(remaining / rate), _MIN_BATCH, cap))
+    wanted = remaining / rate if np.isfinite(remaining) else math.inf
+    return int(np.clip(min(wanted, max(n_valid, _FIRST_BATCH)), _MIN_BATCH, cap))
 
 
 def _search_reason(x, n_valid, n_drawn, N, cfg):
@@ -746,7 +749,7 @@ def _check_sphere(P, fit, r_min, r_max, gen):
     return ""
 
 
-def _median_normal_angle(P, x, gen, m=400, k=12):
+def _median_normal_angle(P, x, gen, m=300, k=12):
     """Median angle (deg) between local PCA normals of the inliers and the sphere's radial direction.
 
     On a sphere both agree up to noise; where planes or edges merely cut
