@@ -1,0 +1,890 @@
+"""Reading and writing point-cloud files (seed 003, step 1: laspy -> numpy -> CSV).
+
+Formats
+-------
+- LAS / LAZ 1.0-1.4, every point format, via laspy (LAZ through lazrs).
+  Coordinates are ``X * scale + offset`` as float64; every other dimension
+  (classification, intensity, return_number, number_of_returns, gps_time,
+  point_source_id, colours, flags, extra bytes, ...) becomes an attribute under
+  laspy's name. The CRS is kept as text: the WKT of the WKT VLR, or
+  ``"EPSG:code"`` from the GeoTIFF keys (no pyproj needed).
+- ASCII ``.xyz .txt .csv .asc``: comma, semicolon or whitespace separated, with
+  or without a header line. With a header, x/y/z are found by name and other
+  columns become attributes (common spellings such as ``Classification``,
+  ``Intensity``, ``GpsTime``, ``//X`` are mapped to laspy's names); without a
+  header the first three columns are x, y, z and further ones are kept as
+  ``column_3``, ``column_4``, ...
+- NumPy ``.npy`` (an (n, >=3) array or a structured array with x, y, z fields)
+  and ``.npz`` (``xyz`` or ``x``, ``y``, ``z`` plus one array per attribute).
+
+Large files are read in chunks; a box, polygon or class filter is applied to
+each chunk, so only the kept points are ever held in memory. Files are written
+atomically: into a temporary file in the destination folder, renamed over the
+destination only when complete.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import os
+import re
+import struct
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from . import regions
+from ._report import ReportMixin, fmt
+from .cloud import PointCloud
+from .errors import CloudFileError, EmptyRegionError, LabkitError
+
+__all__ = ["read_cloud", "write_cloud", "cloud_info", "CloudInfo", "LAS_SUFFIXES", "ASCII_SUFFIXES"]
+
+LAS_SUFFIXES = (".las", ".laz")
+ASCII_SUFFIXES = (".xyz", ".txt", ".csv", ".asc")
+NUMPY_SUFFIXES = (".npy", ".npz")
+DEFAULT_CHUNK = 1_000_000
+_INT32_MAX = 2**31 - 1
+
+# laspy dtypes of the standard dimensions that can arrive as text or npz columns
+_STANDARD_DTYPES = {
+    "intensity": np.uint16,
+    "return_number": np.uint8,
+    "number_of_returns": np.uint8,
+    "classification": np.uint8,
+    "scan_direction_flag": np.uint8,
+    "edge_of_flight_line": np.uint8,
+    "synthetic": np.uint8,
+    "key_point": np.uint8,
+    "withheld": np.uint8,
+    "overlap": np.uint8,
+    "scanner_channel": np.uint8,
+    "scan_angle_rank": np.int8,
+    "scan_angle": np.int16,
+    "user_data": np.uint8,
+    "point_source_id": np.uint16,
+    "gps_time": np.float64,
+    "red": np.uint16,
+    "green": np.uint16,
+    "blue": np.uint16,
+    "nir": np.uint16,
+}
+# spellings found in ASCII headers (CloudCompare, LAStools, PDAL) -> laspy name
+_ALIASES = {
+    "class": "classification",
+    "classification": "classification",
+    "intensity": "intensity",
+    "returnnumber": "return_number",
+    "numberofreturns": "number_of_returns",
+    "gpstime": "gps_time",
+    "pointsourceid": "point_source_id",
+    "userdata": "user_data",
+    "scanangle": "scan_angle",
+    "scananglerank": "scan_angle_rank",
+    "r": "red",
+    "g": "green",
+    "b": "blue",
+}
+
+
+# ============================================================================ filter
+@dataclass(frozen=True)
+class _Filter:
+    """The spatial and class filter applied to every chunk while reading."""
+
+    box: np.ndarray | None = None
+    rings: list | None = None
+    classes: np.ndarray | None = None
+
+    @classmethod
+    def build(cls, bbox, polygon, classes) -> "_Filter":
+        return cls(
+            box=None if bbox is None else regions.as_bbox(bbox),
+            rings=None if polygon is None else regions.as_rings(polygon),
+            classes=None if classes is None else regions.as_classes(classes),
+        )
+
+    @property
+    def active(self) -> bool:
+        return self.box is not None or self.rings is not None or self.classes is not None
+
+    def describe(self) -> str:
+        parts = []
+        if self.box is not None:
+            parts.append(f"box {self.box.ravel().tolist()}")
+        if self.rings is not None:
+            parts.append(f"polygon with {sum(len(r) for r in self.rings)} vertices")
+        if self.classes is not None:
+            parts.append(f"classes {self.classes.tolist()}")
+        return " and ".join(parts) or "no filter"
+
+    def xy_bounds(self) -> np.ndarray | None:
+        """[[xmin, ymin], [xmax, ymax]] of the spatial filter, for a quick header test."""
+        boxes = []
+        if self.box is not None:
+            boxes.append(self.box[:, :2])
+        if self.rings is not None:
+            v = np.vstack(self.rings)
+            boxes.append(np.array([v.min(axis=0), v.max(axis=0)]))
+        if not boxes:
+            return None
+        return np.array([np.max([b[0] for b in boxes], axis=0), np.min([b[1] for b in boxes], axis=0)])
+
+    def mask(self, xyz: np.ndarray, classification) -> np.ndarray | None:
+        """Boolean mask of kept points, or None when nothing is filtered."""
+        if not self.active:
+            return None
+        keep = np.ones(len(xyz), dtype=bool)
+        if self.classes is not None:
+            keep &= regions.class_mask(classification, self.classes)
+        if self.box is not None:
+            keep &= regions.box_mask(xyz, self.box)
+        if self.rings is not None and keep.any():
+            idx = np.flatnonzero(keep)
+            keep[idx] = regions.polygon_mask(xyz[idx], self.rings)
+        return keep
+
+
+# ============================================================================ progress
+class _Progress:
+    """A text progress bar on stderr (or tqdm when it is installed)."""
+
+    def __init__(self, total: int, label: str, enabled: bool, unit: str = "pts"):
+        self.total, self.label, self.unit, self.done = max(int(total), 1), label, unit, 0
+        self.enabled, self._bar, self._last, self._shown = enabled, None, 0.0, -1
+        if enabled:
+            try:
+                from tqdm.auto import tqdm
+
+                self._bar = tqdm(total=self.total, desc=label, unit=unit, unit_scale=True, file=sys.stderr)
+            except ImportError:
+                self._draw(force=True)
+
+    def update(self, n: int) -> None:
+        self.done += int(n)
+        if self._bar is not None:
+            self._bar.update(int(n))
+        elif self.enabled:
+            self._draw()
+
+    def _draw(self, force: bool = False) -> None:
+        now = time.monotonic()
+        if not force and now - self._last < 0.25 and self.done < self.total:
+            return
+        self._last, self._shown = now, self.done
+        frac = min(self.done / self.total, 1.0)
+        bar = "#" * int(30 * frac) + "." * (30 - int(30 * frac))
+        sys.stderr.write(f"\r{self.label} [{bar}] {100 * frac:5.1f}% ({self.done:,} of {self.total:,} {self.unit})")
+        sys.stderr.flush()
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+        elif self.enabled:
+            if self._shown != self.done:
+                self._draw(force=True)
+            sys.stderr.write("\n")
+
+
+# ============================================================================ gathering chunks
+class _Gather:
+    """Collects the kept part of each chunk; preallocates when the final size is known."""
+
+    def __init__(self, capacity: int | None):
+        self.capacity, self.n = capacity, 0
+        self.xyz_parts, self.attr_parts = [], {}
+        self.xyz, self.attrs = None, None
+
+    def add(self, xyz: np.ndarray, attrs: dict) -> None:
+        m = len(xyz)
+        if self.capacity is not None:
+            if self.xyz is None:
+                self.xyz = np.empty((self.capacity, 3))
+                self.attrs = {k: np.empty(self.capacity, dtype=v.dtype) for k, v in attrs.items()}
+            self.xyz[self.n : self.n + m] = xyz
+            for k, v in attrs.items():
+                self.attrs[k][self.n : self.n + m] = v
+        else:
+            self.xyz_parts.append(xyz)
+            for k, v in attrs.items():
+                self.attr_parts.setdefault(k, []).append(v)
+        self.n += m
+
+    def result(self) -> tuple[np.ndarray, dict]:
+        if self.capacity is not None and self.xyz is not None:
+            return self.xyz[: self.n], {k: v[: self.n] for k, v in self.attrs.items()}
+        xyz = np.concatenate(self.xyz_parts) if self.xyz_parts else np.empty((0, 3))
+        self.xyz_parts = []
+        attrs = {}
+        for k in list(self.attr_parts):
+            attrs[k] = np.concatenate(self.attr_parts.pop(k))
+        return xyz, attrs
+
+
+# ============================================================================ reading
+def read_cloud(
+    path,
+    *,
+    bbox=None,
+    polygon=None,
+    classes=None,
+    attributes=None,
+    chunk_size: int = DEFAULT_CHUNK,
+    progress: bool = False,
+) -> PointCloud:
+    """Read a LAS/LAZ, ASCII or NumPy point-cloud file into a :class:`PointCloud`.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``.las .laz .xyz .txt .csv .asc .npy .npz``.
+    bbox : sequence, optional
+        Keep points inside ``(xmin, ymin, xmax, ymax)`` or
+        ``(xmin, ymin, zmin, xmax, ymax, zmax)`` (see :func:`labkit.regions.crop_box`).
+    polygon : array_like (m, 2) or list of rings, optional
+        Keep points inside this polygon in xy (even-odd rule).
+    classes : int or sequence of int, optional
+        Keep points of these ASPRS classes (needs a classification attribute).
+    attributes : sequence of str, optional
+        Attributes to keep (default: all). Reading fewer saves memory.
+    chunk_size : int
+        Points (or text lines) per chunk. The filters act on each chunk, so the
+        memory needed is one chunk plus the kept points.
+    progress : bool
+        Show a progress bar on stderr (tqdm if installed, else plain text).
+
+    Returns
+    -------
+    PointCloud
+        Named after the file stem; ``crs`` from the LAS header when present.
+
+    Raises
+    ------
+    CloudFileError
+        Missing, unreadable, truncated or corrupt file, unsupported suffix.
+    EmptyRegionError
+        The filters keep no point.
+    """
+    path = _existing(path)
+    flt = _Filter.build(bbox, polygon, classes)
+    if int(chunk_size) < 1:
+        raise LabkitError(f"chunk_size must be a positive number of points, got {chunk_size!r}")
+    keep = None if attributes is None else set(attributes)
+    suffix = path.suffix.lower()
+    try:
+        if suffix in LAS_SUFFIXES:
+            xyz, attrs, crs = _read_las(path, flt, keep, int(chunk_size), progress)
+        elif suffix in ASCII_SUFFIXES:
+            xyz, attrs, crs = _read_ascii(path, flt, keep, int(chunk_size), progress)
+        elif suffix in NUMPY_SUFFIXES:
+            xyz, attrs, crs = _read_numpy(path, flt, keep, int(chunk_size))
+        else:
+            raise CloudFileError(_unsupported(path))
+    except (LabkitError, MemoryError, KeyboardInterrupt):
+        raise
+    except Exception as exc:  # laspy, lazrs, numpy and OS errors of a bad file
+        raise CloudFileError(f"cannot read {path}: {type(exc).__name__}: {exc}") from exc
+    if len(xyz) == 0:
+        if flt.active:
+            raise EmptyRegionError(f"{flt.describe()} keeps none of the points of {path}")
+        raise EmptyRegionError(f"{path} contains no points")
+    if not np.isfinite(xyz).all():
+        bad = int((~np.isfinite(xyz)).any(axis=1).sum())
+        raise CloudFileError(f"{path} has {bad} point(s) with NaN or infinite coordinates")
+    return PointCloud(xyz, attrs, crs=crs, name=path.stem)
+
+
+def _existing(path) -> Path:
+    path = Path(path)
+    if not path.exists():
+        raise CloudFileError(f"point-cloud file not found: {path}")
+    if not path.is_file():
+        raise CloudFileError(f"not a file: {path}")
+    if not os.access(path, os.R_OK):
+        raise CloudFileError(f"no permission to read {path}")
+    return path
+
+
+def _unsupported(path: Path) -> str:
+    known = " ".join(LAS_SUFFIXES + ASCII_SUFFIXES + NUMPY_SUFFIXES)
+    return f"unsupported point-cloud format {path.suffix!r} of {path}; known suffixes: {known}"
+
+
+def _needs_class(flt: _Filter, names, path: Path) -> None:
+    if flt.classes is not None and "classification" not in names:
+        raise CloudFileError(f"{path} has no classification, so it cannot be filtered by class")
+
+
+# ---------------------------------------------------------------------------- LAS / LAZ
+def _check_las_header(path: Path) -> None:
+    """Sanity checks on the fixed LAS header before laspy parses it.
+
+    A corrupt header can announce billions of VLRs, which laspy would try to
+    read one by one; these checks reject such files at once.
+    """
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(107)
+    if len(head) < 107 or head[:4] != b"LASF":
+        raise CloudFileError(f"{path} is not a LAS/LAZ file (no 'LASF' signature or header too short)")
+    major, minor = head[24], head[25]
+    header_size, offset, n_vlrs = struct.unpack_from("<HII", head, 94)
+    fmt_id = head[104] & 0x3F
+    problems = []
+    if major != 1 or minor > 4:
+        problems.append(f"LAS version {major}.{minor} (known: 1.0-1.4)")
+    if not 227 <= header_size <= offset <= size:
+        problems.append(f"header size {header_size} / point data offset {offset} do not fit a file of {size} bytes")
+    elif n_vlrs * 54 > offset - header_size:
+        problems.append(f"{n_vlrs} VLRs announced, room for at most {(offset - header_size) // 54}")
+    if fmt_id > 10:
+        problems.append(f"point format {fmt_id} (known: 0-10)")
+    if problems:
+        raise CloudFileError(f"{path} has a corrupt or unsupported LAS header: " + "; ".join(problems))
+
+
+def _read_las(path: Path, flt: _Filter, keep, chunk_size: int, progress: bool):
+    import laspy
+
+    _check_las_header(path)
+    with laspy.open(str(path)) as reader:
+        header = reader.header
+        total = int(header.point_count)
+        names = [d for d in header.point_format.dimension_names if d not in ("X", "Y", "Z")]
+        names = [d for d in names if keep is None or d in keep]
+        _needs_class(flt, header.point_format.dimension_names, path)
+        _check_overlap(flt, header, path)
+        gather = _Gather(None if flt.active else _plausible_count(header, path))
+        bar = _Progress(total, f"reading {path.name}", progress)
+        seen = 0
+        try:
+            for points in reader.chunk_iterator(chunk_size):
+                seen += len(points)
+                xyz = np.column_stack([np.asarray(points.x), np.asarray(points.y), np.asarray(points.z)])
+                cls = np.asarray(points["classification"]) if flt.classes is not None else None
+                mask = flt.mask(xyz, cls)
+                sel = slice(None) if mask is None else mask
+                gather.add(xyz[sel], {d: np.asarray(points[d])[sel] for d in names})
+                bar.update(len(points))
+        finally:
+            bar.close()
+        if seen != total:
+            raise CloudFileError(f"{path} is truncated: the header announces {total} points, the file holds {seen}")
+        xyz, attrs = gather.result()
+        return xyz, attrs, _crs_from_header(header)
+
+
+def _plausible_count(header, path: Path) -> int | None:
+    """The header's point count if the file can hold it (for preallocation), else None.
+
+    An uncompressed file shorter than its header promises is truncated. For
+    LAZ the count is trusted only up to a generous compression ratio; beyond
+    that, chunks are gathered without preallocating.
+    """
+    total = int(header.point_count)
+    needed = total * header.point_format.size
+    size = path.stat().st_size
+    if not header.are_points_compressed:
+        if header.offset_to_point_data + needed > size:
+            raise CloudFileError(
+                f"{path} is truncated or corrupt: the header announces {total} points "
+                f"({header.offset_to_point_data + needed} bytes), the file has {size} bytes"
+            )
+        return total
+    return total if needed <= 50 * size else None
+
+
+def _check_overlap(flt: _Filter, header, path: Path) -> None:
+    """Fail early when the filter's area misses the header's bounding box."""
+    area = flt.xy_bounds()
+    if area is None or header.point_count == 0:
+        return
+    lo, hi = np.asarray(header.mins)[:2], np.asarray(header.maxs)[:2]
+    if (area[0] > hi).any() or (area[1] < lo).any() or (area[0] > area[1]).any():
+        raise EmptyRegionError(
+            f"{flt.describe()} lies outside the extent of {path} "
+            f"(x {lo[0]:.3f}..{hi[0]:.3f}, y {lo[1]:.3f}..{hi[1]:.3f})"
+        )
+
+
+def _crs_from_header(header) -> str | None:
+    """CRS as text: the WKT VLR's string, else ``EPSG:code`` from the GeoTIFF keys."""
+    from laspy.vlrs.known import GeoKeyDirectoryVlr, WktCoordinateSystemVlr
+
+    records = list(header.vlrs) + list(header.evlrs or [])
+    for rec in records:
+        if isinstance(rec, WktCoordinateSystemVlr) and rec.string.strip():
+            return rec.string.strip()
+    for rec in records:
+        if isinstance(rec, GeoKeyDirectoryVlr):
+            keys = {k.id: k.value_offset for k in rec.geo_keys if k.tiff_tag_location == 0}
+            horizontal = keys.get(3072) or keys.get(2048)  # ProjectedCSType, GeographicType
+            if horizontal is not None and 1024 <= horizontal <= 32766:
+                vertical = keys.get(4096)  # VerticalCSType
+                if vertical is not None and 1024 <= vertical <= 32766:
+                    return f"EPSG:{horizontal}+{vertical}"
+                return f"EPSG:{horizontal}"
+    return None
+
+
+# ---------------------------------------------------------------------------- ASCII
+def _read_ascii(path: Path, flt: _Filter, keep, chunk_size: int, progress: bool):
+    size = path.stat().st_size
+    with open(path, encoding="utf-8", errors="strict") as f:
+        first, skipped = _first_line(f, path)
+        delimiter = "," if "," in first else ";" if ";" in first else None
+        tokens = [t.strip() for t in (first.split(delimiter) if delimiter else first.split())]
+        header = not all(_is_number(t) for t in tokens)
+        columns = _column_names(tokens, header, path)
+        ix = [columns.index(c) for c in ("x", "y", "z")]
+        extra = [(i, c) for i, c in enumerate(columns) if c not in ("x", "y", "z") and (keep is None or c in keep)]
+        _needs_class(flt, columns, path)
+        lines = f if header else itertools.chain([first], f)
+        gather, bar, row = _Gather(None), _Progress(size, f"reading {path.name}", progress, unit="B"), skipped
+        bar.update(len(first.encode()) + 1 if header else 0)
+        try:
+            while True:
+                block = list(itertools.islice(lines, chunk_size))
+                if not block:
+                    break
+                data = _parse_block(block, delimiter, len(columns), path, row)
+                row += len(block)
+                xyz = data[:, ix]
+                cls = data[:, columns.index("classification")] if flt.classes is not None else None
+                mask = flt.mask(xyz, cls)
+                sel = slice(None) if mask is None else mask
+                gather.add(xyz[sel], {c: data[sel, i] for i, c in extra})
+                bar.update(sum(len(s) for s in block))
+        finally:
+            bar.close()
+    xyz, attrs = gather.result()
+    return xyz, {c: _text_dtype(c, v, path) for c, v in attrs.items()}, None
+
+
+def _first_line(f, path: Path) -> tuple[str, int]:
+    """The first non-blank line (header or data) and the number of lines consumed."""
+    for count, line in enumerate(f, start=1):
+        if line.strip():
+            return line.strip(), count - (0 if _looks_header(line) else 1)
+    raise CloudFileError(f"{path} is empty (no lines with data)")
+
+
+def _looks_header(line: str) -> bool:
+    tokens = re.split(r"[,;\s]+", line.strip())
+    return not all(_is_number(t) for t in tokens if t)
+
+
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+        return True
+    except ValueError:
+        return False
+
+
+def _column_names(tokens: list[str], header: bool, path: Path) -> list[str]:
+    if not header:
+        if len(tokens) < 3:
+            raise CloudFileError(f"{path}: expected at least 3 columns (x y z), found {len(tokens)}")
+        return ["x", "y", "z"] + [f"column_{i}" for i in range(3, len(tokens))]
+    names = [_canonical(t) for t in tokens]
+    missing = [c for c in ("x", "y", "z") if c not in names]
+    if missing:
+        raise CloudFileError(f"{path}: the header line names no column {', '.join(missing)} (found {tokens})")
+    if len(set(names)) != len(names):
+        raise CloudFileError(f"{path}: the header line repeats a column name ({tokens})")
+    return names
+
+
+def _canonical(token: str) -> str:
+    """Header spelling -> laspy-style name ('//X' -> 'x', 'GpsTime' -> 'gps_time')."""
+    word = token.strip().lstrip("/#").strip().strip('"').strip("'")
+    squeezed = re.sub(r"[^0-9a-z]", "", word.lower())
+    if squeezed in ("x", "y", "z"):
+        return squeezed
+    if squeezed in _ALIASES:
+        return _ALIASES[squeezed]
+    return re.sub(r"[^0-9a-z]+", "_", word.lower()).strip("_") or "column"
+
+
+def _parse_block(block: list[str], delimiter, ncol: int, path: Path, row: int) -> np.ndarray:
+    try:
+        data = np.loadtxt(block, delimiter=delimiter, dtype=np.float64, ndmin=2, comments="#")
+    except ValueError as exc:
+        raise CloudFileError(f"{path}: cannot parse lines {row + 1}-{row + len(block)}: {exc}") from None
+    if data.shape[1] != ncol:
+        raise CloudFileError(f"{path}: expected {ncol} columns near line {row + 1}, found {data.shape[1]}")
+    return data
+
+
+def _text_dtype(name: str, values: np.ndarray, path: Path) -> np.ndarray:
+    """Known dimensions get laspy's dtype, other integral columns int64, the rest float64."""
+    finite = np.isfinite(values).all()
+    integral = finite and np.array_equal(values, np.round(values))
+    target = _STANDARD_DTYPES.get(name)
+    if target is not None and np.issubdtype(target, np.integer):
+        info = np.iinfo(target)
+        if not integral or (values.size and (values.min() < info.min or values.max() > info.max)):
+            raise CloudFileError(f"{path}: column {name!r} must hold integers in {info.min}..{info.max}")
+        return values.astype(target)
+    if target is None and integral and values.size and np.abs(values).max() < 2**53:
+        return values.astype(np.int64)
+    return values
+
+
+# ---------------------------------------------------------------------------- NumPy
+def _read_numpy(path: Path, flt: _Filter, keep, chunk_size: int):
+    if path.suffix.lower() == ".npy":
+        arr = np.load(path, mmap_mode="r", allow_pickle=False)
+        xyz, attrs = _split_npy(arr, path)
+        crs = None
+    else:
+        with np.load(path, allow_pickle=False) as z:
+            xyz, attrs, crs = _split_npz(z, path)
+    attrs = {k: v for k, v in attrs.items() if keep is None or k in keep}
+    _needs_class(flt, attrs, path)
+    gather = _Gather(None)
+    for start in range(0, len(xyz), chunk_size):
+        part = np.asarray(xyz[start : start + chunk_size], dtype=np.float64)
+        cls = np.asarray(attrs["classification"][start : start + chunk_size]) if flt.classes is not None else None
+        mask = flt.mask(part, cls)
+        sel = slice(None) if mask is None else mask
+        gather.add(part[sel], {k: np.asarray(v[start : start + chunk_size])[sel] for k, v in attrs.items()})
+    out_xyz, out_attrs = gather.result()
+    return out_xyz, out_attrs, crs
+
+
+def _split_npy(arr: np.ndarray, path: Path):
+    if arr.dtype.names:
+        names = {n.lower(): n for n in arr.dtype.names}
+        if not all(c in names for c in "xyz"):
+            raise CloudFileError(f"{path}: a structured array needs fields x, y, z (has {arr.dtype.names})")
+        xyz = np.column_stack([arr[names[c]] for c in "xyz"])
+        attrs = {_canonical(n): arr[n] for n in arr.dtype.names if n.lower() not in "xyz"}
+        return xyz, attrs
+    if arr.ndim != 2 or arr.shape[1] < 3 or not np.issubdtype(arr.dtype, np.number):
+        raise CloudFileError(f"{path}: expected a numeric (n, 3+) array, got shape {arr.shape} of {arr.dtype}")
+    return arr[:, :3], {f"column_{i}": arr[:, i] for i in range(3, arr.shape[1])}
+
+
+def _split_npz(z, path: Path):
+    keys = set(z.files)
+    if "xyz" in keys:
+        xyz = z["xyz"]
+        used = {"xyz"}
+    elif {"x", "y", "z"} <= keys:
+        xyz = np.column_stack([z[c] for c in "xyz"])
+        used = {"x", "y", "z"}
+    else:
+        raise CloudFileError(f"{path}: an .npz cloud needs an 'xyz' array or 'x', 'y', 'z' arrays (has {sorted(keys)})")
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise CloudFileError(f"{path}: 'xyz' must have shape (n, 3), got {xyz.shape}")
+    crs = str(z["crs"]) if "crs" in keys and z["crs"].size else None
+    attrs = {}
+    for k in sorted(keys - used - {"crs", "name"}):
+        v = z[k]
+        if v.ndim != 1 or len(v) != len(xyz):
+            raise CloudFileError(f"{path}: array {k!r} has shape {v.shape}, expected ({len(xyz)},)")
+        attrs[k] = v
+    return xyz, attrs, crs
+
+
+# ============================================================================ header summary
+@dataclass(frozen=True, eq=False)
+class CloudInfo(ReportMixin):
+    """What a LAS/LAZ header says, read without loading the points."""
+
+    path: Path
+    version: str
+    point_format: int
+    point_count: int
+    mins: np.ndarray
+    maxs: np.ndarray
+    scales: np.ndarray
+    offsets: np.ndarray
+    dimensions: tuple
+    crs: str | None
+    compressed: bool
+
+    def _report(self):
+        crs = self.crs if self.crs is None or len(self.crs) < 60 else self.crs[:57] + "..."
+        rows = [
+            ("file", str(self.path.name)),
+            ("LAS version / point format", f"{self.version} / {self.point_format}" + (" (LAZ)" if self.compressed else "")),
+            ("points", f"{self.point_count:,}"),
+            ("min", fmt(self.mins, 3, "m")),
+            ("max", fmt(self.maxs, 3, "m")),
+            ("scale", fmt(self.scales, 6, "m")),
+            ("offset", fmt(self.offsets, 3, "m")),
+            ("CRS", str(crs)),
+            ("dimensions", ", ".join(self.dimensions)),
+        ]
+        return "Point-cloud file", [("", rows)]
+
+
+def cloud_info(path) -> CloudInfo:
+    """Header of a LAS/LAZ file (count, bounds, scale, offset, CRS, dimensions) without reading points."""
+    path = _existing(path)
+    if path.suffix.lower() not in LAS_SUFFIXES:
+        raise CloudFileError(f"cloud_info reads LAS/LAZ headers only, not {path}")
+    import laspy
+
+    _check_las_header(path)
+    try:
+        with laspy.open(str(path)) as reader:
+            h = reader.header
+            return CloudInfo(
+                path=path,
+                version=f"{h.version.major}.{h.version.minor}",
+                point_format=int(h.point_format.id),
+                point_count=int(h.point_count),
+                mins=np.asarray(h.mins, dtype=float),
+                maxs=np.asarray(h.maxs, dtype=float),
+                scales=np.asarray(h.scales, dtype=float),
+                offsets=np.asarray(h.offsets, dtype=float),
+                dimensions=tuple(h.point_format.dimension_names),
+                crs=_crs_from_header(h),
+                compressed=bool(h.are_points_compressed),
+            )
+    except LabkitError:
+        raise
+    except Exception as exc:
+        raise CloudFileError(f"cannot read the header of {path}: {type(exc).__name__}: {exc}") from exc
+
+
+# ============================================================================ writing
+def write_cloud(cloud: PointCloud, path, *, scale=0.001, point_format: int | None = None, chunk_size: int = DEFAULT_CHUNK) -> Path:
+    """Write a cloud to LAS/LAZ, ASCII (CSV/TXT/XYZ) or ``.npz``, atomically.
+
+    Parameters
+    ----------
+    cloud : PointCloud
+    path : str or Path
+        The suffix picks the format: ``.las .laz .csv .txt .xyz .asc .npz``.
+    scale : float, sequence of 3 floats or None
+        Coordinate resolution in metres: LAS scale factors, decimals in text.
+        Default 0.001 (rounding error at most 0.5 mm). ``None`` picks, per
+        axis, the coarsest decimal grid the coordinates already lie on (so a
+        cloud read from a LAS file is written back without rounding), and 0.0001 m
+        when they lie on none.
+    point_format : int, optional
+        LAS point format. By default the smallest of 0-3 (LAS 1.2) that holds
+        the attributes, or 6-8 (LAS 1.4) when values need it (classes > 31,
+        more than 7 returns, nir, scan_angle, overlap, scanner_channel).
+    chunk_size : int
+        Points written per chunk.
+
+    Returns
+    -------
+    Path
+        The written file.
+
+    Notes
+    -----
+    LAS offsets are the data minimum rounded down to a multiple of 1000 m, so
+    UTM coordinates keep the whole int32 range for the fraction. Attributes
+    that are not dimensions of the point format become LAS extra bytes. The CRS
+    text is written as a WKT VLR (WKT) or GeoTIFF keys (``EPSG:code``).
+    """
+    if not isinstance(cloud, PointCloud):
+        raise LabkitError(f"write_cloud needs a PointCloud, got {type(cloud).__name__}")
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in LAS_SUFFIXES + ASCII_SUFFIXES + (".npz",):
+        raise CloudFileError(_unsupported(path) + " (writing: .las .laz .csv .txt .xyz .asc .npz)")
+    if not path.parent.is_dir():
+        raise CloudFileError(f"cannot write {path}: folder {path.parent} does not exist")
+    scales = _choose_scale(cloud.xyz, scale)
+    with _atomic(path) as tmp:
+        if suffix in LAS_SUFFIXES:
+            _write_las(cloud, tmp, suffix == ".laz", scales, point_format, int(chunk_size))
+        elif suffix == ".npz":
+            _write_npz(cloud, tmp)
+        else:
+            _write_ascii(cloud, tmp, "," if suffix == ".csv" else " ", scales, int(chunk_size))
+    return path
+
+
+@contextlib.contextmanager
+def _atomic(path: Path):
+    """Yield a temporary path next to ``path``; rename it over ``path`` only on success."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    except BaseException as exc:
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(tmp)
+        if isinstance(exc, OSError):
+            raise CloudFileError(f"cannot write {path}: {exc}") from exc
+        raise
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _choose_scale(xyz: np.ndarray, scale) -> np.ndarray:
+    """Per-axis coordinate resolution (m)."""
+    if scale is None:
+        return np.array([_grid_step(xyz[:, j]) for j in range(3)])
+    s = np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,)).copy() if np.ndim(scale) <= 1 else None
+    if s is None or s.shape != (3,) or not np.isfinite(s).all() or (s <= 0).any():
+        raise LabkitError(f"scale must be a positive number, three positive numbers or None, got {scale!r}")
+    return s
+
+
+def _grid_step(values: np.ndarray) -> float:
+    """The coarsest step 10^-k (k = 0..4) on which all values lie, else 1e-4."""
+    if values.size == 0:
+        return 0.001
+    base = np.floor(values.min())
+    for k in range(5):
+        q = (values - base) * 10.0**k
+        if np.abs(q - np.rint(q)).max() < 1e-3:
+            return 10.0**-k
+    return 1e-4
+
+
+def _las_offsets(xyz: np.ndarray) -> np.ndarray:
+    """Offsets at whole kilometres below the data (UTM-friendly, exact in binary)."""
+    if len(xyz) == 0:
+        return np.zeros(3)
+    return np.floor(xyz.min(axis=0) / 1000.0) * 1000.0
+
+
+def _auto_format(attrs: dict) -> int:
+    big = lambda k, m: k in attrs and attrs[k].size and attrs[k].max() > m  # noqa: E731
+    new = {"nir", "scan_angle", "overlap", "scanner_channel"} & set(attrs)
+    if new or big("classification", 31) or big("return_number", 7) or big("number_of_returns", 7):
+        return 8 if "nir" in attrs else 7 if "red" in attrs else 6
+    return {(False, False): 0, (True, False): 1, (False, True): 2, (True, True): 3}[("gps_time" in attrs, "red" in attrs)]
+
+
+def _write_las(cloud, tmp: Path, compress: bool, scales, point_format, chunk_size: int) -> None:
+    import laspy
+
+    attrs = _las_attributes(cloud.attributes, point_format)
+    fmt_id = _auto_format(attrs) if point_format is None else int(point_format)
+    if fmt_id not in range(11):
+        raise LabkitError(f"point_format must be 0..10, got {point_format!r}")
+    version = "1.2" if fmt_id <= 3 else "1.3" if fmt_id <= 5 else "1.4"
+    header = laspy.LasHeader(version=version, point_format=fmt_id)
+    header.scales, header.offsets = scales, _las_offsets(cloud.xyz)
+    header.generating_software = "labkit"
+    standard = set(header.point_format.dimension_names)
+    for name, values in attrs.items():
+        if name not in standard:
+            header.add_extra_dim(laspy.ExtraBytesParams(name=name[:32], type=_extra_dtype(name, values)))
+    _add_crs(header, cloud.crs)
+    ints = _quantize(cloud.xyz, header.offsets, header.scales)
+    with laspy.open(str(tmp), mode="w", header=header, do_compress=compress) as writer:
+        for start in range(0, max(len(cloud), 1), chunk_size):
+            sl = slice(start, start + chunk_size)
+            rec = laspy.ScaleAwarePointRecord.zeros(len(ints[sl]), header=header)
+            rec.X, rec.Y, rec.Z = ints[sl, 0], ints[sl, 1], ints[sl, 2]
+            for name, values in attrs.items():
+                _assign(rec, name[:32], values[sl], name in standard)
+            writer.write_points(rec)
+
+
+def _las_attributes(attrs: dict, point_format) -> dict:
+    """Attributes to write; scan angles converted between the two LAS conventions."""
+    out = dict(attrs)
+    fmt_new = point_format is not None and int(point_format) >= 6
+    if "scan_angle_rank" in out and "scan_angle" not in out and (fmt_new or _auto_format(out) >= 6):
+        out["scan_angle"] = np.round(out.pop("scan_angle_rank").astype(np.float64) / 0.006).astype(np.int16)  # 0.006 deg units
+    return out
+
+
+def _extra_dtype(name: str, values: np.ndarray):
+    values = np.asarray(values)
+    if values.ndim != 1 or values.dtype.kind not in "biuf":
+        raise LabkitError(f"attribute {name!r} ({values.dtype}, shape {values.shape}) cannot be stored as LAS extra bytes")
+    return np.uint8 if values.dtype.kind == "b" else values.dtype
+
+
+def _assign(rec, name: str, values: np.ndarray, standard: bool) -> None:
+    values = np.asarray(values)
+    if values.dtype.kind == "b":
+        values = values.astype(np.uint8)
+    if standard:
+        target = np.asarray(rec[name]).dtype
+        if target.kind in "iu" and values.dtype.kind == "f":
+            if not np.array_equal(values, np.round(values)):
+                raise LabkitError(f"attribute {name!r} must hold whole numbers for the LAS dimension of type {target}")
+    try:
+        rec[name] = values
+    except OverflowError as exc:
+        raise LabkitError(f"attribute {name!r} does not fit the chosen LAS point format: {exc}") from None
+
+
+def _quantize(xyz: np.ndarray, offsets, scales) -> np.ndarray:
+    """LAS integers ``round((x - offset) / scale)``; raise if they leave the int32 range."""
+    q = np.rint((xyz - np.asarray(offsets)) / np.asarray(scales))
+    if q.size and np.abs(q).max() > _INT32_MAX:
+        raise LabkitError(
+            f"the coordinates span {np.ptp(xyz, axis=0).max():.1f} m, too much for LAS integers at "
+            f"scale {np.asarray(scales).tolist()}; choose a coarser scale"
+        )
+    return q.astype(np.int32)
+
+
+def _add_crs(header, crs: str | None) -> None:
+    """Store the CRS text: WKT as a WKT VLR, ``EPSG:h[+v]`` as GeoTIFF keys."""
+    if not crs:
+        return
+    from laspy.vlrs.known import GeoKeyDirectoryVlr, GeoKeyEntryStruct, WktCoordinateSystemVlr
+
+    m = re.fullmatch(r"\s*EPSG:(\d+)(?:\+(\d+))?\s*", crs, flags=re.IGNORECASE)
+    if m is None:
+        header.vlrs.append(WktCoordinateSystemVlr(crs))
+        if header.version.minor >= 4:
+            header.global_encoding.wkt = True
+        return
+    code, vertical = int(m.group(1)), m.group(2)
+    geographic = 4000 <= code < 5000  # EPSG's geographic 2D/3D block (4326, 4258, 4979, ...)
+    keys = [(1024, 2 if geographic else 1), (1025, 1), (2048 if geographic else 3072, code)]
+    if vertical:
+        keys.append((4096, int(vertical)))
+    vlr = GeoKeyDirectoryVlr()
+    vlr.geo_keys = [GeoKeyEntryStruct(k, 0, 1, v) for k, v in keys]
+    vlr.geo_keys_header.number_of_keys = len(keys)
+    header.vlrs.append(vlr)
+
+
+def _write_npz(cloud: PointCloud, tmp: Path) -> None:
+    arrays = {"xyz": cloud.xyz, **{k: v for k, v in cloud.attributes.items() if k not in ("xyz", "crs", "name")}}
+    if cloud.crs:
+        arrays["crs"] = np.array(cloud.crs)
+    with open(tmp, "wb") as f:
+        np.savez_compressed(f, **arrays)
+
+
+def _write_ascii(cloud: PointCloud, tmp: Path, delimiter: str, scales: np.ndarray, chunk_size: int) -> None:
+    names = list(cloud.attributes)
+    decimals = [max(0, int(np.ceil(-np.log10(s) - 1e-9))) for s in scales]
+    fmts = [f"%.{d}f" for d in decimals]
+    for name in names:
+        kind = cloud[name].dtype.kind
+        if kind not in "biuf" or cloud[name].ndim != 1:
+            raise LabkitError(f"attribute {name!r} ({cloud[name].dtype}) cannot be written as a text column")
+        fmts.append("%d" if kind in "biu" else "%.15g")
+    with open(tmp, "w", encoding="utf-8", newline="\n") as f:
+        f.write(delimiter.join(["x", "y", "z"] + names) + "\n")
+        for start in range(0, len(cloud), chunk_size):
+            sl = slice(start, start + chunk_size)
+            cols = [cloud.xyz[sl, j] for j in range(3)] + [cloud[n][sl] for n in names]
+            table = np.empty((len(cols[0]), len(cols)), dtype=object)
+            for j, col in enumerate(cols):
+                table[:, j] = col
+            np.savetxt(f, table, fmt=fmts, delimiter=delimiter)

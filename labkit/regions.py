@@ -1,0 +1,402 @@
+"""Cutting test regions out of a cloud and thinning it (seed 003, step 1).
+
+Every function takes a :class:`~labkit.cloud.PointCloud` and returns a new one;
+the input is never modified. A crop that keeps no point raises
+:class:`~labkit.errors.EmptyRegionError` naming the region.
+
+Regions are defined in the horizontal plane (x, y) as is usual for ALS tiles:
+an axis-parallel box (optionally bounded in z too), a circle, or a polygon
+(even-odd rule, so a list of rings describes holes). All geometry runs on
+coordinates reduced to a local origin, so 7-digit UTM values lose nothing.
+
+The box, polygon and class masks are shared with :func:`labkit.io.read_cloud`,
+which applies them chunk by chunk while reading a large file.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ._checks import as_rng, choice, positive
+from ._report import ReportMixin, fmt
+from .cloud import PointCloud
+from .errors import EmptyRegionError, LabkitError
+
+__all__ = [
+    "crop_box",
+    "crop_circle",
+    "crop_polygon",
+    "crop_classes",
+    "thin_random",
+    "thin_voxel",
+    "equalize_density",
+    "point_density",
+    "density_grid",
+    "DensityGrid",
+]
+
+
+# ----------------------------------------------------------------------------- region checks
+def as_bbox(bbox) -> np.ndarray:
+    """Return a box as a (2, d) array [[min...], [max...]] with d = 2 (xy) or 3 (xyz).
+
+    Accepted: ``(xmin, ymin, xmax, ymax)``, ``(xmin, ymin, zmin, xmax, ymax, zmax)``
+    or a (2, 2) / (2, 3) array such as :attr:`PointCloud.bounds`.
+    """
+    try:
+        arr = np.asarray(bbox, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise LabkitError(f"bbox must be numbers (xmin, ymin, xmax, ymax), got {bbox!r}") from None
+    if arr.shape in ((4,), (6,)):
+        arr = arr.reshape(2, -1)
+    if arr.shape not in ((2, 2), (2, 3)):
+        raise LabkitError(
+            "bbox must be (xmin, ymin, xmax, ymax), (xmin, ymin, zmin, xmax, ymax, zmax) "
+            f"or a (2, 2)/(2, 3) [min, max] array; got shape {np.shape(bbox)}"
+        )
+    if not np.isfinite(arr).all() or (arr[0] > arr[1]).any():
+        raise LabkitError(f"bbox needs finite values with min <= max in every axis, got {arr.ravel().tolist()}")
+    return arr
+
+
+def as_rings(polygon) -> list[np.ndarray]:
+    """Return a polygon as a list of (m, 2) float64 rings (each with m >= 3 vertices).
+
+    ``polygon`` is one ring ((m, 2) or (m, 3) array-like; z is ignored) or a list of
+    rings (outer boundary and holes; the even-odd rule decides what is inside).
+    A closing vertex equal to the first one may be given or omitted.
+    """
+    try:
+        single = np.asarray(polygon, dtype=np.float64)
+        rings = [single] if single.ndim == 2 else None
+    except (TypeError, ValueError):
+        rings = None
+    if rings is None:
+        try:
+            rings = [np.asarray(r, dtype=np.float64) for r in polygon]
+        except (TypeError, ValueError):
+            raise LabkitError("polygon must be an (m, 2) array of vertices or a list of such rings") from None
+    out = []
+    for ring in rings:
+        if ring.ndim != 2 or ring.shape[1] not in (2, 3) or len(ring) < 3:
+            raise LabkitError(f"each polygon ring must be an (m, 2) vertex array with m >= 3, got shape {ring.shape}")
+        if not np.isfinite(ring).all():
+            raise LabkitError("polygon vertices must be finite numbers")
+        out.append(ring[:, :2])
+    return out
+
+
+def as_classes(classes) -> np.ndarray:
+    """Return class codes as a sorted int array (a single int is accepted)."""
+    arr = np.unique(np.atleast_1d(np.asarray(classes)))
+    if arr.size == 0 or not np.issubdtype(arr.dtype, np.integer):
+        raise LabkitError(f"classes must be one or more integer class codes (ASPRS), got {classes!r}")
+    return arr.astype(np.int64)
+
+
+# ----------------------------------------------------------------------------- masks
+def box_mask(xyz: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """True for points inside the closed box ``box`` (from :func:`as_bbox`)."""
+    d = box.shape[1]
+    return np.all((xyz[:, :d] >= box[0]) & (xyz[:, :d] <= box[1]), axis=1)
+
+
+def circle_mask(xyz: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
+    """True for points whose horizontal distance to ``centre`` (x, y) is at most ``radius``."""
+    dx = xyz[:, 0] - centre[0]
+    dy = xyz[:, 1] - centre[1]
+    return dx * dx + dy * dy <= radius * radius
+
+
+def polygon_mask(xyz: np.ndarray, rings: list[np.ndarray]) -> np.ndarray:
+    """True for points inside the polygon by the even-odd rule (crossing number).
+
+    A horizontal ray from each point towards +x crosses an edge (a, b) when the
+    edge straddles the point's y (half-open: ``(a_y > y) != (b_y > y)``) and the
+    crossing abscissa lies right of the point. The loop runs over edges, the
+    test over all points at once. Coordinates are reduced to the polygon's first
+    vertex so UTM values keep their precision.
+    """
+    origin = rings[0][0]
+    lo = np.min([r.min(axis=0) for r in rings], axis=0)
+    hi = np.max([r.max(axis=0) for r in rings], axis=0)
+    inside = np.zeros(len(xyz), dtype=bool)
+    near = np.flatnonzero(np.all((xyz[:, :2] >= lo) & (xyz[:, :2] <= hi), axis=1))
+    if near.size == 0:
+        return inside
+    px = xyz[near, 0] - origin[0]
+    py = xyz[near, 1] - origin[1]
+    odd = np.zeros(near.size, dtype=bool)
+    for ring in rings:
+        a = ring - origin
+        b = np.roll(a, -1, axis=0)
+        for (ax, ay), (bx, by) in zip(a, b):
+            if ay == by:
+                continue  # horizontal edges never cross a horizontal ray
+            straddle = (ay > py) != (by > py)
+            x_cross = ax + (py - ay) * (bx - ax) / (by - ay)
+            odd ^= straddle & (px < x_cross)
+    inside[near] = odd
+    return inside
+
+
+def class_mask(classification: np.ndarray, classes: np.ndarray) -> np.ndarray:
+    """True for points whose class is one of ``classes``."""
+    return np.isin(classification, classes)
+
+
+# ----------------------------------------------------------------------------- crops
+def _keep(cloud: PointCloud, mask: np.ndarray, region: str) -> PointCloud:
+    if not mask.any():
+        raise EmptyRegionError(f"{region} contains none of the {len(cloud)} points of {_label(cloud)}")
+    return cloud.subset(mask)
+
+
+def _label(cloud: PointCloud) -> str:
+    return f"cloud {cloud.name!r}" if cloud.name else "the cloud"
+
+
+def crop_box(cloud: PointCloud, bbox) -> PointCloud:
+    """Points inside an axis-parallel box (closed; z limits optional).
+
+    Parameters
+    ----------
+    cloud : PointCloud
+    bbox : sequence
+        ``(xmin, ymin, xmax, ymax)``, ``(xmin, ymin, zmin, xmax, ymax, zmax)`` or a
+        [min, max] array of shape (2, 2) or (2, 3), in the cloud's frame (metres).
+
+    Raises
+    ------
+    EmptyRegionError
+        If no point lies inside the box.
+    """
+    box = as_bbox(bbox)
+    return _keep(cloud, box_mask(cloud.xyz, box), f"box {box.ravel().tolist()}")
+
+
+def crop_circle(cloud: PointCloud, centre, radius: float) -> PointCloud:
+    """Points within horizontal distance ``radius`` (m) of ``centre`` = (x, y) (a vertical cylinder)."""
+    c = np.asarray(centre, dtype=np.float64).ravel()
+    if c.size not in (2, 3) or not np.isfinite(c).all():
+        raise LabkitError(f"centre must be (x, y) in the cloud's frame, got {centre!r}")
+    r = positive(radius, "radius")
+    return _keep(cloud, circle_mask(cloud.xyz, c[:2], r), f"circle around ({c[0]:.3f}, {c[1]:.3f}) with r = {r:g} m")
+
+
+def crop_polygon(cloud: PointCloud, polygon) -> PointCloud:
+    """Points inside a polygon in the xy plane (even-odd rule; a list of rings gives holes).
+
+    Points exactly on an edge may fall on either side (half-open crossing rule),
+    as in every crossing-number implementation.
+    """
+    rings = as_rings(polygon)
+    n_vertices = sum(len(r) for r in rings)
+    return _keep(cloud, polygon_mask(cloud.xyz, rings), f"polygon with {n_vertices} vertices")
+
+
+def crop_classes(cloud: PointCloud, classes, *, exclude: bool = False) -> PointCloud:
+    """Points of the given ASPRS classes (or all others with ``exclude=True``)."""
+    if "classification" not in cloud:
+        raise LabkitError(f"{_label(cloud)} has no 'classification' attribute to select classes from")
+    codes = as_classes(classes)
+    mask = class_mask(cloud["classification"], codes)
+    what = f"classes {codes.tolist()}" if not exclude else f"everything but classes {codes.tolist()}"
+    return _keep(cloud, ~mask if exclude else mask, what)
+
+
+# ----------------------------------------------------------------------------- thinning
+def thin_random(cloud: PointCloud, fraction: float | None = None, *, n: int | None = None, rng=None) -> PointCloud:
+    """A random subset without replacement: a ``fraction`` of the points or exactly ``n`` of them.
+
+    The kept points stay in their original order.
+    """
+    if (fraction is None) == (n is None):
+        raise LabkitError("give exactly one of fraction (0 < f <= 1) or n (number of points to keep)")
+    total = len(cloud)
+    if fraction is not None:
+        f = positive(fraction, "fraction")
+        if f > 1:
+            raise LabkitError(f"fraction must lie in (0, 1], got {fraction!r}")
+        n = int(round(f * total))
+    if not isinstance(n, (int, np.integer)) or not 1 <= n <= total:
+        raise EmptyRegionError(f"random thinning must keep between 1 and {total} points, asked for {n}")
+    idx = np.sort(as_rng(rng).choice(total, size=int(n), replace=False))
+    return cloud.subset(idx)
+
+
+def _cell_keys(xy: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
+    """Integer cell indices (n, d) and the grid origin for cells of edge ``size``."""
+    origin = np.floor(xy.min(axis=0) / size) * size
+    return np.floor((xy - origin) / size).astype(np.int64), origin
+
+
+def _flat_keys(cells: np.ndarray) -> np.ndarray:
+    """One int64 key per row of non-negative cell indices (mixed-radix number)."""
+    dims = cells.max(axis=0) + 1
+    if np.prod(dims.astype(float)) >= 2.0**62:
+        # too many cells for one int64: fall back to row-wise unique
+        return np.unique(cells, axis=0, return_inverse=True)[1].ravel()
+    return np.ravel_multi_index(cells.T, dims)
+
+
+def thin_voxel(cloud: PointCloud, size: float, *, keep: str = "centre") -> PointCloud:
+    """One point per occupied voxel (cube of edge ``size`` metres).
+
+    Parameters
+    ----------
+    cloud : PointCloud
+    size : float
+        Voxel edge length in metres.
+    keep : {'centre', 'first'}
+        Which point of a voxel survives: the one nearest the voxel centre (default,
+        a real measured point, so attributes stay meaningful) or the first in file order.
+
+    Returns
+    -------
+    PointCloud
+        The surviving points in their original order.
+    """
+    choice(keep, ("centre", "first"), "keep")
+    size = positive(size, "size")
+    cells, origin = _cell_keys(cloud.xyz, size)
+    key = _flat_keys(cells)
+    if keep == "first":
+        _, first = np.unique(key, return_index=True)
+        return cloud.subset(np.sort(first))
+    # Distance to the voxel centre, then the first of each key after sorting by (key, distance)
+    centre = origin + (cells + 0.5) * size
+    d2 = np.einsum("ij,ij->i", cloud.xyz - centre, cloud.xyz - centre)
+    order = np.lexsort((d2, key))
+    starts = np.flatnonzero(np.r_[True, np.diff(key[order]) != 0])
+    return cloud.subset(np.sort(order[starts]))
+
+
+# ----------------------------------------------------------------------------- density
+@dataclass(frozen=True, eq=False)
+class DensityGrid(ReportMixin):
+    """Point counts on a horizontal grid.
+
+    Attributes
+    ----------
+    counts : ndarray (ny, nx) int
+        Points per cell; row 0 is the southern (smallest y) row.
+    cell : float
+        Cell edge length (m).
+    origin : ndarray (2,)
+        x, y of the lower-left corner of cell [0, 0].
+    """
+
+    counts: np.ndarray
+    cell: float
+    origin: np.ndarray
+
+    @property
+    def density(self) -> np.ndarray:
+        """Points per square metre in each cell (pts/m^2)."""
+        return self.counts / self.cell**2
+
+    @property
+    def extent(self) -> tuple[float, float, float, float]:
+        """(xmin, xmax, ymin, ymax) of the grid, as matplotlib's ``imshow`` wants it."""
+        ny, nx = self.counts.shape
+        x0, y0 = self.origin
+        return (x0, x0 + nx * self.cell, y0, y0 + ny * self.cell)
+
+    def _report(self):
+        occ = self.counts[self.counts > 0] / self.cell**2
+        rows = [
+            ("cells", f"{self.counts.shape[1]} x {self.counts.shape[0]} of {self.cell:g} m"),
+            ("occupied cells", f"{occ.size} of {self.counts.size}"),
+            ("density (occupied)", f"mean {fmt(occ.mean(), 1)}, median {fmt(np.median(occ), 1)} pts/m^2"),
+        ]
+        return "Density grid", [("", rows)]
+
+
+def density_grid(cloud: PointCloud, cell: float = 1.0) -> DensityGrid:
+    """Count points per horizontal grid cell of edge ``cell`` metres."""
+    cell = positive(cell, "cell")
+    if len(cloud) == 0:
+        raise EmptyRegionError(f"{_label(cloud)} is empty; no density to compute")
+    cells, origin = _cell_keys(cloud.xyz[:, :2], cell)
+    nx, ny = cells.max(axis=0) + 1
+    counts = np.bincount(cells[:, 1] * nx + cells[:, 0], minlength=nx * ny).reshape(ny, nx)
+    return DensityGrid(counts=counts, cell=cell, origin=origin)
+
+
+def point_density(cloud: PointCloud, cell: float | None = None) -> float:
+    """Mean point density in pts/m^2: points divided by the area of the occupied grid cells.
+
+    Parameters
+    ----------
+    cloud : PointCloud
+    cell : float, optional
+        Grid cell (m). By default chosen so that a cell holds about 10 points on
+        average over the convex hull, which keeps Poisson gaps inside the cloud
+        from being counted as empty and keeps the ragged border small.
+
+    Notes
+    -----
+    Counting occupied cells follows the cloud's real footprint (gaps such as
+    water or data holes do not dilute the density), unlike ``n / hull area``.
+    """
+    if len(cloud) < 3:
+        raise EmptyRegionError(f"{_label(cloud)} has {len(cloud)} points; density needs at least 3")
+    if cell is None:
+        cell = np.sqrt(10.0 / _hull_density(cloud.xyz[:, :2]))
+    grid = density_grid(cloud, cell)
+    return float(len(cloud) / (np.count_nonzero(grid.counts) * grid.cell**2))
+
+
+def _hull_density(xy: np.ndarray) -> float:
+    """Points per m^2 of the 2D convex hull (a rough first guess)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        area = ConvexHull(xy - xy.mean(axis=0)).volume  # 'volume' of a 2D hull is its area
+    except QhullError:
+        raise LabkitError("the points are collinear in xy; an area density is undefined") from None
+    return len(xy) / area
+
+
+def equalize_density(cloud: PointCloud, target, *, cell: float = 1.0, rng=None) -> PointCloud:
+    """Thin ``cloud`` cell by cell to a target density (e.g. DIM ~100 -> ALS ~20 pts/m^2).
+
+    Parameters
+    ----------
+    cloud : PointCloud
+        The denser cloud.
+    target : float or PointCloud
+        Target density in pts/m^2, or a reference cloud whose mean density
+        (:func:`point_density`) is the target.
+    cell : float
+        Horizontal grid cell (m). Each cell keeps ``target * cell**2`` points on
+        average (the fractional part by a random draw, so the mean density is
+        unbiased); cells that already hold fewer points keep them all.
+    rng : int or Generator, optional
+
+    Returns
+    -------
+    PointCloud
+        The kept points in their original order.
+    """
+    density = point_density(target) if isinstance(target, PointCloud) else positive(target, "target density")
+    cell = positive(cell, "cell")
+    gen = as_rng(rng)
+    cells, _ = _cell_keys(cloud.xyz[:, :2], cell)
+    key = _flat_keys(cells)
+    # Quota per cell: floor(t) plus one with probability frac(t)
+    quota_mean = density * cell**2
+    uniq, inverse = np.unique(key, return_inverse=True)
+    quota = np.floor(quota_mean) + (gen.random(uniq.size) < quota_mean % 1.0)
+    # Rank of each point inside its cell in a random order
+    order = np.lexsort((gen.random(len(key)), inverse))
+    sorted_cell = inverse[order]
+    starts = np.searchsorted(sorted_cell, sorted_cell, side="left")
+    rank = np.arange(len(order)) - starts
+    kept = np.sort(order[rank < quota[sorted_cell]])
+    if kept.size == 0:
+        raise EmptyRegionError(f"a target of {density:g} pts/m^2 on {cell:g} m cells keeps no point")
+    return cloud.subset(kept)
