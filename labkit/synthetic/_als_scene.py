@@ -134,22 +134,24 @@ class Trees:
         bot = np.full(x.shape, np.nan)
         if len(self) == 0:
             return top, bot
-        k = min(6, len(self))
-        dist, idx = cKDTree(np.column_stack([self.cx, self.cy])).query(
-            np.column_stack([x, y]), k=k, distance_upper_bound=float(self.r.max()), workers=-1
-        )
-        dist, idx = dist.reshape(len(x), k), idx.reshape(len(x), k)
+        tree = cKDTree(np.column_stack([self.cx, self.cy]))
+        xy = np.column_stack([x, y])
+        rmax = float(self.r.max())
+        near = np.nonzero(tree.query(xy, k=1, distance_upper_bound=rmax, workers=-1)[0] < rmax)[0]
+        k = min(4, len(self))  # crowns overlap at most a few deep
+        dist, idx = tree.query(xy[near], k=k, distance_upper_bound=rmax, workers=-1)
+        dist, idx = dist.reshape(len(near), k), idx.reshape(len(near), k)
         ok = idx < len(self)
         j = np.where(ok, idx, 0)
         q = np.where(ok, 1.0 - (dist / self.r[j]) ** 2, -1.0)
         h = np.sqrt(np.clip(q, 0.0, None)) * self.a[j]
         t = np.where(q > 0, self.zc[j] + h, -np.inf)
-        b = np.where(q > 0, self.zc[j] - h, -np.inf)
         best = np.argmax(t, axis=1)
-        rows = np.arange(len(x))
+        rows = np.arange(len(near))
         hit = np.isfinite(t[rows, best])
-        top[hit] = t[rows, best][hit]
-        bot[hit] = b[rows, best][hit]
+        sel = near[hit]
+        top[sel] = t[rows, best][hit]
+        bot[sel] = (self.zc[j] - h)[rows, best][hit]
         return top, bot
 
 
@@ -165,6 +167,7 @@ class Scene:
     roads: tuple = ()  # (axis 'x'|'y', centre, half_width)
     fields: tuple = ()  # (x0, x1, y0, y1)
     low_veg: tuple | None = None  # ground cover height in (target, source) or None
+    patches: tuple = ()  # (x0, x1, y0, y1, height_target, height_source): shrubs/slash on open ground
 
 
 # --------------------------------------------------------------------------- surfaces
@@ -191,6 +194,11 @@ def hard_surface(scene: Scene, x, y, epoch: int):
         cover = (mat == GROUND)
         z = z + np.where(cover, scene.low_veg[epoch], 0.0)
         mat[cover] = LOW_VEG
+    for x0, x1, y0, y1, *height in scene.patches:
+        if height[epoch] > 0:
+            cover = (mat == GROUND) & (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
+            z = z + np.where(cover, height[epoch], 0.0)
+            mat[cover] = LOW_VEG
     if scene.water is not None:
         level = scene.water[6 + epoch]
         wet = z < level
@@ -349,7 +357,7 @@ def sample_walls(scene: Scene, box, density: float, epoch: int, rng) -> np.ndarr
 def classify(mat, height) -> np.ndarray:
     """ASPRS classes; vegetation split by height above ground (3 < 0.5 m <= 4 < 2 m <= 5)."""
     cls = _table(1)[mat].astype(np.uint8)
-    veg = mat == VEG
+    veg = (mat == VEG) | (mat == LOW_VEG)
     cls[veg] = np.where(height[veg] < 0.5, 3, np.where(height[veg] < 2.0, 4, 5))
     return cls
 

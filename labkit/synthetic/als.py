@@ -78,7 +78,8 @@ _INFO = {
                      "shift; the new building pulls a plain ICP."),
     "trees_felled": ((True, True, True),
                      "Village as in 'xyz' (flat terrain) with a group of large trees present in 2014 and felled by "
-                     "2016. Stable buildings fix the shift; the lost crowns pull a plain ICP."),
+                     "2016; the clearing is covered by slash and regrowth about 0.8 m high (classes 3/4). Stable "
+                     "buildings fix the shift; the lost crowns and the regrowth pull a plain ICP."),
     "trees_planted": ((True, True, True),
                       "Village as in 'xyz' (flat terrain) with a group of young trees (4-7 m) planted between 2014 "
                       "and 2016 on open ground. Stable buildings fix the shift; the new crowns pull a plain ICP."),
@@ -428,7 +429,7 @@ def _layout_change(change):
         cx = np.mean([c[0] for c in spots])
         cy = spots[0][1]
         hx, hy = reserved * wx / 2 - 2.0, wy / 2 - 3.0
-        trees_t, trees_s = trees, _grow(trees, rng)
+        trees_t, trees_s, patches = trees, _grow(trees, rng), ()
         if change in ("demolished", "new_building"):
             present = (True, False) if change == "demolished" else (False, True)
             buildings.append(S.Building("hip", cx, cy, hx, hy, 0.0, 8.0, np.tan(np.radians(30)), present))
@@ -438,11 +439,12 @@ def _layout_change(change):
             gx = cx + rng.uniform(-hx, hx, n)
             gy = cy + rng.uniform(-hy, hy, n)
             group = _trees(gx, gy, terrain, rng, (14, 22) if big else (4, 7), (3.0, 4.5) if big else (1.2, 2.2))
-            if big:
+            if big:  # the clearing is covered by slash and regrowth (about 0.8 m) in 2016
                 trees_t = _join(trees, group)
+                patches = ((cx - hx - 2, cx + hx + 2, cy - hy - 2, cy + hy + 2, 0.0, 0.8),)
             else:
                 trees_s = _join(trees_s, group)
-        return S.Scene(size, terrain, tuple(buildings), (trees_t, trees_s))
+        return S.Scene(size, terrain, tuple(buildings), (trees_t, trees_s), patches=patches)
     return layout
 
 
