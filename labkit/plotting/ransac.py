@@ -101,27 +101,42 @@ def plot_section(points, spheres, ax=None, labels=None, width=None, axis=1, inli
     return ax
 
 
-def render_inliers(points, result, plotter=None, max_points=200_000, show_sphere=True, rng=0):
+def render_inliers(points, result, plotter=None, max_points=200_000, show_sphere=True, rng=0,
+                   subset=None, close_up=None, view=(1.0, -1.0, 0.7)):
     """Inliers and outliers of a RANSAC result as coloured points, with the adjusted sphere.
 
-    At most ``max_points`` points are drawn (a random subset) to keep rendering fast.
+    Parameters
+    ----------
+    points : ndarray (n, 3)
+        The points given to :func:`labkit.ransac_sphere`.
+    result : RansacResult
+    max_points : int
+        At most this many points are drawn (a random subset) to keep rendering fast.
+    subset : ndarray of bool (n,), optional
+        Draw only these points (e.g. without the ceiling of a room).
+    close_up : float, optional
+        Look at the found sphere from ``close_up`` radii away, along ``view``.
     """
     import pyvista as pv
 
     plotter = new_plotter(plotter)
     pts = np.asarray(points, dtype=np.float64)
-    origin = np.round(pts.mean(axis=0))  # render in a local frame (float32 inside VTK)
-    keep = np.arange(len(pts))
-    if len(pts) > max_points:
-        keep = np.sort(np.random.default_rng(rng).choice(len(pts), max_points, replace=False))
+    origin = np.round(pts.mean(axis=0))  # render in a local frame (VTK works in float32)
+    keep = np.flatnonzero(np.ones(len(pts), dtype=bool) if subset is None else subset)
+    if len(keep) > max_points:
+        keep = np.sort(np.random.default_rng(rng).choice(keep, max_points, replace=False))
     inl = result.inliers[keep]
     for mask, key in ((inl, "inlier"), (~inl, "outlier")):
         if mask.any():
             plotter.add_points(pts[keep][mask] - origin, color=COLORS[key], point_size=POINT_SIZE,
                                render_points_as_spheres=True, label=f"{key}s")
-    if show_sphere and result.found:
-        x = result.fit.x
-        mesh = pv.Sphere(radius=float(x[3]), center=x[:3] - origin, theta_resolution=48, phi_resolution=48)
-        plotter.add_mesh(mesh, color=COLORS["sphere"], opacity=0.25, label="adjusted sphere")
-    plotter.add_legend(bcolor="white", size=(0.22, 0.15))
+    if result.found:
+        centre, r = result.fit.x[:3] - origin, float(result.fit.x[3])
+        if show_sphere:
+            mesh = pv.Sphere(radius=r, center=centre, theta_resolution=48, phi_resolution=48)
+            plotter.add_mesh(mesh, color=COLORS["sphere"], opacity=0.25, label="sphere")
+        if close_up:
+            direction = np.asarray(view, dtype=np.float64) / np.linalg.norm(view)
+            plotter.camera_position = [tuple(centre + close_up * r * direction), tuple(centre), (0.0, 0.0, 1.0)]
+    plotter.add_legend(bcolor="white", size=(0.24, 0.12), loc="upper right")
     return plotter

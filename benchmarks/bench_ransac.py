@@ -1,0 +1,153 @@
+"""Benchmark: RANSAC sphere detection, labkit vs pyransac3d vs scikit-image.
+
+Same synthetic tripod scenes for every method (labkit.synthetic.sphere_on_tripod:
+1 mm noise, outlier ratios 0.5 and 0.8, n = 10^4, 10^5, 10^6), inlier threshold
+3 mm, p = 0.99. Success: centre and radius both within 2 mm of the truth.
+
+- labkit: ``ransac_sphere(points, 0.003)`` with defaults (no radius prior:
+  uniform sampling, preliminary scoring on 1000 points, LO, GHM refit,
+  data snooping), and once more with ``radius_range=(0.05, 0.1)`` (local sampling).
+- pyransac3d: ``Sphere().fit(points, thresh=0.003, maxIteration=N)`` with N from
+  eq. 27 for the TRUE outlier ratio (it has no adaptive stop; this is its best case).
+- scikit-image: ``measure.ransac`` with a sphere model class (4-point / least-squares
+  algebraic fit), ``stop_probability=0.99`` (adaptive), ``max_trials=100000``.
+
+The peers score every hypothesis on all n points in a Python loop, so they are
+run on the first seeds only until a time budget per cell is used up (at least
+one seed); the ``seeds`` column says how many. Run: ``python benchmarks/bench_ransac.py``
+(``--quick`` for a smoke run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import random
+import time
+import warnings
+
+import numpy as np
+
+from labkit.ransac import ransac_sphere, required_iterations
+from labkit.synthetic.tripod import sphere_on_tripod
+
+THRESHOLD = 0.003
+TOLERANCE = 0.002
+
+
+# ----------------------------------------------------------------- peers
+class SkimageSphere:
+    """A sphere model for skimage.measure.ransac: algebraic least-squares fit (exact for 4 points)."""
+
+    def __init__(self, center=None, radius=None):
+        self.center, self.radius = center, radius
+
+    @classmethod
+    def from_estimate(cls, data):
+        from skimage.measure.fit import FailedEstimation
+
+        mean = data.mean(axis=0)
+        q = data - mean
+        M = np.column_stack([2.0 * q, np.ones(len(q))])
+        sol, _, rank, sv = np.linalg.lstsq(M, (q**2).sum(axis=1), rcond=None)
+        if rank < 4 or sv[-1] < 1e-10 * sv[0]:
+            return FailedEstimation("degenerate sample")
+        r2 = sol[3] + sol[:3] @ sol[:3]
+        if r2 <= 0:
+            return FailedEstimation("no real radius")
+        return cls(sol[:3] + mean, np.sqrt(r2))
+
+    def residuals(self, data):
+        return np.linalg.norm(data - self.center, axis=1) - self.radius
+
+
+def run_labkit(points, seed, **kw):
+    res = ransac_sphere(points, THRESHOLD, p=0.99, rng=seed, **kw)
+    return (res.fit.x if res.found else None), res.iterations
+
+
+def run_pyransac3d(points, seed, ratio):
+    import pyransac3d
+
+    random.seed(seed)
+    N = required_iterations(ratio, 0.99)
+    center, radius, _ = pyransac3d.Sphere().fit(points, thresh=THRESHOLD, maxIteration=N)
+    if center is None or len(center) == 0:
+        return None, N
+    return np.append(np.asarray(center, dtype=float), float(radius)), N
+
+
+def run_skimage(points, seed):
+    from skimage.measure import ransac
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model, inliers = ransac(points, SkimageSphere, min_samples=4, residual_threshold=THRESHOLD,
+                                max_trials=100_000, stop_probability=0.99, rng=seed)
+    if model is None or not model:
+        return None, -1
+    return np.append(model.center, model.radius), -1
+
+
+# ----------------------------------------------------------------- harness
+def evaluate(x, truth):
+    if x is None or not np.all(np.isfinite(x)):
+        return np.nan, np.nan, False
+    dc = float(np.linalg.norm(x[:3] - truth[:3]))
+    dr = float(abs(x[3] - truth[3]))
+    return dc, dr, dc < TOLERANCE and dr < TOLERANCE
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--sizes", type=float, nargs="+", default=[1e4, 1e5, 1e6])
+    parser.add_argument("--ratios", type=float, nargs="+", default=[0.5, 0.8])
+    parser.add_argument("--peer-budget", type=float, default=40.0, help="seconds per peer and cell (default 40)")
+    parser.add_argument("--quick", action="store_true", help="3 seeds, n = 10^4 and 10^5, 5 s peer budget")
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.seeds, args.sizes, args.peer_budget = 3, [1e4, 1e5], 5.0
+
+    methods = {
+        "labkit": lambda pts, seed, ratio: run_labkit(pts, seed),
+        "labkit radius_range": lambda pts, seed, ratio: run_labkit(pts, seed, radius_range=(0.05, 0.1)),
+        "pyransac3d": lambda pts, seed, ratio: run_pyransac3d(pts, seed, ratio),
+        "skimage": lambda pts, seed, ratio: run_skimage(pts, seed),
+    }
+    peers = {"pyransac3d", "skimage"}
+    print(f"# RANSAC sphere benchmark ({os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} at start)")
+    print(f"threshold {THRESHOLD * 1e3:.0f} mm, success = centre and radius within {TOLERANCE * 1e3:.0f} mm\n")
+    header = ("| n | outlier ratio | method | seeds | success | median time (s) | "
+              "median centre err (mm) | median radius err (mm) | faster peer / labkit |")
+    print(header)
+    print("|" + "---|" * header.count("|")[:-1] if False else "|---|---|---|---|---|---|---|---|---|")
+    ransac_sphere(np.random.default_rng(0).normal(size=(100, 3)), 0.1, rng=0)  # warm up imports
+
+    for n in (int(s) for s in args.sizes):
+        for ratio in args.ratios:
+            rows = {}
+            for name, fn in methods.items():
+                times, dcs, drs, oks = [], [], [], []
+                spent = 0.0
+                for seed in range(args.seeds):
+                    if name in peers and seed > 0 and spent > args.peer_budget:
+                        break
+                    scene = sphere_on_tripod(n_sphere=round(n * (1 - ratio)), outlier_ratio=ratio, rng=seed)
+                    t0 = time.perf_counter()
+                    x, _ = fn(scene.points, seed, ratio)
+                    dt = time.perf_counter() - t0
+                    spent += dt
+                    dc, dr, ok = evaluate(x, scene.sphere)
+                    times.append(dt), dcs.append(dc), drs.append(dr), oks.append(ok)
+                rows[name] = (len(times), np.mean(oks), np.median(times), np.nanmedian(dcs) * 1e3, np.nanmedian(drs) * 1e3)
+            fastest_peer = min(rows[p][2] for p in peers)
+            for name, (k, succ, t, dc, dr) in rows.items():
+                speed = f"{fastest_peer / t:.0f}x" if name not in peers else ""
+                print(f"| {n:.0e} | {ratio} | {name} | {k} | {100 * succ:.0f} % | {t:.3f} | {dc:.3f} | {dr:.3f} | {speed} |",
+                      flush=True)
+    print(f"\nload average at the end: {os.getloadavg()[0]:.1f} (the machine is shared; times are pessimistic)")
+
+
+if __name__ == "__main__":
+    main()
