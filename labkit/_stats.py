@@ -15,7 +15,7 @@ from ._checks import probability
 from ._report import ReportMixin, fmt
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, repr=False)
 class GlobalTest(ReportMixin):
     """Chi-square test of the a posteriori against the a priori variance factor.
 
@@ -46,6 +46,10 @@ class GlobalTest(ReportMixin):
     alpha: float
     passed: bool | None
     variance_ratio: float
+
+    def __repr__(self) -> str:
+        return (f"GlobalTest(statistic={self.statistic:.2f}, dof={self.dof}, "
+                f"accepted=[{self.lower:.2f}, {self.upper:.2f}], alpha={self.alpha:g}, passed={self.passed})")
 
     def _report(self):
         verdict = {True: "passed", False: "REJECTED", None: "not testable (no redundancy)"}[self.passed]
@@ -83,7 +87,7 @@ def w_critical(alpha_w: float) -> float:
     return _norm_quantile(1 - probability(alpha_w, "alpha_w") / 2)
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, repr=False)
 class ConfidenceEllipsoid(ReportMixin):
     """Confidence ellipsoid of a 3D point from its covariance matrix.
 
@@ -110,6 +114,10 @@ class ConfidenceEllipsoid(ReportMixin):
     axes: np.ndarray
     level: float
     quantile: float
+
+    def __repr__(self) -> str:
+        return (f"ConfidenceEllipsoid(level={self.level:g}, center={fmt(self.center, 5)}, "
+                f"semi_axes={fmt(self.semi_axes * 1e3, 4)} mm)")
 
     def contains(self, point) -> bool:
         """True when ``point`` (3,) lies inside the ellipsoid."""

@@ -31,7 +31,7 @@ _X0_SAMPLE = 20_000  # points used for the algebraic initial values
 _FLAT_RATIO = 100.0  # radius above this many times the extent of the points: no curvature
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, repr=False)
 class SphereFit(ReportMixin):
     """Adjusted sphere with the statistics of the Gauss-Helmert model.
 
@@ -143,6 +143,11 @@ class SphereFit(ReportMixin):
         """Index of the point with the largest |w| (-1 when no w is defined)."""
         w = np.abs(self.w_test)
         return -1 if np.isnan(w).all() else int(np.nanargmax(w))
+
+    def __repr__(self) -> str:
+        state = "ok" if self.ok else f"NOT ok: {self.reason or 'main check failed'}"
+        return (f"SphereFit(center={fmt(self.center, 5)}, radius={self.radius:.5f}, sigma0={self.sigma0:.4g}, "
+                f"n={self.n}, iterations={self.iterations}, {state})")
 
     def confidence_ellipsoid(self, level: float = 0.95) -> ConfidenceEllipsoid:
         """Confidence ellipsoid of the centre at ``level`` (semi-axes and directions)."""

@@ -37,7 +37,7 @@ _MAX_INCIDENCE = np.radians(80.0)  # points beyond this incidence are not return
 _STRUCTURE_SHARE = {LEGS: 1.2, BASE: 0.5, GROUND: 1.5}
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, repr=False)
 class TripodScene(ReportMixin):
     """A synthetic TLS scan of a sphere target on a tripod.
 
@@ -77,6 +77,10 @@ class TripodScene(ReportMixin):
     @property
     def n(self) -> int:
         return self.points.shape[0]
+
+    def __repr__(self) -> str:
+        return (f"TripodScene(n={self.n}, sphere={fmt(self.sphere, 4)}, "
+                f"outlier_ratio={self.outlier_ratio:.3f}, noise={self.noise:g}, range_noise={self.range_noise:g})")
 
     @property
     def sphere_points(self) -> np.ndarray:
