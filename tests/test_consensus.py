@@ -1,0 +1,214 @@
+"""Consensus cube and maximum consensus (notebook 06).
+
+Independent routes: brute-force counting with a kd-tree per cell, the two
+kernels (compiled and numpy) against each other, and the known truth of the
+synthetic ALS regions.
+"""
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from labkit.errors import EmptyRegionError, LabkitError
+from labkit.registration import _consensus_kernels as K
+from labkit.registration import consensus_cube, max_consensus
+from labkit.registration.consensus import _prepare
+from labkit.synthetic import REGIONS, als_epochs
+
+STEP = 0.02
+EXTENT = 0.3
+# regions whose stable geometry constrains an axis only weakly (the peak may call it free)
+WEAK = {"water": ("X", "Y")}
+# the 'xy' region's low vegetation grew 0.2 m: vote with ground and buildings only
+CLASS_WEIGHTS = {"xy": {2: 1.0, 6: 1.0}}
+
+
+def brute_force(cube, pb, cells):
+    """Consensus at the given cells by one kd-tree search per source point (eq. 6.2-6.4)."""
+    tree, out = cKDTree(pb.tgt), []
+    for cell in cells:
+        x = pb.src + np.array([a[i] for a, i in zip(cube.axes, cell)])
+        hits = tree.query_ball_point(x, cube.radius)
+        total = 0.0
+        for j, (xi, nb) in enumerate(zip(x, hits)):
+            nb = np.asarray(nb, dtype=int)
+            if nb.size == 0:
+                continue
+            e = xi - pb.tgt[nb]
+            ok = np.einsum("ij,ij->i", e, e) < cube.radius**2
+            if cube.criterion == "point_to_plane":
+                ok &= np.abs(np.einsum("ij,ij->i", e, pb.tgt_normals[nb])) < cube.eps
+            if pb.max_angle is not None:
+                ok &= np.abs(pb.tgt_normals[nb] @ pb.src_normals[j]) > np.cos(np.radians(pb.max_angle))
+            total += pb.w[j] * ok.any()
+        out.append(total)
+    return np.array(out)
+
+
+@pytest.fixture(scope="module")
+def small_pair():
+    return als_epochs("xyz", size=(20.0, 20.0), density=8, rng=3)
+
+
+@pytest.mark.parametrize(
+    "criterion, max_angle, weighted",
+    [("point_to_plane", None, False), ("point_to_point", None, False), ("point_to_plane", 20.0, True)],
+)
+def test_counts_equal_brute_force(small_pair, criterion, max_angle, weighted):
+    src, tgt = small_pair.source.xyz[::3], small_pair.target.xyz
+    w = np.random.default_rng(0).uniform(0.2, 2.0, len(src)) if weighted else None
+    cube = consensus_cube(src, tgt, extent=0.2, step=0.02, criterion=criterion, max_angle=max_angle, weights=w)
+    pb = _prepare(src, tgt, criterion, 0.05, None, max_angle, w, None, 12)
+    rng = np.random.default_rng(1)
+    cells = [tuple(int(rng.integers(0, n)) for n in cube.counts.shape) for _ in range(12)] + [cube.peak_index]
+    expected = brute_force(cube, pb, cells)
+    got = np.array([cube.counts[c] for c in cells], dtype=float)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9)
+    assert got.max() > 0 and len(set(got)) > 3  # the check means something
+
+
+@pytest.mark.skipif(not K.HAVE_NUMBA, reason="numba not installed")
+@pytest.mark.parametrize("criterion", ["point_to_plane", "point_to_point"])
+def test_numpy_and_compiled_kernels_agree(small_pair, criterion):
+    src, tgt = small_pair.source.xyz[::15], small_pair.target.xyz
+    a = consensus_cube(src, tgt, extent=0.1, step=0.02, criterion=criterion, use_numba=True)
+    b = consensus_cube(src, tgt, extent=0.1, step=0.02, criterion=criterion, use_numba=False)
+    assert (a.kernel, b.kernel) == ("numba", "numpy")
+    np.testing.assert_array_equal(a.counts, b.counts)
+
+
+@pytest.fixture(scope="module")
+def region_cubes():
+    cubes = {}
+    for region in REGIONS:
+        pair = als_epochs(region, size=(60.0, 60.0), density=10, rng=7)
+        src = pair.source.subset(np.arange(0, len(pair.source), 3))
+        cube = consensus_cube(src, pair.target, extent=EXTENT, step=STEP, weights=CLASS_WEIGHTS.get(region))
+        cubes[region] = (pair, cube)
+    return cubes
+
+
+@pytest.mark.parametrize("region", REGIONS)
+def test_argmax_recovers_constrained_components(region_cubes, region):
+    pair, cube = region_cubes[region]
+    truth = dict(zip("XYZ", pair.constrained))
+    named = set(cube.peak.constrained_axes)
+    strong = {a for a, ok in truth.items() if ok} - set(WEAK.get(region, ()))
+    assert strong <= named <= {a for a, ok in truth.items() if ok}, cube.peak.describe()
+    err = cube.argmax_translation - pair.translation
+    for i, axis in enumerate("XYZ"):
+        if axis in named:
+            assert abs(err[i]) <= STEP + 1e-9, (axis, err)
+            assert np.isfinite(cube.best_translation[i])
+        else:
+            assert np.isnan(cube.best_translation[i])
+
+
+def test_peak_shapes_of_degenerate_regions(region_cubes):
+    assert region_cubes["field"][1].peak.kind == "plane"
+    ridge = region_cubes["xz"][1].peak  # gable roofs with ridges along y
+    assert ridge.kind == "ridge"
+    free = ridge.directions[:, ridge.free][:, 0]
+    assert abs(free[1]) > 0.95  # the free direction is Y
+    assert region_cubes["xyz"][1].peak.kind == "point"
+
+
+def test_weights_change_the_result(region_cubes):
+    pair, weighted = region_cubes["xy"]
+    src = pair.source.subset(np.arange(0, len(pair.source), 3))
+    plain = consensus_cube(src, pair.target, extent=EXTENT, step=STEP)
+    # the grown low vegetation pulls the unweighted peak down in Z by about its growth
+    assert abs(plain.argmax_translation[2] - pair.translation[2]) > 0.1
+    assert abs(weighted.argmax_translation[2] - pair.translation[2]) <= STEP + 1e-9
+    assert weighted.best_count < plain.counts.size  # weights are sums, not counts of all points
+
+
+def test_point_to_point_barely_distinguishes_at_als_density():
+    pair = als_epochs("xyz", size=(30.0, 30.0), density=20, rng=5)
+    src, tgt = pair.source.xyz[::5], pair.target.xyz
+    wrong = pair.translation + np.array([0.1, -0.1, 0.0])
+    share, drop = {}, {}
+    for crit in ("point_to_point", "point_to_plane"):
+        cube = consensus_cube(src, tgt, extent=0.12, step=0.02, criterion=crit, center=pair.translation)
+        right, off = cube.count_at(pair.translation), cube.count_at(wrong)
+        share[crit], drop[crit] = right / len(src), (right - off) / right
+    # point-to-point: few points vote at all (point spacing >> eps) and a shift 14 cm off the
+    # truth gets about as many votes; point-to-plane: most points vote and the wrong shift loses
+    assert share["point_to_point"] < 0.25 < 0.6 < share["point_to_plane"]
+    assert drop["point_to_point"] < 0.05 < drop["point_to_plane"]
+
+
+def test_max_consensus_optimum_and_refinement():
+    pair = als_epochs("xyz", size=(30.0, 30.0), density=10, rng=11)
+    src, tgt = pair.source.xyz[::3], pair.target.xyz
+    cube = consensus_cube(src, tgt, extent=EXTENT, step=STEP)
+    res = max_consensus(src, tgt, extent=EXTENT, tol=0.002)
+    bb = res.history[0]
+    assert res.method == "max_consensus" and res.degeneracy.well_posed
+    assert bb.lower >= cube.best_count  # continuous optimum at least the grid optimum
+    assert bb.upper >= bb.lower and bb.gap == pytest.approx(bb.upper - bb.lower)
+    # the branch-and-bound count is exact: recount by brute force at its translation
+    pb = _prepare(src, tgt, "point_to_plane", 0.05, None, None, None, None, 12)
+    shifted = consensus_cube(src, tgt, extent=0.001, step=0.001, center=bb.translation)
+    assert shifted.counts[1, 1, 1] == bb.lower
+    assert brute_force(shifted, pb, [(1, 1, 1)])[0] == bb.lower
+    assert np.abs(bb.translation - pair.translation).max() < STEP
+    # least squares on the consensus set: within 4 sigma of the truth (and a couple of mm)
+    err = np.abs(res.translation - pair.translation)
+    assert (err < 4 * res.translation_std + 0.003).all(), (err, res.translation_std)
+    assert 0.5 < res.share_used <= 1 and res.sigma0 < 0.05
+
+
+def test_max_consensus_reports_degenerate_direction():
+    pair = als_epochs("field", size=(30.0, 30.0), density=8, rng=2)
+    res = max_consensus(pair.source.xyz[::3], pair.target, extent=0.2, tol=0.005, max_boxes=300)
+    assert set(res.degeneracy.undetermined_axes) == {"X", "Y"}
+    assert abs(res.translation[2] - pair.translation[2]) < 0.01
+    assert "undetermined" in res.message
+    assert res.translation_std[0] > 0.05  # not a plausible-looking precise shift
+
+
+def test_flat_consensus_is_undetermined():
+    rng = np.random.default_rng(4)
+    src = rng.uniform(0, 20, (400, 3))
+    tgt = rng.uniform(0, 20, (400, 3))
+    cube = consensus_cube(src, tgt, extent=0.2, step=0.04, criterion="point_to_point", eps=0.05)
+    assert cube.undetermined and np.isnan(cube.best_translation).all()
+    assert "undetermined" in cube.summary()
+
+
+def test_bad_input(small_pair):
+    src, tgt = small_pair.source.xyz[::10], small_pair.target.xyz
+    with pytest.raises(LabkitError, match="cells"):
+        consensus_cube(src, tgt, extent=3.0, step=0.01)
+    with pytest.raises(LabkitError, match="eps"):
+        consensus_cube(src, tgt, eps=0.0, step=0.05)
+    with pytest.raises(EmptyRegionError, match="overlap"):
+        consensus_cube(src + 500.0, tgt, extent=0.2, step=0.05)
+    with pytest.raises(LabkitError, match="criterion"):
+        consensus_cube(src, tgt, criterion="nearest", step=0.05)
+    with pytest.raises(LabkitError, match="weights"):
+        consensus_cube(src, tgt, step=0.05, weights=np.ones(3))
+    with pytest.raises(LabkitError, match="tol"):
+        max_consensus(src, tgt, tol=-1)
+    before = src.copy()
+    consensus_cube(src, tgt, extent=0.1, step=0.05)
+    np.testing.assert_array_equal(src, before)  # inputs untouched
+
+
+def test_bnb_kernels_agree():
+    rng = np.random.default_rng(0)
+    m = 3000
+    src = np.sort(rng.integers(0, 400, m))
+    D = rng.normal(size=(m, 3)) * 0.2
+    N = rng.normal(size=(m, 3))
+    N /= np.linalg.norm(N, axis=1, keepdims=True)
+    w = rng.uniform(0.5, 1.5, 400)
+    act = np.arange(m)
+    centres = rng.normal(size=(8, 3)) * 0.05
+    a = K.children(act, src, D, N, centres, 0.3, 0.05, 0.01, w, use_numba=True)
+    b = K.children(act, src, D, N, centres, 0.3, 0.05, 0.01, w, use_numba=False)
+    for x, y in zip(a[1:], b[1:]):
+        np.testing.assert_allclose(x, y)
+    for x, y in zip(a[0], b[0]):
+        np.testing.assert_array_equal(x, y)
