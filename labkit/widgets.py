@@ -108,3 +108,53 @@ def _explorer_figure(pts, result, truth):
     plot_adaptive_trace(result, ax=ax2)
     fig.tight_layout()
     return fig
+
+
+def consensus_slices_widget(cube, truth=None):
+    """A slider through the slices of a consensus cube (notebook 06).
+
+    Choose the slice orientation (XY, XZ, YZ) and move through the cells along
+    the third axis; the colour scale stays that of the whole cube.
+
+    Parameters
+    ----------
+    cube : labkit.registration.ConsensusCube
+    truth : (3,) float, optional
+        Known translation, marked in every slice.
+
+    Returns
+    -------
+    ipywidgets.VBox
+        With attributes ``plane`` (ToggleButtons), ``slider`` (IntSlider),
+        ``figure`` (Image) and ``update()``.
+    """
+    import ipywidgets as widgets
+    from matplotlib.figure import Figure
+
+    from .plotting.consensus import PLANES, plot_consensus_slice
+
+    plane = widgets.ToggleButtons(options=list(PLANES), value="XY", description="slice")
+    slider = widgets.IntSlider(description="cell", continuous_update=False)
+    label = widgets.HTML()
+    figure = widgets.Image(format="png")
+    box = widgets.VBox([widgets.HBox([plane, slider, label]), figure])
+
+    def set_range(*_):
+        c = PLANES[plane.value][2]
+        slider.max = cube.counts.shape[c] - 1
+        slider.value = cube.peak_index[c]
+
+    def update(*_):
+        c = PLANES[plane.value][2]
+        label.value = f"t{'xyz'[c]} = {cube.axes[c][slider.value]:+.3f} m"
+        fig = Figure(figsize=(6, 5))
+        plot_consensus_slice(cube, plane.value, slider.value, truth=truth, ax=fig.subplots())
+        figure.value = _png(fig)
+
+    plane.observe(set_range, names="value")
+    plane.observe(update, names="value")
+    slider.observe(update, names="value")
+    box.plane, box.slider, box.figure, box.update = plane, slider, figure, update
+    set_range()
+    update()
+    return box
