@@ -237,7 +237,7 @@ def _sample(points, geometry, spec, rng):
         return np.arange(n)
     if kind == "random":
         return np.sort(rng.choice(n, m, replace=False))
-    pool = np.sort(rng.choice(n, min(n, 3 * m), replace=False))  # candidates for the normals
+    pool = np.sort(rng.choice(n, min(n, 6 * m), replace=False))  # candidates for the normals
     coarse, _ = geometry.compute(pool, min(8, geometry.k))  # coarse normals suffice for the bins
     return pool[_normal_space_sample(coarse, m, rng)]
 
