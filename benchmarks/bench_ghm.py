@@ -26,6 +26,7 @@ import argparse
 import time
 
 import numpy as np
+from scipy.linalg import lu_factor, lu_solve
 from scipy.optimize import least_squares
 
 from labkit.adjustment import gauss_helmert_model
@@ -83,10 +84,11 @@ def run_dense(points, x0, tol=1e-10, max_iter=50):
             B[rows, j * n + rows] = d[:, j] / ri
         w = -B @ v + (ri - x[3])  # (eq. 8)
         M = SIGMA**2 * (B @ B.T)  # B Sigma_ll B^T with Sigma_ll = sigma^2 I
-        MiA, Miw = np.linalg.solve(M, A), np.linalg.solve(M, w)
+        lu = lu_factor(M)  # one factorization of the n x n matrix per iteration
+        MiA, Miw = lu_solve(lu, A), lu_solve(lu, w)
         N = A.T @ MiA  # (eq. 21)
         dx = -np.linalg.solve(N, A.T @ Miw)
-        k = -np.linalg.solve(M, A @ dx + w)  # (eq. 19)
+        k = -lu_solve(lu, A @ dx + w)  # (eq. 19)
         v = SIGMA**2 * (B.T @ k)  # (eq. 13)
         x = x + dx  # (eq. 22)
         if np.abs(dx).max() < tol:

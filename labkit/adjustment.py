@@ -73,6 +73,8 @@ class SphereFit(ReportMixin):
         Chi-square test of sigma0^2 against sigma0_apriori^2.
     w_critical : float
         Critical value of the w-test (two-sided, level ``alpha_w``).
+    alpha_w : float
+        Significance level of each w-test.
     N : ndarray (u, u)
         Normal matrix of the last iteration (local frame; the values do not depend on it).
     fixed_radius : bool
@@ -99,6 +101,7 @@ class SphereFit(ReportMixin):
     normal_residuals: np.ndarray
     global_test: GlobalTest
     w_critical: float
+    alpha_w: float
     N: np.ndarray
     fixed_radius: bool
     sigma0_apriori: float
@@ -180,7 +183,8 @@ class SphereFit(ReportMixin):
                  f"[{self.global_test.lower:.1f}, {self.global_test.upper:.1f}]: "
                  + {True: "passed", False: "REJECTED", None: "not testable"}[self.global_test.passed]),
                 ("largest w", w_row),
-                ("flagged points", f"{int(self.flagged.sum()):d}"),
+                ("flagged points", f"{int(self.flagged.sum()):d} (false alarms expected by chance: "
+                 f"{np.isfinite(self.w_test).sum() * self.alpha_w:.1f})"),
                 ("95% ellipsoid", fmt(ell.semi_axes * 1e3, 3, "mm")),
             ]),
         ]
@@ -507,6 +511,7 @@ def _result(L, it, cov, origin, fixed, tol, alpha, alpha_w, sigma0_apriori):
         normal_residuals=e,
         global_test=global_test(omega, dof, sigma0_apriori, alpha),
         w_critical=w_critical(alpha_w),
+        alpha_w=alpha_w,
         N=it.N,
         fixed_radius=fixed,
         sigma0_apriori=sigma0_apriori,
