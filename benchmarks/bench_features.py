@@ -31,6 +31,8 @@ from pathlib import Path
 import numpy as np
 
 K = 20
+COLUMNS = ("time s", "ratio", "median deg", "p95 deg", "median deg, local", "peak RSS MB", "numpy peak MB")
+WIDTHS = [len(c) for c in COLUMNS]
 
 
 def make_scene(n: int, seed: int = 0) -> np.ndarray:
@@ -86,6 +88,10 @@ def run_worker(method: str, path: str, out: str) -> None:
         N = np.asarray(pcd.normals)
         seconds = time.perf_counter() - t0
         traced = float("nan")
+        # untimed: the same on coordinates reduced to a local origin (Open3D sums x x^T in one pass)
+        local = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz - np.round(xyz.mean(axis=0))))
+        local.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(K))
+        np.save(out + "_local.npy", np.asarray(local.normals))
     np.save(out + ".npy", N)
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # kB on Linux
     Path(out + ".json").write_text(json.dumps({"seconds": seconds, "rss": rss, "traced": traced}))
@@ -95,6 +101,14 @@ def run_method(method: str, path: str, tmp: str) -> tuple[dict, np.ndarray]:
     out = os.path.join(tmp, method)
     subprocess.run([sys.executable, __file__, "--worker", method, path, out], check=True)
     return json.loads(Path(out + ".json").read_text()), np.load(out + ".npy")
+
+
+def _row(n, name, r, ratio, ang=None, ang_local=None):
+    angles = ("", "", "") if ang is None else (
+        f"{np.median(ang):.4f}", f"{np.percentile(ang, 95):.4f}", f"{np.median(ang_local):.2e}")
+    traced = "" if not np.isfinite(r["traced"]) else f"{r['traced'] / 2**20:.0f}"
+    cells = (f"{r['seconds']:.2f}", f"{ratio:.2f}", *angles, f"{r['rss'] / 2**20:.0f}", traced)
+    return f"{n:>9} {name:>7} " + " ".join(f"{c:>{w}}" for c, w in zip(cells, WIDTHS))
 
 
 def angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -109,7 +123,8 @@ def main() -> None:
     args = parser.parse_args()
     sizes = (10_000, 100_000) if args.quick else (100_000, 1_000_000)
     print(f"normals, k = {K}; {os.cpu_count()} CPU(s); times are wall clock of one run (shared machine)")
-    header = f"{'n':>9} {'method':>7} {'time s':>8} {'ratio':>6} {'median deg':>10} {'p95 deg':>8} {'peak RSS MB':>11} {'numpy peak MB':>13}"
+    print("angles: labkit vs Open3D up to sign, both on the UTM input; 'local': vs Open3D on reduced coordinates")
+    header = f"{'n':>9} {'method':>7} " + " ".join(COLUMNS)
     print(header)
     print("-" * len(header))
     ok = True
@@ -120,13 +135,13 @@ def main() -> None:
             lab, N_lab = run_method("labkit", path, tmp)
             o3d, N_o3d = run_method("open3d", path, tmp)
             ang = angles_deg(N_lab, N_o3d)
+            ang_local = angles_deg(N_lab, np.load(os.path.join(tmp, "open3d_local.npy")))
             ratio = lab["seconds"] / o3d["seconds"]
-            for name, r, rat in (("open3d", o3d, 1.0), ("labkit", lab, ratio)):
-                med, p95 = (f"{np.median(ang):10.4f}", f"{np.percentile(ang, 95):8.4f}") if name == "labkit" else ("", "")
-                traced = "" if not np.isfinite(r["traced"]) else f"{r['traced'] / 2**20:13.0f}"
-                print(f"{n:>9} {name:>7} {r['seconds']:8.2f} {rat:6.2f} {med:>10} {p95:>8} {r['rss'] / 2**20:11.0f} {traced:>13}")
-            ok &= np.median(ang) < 1.0 and ratio <= 1.5 and lab["rss"] < 2 * 2**30
-    print("targets (median < 1 deg, time <= 1.5 x Open3D, RSS < 2 GB):", "met" if ok else "NOT met")
+            print(_row(n, "open3d", o3d, 1.0))
+            print(_row(n, "labkit", lab, ratio, ang, ang_local))
+            if n >= 100_000:  # the sizes; 10^4 (--quick) only shows the fixed overhead
+                ok &= np.median(ang) < 1.0 and ratio <= 1.5 and lab["rss"] < 2 * 2**30
+    print("targets at n >= 10^5 (median < 1 deg, time <= 1.5 x Open3D, RSS < 2 GB):", "met" if ok else "NOT met")
 
 
 if __name__ == "__main__":

