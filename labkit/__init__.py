@@ -26,6 +26,13 @@ _EXPORTS = {
     "gauss_helmert_model": "labkit.adjustment",
     "SphereFit": "labkit.adjustment",
     "ransac_sphere": "labkit.ransac",
+    # local geometry (issue 4)
+    "local_pca": "labkit.features",
+    "LocalPCA": "labkit.features",
+    "local_noise": "labkit.features",
+    "eigen_features": "labkit.features",
+    "multiscale_features": "labkit.features",
+    "robust_normals": "labkit.features",
     # transforms
     "make_transform": "labkit.transforms",
     "compose": "labkit.transforms",
