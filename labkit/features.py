@@ -210,6 +210,7 @@ def local_pca(
     *,
     orient: str = "up",
     viewpoint=None,
+    at=None,
     chunk_size: int = CHUNK_SIZE,
 ) -> LocalPCA:
     """PCA of the neighbourhood of every point (eq. 1-4), vectorized and chunked.
@@ -225,6 +226,9 @@ def local_pca(
     orient : {'up', 'viewpoint', 'none'}
         'up': n_z >= 0 (ALS); 'viewpoint': toward ``viewpoint`` (3,) or per point (n, 3) (TLS
         scanner position, ALS trajectory); 'none': the sign eigh returns.
+    at : array_like of int, optional
+        Compute only at these points (neighbours still come from the whole cloud); the
+        results then have ``len(at)`` rows and a per-point viewpoint has shape (len(at), 3).
     chunk_size : int
         Points per chunk; memory grows with chunk_size * k, not with n * k.
 
@@ -240,9 +244,11 @@ def local_pca(
     # Reduce to a local origin and check the arguments
     local, origin = _reduced(points)
     k, radius = _check_scale(k, radius, len(local))
-    view = _check_orientation(orient, viewpoint, len(local))
+    at = _check_at(at, len(local))
+    here = local if at is None else local[at]  # the points that get a PCA
+    view = _check_orientation(orient, viewpoint, len(here))
     # Per chunk (in leaf order): neighbours, centroid, covariance, sorted eigh
-    n = len(local)
+    n = len(here)
     lam, vec = np.empty((n, 3)), np.empty((n, 3, 3))
     cen, counts = np.empty((n, 3)), np.empty(n, dtype=np.intp)
 
@@ -252,14 +258,14 @@ def local_pca(
         lam[rows], vec[rows] = _sorted_eigh(C)
         cen[rows], counts[rows] = c, seg_counts
 
-    _run_chunks(local, [(k, radius)], _check_chunk(chunk_size), work)
+    _run_chunks(local, [(k, radius)], _check_chunk(chunk_size), work, at=at)
     # Orient the normals; results in the input frame
-    normals = _orient(vec[:, :, 2], local, orient, view, origin)
+    normals = _orient(vec[:, :, 2], here, orient, view, origin)
     vec[:, :, 2] = normals
     return LocalPCA(lam, vec, normals, cen + origin, counts, k, radius)
 
 
-def normals(points, k: int = 20, orient: str = "up", viewpoint=None, *, radius=None, chunk_size=CHUNK_SIZE):
+def normals(points, k: int = 20, orient: str = "up", viewpoint=None, *, radius=None, at=None, chunk_size=CHUNK_SIZE):
     """Unit normals (n, 3): eigenvector of the smallest eigenvalue of each neighbourhood (eq. 4).
 
     Parameters
@@ -274,12 +280,14 @@ def normals(points, k: int = 20, orient: str = "up", viewpoint=None, *, radius=N
         Sensor position(s) in the frame of ``points``; only with orient='viewpoint'.
     radius : float, optional
         Radius neighbourhood instead of kNN.
+    at : array_like of int, optional
+        Only at these points (neighbours from the whole cloud); shape (len(at), 3).
 
     See Also
     --------
     local_pca : eigenvalues, centroids and counts as well.
     """
-    return local_pca(points, k, radius, orient=orient, viewpoint=viewpoint, chunk_size=chunk_size).normals
+    return local_pca(points, k, radius, orient=orient, viewpoint=viewpoint, at=at, chunk_size=chunk_size).normals
 
 
 def local_noise(points, k: int = 20, radius: float | None = None, *, chunk_size: int = CHUNK_SIZE) -> np.ndarray:
@@ -515,6 +523,7 @@ def robust_normals(
     confidence: float = 0.99,
     orient: str = "up",
     viewpoint=None,
+    at=None,
     chunk_size: int = 5_000,
     rng=None,
 ) -> RobustNormals:
@@ -536,6 +545,8 @@ def robust_normals(
     iterations : int, optional
         Hypotheses per neighbourhood; default from ``outlier_ratio`` and ``confidence``:
         log(1 - confidence) / log(1 - (1 - outlier_ratio)^3).
+    at : array_like of int, optional
+        Only at these points (neighbours from the whole cloud).
     rng : int or numpy.random.Generator, optional
 
     References
@@ -548,9 +559,11 @@ def robust_normals(
     if threshold is not None:
         threshold = positive(threshold, "threshold")
     T = _iterations(iterations, outlier_ratio, confidence)
-    view = _check_orientation(orient, viewpoint, len(local))
+    at = _check_at(at, len(local))
+    here = local if at is None else local[at]
+    view = _check_orientation(orient, viewpoint, len(here))
     rng = as_rng(rng)
-    n = len(local)
+    n = len(here)
     nrm, inl, noise = np.empty((n, 3)), np.empty(n, dtype=np.intp), np.empty(n)
 
     def work(rows, per_scale, chunk_rng):
@@ -562,8 +575,8 @@ def robust_normals(
         m = w.sum(axis=1)
         nrm[rows], inl[rows], noise[rows] = vec[:, :, 2], m, _noise(lam[:, 2], m)
 
-    _run_chunks(local, [(k, None)], _check_chunk(chunk_size), work, rng=rng)
-    normals = _orient(nrm, local, orient, view, origin)
+    _run_chunks(local, [(k, None)], _check_chunk(chunk_size), work, rng=rng, at=at)
+    normals = _orient(nrm, here, orient, view, origin)
     return RobustNormals(normals, inl, noise, k, T, threshold)
 
 
@@ -642,6 +655,20 @@ def _check_scale(k, radius, n):
     return int(k), None
 
 
+def _check_at(at, n):
+    """None, or a 1-D integer index array into the n points."""
+    if at is None:
+        return None
+    idx = np.asarray(at)
+    if idx.ndim != 1 or not np.issubdtype(idx.dtype, np.integer):
+        raise LabkitError(f"at must be a 1-D array of point indices, got shape {idx.shape} and dtype {idx.dtype}")
+    if len(idx) == 0:
+        raise LabkitError("at is empty: give at least one point index")
+    if idx.min() < -n or idx.max() >= n:
+        raise LabkitError(f"at contains indices outside 0..{n - 1}")
+    return np.where(idx < 0, idx + n, idx).astype(np.intp)
+
+
 def _check_chunk(chunk_size) -> int:
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, numbers.Integral) or chunk_size < 1:
         raise LabkitError(f"chunk_size must be a positive integer, got {chunk_size!r}")
@@ -666,8 +693,10 @@ def _build_tree(local) -> cKDTree:
     return cKDTree(local, leafsize=LEAFSIZE, balanced_tree=False, compact_nodes=False)
 
 
-def _run_chunks(local, scales, chunk_size, work, rng=None) -> None:
+def _run_chunks(local, scales, chunk_size, work, rng=None, at=None) -> None:
     """Call ``work(rows, per_scale, chunk_rng)`` for chunks of points taken in the tree's leaf order.
+
+    ``rows`` index the output: all points, or positions in ``at`` (query only those points).
 
     ``per_scale`` holds ``(counts, neighbours)`` for every (k, radius) in ``scales``:
     an (c, k) index array for kNN (one search with the largest k serves all k,
@@ -679,15 +708,20 @@ def _run_chunks(local, scales, chunk_size, work, rng=None) -> None:
     """
     tree = _build_tree(local)
     order = tree.indices  # leaf order: consecutive queries share cached leaves (module docstring)
+    if at is not None:
+        rank = np.empty(len(local), dtype=np.intp)
+        rank[order] = np.arange(len(local))
+        order = np.argsort(rank[at], kind="stable")  # positions in ``at``, in leaf order
+    queries = local if at is None else local[at]
     threads = max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
-    size = min(chunk_size, -(-len(local) // threads))  # at least one chunk per thread
-    starts = range(0, len(local), size)
+    size = max(1, min(chunk_size, -(-len(queries) // threads)))  # at least one chunk per thread
+    starts = range(0, len(queries), size)
     rngs = as_rng(rng).spawn(len(starts)) if rng is not None else [None] * len(starts)
     workers = -1 if len(starts) == 1 else 1
 
     def job(i):
         rows = order[starts[i] : starts[i] + size]
-        work(rows, _query(tree, local[rows], scales, workers), rngs[i])
+        work(rows, _query(tree, queries[rows], scales, workers), rngs[i])
 
     if len(starts) == 1:
         job(0)

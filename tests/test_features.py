@@ -138,6 +138,19 @@ def test_chunked_equals_unchunked_and_utm_equals_local():
     assert np.allclose(a.centroids - UTM, c.centroids, atol=1e-8)
 
 
+def test_at_computes_only_selected_points_with_whole_cloud_neighbours():
+    rng = np.random.default_rng(18)
+    xyz = sphere(rng, n=2000)[0] + UTM
+    at = rng.choice(len(xyz), 150, replace=False)
+    full = F.local_pca(xyz, k=12, orient="viewpoint", viewpoint=UTM)
+    part = F.local_pca(xyz, k=12, orient="viewpoint", viewpoint=UTM, at=at)
+    assert np.array_equal(part.eigenvalues, full.eigenvalues[at]) and np.array_equal(part.normals, full.normals[at])
+    assert F.normals(xyz, k=12, at=[-1]).shape == (1, 3)
+    for bad in ([len(xyz)], [[1, 2]], [0.5], []):
+        with pytest.raises(LabkitError, match="at "):
+            F.local_pca(xyz, k=12, at=bad)
+
+
 def test_input_not_modified_and_pointcloud_accepted():
     rng = np.random.default_rng(8)
     xyz = tilted_plane(rng, n=500)[0] + UTM
