@@ -45,8 +45,10 @@ class ComparisonRow:
     ``ref_*`` the reference and its standard deviations; ``ex, ey, ez`` the error
     (estimate - reference); ``error_norm`` over all axes and
     ``error_norm_constrained`` over the axes the data constrain (``constrained``,
-    e.g. ``"XZ"``); ``chi2`` with ``dof`` and ``p_value`` of the test of eq. 6,
-    ``inside`` True when the error lies inside the combined stated uncertainty.
+    e.g. ``"XZ"``); ``missed`` the constrained axes the method itself calls
+    undetermined (infinite variance); ``chi2`` with ``dof`` and ``p_value`` of the
+    test of eq. 6 on the remaining axes; ``inside`` True when the error lies inside
+    the combined stated uncertainty and no constrained axis was missed.
     """
 
     method: str
@@ -70,6 +72,7 @@ class ComparisonRow:
     error_norm: float
     error_norm_constrained: float
     constrained: str
+    missed: str
     chi2: float
     dof: int
     p_value: float
@@ -110,22 +113,46 @@ class ComparisonRow:
 COLUMNS = tuple(f.name for f in fields(ComparisonRow))
 _TEXT_COLUMNS = (("method", "{}"), ("region", "{}"), ("case", "{}"), ("dx", "{:+.4f}"), ("dy", "{:+.4f}"),
                  ("dz", "{:+.4f}"), ("ex", "{:+.4f}"), ("ey", "{:+.4f}"), ("ez", "{:+.4f}"),
-                 ("error_norm_constrained", "{:.4f}"), ("constrained", "{}"), ("inside", "{}"),
+                 ("error_norm_constrained", "{:.4f}"), ("constrained", "{}"), ("missed", "{}"), ("inside", "{}"),
                  ("n_used", "{}"), ("runtime_s", "{:.2f}"))
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, repr=False)
 class ComparisonTable(ReportMixin):
     """Rows method x region x case with CSV export and a text rendering."""
 
     rows: tuple
     alpha: float = 0.05
 
+    def __repr__(self) -> str:
+        return self.summary() + "\n\n" + self.text()
+
+    def pivot(self, metric: str = "error_norm_constrained", scale: float = 1000.0, digits: int = 1) -> str:
+        """A text matrix: one line per region and case, one column per method (default: error in mm)."""
+        if metric not in COLUMNS:
+            raise LabkitError(f"metric must be one of the columns {COLUMNS}, got {metric!r}")
+        keys = list(dict.fromkeys((r.region, r.case) for r in self.rows))
+        cells = {(r.region, r.case, r.method): getattr(r, metric) for r in self.rows}
+        width = max([len(m) for m in self.methods] + [8])
+        lines = [f"{'region':14s} {'case':8s} " + " ".join(f"{m:>{width}s}" for m in self.methods)]
+        for region, case in keys:
+            vals = [cells.get((region, case, m)) for m in self.methods]
+            txt = ["-" if v is None else (f"{v * scale:.{digits}f}" if isinstance(v, float) else str(v))
+                   for v in vals]
+            lines.append(f"{region:14s} {case:8s} " + " ".join(f"{t:>{width}s}" for t in txt))
+        return "\n".join(lines)
+
     def __len__(self) -> int:
         return len(self.rows)
 
     def __iter__(self):
         return iter(self.rows)
+
+    def __add__(self, other: "ComparisonTable") -> "ComparisonTable":
+        """Rows of both tables (e.g. cheap methods on all regions + an expensive one on a few)."""
+        if not isinstance(other, ComparisonTable) or other.alpha != self.alpha:
+            raise LabkitError("only comparison tables with the same alpha can be joined")
+        return ComparisonTable(self.rows + other.rows, self.alpha)
 
     @property
     def methods(self) -> tuple:
@@ -391,18 +418,21 @@ def _row(name, region, case, pair, ref, result, runtime, error, alpha) -> Compar
     if result is None:
         nan = float("nan")
         return ComparisonRow(name, region, case, *[nan] * 6, *r_shift, *ref_std, nan, nan, nan, nan, nan, labels,
-                             nan, int(mask.sum()), nan, False, nan, 0, 0.0, False, runtime, error)
+                             "", nan, 0, nan, False, nan, 0, 0.0, False, runtime, error)
     T = as_matrix(result)
     shift = shift_at(T, c)  # (eq. 5)
     Sigma_m = shift_covariance(result, c)
     e = shift - r_shift
-    chi2, p = _chi2_test(e[mask], (Sigma_m + ref.covariance)[np.ix_(mask, mask)])  # (eq. 6)
-    inside = bool(np.isfinite(chi2) and chi2 <= stats.chi2.ppf(1 - alpha, mask.sum()))
+    missed = mask & ~np.isfinite(np.diag(Sigma_m))  # constrained by the data, undetermined by the method
+    test = mask & ~missed
+    chi2, p = _chi2_test(e[test], (Sigma_m + ref.covariance)[np.ix_(test, test)])  # (eq. 6)
+    inside = bool(np.isfinite(chi2) and chi2 <= stats.chi2.ppf(1 - alpha, test.sum()) and not missed.any())
     dR = T[:3, :3] @ ref.rotation.T
     rot_err = np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))) * 3600
     return ComparisonRow(
         name, region, case, *shift, *np.sqrt(np.clip(np.diag(Sigma_m), 0, None)), *r_shift, *ref_std, *e,
-        float(np.linalg.norm(e)), float(np.linalg.norm(e[mask])), labels, chi2, int(mask.sum()), p, inside,
+        float(np.linalg.norm(e)), float(np.linalg.norm(e[mask])), labels,
+        "".join(a for a, m in zip(AXES, missed) if m), chi2, int(test.sum()), p, inside,
         float(rot_err), int(getattr(result, "n_used", 0)), float(getattr(result, "share_used", np.nan)),
         bool(getattr(result, "converged", False)), float(runtime), str(getattr(result, "message", "")),
     )

@@ -29,7 +29,7 @@ AXES = ("X", "Y", "Z")
 REFERENCE_FORMAT = "labkit-references"
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, repr=False)
 class Reference(ReportMixin):
     """A reference transformation source -> target for one region and case.
 
@@ -77,6 +77,9 @@ class Reference(ReportMixin):
             object.__setattr__(self, name, value)
         object.__setattr__(self, "spread", np.asarray(self.spread, dtype=float).reshape(3))
         object.__setattr__(self, "residuals", np.asarray(self.residuals, dtype=float).reshape(-1, 3))
+
+    def __repr__(self) -> str:
+        return self.summary()
 
     @property
     def key(self) -> tuple:

@@ -364,3 +364,24 @@ def test_standard_methods_and_pair_file(tmp_path):
     (tmp_path / "bad.json").write_text(json.dumps([{"region": "xyz", "source": "s.laz"}]))
     with pytest.raises(LabkitError, match="pair 0"):
         compare.load_pairs(tmp_path / "bad.json")
+
+
+def test_missed_axis_fails_the_test_and_tables_add_up():
+    """The data constrain Y, the method calls Y undetermined: not 'inside', whatever the chi-square says."""
+    truth = make_transform(translation=[0.2, -0.1, 0.05])
+    pair = _pair("town", truth, (True, True, True))
+    cov = np.diag([1e-6, np.inf, 1e-6])
+
+    def method(src, tgt):
+        return _result(make_transform(translation=pair.truth[:3, 3] + [0.0005, 0.2, 0.0]), cov)
+
+    a = compare.compare_methods({("town", "c"): pair}, {"m": method})
+    row = a.rows[0]
+    assert row.missed == "Y" and row.dof == 2 and row.chi2 == pytest.approx(0.25, rel=1e-5) and not row.inside
+    b = compare.compare_methods({("town", "c"): pair}, {"exact": lambda s, t: _result(pair.truth)})
+    both = a + b
+    assert both.methods == ("m", "exact") and len(both) == 2
+    piv = both.pivot()
+    assert piv.splitlines()[1].split()[:4] == ["town", "c", "200.0", "0.0"]
+    with pytest.raises(LabkitError, match="metric"):
+        both.pivot("nonsense")

@@ -185,8 +185,8 @@ def plot_transformation_arrows(rows, *, ax=None, title=None, exaggerate=1.0):
 
 def plot_error_overview(table, *, ax=None, metric="error_norm_constrained"):
     """Error norm (constrained axes) per region and case, one marker per method; hollow = outside its uncertainty."""
-    ax = _axes(ax, figsize=(10, 4))
     labels = list(dict.fromkeys((r.region, r.case) for r in table.rows))
+    ax = _axes(ax, figsize=(max(8.0, 0.65 * len(labels)), 4))
     for j, m in enumerate(table.methods):
         for r in table.select(method=m).rows:
             x = labels.index((r.region, r.case)) + (j - (len(table.methods) - 1) / 2) * 0.12
