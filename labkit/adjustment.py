@@ -212,7 +212,8 @@ def gauss_helmert_model(
     points : array_like (n, 3) or PointCloud
         Observed coordinates l (m), n >= 4. Exactly 4 points give the circumsphere.
     x0 : array_like (4,), optional
-        Initial values [xc, yc, zc, r]; default: algebraic sphere fit.
+        Initial values [xc, yc, zc, r] in the frame of ``points``; default: an
+        algebraic sphere fit. With ``radius`` set, the centre (3,) is enough.
     sigma : None, float, array_like (n,), (n, 3) or (n, 3, 3), optional
         A priori precision of the coordinates: None (unit weights), one
         standard deviation for all, one per point, one per coordinate, or one
@@ -339,6 +340,8 @@ def _initial_values(l, x0, origin, r_fix):
         x = algebraic_sphere(l[:: max(1, len(l) // _X0_SAMPLE)])
     else:
         x = np.asarray(x0, dtype=np.float64).ravel()
+        if r_fix is not None and x.shape == (3,):  # a centre is enough when the radius is fixed
+            x = np.append(x, r_fix)
         if x.shape != (4,) or not np.isfinite(x).all():
             raise LabkitError(f"x0 must be 4 finite numbers [xc, yc, zc, r], got {x0!r}")
         x = np.concatenate([x[:3] - origin, x[3:]])

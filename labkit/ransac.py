@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -117,6 +117,8 @@ class RansacResult(ReportMixin):
         The inlier threshold t (m) and success probability.
     n_required : float
         The required N at the end of the search.
+    n_working : int
+        Size of the working set the (last) search drew and scored on.
     """
 
     fit: object
@@ -136,6 +138,7 @@ class RansacResult(ReportMixin):
     threshold: float = float("nan")
     p: float = float("nan")
     n_required: float = float("inf")
+    n_working: int = 0
 
     @property
     def center(self):
@@ -167,6 +170,7 @@ class RansacResult(ReportMixin):
             ("scoring", self.scoring),
             ("threshold t", fmt(self.threshold * 1e3, 2, "mm")),
             ("p", fmt(self.p, 4)),
+            ("working set", f"{self.n_working} points"),
             ("valid samples", f"{self.iterations}"),
             ("required N (eq. 27)", f"{self.n_required:.0f}"),
             ("degenerate samples", f"{self.n_invalid}"),
@@ -187,10 +191,17 @@ class _Config:
     p: float
     r_min: float
     r_max: float
+    known: bool  # r_max given by the caller (radius range or nominal radius)
     scoring: str
     minimal_solver: str
+    sampling: str
     max_iterations: int
     local_optimization: bool
+    min_inliers: int
+    snooping: bool
+    sigma: object
+    alpha: float
+    hold_radius: float | None  # the nominal radius to hold in the refit, or None
 
 
 def ransac_sphere(
@@ -288,38 +299,69 @@ def ransac_sphere(
     min_inliers = _whole(min_inliers, "min_inliers", S + 1)
     sigma = _check_sigma(sigma, len(xyz))
 
-    # Reduce to a local origin and draw the preliminary working set
+    cfg = _Config(t, p, r_min, r_max, known, scoring, minimal_solver, sampling, max_iterations,
+                  bool(local_optimization), min_inliers, bool(snooping), sigma, alpha,
+                  float(nominal_radius) if hold_radius else None)
+
+    # Search a random reduction of the cloud; if nothing is found there, a 4x and a 16x larger one
     origin = local_origin(xyz)
-    W = reduce(xyz[_working_set(len(xyz), preliminary_size, gen)], origin)
+    tried = []
+    for size in _reduction_sizes(len(xyz), preliminary_size):
+        result, had_best = _detect(xyz, origin, _working_set(len(xyz), size, gen), cfg, seed, gen)
+        tried.append(size)
+        if result.found or not had_best:
+            break  # (without any hypothesis in range, a larger working set would not help)
+    if len(tried) > 1:
+        sizes = ", ".join(f"{k}" for k in tried)
+        result = replace(result, reason=f"{result.reason} [searched reductions to {sizes} points]")
+    return result
+
+
+def _detect(xyz, origin, idx, cfg, seed, gen):
+    """One detection: adaptive search on the working set xyz[idx], refit and checks on the full cloud.
+
+    Returns the RansacResult and whether the search had a best hypothesis at all.
+    """
+    # The working set, reduced to the local origin, and its sampler
+    W = reduce(xyz[idx], origin)
     extent = float(np.linalg.norm(np.ptp(W, axis=0)))
-    r_max = r_max if known else max(extent, 1e-9)
-    sampling = _pick_sampling(sampling, known, r_max, extent)
-    sampler = _LocalSampler(W, 2.0 * r_max + t) if sampling == "local" else _UniformSampler(len(W))
-    cfg = _Config(t, p, r_min, r_max, scoring, minimal_solver, max_iterations, bool(local_optimization))
+    if not cfg.known:
+        cfg = replace(cfg, r_max=max(extent, 1e-9))  # no sphere larger than the scan
+    sampling = _pick_sampling(cfg.sampling, cfg.known, cfg.r_max, extent)
+    sampler = _LocalSampler(W, 2.0 * cfg.r_max + cfg.threshold) if sampling == "local" else _UniformSampler(len(W))
 
     # Adaptive search (eqs. 25-27) on the working set
     search = _search(W, sampler, cfg, gen)
     common = dict(
         iterations=search.iterations, n_required_history=search.history, seed=seed, n_invalid=search.n_invalid,
-        sampling=sampling, scoring=scoring, minimal_solver=minimal_solver, threshold=t, p=p,
-        n_required=float(search.N),
+        sampling=sampling, scoring=cfg.scoring, minimal_solver=cfg.minimal_solver, threshold=cfg.threshold,
+        p=cfg.p, n_required=float(search.N), n_working=len(W),
     )
     if search.x is None:
-        return _not_found(len(xyz), search.reason, **common)
+        return _not_found(len(xyz), search.reason, **common), False
 
     # Final inliers from the full cloud, Gauss-Helmert refit, data snooping, checks
     x0 = search.x + np.append(origin, 0.0)
-    radius = nominal_radius if hold_radius else None
-    final = _refit(xyz, x0, t, sigma, radius, min_inliers, snooping, alpha)
-    if final.reason:
-        return _not_found(len(xyz), final.reason, n_snooped=final.n_snooped, sigma=final.sigma, **common)
-    reason = _check_sphere(xyz[final.inliers], final.fit, r_min, r_max, gen)
+    final = _refit(xyz, x0, cfg)
+    reason = final.reason or _check_sphere(xyz[final.inliers], final.fit, cfg.r_min, cfg.r_max, gen)
     if reason:
-        return _not_found(len(xyz), reason, n_snooped=final.n_snooped, sigma=final.sigma, **common)
+        return _not_found(len(xyz), reason, n_snooped=final.n_snooped, sigma=final.sigma, **common), True
     return RansacResult(
         fit=final.fit, inliers=final.inliers, found=True, outlier_ratio=1.0 - final.inliers.mean(),
         reason=search.reason, n_snooped=final.n_snooped, sigma=final.sigma, **common,
-    )
+    ), True
+
+
+def _reduction_sizes(n, preliminary_size):
+    """Working-set sizes to try: the preliminary size, then 4x and 16x (capped at n)."""
+    if preliminary_size is None:
+        return [n]
+    size = _whole(preliminary_size, "preliminary_size", S)
+    sizes = []
+    for k in (size, 4 * size, 16 * size):
+        if not sizes or sizes[-1] < min(k, n):
+            sizes.append(min(k, n))
+    return sizes
 
 
 # ----------------------------------------------------------------- arguments
@@ -371,11 +413,8 @@ def _check_sigma(sigma, n):
     return arr
 
 
-def _working_set(n, preliminary_size, gen):
+def _working_set(n, size, gen):
     """Indices of the random reduction used for sampling and scoring (the seed: 1000 points)."""
-    if preliminary_size is None:
-        return np.arange(n)
-    size = _whole(preliminary_size, "preliminary_size", S)
     return np.arange(n) if size >= n else np.sort(gen.choice(n, size=size, replace=False))
 
 
@@ -659,7 +698,7 @@ class _Final:
     reason: str
 
 
-def _refit(xyz, x0, t, sigma, radius, min_inliers, snooping, alpha):
+def _refit(xyz, x0, cfg):
     """Inliers from the full cloud, Gauss-Helmert refit on them, then data snooping.
 
     The refit is repeated (at most 3 times) only while more than 1 % of the
@@ -668,9 +707,11 @@ def _refit(xyz, x0, t, sigma, radius, min_inliers, snooping, alpha):
     """
     from .adjustment import gauss_helmert_model
 
+    t, sigma, min_inliers = cfg.threshold, cfg.sigma, cfg.min_inliers
+
     def adjust(mask, x_start, sig):
         sig = sig[mask] if isinstance(sig, np.ndarray) else sig
-        return gauss_helmert_model(xyz[mask], x0=x_start, sigma=sig, radius=radius, alpha_w=alpha)
+        return gauss_helmert_model(xyz[mask], x0=x_start, sigma=sig, radius=cfg.hold_radius, alpha_w=cfg.alpha)
 
     # Inliers of the best hypothesis in the full cloud (eqs. 25-26), polished by
     # one orthogonal least-squares step so that they and sigma do not depend on
@@ -697,7 +738,7 @@ def _refit(xyz, x0, t, sigma, radius, min_inliers, snooping, alpha):
         if changed <= 0.01 * inliers.sum():
             break
         inliers = _inlier_mask(xyz, fit.x, t)
-    if not snooping:
+    if not cfg.snooping:
         return _Final(fit, inliers, 0, _sigma_scalar(sigma), "")
     return _snoop(fit, inliers, sigma, min_inliers, adjust)
 

@@ -35,6 +35,7 @@ __all__ = [
     "point_density",
     "density_grid",
     "DensityGrid",
+    "merge",
 ]
 
 
@@ -400,3 +401,23 @@ def equalize_density(cloud: PointCloud, target, *, cell: float = 1.0, rng=None) 
     if kept.size == 0:
         raise EmptyRegionError(f"a target of {density:g} pts/m^2 on {cell:g} m cells keeps no point")
     return cloud.subset(kept)
+
+
+# ----------------------------------------------------------------------------- merging
+def merge(*clouds: PointCloud, name: str = "") -> PointCloud:
+    """One cloud from several (e.g. neighbouring tiles); keeps the attributes all of them have.
+
+    Raises
+    ------
+    LabkitError
+        If no cloud is given or the clouds carry different CRS texts.
+    """
+    if not clouds:
+        raise LabkitError("merge needs at least one PointCloud")
+    crs = {c.crs for c in clouds if c.crs}
+    if len(crs) > 1:
+        raise LabkitError(f"cannot merge clouds in different reference systems: {sorted(crs)}")
+    common = set.intersection(*(set(c.attributes) for c in clouds))
+    attrs = {k: np.concatenate([c[k] for c in clouds]) for k in clouds[0].attributes if k in common}
+    xyz = np.concatenate([c.xyz for c in clouds])
+    return PointCloud(xyz, attrs, crs=crs.pop() if crs else None, name=name or clouds[0].name)

@@ -113,6 +113,9 @@ def test_fixed_radius_equals_scipy_with_radius_held():
     assert fit.redundancy == len(pts) - 3
     assert fit.std[3] == 0 and (fit.std[:3] > 0).all()
     assert fit.redundancy_numbers.sum() == pytest.approx(len(pts) - 3, rel=1e-9)
+    # a centre alone is enough as initial values when the radius is fixed
+    fit3 = gauss_helmert_model(pts, x0=scene.sphere[:3] + 0.002, radius=nominal, sigma=0.001)
+    np.testing.assert_allclose(fit3.center, ref, atol=1e-9, rtol=0)
 
 
 @pytest.mark.parametrize("anisotropic", [False, True])

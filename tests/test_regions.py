@@ -13,6 +13,7 @@ from labkit.regions import (
     crop_polygon,
     density_grid,
     equalize_density,
+    merge,
     point_density,
     thin_random,
     thin_voxel,
@@ -198,3 +199,22 @@ def test_equalize_keeps_sparse_cells_whole():
     assert len(got) == len(sparse)
     with pytest.raises(LabkitError):
         equalize_density(sparse, -3)
+
+
+def test_merge_keeps_common_attributes():
+    a, b = _uniform(1, 10, 10, seed=1), _uniform(1, 10, 10, seed=2)
+    b = PointCloud(b.xyz, {"classification": b["classification"]})
+    m = merge(a, b, name="both")
+    assert len(m) == len(a) + len(b) and list(m.attributes) == ["classification"]
+    np.testing.assert_array_equal(m.xyz[len(a):], b.xyz)
+    with pytest.raises(LabkitError, match="reference systems"):
+        merge(PointCloud(a.xyz, crs="EPSG:25832"), PointCloud(b.xyz, crs="EPSG:25833"))
+
+
+def test_class_colours_are_the_asprs_table():
+    from labkit.plotting.clouds import ASPRS_COLORS, class_colors
+
+    rgb = class_colors(np.array([2, 6, 9, 200], np.uint8))
+    assert rgb.shape == (4, 3) and rgb.dtype == np.uint8
+    assert "#%02x%02x%02x" % tuple(rgb[1]) == ASPRS_COLORS[6]
+    assert (rgb[3] == 0).all()  # user-defined codes are black

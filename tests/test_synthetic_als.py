@@ -227,6 +227,13 @@ def test_als_scene_is_the_target_epoch_and_sizes_scale():
     assert s.xyz[:, 0].min() >= 32500000.0 and s.xyz[:, 0].max() <= 32500040.0
 
 
+def test_target_does_not_depend_on_source_options():
+    a = pair("xyz")
+    b = pair("xyz", dim=True)
+    c = pair("xyz", rotation=(0.02, -0.03, 0.1))
+    assert np.array_equal(a.target.xyz, b.target.xyz) and np.array_equal(a.target.xyz, c.target.xyz)
+
+
 def test_summary_and_html():
     p = pair("xz")
     text = p.summary()
@@ -248,3 +255,30 @@ def test_bad_input():
         als_epochs("xyz", shift=(0.1, np.nan, 0))
     with pytest.raises(LabkitError, match="rng"):
         als_epochs("xyz", rng="seed")
+
+
+def plain_icp_shift(source_xyz, target_xyz, reject=None, iterations=15):
+    """Translation-only point-to-plane ICP (an independent minimal route, not labkit's)."""
+    o = target_xyz[0]
+    tgt, src = target_xyz - o, source_xyz - o
+    n, tree, t = normals(tgt, k=20), cKDTree(tgt), np.zeros(3)
+    for _ in range(iterations):
+        d, i = tree.query(src + t, workers=-1)
+        keep = np.ones(len(d), bool) if reject is None else d < reject
+        A = n[i[keep]]
+        w = np.einsum("ij,ij->i", tgt[i[keep]] - src[keep] - t, A)
+        dt = np.linalg.solve(A.T @ A, A.T @ w)
+        t += dt
+        if np.linalg.norm(dt) < 1e-5:
+            break
+    return t
+
+
+@pytest.mark.parametrize("region", ["demolished", "trees_felled"])
+def test_changes_pull_a_plain_icp_but_the_truth_is_recoverable(region):
+    p = pair(region)
+    src = p.source.xyz[::4]
+    pulled = plain_icp_shift(src, p.target.xyz)
+    robust = plain_icp_shift(src, p.target.xyz, reject=0.5)
+    assert np.linalg.norm(pulled - p.translation) > 0.05
+    assert np.linalg.norm(robust - p.translation) < 0.03

@@ -105,6 +105,9 @@ def test_range_noise_is_along_the_beam():
         {"utm": [1.0, 2.0]},
         {"outlier_ratio": 0.5, "n_sphere": 100, "n_clutter": 1000},
         {"rng": "seed"},
+        {"n_sphere": "many"},
+        {"noise": "1 mm"},
+        {"outlier_ratio": "half"},
     ],
 )
 def test_bad_arguments_raise(kwargs):

@@ -199,7 +199,7 @@ def icp(
         R, t, step = _update(R, t, adj.dx, dof, L)
         history.append(_record(it, R, t, adj, step))
         final_stage = robust_stage or (robust is None and kval is None)
-        cycle = _cycle(history)
+        cycle = _cycle(history, 0.1 * tol)
         if final_stage and (step < tol or (cycle and max(h.step for h in history[-cycle:]) < 100 * tol)):
             converged = True
             break
@@ -207,15 +207,15 @@ def icp(
     return _result(R, t, origin, adj, history, converged, matcher, opts, time.perf_counter() - t_start)
 
 
-def _cycle(history, longest=4):
-    """Period p if the state repeats the one p iterations ago (nearest neighbours can alternate), else 0."""
+def _cycle(history, atol, longest=4):
+    """Period p if the state repeats the one p iterations ago within ``atol`` (nearest neighbours
+    can alternate between a few sets), else 0."""
     x = history[-1]
     for p in range(2, longest + 1):
         if len(history) > p:
             y = history[-1 - p]
-            if np.allclose(x.translation, y.translation, rtol=0, atol=1e-10) and np.allclose(
-                x.rotation_deg, y.rotation_deg, rtol=0, atol=1e-10
-            ):
+            same_t = np.allclose(x.translation, y.translation, rtol=0, atol=atol)
+            if same_t and np.allclose(x.rotation_deg, y.rotation_deg, rtol=0, atol=np.degrees(atol) / 100):
                 return p
     return 0
 

@@ -30,6 +30,8 @@ RULES = ("accepted", "class", "noise", "distance", "normal_angle", "duplicate", 
 _CODE = {name: code for code, name in enumerate(RULES)}
 #: Floor for a point's standard deviation in the weights (m), keeps weights finite.
 MIN_SIGMA = 0.005
+#: Normal-space sampling draws only from planar neighbourhoods: l3 / (l1 + l2 + l3) below this.
+MAX_VARIATION = 0.02
 
 
 @dataclass(frozen=True, eq=False)
@@ -183,7 +185,9 @@ def _local_geometry(points, tree, index, k, rank):
     lam, vecs = np.linalg.eigh(cov)  # ascending: normal = eigenvector of lambda_min
     n = vecs[:, :, 0]
     n = np.where(n[:, 2:3] < 0, -n, n)
-    return n, np.sqrt(np.clip(lam[:, 0], 0, None))
+    lam = np.clip(lam, 0, None)
+    variation = lam[:, 0] / np.maximum(lam.sum(axis=1), 1e-300)  # change of curvature l3 / sum(l)
+    return n, np.sqrt(lam[:, 0]), variation
 
 
 class _Geometry:
@@ -207,14 +211,14 @@ class _Geometry:
         if missing is not None:
             todo = np.unique(index[missing])
             if todo.size:
-                n, s = self.compute(todo, self.k)
+                n, s, _ = self.compute(todo, self.k)
                 self.noise[todo] = s
                 if not self._given:
                     self.normals[todo] = n
         return self.normals[index], self.noise[index]
 
     def compute(self, index, k):
-        """Normals and noise at ``index`` with k neighbours (no caching)."""
+        """Normals, noise and change of curvature at ``index`` with k neighbours (no caching)."""
         return _local_geometry(self.points, self.tree, index, k, self.rank)
 
 
@@ -238,7 +242,11 @@ def _sample(points, geometry, spec, rng):
     if kind == "random":
         return np.sort(rng.choice(n, m, replace=False))
     pool = np.sort(rng.choice(n, min(n, 6 * m), replace=False))  # candidates for the normals
-    coarse, _ = geometry.compute(pool, min(8, geometry.k))  # coarse normals suffice for the bins
+    coarse, _, variation = geometry.compute(pool, min(10, geometry.k))  # coarse normals suffice for the bins
+    # rare normals are often artefacts of neighbourhoods across an edge: keep planar candidates only
+    planar = variation < MAX_VARIATION
+    if planar.sum() >= m:
+        pool, coarse = pool[planar], coarse[planar]
     return pool[_normal_space_sample(coarse, m, rng)]
 
 

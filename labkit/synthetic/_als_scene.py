@@ -35,7 +35,6 @@ MATERIALS = {
     8: ("low vegetation", 3, 0.08, 0.15, 22000, 5000),
 }
 GROUND, ROAD, FIELD, WATER, ROOF, FLAT_ROOF, WALL, VEG, LOW_VEG = range(9)
-HARD = (GROUND, ROAD, ROOF, FLAT_ROOF, WALL)  # stable, well-defined surfaces
 
 
 def _table(col: int) -> np.ndarray:

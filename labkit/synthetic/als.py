@@ -62,9 +62,9 @@ _INFO = {
               "Flat, rough arable field (surface roughness about 5 cm, independent per epoch). Only Z is "
               "constrained; X and Y are undetermined."),
     "water": ((True, True, True),
-              "Pond with steep banks (1:2, 1.8 m high) in a flat meadow, a few trees on the shore. Water gives few and noisy "
-              "returns (class 9) and its level rose 7 cm between the epochs. Z is constrained by the meadow, "
-              "X and Y only weakly by the bank ring."),
+              "Pond with steep banks (1:2, 1.8 m high) in a flat meadow, a few trees on the shore. Water gives "
+              "few and noisy returns (class 9) and its level rose 7 cm between the epochs. Z is constrained by "
+              "the meadow, X and Y only weakly by the bank ring."),
     "road": ((False, False, True),
              "Straight, very flat road along x (class 11) between grass verges and a field, flat terrain. Only Z "
              "is constrained; X and Y are undetermined."),
@@ -203,14 +203,14 @@ def als_epochs(region: str = "xyz", *, shift=(0.23, -0.17, 0.11), rotation_deg=N
     size, density, origin, shift, angles = _check_args(size, density, origin, shift, rotation_deg)
     src_density = density if source_density is None and not dim else (
         100.0 if source_density is None else positive(source_density, "source_density"))
-    gen = as_rng(rng)
-    layout_rng, target_rng, source_rng = gen.spawn(3)
+    seeds = as_rng(rng).integers(0, 2**63 - 1, size=3)
+    layout_rng, target_rng, source_rng = (np.random.default_rng(s) for s in seeds)
     # Build the surface model in the target frame
     scene = _LAYOUTS[region](size, layout_rng)
-    # Sample both epochs over a margin, so the shifted source still fills the area
+    # Sample the target on the area, the source over a margin so that it still fills the area when moved
     margin = 1.0 + float(np.linalg.norm(shift)) + np.sin(np.abs(angles).max()) * float(np.hypot(*size))
     box = ((-margin, size[0] + margin), (-margin, size[1] + margin))
-    tgt = S.sample_als(scene, box, density, 0, target_rng)
+    tgt = S.sample_als(scene, ((0.0, size[0]), (0.0, size[1])), density, 0, target_rng)
     src = (S.sample_dim if dim else S.sample_als)(scene, box, src_density, 1, source_rng)
     # The truth, as a motion about the area centre
     centre_local = np.array([size[0] / 2, size[1] / 2, 0.0])
@@ -285,7 +285,8 @@ def _building(kind, centre, cell, terrain, rng, *, steep=False, epochs=(True, Tr
     hx, hy = min(fx * wx / 2, wx / 2 - 1.5), min(fy * wy / 2, wy / 2 - 1.5)
     cx = centre[0] + rng.uniform(-1, 1) * max(wx / 2 - hx - 1.5, 0.0)
     cy = centre[1] + rng.uniform(-1, 1) * max(wy / 2 - hy - 1.5, 0.0)
-    pitch = rng.uniform(55, 62) if steep else (rng.uniform(25, 35) if kind in ("hip", "pyramid") else rng.uniform(28, 45))
+    low, high = (55, 62) if steep else ((25, 35) if kind in ("hip", "pyramid") else (28, 45))
+    pitch = rng.uniform(low, high)
     if kind == "flat":
         eave, slope = rng.uniform(6, 11), 0.0
     else:
@@ -337,6 +338,7 @@ def _flat(size):
 
 
 _TOWN_KINDS = ("gable_x", "gable_y", "hip", "trees", "flat", "gable_y", "gable_x", "pyramid", "open")
+_OLD_TOWN_KINDS = ("gable_x", "gable_y", "pyramid", "trees", "hip", "gable_y", "gable_x", "trees", "pyramid")
 
 
 def _town(size, rng, terrain, *, reserved=0, steep=False):
@@ -345,7 +347,7 @@ def _town(size, rng, terrain, *, reserved=0, steep=False):
     free = centres[reserved:]
     order = rng.permutation(len(free))
     buildings, groups = [], []
-    kinds = ("gable_x", "gable_y", "pyramid", "trees", "hip", "gable_y", "gable_x", "trees", "pyramid") if steep else _TOWN_KINDS
+    kinds = _OLD_TOWN_KINDS if steep else _TOWN_KINDS
     for k, i in enumerate(order):
         kind = kinds[k % len(kinds)]
         if kind == "trees":

@@ -203,14 +203,21 @@ def sphere_on_tripod(
 
 # ----------------------------------------------------------------- arguments
 def _non_negative(value, name):
-    val = float(value)
+    try:
+        val = float(value)
+    except (TypeError, ValueError):
+        val = np.nan
     if not np.isfinite(val) or val < 0:
         raise LabkitError(f"{name} must be a finite number >= 0, got {value!r}")
     return val
 
 
 def _count(value, name):
-    if isinstance(value, bool) or int(value) != value or value < 0:
+    try:
+        ok = not isinstance(value, bool) and int(value) == value and value >= 0
+    except (TypeError, ValueError, OverflowError):
+        ok = False
+    if not ok:
         raise LabkitError(f"{name} must be a whole number >= 0, got {value!r}")
     return int(value)
 
@@ -234,7 +241,7 @@ def _counts(n_sphere, n_clutter, outlier_ratio):
         n_out = sum(n_structure.values())
         n_clutter = int(round(0.1 * n_out / 0.9)) if n_clutter is None else _count(n_clutter, "n_clutter")
         return [n_sphere, n_structure[LEGS], n_structure[BASE], n_structure[GROUND], n_clutter]
-    ratio = float(outlier_ratio)
+    ratio = _non_negative(outlier_ratio, "outlier_ratio")
     if not (0.0 <= ratio < 1.0):
         raise LabkitError(f"outlier_ratio must lie in [0, 1), got {outlier_ratio!r}")
     n_out = int(round(n_sphere * ratio / (1.0 - ratio)))
