@@ -164,9 +164,9 @@ def icp(
 
     Notes
     -----
-    Undetermined directions (a flat field leaves X and Y free) are solved with the
-    minimum-norm step restricted to the constrained eigen-directions of N: the
-    undetermined components keep their initial value, their standard deviation
+    Undetermined directions (a flat field leaves X and Y free): the parameters that take
+    part in them are held fixed and the others solved from the reduced normal equations;
+    the undetermined components keep their initial value, their standard deviation
     is reported as inf, and the result's message names them.
     """
     t_start = time.perf_counter()
@@ -190,10 +190,12 @@ def icp(
     L = max(float(np.sqrt((matcher.source**2).sum(axis=1).mean())), 1.0)
     opts = dict(origin=origin, dof=dof, metric=metric, robust=robust, k=kval, L=L, rel=rel_threshold, min_n=min_correspondences)
     plain = dict(opts, robust=None, k=None)  # warm-up stage without robust measures
-    history, converged, adj, step = [], False, None, np.inf
+    history, converged, adj, step, robust_stage = [], False, None, np.inf, False
     # 3. iterate: match, clean, adjust, update
     for it in range(1, max_iterations + 1):
-        robust_stage = step < robust_start
+        # once entered, the robust stage stays: its first steps can be large (the outliers
+        # lose their pull), and falling back to the plain stage would undo them (a 3-cycle)
+        robust_stage = robust_stage or step < robust_start
         corr = matcher(R, t)
         adj = _adjust(corr, R, t, opts if robust_stage else plain)
         R, t, step = _update(R, t, adj.dx, dof, L)
@@ -207,7 +209,7 @@ def icp(
     return _result(R, t, origin, adj, history, converged, matcher, opts, time.perf_counter() - t_start)
 
 
-def _cycle(history, atol, longest=4):
+def _cycle(history, atol, longest=10):
     """Period p if the state repeats the one p iterations ago within ``atol`` (nearest neighbours
     can alternate between a few sets), else 0."""
     x = history[-1]
@@ -314,18 +316,29 @@ def _adjust(corr, R, t, opts):
 
 
 def _solve(N, nvec, deg):
-    """Step and cofactor matrix; restricted to the constrained eigen-directions when N is degenerate (eq. 5.12)."""
+    """Step and cofactor matrix; the datum is fixed when N is degenerate (eq. 5.12).
+
+    Parameters with a real share in an undetermined eigen-direction are held at
+    their current value (their column is removed), the others are solved from the
+    reduced normal equations. A minimum-norm step along the constrained
+    eigen-directions alone would let the undetermined parameters drift: those
+    eigenvectors carry small components of every parameter (noise in the normals).
+    """
     if deg.well_posed:
         c = cho_factor(N)
         return cho_solve(c, nvec), cho_solve(c, np.eye(len(N)))
-    V = deg.eigenvectors[:, deg.constrained]
-    lam = deg.eigenvalues[deg.constrained]
-    dx = V @ ((V.T @ nvec) / lam)  # minimum-norm step: nothing moves along undetermined directions
-    Q = (V / lam) @ V.T
     loose = deg.eigenvectors[:, ~deg.constrained]
     free = (loose**2).sum(axis=1) > 0.05  # parameters with a real share in an undetermined direction
-    Q[free, :] = np.nan
-    Q[:, free] = np.nan
+    fixed = ~free
+    dx = np.zeros(len(N))
+    Q = np.full((len(N), len(N)), np.nan)
+    if fixed.any():
+        Nr = N[np.ix_(fixed, fixed)]
+        lam, V = np.linalg.eigh(0.5 * (Nr + Nr.T))
+        ok = lam >= deg.rel_threshold * max(lam[-1], 1e-300)  # guard: still degenerate after the reduction
+        V, lam = V[:, ok], lam[ok]
+        dx[fixed] = V @ ((V.T @ nvec[fixed]) / lam)
+        Q[np.ix_(fixed, fixed)] = (V / lam) @ V.T
     Q[free, free] = np.inf
     return dx, Q
 

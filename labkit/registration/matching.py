@@ -388,6 +388,8 @@ def _reject_duplicates(rule, tidx, d):
     residuals would be correlated and sigma0^2 N^-1 too optimistic.
     """
     live = np.flatnonzero(rule == 0)
+    if live.size < 2:
+        return
     order = live[np.lexsort(((d[live] ** 2).sum(axis=1), tidx[live]))]
     first = np.r_[True, tidx[order[1:]] != tidx[order[:-1]]]
     rule[order[~first]] = _CODE["duplicate"]

@@ -1,0 +1,328 @@
+"""Tests of labkit.registration.icp: synthetic regions, dof, each rule on a case built for it,
+covariance against Monte Carlo, degeneracy, bad input."""
+
+import numpy as np
+import pytest
+
+from labkit import PointCloud
+from labkit.errors import EmptyRegionError, LabkitError
+from labkit.registration import icp
+from labkit.registration.icp import IterationRecord
+from labkit.synthetic import REGIONS, als_epochs
+from labkit.transforms import apply_transform, make_transform
+
+ORIGIN = np.array([600000.0, 5400000.0, 300.0])
+SHIFT = np.array([0.23, -0.17, 0.11])
+AXES = "XYZ"
+
+
+# ----------------------------------------------------------------------------- a small built scene
+
+
+def surface(x, y):
+    """Sloped terrain with a gable roof (ridge along y) and one with its ridge along x."""
+    z = 0.02 * x + 0.01 * y
+    z = np.where((np.abs(x - 10) < 6) & (np.abs(y) < 8), 6 + 0.6 * (6 - np.abs(x - 10)), z)
+    return np.where((np.abs(x + 10) < 8) & (np.abs(y - 5) < 5), 5 + 0.7 * (5 - np.abs(y - 5)), z)
+
+
+def epoch(n, rng, shift=(0, 0, 0), sigma=0.02, half=20.0):
+    xy = rng.uniform(-half, half, (n, 2))
+    return np.c_[xy, surface(*xy.T) + rng.normal(0, sigma, n)] + ORIGIN + np.asarray(shift)
+
+
+def patch(n, rng, centre, half, dz, sigma=0.02):
+    """Points of a change: a flat patch dz above the terrain around centre (x, y)."""
+    xy = np.asarray(centre) + rng.uniform(-half, half, (n, 2))
+    return np.c_[xy, surface(*xy.T) + dz + rng.normal(0, sigma, n)] + ORIGIN
+
+
+def pair_with_change(rng, change, n=8000):
+    tgt = epoch(n, rng)
+    src = np.vstack([epoch(n, rng), change]) - SHIFT
+    return src, tgt
+
+
+def err_mm(result, truth=SHIFT):
+    return 1000 * (result.translation - truth)
+
+
+def recovered(result, truth=SHIFT, limit_mm=10.0):
+    """Every component within 4 stated standard deviations (at least 2 mm) and within limit_mm."""
+    err, std = np.abs(err_mm(result, truth)), 1000 * result.translation_std
+    return bool(np.all(err < np.maximum(4 * std, 2.0)) and np.all(err < limit_mm))
+
+
+# ----------------------------------------------------------------------------- synthetic regions
+
+
+@pytest.mark.parametrize("region", REGIONS)
+def test_known_shift_on_each_region(region):
+    pair = als_epochs(region, size=(30.0, 30.0), density=20.0, rng=11)
+    res = icp(pair.source, pair.target, classes=(2, 6, 11), sample=("normal_space", 2500), rng=0)
+    err = 1000 * (res.translation - pair.translation)
+    std = 1000 * res.translation_std
+    for k, constrained in enumerate(pair.constrained):
+        if constrained:
+            assert abs(err[k]) < max(4 * std[k], 3.0), (region, AXES[k], err, std)
+            assert abs(err[k]) < 10.0, (region, AXES[k], err)
+        else:  # never a confident wrong shift: undetermined, inf std, initial value kept
+            assert AXES[k] in res.degeneracy.undetermined_axes, (region, res.degeneracy.undetermined_axes)
+            assert np.isinf(std[k])
+            assert abs(res.translation[k]) < 1e-6
+    assert res.converged, res.message
+
+
+def test_flat_field_says_undetermined_and_keeps_the_initial_value():
+    pair = als_epochs("field", size=(30.0, 30.0), density=10.0, rng=2)
+    initial = make_transform(translation=[0.1, -0.05, 0.0])
+    res = icp(pair.source, pair.target, initial=initial)
+    assert res.degeneracy.undetermined_axes == ("X", "Y")
+    np.testing.assert_allclose(res.translation[:2], [0.1, -0.05], atol=1e-6)
+    assert np.isinf(res.translation_std[:2]).all() and np.isfinite(res.translation_std[2])
+    assert abs(res.translation[2] - pair.translation[2]) < 0.003
+    assert "UNDETERMINED: X, Y" in res.message and "UNDETERMINED" in res.summary()
+
+
+def test_xz_region_degeneracy_report():
+    pair = als_epochs("xz", size=(30.0, 30.0), density=10.0, rng=3)
+    res = icp(pair.source, pair.target)
+    deg = res.degeneracy
+    assert deg.undetermined_axes == ("Y",)
+    weak = deg.eigenvectors[:, ~deg.constrained]
+    assert weak.shape[1] == 1 and abs(weak[1, 0]) > 0.99  # the weak direction is the y axis
+    assert deg.eigenvalues[0] < 1e-3 * deg.eigenvalues[-1]
+
+
+# ----------------------------------------------------------------------------- translation vs rigid
+
+
+def test_rigid_recovers_a_small_rotation_that_translation_cannot():
+    pair = als_epochs("xyz", size=(40.0, 40.0), density=10.0, rotation_deg=(0.0, 0.0, 0.1), rng=4)
+    rigid = icp(pair.source, pair.target, dof="rigid", classes=(2, 6, 11), rng=0)
+    trans = icp(pair.source, pair.target, classes=(2, 6, 11), rng=0)
+    pts = pair.source.xyz
+    truth_pts = apply_transform(pair.truth, pts)
+    miss = lambda r: np.sqrt(np.mean(np.sum((r.apply(pts) - truth_pts) ** 2, axis=1)))  # noqa: E731
+    # rz is the weakest parameter of this scene: its stated std (about 0.007 deg, 2.5 mm at
+    # 20 m) bounds what can be asserted; a Monte Carlo over 8 scenes gave (rz - 0.1) / std
+    # with mean 0.5 and spread 0.9, i.e. no bias beyond the noise
+    rz = np.degrees(np.arctan2(rigid.rotation[1, 0], rigid.rotation[0, 0]))
+    rz_std = np.degrees(rigid.std[rigid.parameter_names.index("rz")])
+    assert rz_std < 0.01
+    assert abs(rz - 0.1) < 4 * rz_std
+    assert miss(rigid) < 0.008  # 0.1 deg at 20 m = 35 mm left unexplained by the translation
+    assert miss(trans) > 3 * miss(rigid)
+    assert rigid.parameter_names == ("rx", "ry", "rz", "tx", "ty", "tz")
+    np.testing.assert_allclose(rigid.rotation @ rigid.rotation.T, np.eye(3), atol=1e-12)
+
+
+def test_rigid_on_a_pure_shift_agrees_with_translation():
+    # the village constrains all six parameters (the small built scene above constrains
+    # rz and Y only weakly and is reported as undetermined in rigid mode, rightly)
+    pair = als_epochs("xyz", size=(30.0, 30.0), density=20.0, rng=5)
+    a = icp(pair.source, pair.target, classes=(2, 6, 11))
+    b = icp(pair.source, pair.target, classes=(2, 6, 11), dof="rigid")
+    assert a.degeneracy.well_posed and b.degeneracy.well_posed
+    assert np.degrees(np.abs(np.arccos(np.clip((np.trace(b.rotation) - 1) / 2, -1, 1)))) < 0.02
+    # nested models: the difference has the variance var(rigid) - var(translation)
+    diff_std = np.sqrt(np.clip(b.translation_std**2 - a.translation_std**2, 0, None))
+    assert np.all(np.abs(a.translation - b.translation) < np.maximum(4 * diff_std, 0.002))
+    assert recovered(a, pair.translation) and recovered(b, pair.translation)
+
+
+def test_point_to_point_is_worse_than_point_to_plane():
+    rng = np.random.default_rng(6)
+    src, tgt = epoch(6000, rng) - SHIFT, epoch(6000, rng)
+    plane = icp(src, tgt)
+    point = icp(src, tgt, metric="point_to_point", max_iterations=30)
+    assert np.abs(err_mm(plane)).max() < 5
+    assert np.abs(err_mm(point)).max() > np.abs(err_mm(plane)).max()
+
+
+# ----------------------------------------------------------------------------- each rule on its case
+
+PLAIN = dict(max_distance=None, max_angle_deg=None, reject_sigma=None, noise_weighting=False, unique=False)
+
+
+def test_distance_gate_matters_for_a_new_building():
+    rng = np.random.default_rng(7)
+    src, tgt = pair_with_change(rng, patch(1500, rng, (0, -12), 5, 3.0))  # new flat roof, 3 m high
+    off = icp(src, tgt, **PLAIN)
+    on = icp(src, tgt, **{**PLAIN, "max_distance": 1.0})
+    assert abs(err_mm(off)[2]) > 50
+    assert recovered(on)
+
+
+def test_normal_angle_gate_matters_for_a_ramp():
+    rng = np.random.default_rng(8)
+    xy = np.array([0.0, -14.0]) + rng.uniform(-4, 4, (1500, 2))
+    ramp = np.c_[xy, surface(*xy.T) + 0.1 * (xy[:, 0] + 4) + rng.normal(0, 0.02, 1500)] + ORIGIN  # 0-0.8 m, 6 deg
+    steep = ramp.copy()
+    steep[:, 2] += 0.3 * (xy[:, 0] + 4)  # 0-3.2 m, 22 deg: a new embankment
+    steep = steep[steep[:, 2] - ORIGIN[2] - surface(*steep[:, :2].T) < 0.9]  # within the distance gate
+    src, tgt = pair_with_change(rng, steep)
+    off = icp(src, tgt, **{**PLAIN, "max_distance": 1.0})
+    on = icp(src, tgt, **{**PLAIN, "max_distance": 1.0, "max_angle_deg": 10.0})
+    assert np.abs(err_mm(off)).max() > 15
+    assert recovered(on)
+
+
+def test_iterative_deletion_matters_for_a_raised_surface():
+    rng = np.random.default_rng(9)
+    src, tgt = pair_with_change(rng, patch(2500, rng, (0, -12), 6, 0.3))  # new layer 30 cm up
+    off = icp(src, tgt, **{**PLAIN, "max_distance": 1.0})
+    on = icp(src, tgt, **{**PLAIN, "max_distance": 1.0, "reject_sigma": 3.0})
+    assert abs(err_mm(off)[2]) > 30
+    assert recovered(on)
+    assert on.history[-1].n_deleted > 2000
+    assert dict(on.correspondences.rejected)["outlier"] > 2000
+
+
+@pytest.mark.parametrize("robust, limit", [("tukey", 5.0), ("huber", 25.0)])
+def test_robust_weights_matter(robust, limit):
+    rng = np.random.default_rng(9)
+    src, tgt = pair_with_change(rng, patch(2500, rng, (0, -12), 6, 0.3))
+    plain = icp(src, tgt, **{**PLAIN, "max_distance": 1.0})
+    res = icp(src, tgt, **{**PLAIN, "max_distance": 1.0, "robust": robust})
+    assert abs(err_mm(res)[2]) < limit < abs(err_mm(plain)[2])
+    assert res.converged, res.message  # the robust stage must not fall back to the plain one (cycle)
+
+
+def _classified(rng):
+    tgt = epoch(8000, rng)
+    base, layer = epoch(8000, rng), patch(2500, rng, (0, -12), 6, 0.3, sigma=0.05)  # grown low vegetation
+    cls = np.r_[np.full(len(base), 2), np.full(len(layer), 3)]
+    return PointCloud(np.vstack([base, layer]) - SHIFT, {"classification": cls}), tgt
+
+
+def test_class_rule_matters():
+    src, tgt = _classified(np.random.default_rng(10))
+    off = icp(src, tgt, **{**PLAIN, "max_distance": 1.0})
+    on = icp(src, tgt, **{**PLAIN, "max_distance": 1.0, "classes": (2, 6)})
+    assert abs(err_mm(off)[2]) > 30
+    assert recovered(on)
+
+
+def test_class_sigma_weighting_matters():
+    src, tgt = _classified(np.random.default_rng(10))
+    off = icp(src, tgt, **{**PLAIN, "max_distance": 1.0})
+    on = icp(src, tgt, **{**PLAIN, "max_distance": 1.0, "class_sigma": {2: 0.02, 3: 0.5}})
+    assert abs(err_mm(on)[2]) < 0.1 * abs(err_mm(off)[2])
+
+
+def test_noise_weighting_and_noise_rule_matter():
+    rng = np.random.default_rng(12)
+    shrubs = patch(3000, rng, (0, -12), 6, 0.3, sigma=0.2)  # rough vegetation, 30 cm up on average
+    src, tgt = pair_with_change(rng, shrubs)
+    off = icp(src, tgt, **{**PLAIN, "max_distance": 1.0})
+    weighted = icp(src, tgt, **{**PLAIN, "max_distance": 1.0, "noise_weighting": True})
+    excluded = icp(src, tgt, **{**PLAIN, "max_distance": 1.0, "max_noise": 0.08})
+    assert abs(err_mm(off)[2]) > 30
+    assert abs(err_mm(weighted)[2]) < 0.2 * abs(err_mm(off)[2])
+    assert recovered(excluded)
+
+
+# ----------------------------------------------------------------------------- covariance vs Monte Carlo
+
+
+def _monte_carlo(reps=40, **kwargs):
+    est, std = [], []
+    for rep in range(reps):
+        rng = np.random.default_rng(1000 + rep)
+        src, tgt = epoch(4000, rng) - SHIFT, epoch(4000, rng)
+        res = icp(src, tgt, **kwargs)
+        est.append(res.translation - SHIFT)
+        std.append(res.translation_std)
+    return np.array(est), np.array(std)
+
+
+def test_covariance_matches_monte_carlo_spread_of_epoch_pairs():
+    """Independent epoch pairs (sampling and noise of both epochs): the spread of the
+    estimates must match the stated standard deviations within 25 %. Without iterative
+    deletion (see the next test for the case with deletion)."""
+    est, std = _monte_carlo(reject_sigma=None)
+    spread = est.std(axis=0, ddof=1)
+    stated = np.sqrt((std**2).mean(axis=0))
+    np.testing.assert_allclose(stated, spread, rtol=0.25)
+    np.testing.assert_allclose((est / std).std(axis=0, ddof=1), 1.0, atol=0.25)
+    assert np.all(np.abs(est.mean(axis=0)) < 3 * spread / np.sqrt(len(est)) + 1e-4)  # no bias
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="known limitation: with 3-sigma deletion the covariance is 20-28 % optimistic in X and Y "
+    "(the deleted edge correspondences carried XY information, the spread grows, sigma0 does not)",
+)
+def test_covariance_with_deletion_matches_monte_carlo():
+    est, std = _monte_carlo()  # default reject_sigma=3
+    np.testing.assert_allclose((est / std).std(axis=0, ddof=1), 1.0, atol=0.25)
+
+
+# ----------------------------------------------------------------------------- result, frames, bad input
+
+
+def test_result_in_callers_frame_and_history():
+    rng = np.random.default_rng(13)
+    src, tgt = epoch(6000, rng) - SHIFT, epoch(6000, rng)
+    keep = src.copy()
+    res = icp(src, tgt)
+    np.testing.assert_array_equal(src, keep)
+    np.testing.assert_allclose(res.matrix[:3, 3], res.translation, atol=1e-9)
+    np.testing.assert_allclose(res.apply(src[:5]), src[:5] + res.translation, atol=1e-9)
+    assert all(isinstance(h, IterationRecord) for h in res.history)
+    assert res.iterations == len(res.history) and res.converged
+    assert res.history[0].rms > res.history[-1].rms
+    assert res.correspondences.n_accepted == res.n_used
+    # the same clouds in a frame 1000 km away give the same shift
+    far = icp(src - ORIGIN, tgt - ORIGIN)
+    np.testing.assert_allclose(far.translation, res.translation, atol=1e-6)
+    assert "Registration result" in res.summary() and "<table>" in res._repr_html_()
+
+
+def test_initial_transformation_is_used():
+    rng = np.random.default_rng(14)
+    shift = np.array([1.5, -1.2, 0.4])  # beyond the distance gate without a good start
+    src, tgt = epoch(6000, rng) - shift, epoch(6000, rng)
+    res = icp(src, tgt, initial=make_transform(translation=[1.4, -1.1, 0.35]))
+    assert np.abs(res.translation - shift).max() < 0.005
+
+
+def test_no_overlap_raises():
+    rng = np.random.default_rng(15)
+    src, tgt = epoch(2000, rng) + [200.0, 0, 0], epoch(2000, rng)
+    with pytest.raises(EmptyRegionError, match="overlap"):
+        icp(src, tgt)
+
+
+def test_too_few_correspondences_after_rejection_raise():
+    rng = np.random.default_rng(16)
+    src, tgt = epoch(2000, rng) + [0, 0, 5.0], epoch(2000, rng)  # everything beyond max_distance
+    with pytest.raises(EmptyRegionError, match="correspondences"):
+        icp(src, tgt, max_distance=0.5)
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(dof="affine"), "dof"),
+        (dict(metric="plane"), "metric"),
+        (dict(robust="cauchy"), "robust"),
+        (dict(tol=0), "tol"),
+        (dict(initial=np.eye(3)), "4x4"),
+        (dict(reject_sigma=-1), "reject_sigma"),
+    ],
+)
+def test_bad_arguments(kwargs, message):
+    rng = np.random.default_rng(17)
+    src, tgt = epoch(500, rng), epoch(500, rng)
+    with pytest.raises(LabkitError, match=message):
+        icp(src, tgt, **kwargs)
+
+
+def test_nan_points_raise():
+    rng = np.random.default_rng(18)
+    src, tgt = epoch(500, rng), epoch(500, rng)
+    tgt[10, 2] = np.inf
+    with pytest.raises(LabkitError, match="NaN or infinite"):
+        icp(src, tgt)
