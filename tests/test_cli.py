@@ -1,0 +1,238 @@
+"""Command line end to end on small synthetic files: sphere, register, compare, tiles, errors."""
+
+import csv
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from labkit import cli
+from labkit.cli import main
+from labkit.cloud import PointCloud
+from labkit.io import read_cloud, write_cloud
+from labkit.references import save_references, truth_reference
+from labkit.synthetic import als_epochs, sphere_on_tripod
+from labkit.synthetic.tripod import UTM_OFFSET
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    """A tripod scan (xyz local, LAZ in UTM) and one ALS epoch pair with pair and reference files."""
+    d = tmp_path_factory.mktemp("cli_data")
+    scene = sphere_on_tripod(n_sphere=500, noise=0.001, rng=11)
+    write_cloud(PointCloud(scene.points), d / "tripod.xyz", scale=0.0001)
+    write_cloud(PointCloud(scene.points + UTM_OFFSET, {"classification": scene.labels.astype(np.uint8)}),
+                d / "tripod.laz", scale=0.0001)
+    pair = als_epochs("xyz", size=(30.0, 30.0), density=4.0, rng=12)
+    write_cloud(pair.source, d / "als_2016.laz")
+    write_cloud(pair.target, d / "als_2014.laz")
+    (d / "pairs.json").write_text(json.dumps([{"region": "xyz", "case": "als-als", "source": "als_2016.laz",
+                                               "target": "als_2014.laz"}]))
+    save_references([truth_reference(pair.truth, region="xyz", case="als-als")], d / "refs.json")
+    return {"dir": d, "sphere": scene.sphere, "truth": pair.translation, "n_source": len(pair.source),
+            "xyz": d / "tripod.xyz", "laz": d / "tripod.laz", "src": d / "als_2016.laz", "tgt": d / "als_2014.laz",
+            "pairs": d / "pairs.json", "refs": d / "refs.json"}
+
+
+def _vector(text: str, label: str) -> np.ndarray:
+    """The last vector printed as 'label  [a, b, c] ...'."""
+    hits = re.findall(rf"^{label}\s+\[([^\]]+)\]", text, flags=re.M)
+    assert hits, f"no line {label!r} in the output"
+    return np.array([float(v) for v in hits[-1].split(",")])
+
+
+def _shift(text: str) -> np.ndarray:
+    return np.array([float(re.search(rf"^d{a}\s+([+-][0-9.]+) m", text, flags=re.M).group(1)) for a in "XYZ"])
+
+
+def _no_partials(folder: Path):
+    return [p.name for p in folder.iterdir() if p.name.startswith(".") or ".part" in p.name]
+
+
+# --------------------------------------------------------------------------- sphere
+def test_sphere_on_ascii_and_laz_recovers_the_truth(files, capsys):
+    assert main(["sphere", str(files["xyz"]), "--radius-range", "0.05", "0.1", "--sigma", "0.001"]) == 0
+    out = capsys.readouterr().out
+    assert "RANSAC sphere detection" in out and "Sphere adjustment (Gauss-Helmert model)" in out
+    assert "global test" in out and "largest w" in out
+    centre, std = _vector(out, "centre"), _vector(out, "std centre") / 1000
+    assert np.all(np.abs(centre - files["sphere"][:3]) < np.maximum(4 * std, 2e-4))  # printed to 0.01 mm
+    # the UTM-sized LAZ with the radius held at its nominal value
+    assert main(["sphere", str(files["laz"]), "--radius", "0.0725", "--hold-radius"]) == 0
+    out = capsys.readouterr().out
+    assert "(held fixed)" in out
+    np.testing.assert_allclose(_vector(out, "centre"), files["sphere"][:3] + UTM_OFFSET, atol=5e-4)
+
+
+def test_sphere_not_found_exits_1(tmp_path, capsys):
+    pts = np.random.default_rng(0).uniform(0, 1, (2000, 3))  # a box of noise: no sphere
+    write_cloud(PointCloud(pts), tmp_path / "noise.xyz")
+    assert main(["sphere", str(tmp_path / "noise.xyz"), "--radius-range", "0.05", "0.1"]) == 1
+    err = capsys.readouterr().err
+    assert "no sphere found" in err
+
+
+# --------------------------------------------------------------------------- register
+def test_register_icp_writes_moved_cloud_and_png(files, tmp_path, capsys):
+    out_dir = tmp_path / "out"
+    assert main(["register", str(files["src"]), str(files["tgt"]), "--out", str(out_dir)]) == 0
+    out = capsys.readouterr().out
+    shift = _shift(out)
+    np.testing.assert_allclose(shift, files["truth"], atol=0.01)
+    assert "undetermined axes" in out and "Distances (point_to_plane" in out
+    assert "rotation: none estimated" in out
+    moved = read_cloud(out_dir / "als_2016_registered.laz")
+    src = read_cloud(files["src"])
+    assert len(moved) == files["n_source"] and "classification" in moved
+    np.testing.assert_array_equal(moved["classification"], src["classification"])
+    # the written cloud is the source moved by the printed shift (LAS rounding 1 mm)
+    np.testing.assert_allclose(moved.xyz - src.xyz, np.broadcast_to(shift, src.xyz.shape), atol=1.1e-3)
+    png = out_dir / "als_2016_distances.png"
+    assert png.read_bytes()[:8] == PNG_MAGIC
+    assert _no_partials(out_dir) == []
+
+
+def test_register_consensus_and_rigid(files, tmp_path, capsys):
+    assert main(["register", str(files["src"]), str(files["tgt"]), "--method", "consensus", "--max-points", "800",
+                 "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "max_consensus" in out
+    np.testing.assert_allclose(_shift(out), files["truth"], atol=0.03)
+    assert main(["register", str(files["src"]), str(files["tgt"]), "--dof", "rigid", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"rotation \(arcsec\): rx [+-][0-9.]+ \+- [0-9.inf]+", out)
+
+
+def test_register_consensus_rigid_is_refused(files, tmp_path, capsys):
+    code = main(["register", str(files["src"]), str(files["tgt"]), "--method", "consensus", "--dof", "rigid",
+                 "--out", str(tmp_path / "never")])
+    assert code == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("labkit register: error:") and "translation only" in err and "\n" not in err
+    assert not (tmp_path / "never").exists()
+
+
+def test_failed_write_leaves_nothing(files, tmp_path, monkeypatch, capsys):
+    """The cloud is written first; when the PNG then fails, neither file appears."""
+
+    def broken(fig, path):
+        Path(path).write_bytes(b"half")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(cli, "save_figure", broken)
+    assert main(["register", str(files["src"]), str(files["tgt"]), "--out", str(tmp_path)]) == 2
+    assert "disk full" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
+# --------------------------------------------------------------------------- compare
+def test_compare_writes_the_table(files, tmp_path, capsys):
+    table = tmp_path / "sub" / "table.csv"
+    assert main(["compare", str(files["pairs"]), "--references", str(files["refs"]), "--methods", "icp",
+                 "icp-tukey", "--out", str(table)]) == 0
+    out = capsys.readouterr().out
+    assert "Comparison: 2 methods x 1 regions x 1 cases" in out
+    rows = list(csv.DictReader(table.open()))
+    assert [r["method"] for r in rows] == ["icp", "icp-tukey"]
+    for r in rows:
+        np.testing.assert_allclose([float(r[k]) for k in ("ref_dx", "ref_dy", "ref_dz")], files["truth"], atol=1e-6)
+        est = np.array([float(r[k]) for k in ("dx", "dy", "dz")])
+        err = np.array([float(r[k]) for k in ("ex", "ey", "ez")])
+        np.testing.assert_allclose(err, est - files["truth"], atol=1e-5)  # error = estimate - reference
+        assert np.abs(err).max() < 0.01
+
+
+def test_compare_needs_references(files, tmp_path, capsys):
+    assert main(["compare", str(files["pairs"]), "--out", str(tmp_path / "t.csv")]) == 2
+    assert "--references" in capsys.readouterr().err
+    assert not (tmp_path / "t.csv").exists()
+
+
+# --------------------------------------------------------------------------- tiles
+def test_tiles_writes_field_png_and_csv(files, tmp_path, capsys):
+    assert main(["tiles", str(files["src"]), "--target", str(files["tgt"]), "--size", "15", "--min-points", "100",
+                 "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "Shift field" in out and "Neighbouring-tile agreement" in out
+    rows = list(csv.DictReader((tmp_path / "shift_field.csv").open()))
+    assert len(rows) == 4  # 30 m x 30 m on a 15 m grid anchored at round coordinates
+    # tiles that determine every axis recover the true shift within their uncertainty (+ 5 mm for
+    # the systematic part ICP's covariance does not see); small tiles often leave X or Y undetermined
+    full = [r for r in rows if r["status"] == "ok" and all(np.isfinite(float(r[k])) for k in ("sx", "sy", "sz"))]
+    assert full
+    for r in full:
+        err = np.array([float(r[k]) for k in ("dx", "dy", "dz")]) - files["truth"]
+        std = np.array([float(r[k]) for k in ("sx", "sy", "sz")])
+        assert np.all(np.abs(err) < 3 * std + 0.005), (err, std)
+    assert (tmp_path / "shift_field.png").read_bytes()[:8] == PNG_MAGIC
+
+
+# --------------------------------------------------------------------------- bad input
+@pytest.mark.parametrize("argv", [
+    ["sphere", "{missing}"],
+    ["register", "{missing}", "{tgt}"],
+    ["compare", "{missing}"],
+    ["tiles", "{missing}", "--target", "{tgt}"],
+])
+def test_missing_file_is_one_clear_line(files, tmp_path, capsys, argv):
+    missing = tmp_path / "nope.laz"
+    argv = [a.format(missing=missing, tgt=files["tgt"]) for a in argv]
+    assert main(argv + (["--out", str(tmp_path / "o")] if argv[0] in ("register", "tiles") else [])) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"labkit {argv[0]}: error:") and "nope.laz" in err and "not found" in err
+    assert len(err.splitlines()) == 1
+    assert not (tmp_path / "o").exists()
+
+
+def test_corrupt_files(files, tmp_path, capsys):
+    bad = tmp_path / "bad.laz"
+    bad.write_bytes(b"LASF" + bytes(200))
+    assert main(["register", str(files["src"]), str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert "bad.laz" in capsys.readouterr().err
+    text = tmp_path / "bad.xyz"
+    text.write_text("x y z\n1 2 3\n4 five 6\n")
+    assert main(["sphere", str(text)]) == 2
+    assert "bad.xyz" in capsys.readouterr().err
+    js = tmp_path / "pairs.json"
+    js.write_text("{not json")
+    assert main(["compare", str(js), "--references", str(files["refs"])]) == 2
+    assert "pairs.json" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["sphere", "x.xyz", "--threshold", "-1"], "positive"),
+    (["sphere", "x.xyz", "--radius-range", "0.1"], "expected 2 arguments"),
+    (["register", "a.laz", "b.laz", "--method", "magic"], "invalid choice"),
+    (["tiles", "a.laz"], "--target"),
+    (["frobnicate"], "invalid choice"),
+])
+def test_bad_arguments_exit_2(argv, message, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_sphere_option_errors_from_the_library(files, capsys):
+    # min > max is only checked by ransac_sphere: a labkit error, exit 2
+    assert main(["sphere", str(files["xyz"]), "--radius-range", "0.1", "0.05"]) == 2
+    assert "labkit sphere: error:" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------- as a program
+def test_python_m_labkit(files, tmp_path):
+    run = subprocess.run([sys.executable, "-m", "labkit", "sphere", str(files["xyz"]), "--radius-range", "0.05",
+                          "0.1"], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert "Sphere adjustment (Gauss-Helmert model)" in run.stdout
+    run = subprocess.run([sys.executable, "-m", "labkit", "register", str(tmp_path / "missing.laz"),
+                          str(files["tgt"])], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert run.returncode == 2 and "missing.laz" in run.stderr and "Traceback" not in run.stderr
+    assert list(tmp_path.iterdir()) == []
