@@ -114,7 +114,7 @@ COLUMNS = tuple(f.name for f in fields(ComparisonRow))
 _TEXT_COLUMNS = (("method", "{}"), ("region", "{}"), ("case", "{}"), ("dx", "{:+.4f}"), ("dy", "{:+.4f}"),
                  ("dz", "{:+.4f}"), ("ex", "{:+.4f}"), ("ey", "{:+.4f}"), ("ez", "{:+.4f}"),
                  ("error_norm_constrained", "{:.4f}"), ("constrained", "{}"), ("missed", "{}"), ("inside", "{}"),
-                 ("n_used", "{}"), ("runtime_s", "{:.2f}"))
+                 ("converged", "{}"), ("n_used", "{}"), ("runtime_s", "{:.2f}"))
 
 
 @dataclass(frozen=True, eq=False, repr=False)
@@ -246,7 +246,8 @@ def synthetic_cases(regions=None, cases=CASES, *, size=(60.0, 60.0), density=10.
     return out
 
 
-METHODS = ("icp", "icp-point", "icp-huber", "icp-tukey", "consensus", "consensus+icp")
+METHODS = ("icp", "icp-point", "icp-huber", "icp-tukey", "icp-classes", "consensus", "consensus+icp")
+STABLE_CLASSES = (2, 6, 11)  # ASPRS ground, building, road surface: what ``icp-classes`` matches on
 
 
 def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "translation", extent: float = 1.0,
@@ -254,7 +255,10 @@ def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "tra
     """Ready-made registration methods by name, for :func:`compare_methods`, tiles and the command line.
 
     ``icp`` (point to plane), ``icp-point`` (point to point), ``icp-huber`` and
-    ``icp-tukey`` (robust weights) with ``dof``; ``consensus`` (maximum consensus,
+    ``icp-tukey`` (robust weights) with ``dof``; ``icp-classes`` (point to plane on
+    the stable classes :data:`STABLE_CLASSES` of both epochs only - ground, roofs,
+    roads - so that grown vegetation and crowns cannot pull it; seed step 4,
+    "Nutzen nur von best. Klassen"); ``consensus`` (maximum consensus,
     a translation within +-``extent`` m, on at most ``max_points`` random source
     points); ``consensus+icp`` (consensus, then a Tukey ICP with ``dof`` from there).
     The callables are picklable (for Dask workers in other processes).
@@ -275,7 +279,9 @@ def _standard(source, target, *, name, dof, extent, max_points, rng):
     if name.startswith("icp"):
         kind = name.partition("-")[2]
         metric = "point_to_point" if kind == "point" else "point_to_plane"
-        return icp(source, target, dof=dof, metric=metric, robust=kind if kind in ("huber", "tukey") else None, rng=rng)
+        classes = STABLE_CLASSES if kind == "classes" else None
+        return icp(source, target, dof=dof, metric=metric, robust=kind if kind in ("huber", "tukey") else None,
+                   classes=classes, rng=rng)
     src = _random_subset(source, max_points, rng)
     result = max_consensus(src, target, extent=extent)
     if name == "consensus":

@@ -86,6 +86,34 @@ def tile_grid(bounds, size: float = 100.0, *, buffer: float = 0.0) -> tuple:
                       float(buffer)) for r in range(nrow) for c in range(ncol))
 
 
+def write_tiles(cloud, folder, size: float = 100.0, *, prefix: str = "tile", suffix: str = ".laz") -> list:
+    """Cut a cloud into square tiles of ``size`` metres and write one file per non-empty tile.
+
+    The tiles are those of :func:`tile_grid` (anchored at multiples of
+    ``size``); a file is named ``{prefix}_{xmin}_{ymin}{suffix}`` after its
+    south-west corner in whole metres, as survey deliveries are. Every file is
+    written atomically. Returns the paths in grid order.
+    """
+    from .io import write_cloud
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise LabkitError(f"folder {folder} does not exist")
+    if suffix.lower() not in LAS_SUFFIXES:
+        raise LabkitError(f"suffix must be one of {LAS_SUFFIXES}, got {suffix!r}")
+    from .cloud import PointCloud
+
+    xyz = as_points(cloud, name="cloud to cut into tiles")
+    cloud = cloud if isinstance(cloud, PointCloud) else PointCloud(xyz)
+    paths = []
+    for tile in tile_grid(np.r_[xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)], size):
+        inside = tile.contains(xyz)
+        if inside.any():
+            x0, y0 = tile.bounds[:2]
+            paths.append(write_cloud(cloud.subset(inside), folder / f"{prefix}_{x0:.0f}_{y0:.0f}{suffix}"))
+    return paths
+
+
 # --------------------------------------------------------------------------- survey input
 @dataclass(frozen=True, eq=False)
 class _Files:

@@ -329,6 +329,10 @@ def test_plots_return_their_targets(tmp_path):
     assert pc.symmetric_limits(d)[0] == -pc.symmetric_limits(d)[1]
     fig, ax = plt.subplots()
     assert pc.plot_distance_map(xyz, d, ax=ax) is ax
+    over = pc.plot_distance_overview([("a", xyz, d, d / 2), ("b", xyz, d, d / 4)], title="t")
+    assert len(over.axes) == 5  # 2 x 2 maps and one shared colour bar
+    with pytest.raises(LabkitError, match="at least one"):
+        pc.plot_distance_overview([])
     assert pc.plot_profile([xyz, xyz + 0.1], UTM, UTM + [20, 20, 0], width=2.0, ax=ax) is ax
     assert pc.plot_class_histograms(d, rng.choice([2, 6], 500), ax=ax) is ax
     truth = make_transform(translation=[0.2, -0.1, 0.05])
@@ -385,3 +389,13 @@ def test_missed_axis_fails_the_test_and_tables_add_up():
     assert piv.splitlines()[1].split()[:4] == ["town", "c", "200.0", "0.0"]
     with pytest.raises(LabkitError, match="metric"):
         both.pivot("nonsense")
+
+
+def test_icp_on_stable_classes_resists_grown_vegetation():
+    """Old town (xy): the low vegetation grew 0.2 m; plain ICP sinks in Z, ICP on ground/roofs does not."""
+    pairs = compare.synthetic_cases(["xy"], ["als-als"], size=(30.0, 30.0), density=4.0, rng=7)
+    table = compare.compare_methods(pairs, compare.standard_methods(["icp", "icp-classes"]))
+    plain, stable = table.rows
+    assert abs(plain.ez) > 0.03  # pulled down toward the grown vegetation
+    assert stable.ok and stable.error_norm_constrained < 0.015 and abs(stable.ez) < 0.005
+    assert "converged" in table.text().splitlines()[0]

@@ -169,3 +169,25 @@ def test_bad_input_and_reported_failures(tmp_path):
     with pytest.raises(LabkitError, match="does not exist"):
         failed.to_csv(tmp_path / "no" / "field.csv")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["field.csv"]
+
+
+def test_write_tiles_partitions_the_cloud(tmp_path):
+    io = pytest.importorskip("labkit.io")
+    src, _, _ = _survey(n=3000, extent=(120.0, 70.0), seed=6)
+    paths = tiles.write_tiles(src, tmp_path, 50.0, prefix="als2016")
+    # 120 m x 70 m from a round corner: 3 x 2 tiles, named after their south-west corners
+    assert [p.name for p in paths][:2] == ["als2016_612000_5701000.laz", "als2016_612050_5701000.laz"]
+    assert len(paths) == 6
+    back = [io.read_cloud(p) for p in paths]
+    assert sum(len(c) for c in back) == len(src)
+    xyz = np.vstack([c.xyz for c in back])
+    d, _ = cKDTree(src.xyz).query(xyz)
+    assert d.max() <= 0.001  # the 1 mm LAS scale
+    for p, c in zip(paths, back):  # every file holds only its own tile
+        x0, y0 = map(float, p.stem.split("_")[1:])
+        assert (c.xyz[:, 0] >= x0 - 1e-3).all() and (c.xyz[:, 0] < x0 + 50).all()
+        assert (c.xyz[:, 1] >= y0 - 1e-3).all() and (c.xyz[:, 1] < y0 + 50).all()
+    with pytest.raises(LabkitError, match="does not exist"):
+        tiles.write_tiles(src, tmp_path / "missing", 50.0)
+    with pytest.raises(LabkitError, match="suffix"):
+        tiles.write_tiles(src, tmp_path, 50.0, suffix=".csv")

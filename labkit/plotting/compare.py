@@ -9,6 +9,7 @@ import numpy as np
 
 from .._checks import as_points
 from .._frame import local_origin
+from ..errors import LabkitError
 from ._style import CMAP_DIVERGING, CMAP_SEQUENTIAL, COLORS, POINT_SIZE, new_plotter
 
 ASPRS_NAMES = {0: "never classified", 1: "unclassified", 2: "ground", 3: "low vegetation", 4: "medium vegetation",
@@ -55,7 +56,8 @@ def plot_distance_cloud(points, distances, *, plotter=None, clim=None, title="di
     return plotter
 
 
-def plot_distance_map(points, distances, *, ax=None, clim=None, title="distance (m)", cmap=CMAP_DIVERGING, s=1.0):
+def plot_distance_map(points, distances, *, ax=None, clim=None, title="distance (m)", cmap=CMAP_DIVERGING, s=1.0,
+                      colorbar=True):
     """Top view (matplotlib) of the cloud coloured by distance, with a colour bar; x, y in m from a local origin."""
     xyz = as_points(points, name="points")
     ax = _axes(ax)
@@ -63,11 +65,36 @@ def plot_distance_map(points, distances, *, ax=None, clim=None, title="distance 
     clim = symmetric_limits(distances) if clim is None else clim
     sc = ax.scatter(xyz[:, 0] - o[0], xyz[:, 1] - o[1], c=distances, s=s, cmap=cmap, vmin=clim[0], vmax=clim[1],
                     rasterized=True)
-    ax.figure.colorbar(sc, ax=ax, label=title)
+    if colorbar:
+        ax.figure.colorbar(sc, ax=ax, label=title)
     ax.set_aspect("equal")
     ax.set_xlabel(f"x - {o[0]:.0f} (m)")
     ax.set_ylabel(f"y - {o[1]:.0f} (m)")
     return ax
+
+
+def plot_distance_overview(items, *, clim=(-0.3, 0.3), s=0.4, title=None, cmap=CMAP_DIVERGING):
+    """Distance maps of several regions: one column per region, before (top) and after (bottom).
+
+    ``items``: sequence of ``(label, points, before, after)``; one shared colour
+    bar. Returns the figure.
+    """
+    import matplotlib.pyplot as plt
+
+    items = list(items)
+    if not items:
+        raise LabkitError("plot_distance_overview needs at least one (label, points, before, after)")
+    fig, axes = plt.subplots(2, len(items), figsize=(2.3 * len(items) + 1.2, 5.0), squeeze=False)
+    for col, (label, points, before, after) in enumerate(items):
+        for row, d in enumerate((before, after)):
+            ax = plot_distance_map(points, d, ax=axes[row, col], clim=clim, cmap=cmap, s=s, colorbar=False)
+            ax.set_xticks([]), ax.set_yticks([]), ax.set_xlabel(""), ax.set_ylabel("")
+        axes[0, col].set_title(label, fontsize="small")
+    axes[0, 0].set_ylabel("before"), axes[1, 0].set_ylabel("after")
+    fig.colorbar(axes[0, 0].collections[0], ax=axes, label="distance (m)", shrink=0.8)
+    if title:
+        fig.suptitle(title, x=0.02, ha="left")
+    return fig
 
 
 def plot_profile(clouds, start, end, *, width=1.0, ax=None, labels=None, colors=None, s=2.0):
