@@ -95,13 +95,16 @@ def test_argmax_recovers_constrained_components(region_cubes, region):
     named = set(cube.peak.constrained_axes)
     strong = {a for a, ok in truth.items() if ok} - set(WEAK.get(region, ()))
     assert strong <= named <= {a for a, ok in truth.items() if ok}, cube.peak.describe()
-    err = cube.argmax_translation - pair.translation
+    # the grid estimate is the centre of the summit; the single highest cell may sit anywhere on the
+    # flat top of the peak (eps = 5 cm makes a plateau several cells wide), so it only has to be on it
+    err = cube.best_translation - pair.translation
     for i, axis in enumerate("XYZ"):
         if axis in named:
-            assert abs(err[i]) <= STEP + 1e-9, (axis, err)
-            assert np.isfinite(cube.best_translation[i])
+            assert abs(err[i]) <= STEP / 2, (axis, err)
         else:
             assert np.isnan(cube.best_translation[i])
+    assert cube.counts[cube.peak_index] == cube.best_count
+    assert np.abs(cube.argmax_translation - pair.translation)[list(cube.peak.axis_constrained)].max() < 0.05
 
 
 def test_peak_shapes_of_degenerate_regions(region_cubes):
@@ -126,16 +129,19 @@ def test_weights_change_the_result(region_cubes):
 def test_point_to_point_barely_distinguishes_at_als_density():
     pair = als_epochs("xyz", size=(30.0, 30.0), density=20, rng=5)
     src, tgt = pair.source.xyz[::5], pair.target.xyz
-    wrong = pair.translation + np.array([0.1, -0.1, 0.0])
-    share, drop = {}, {}
+    share, margin = {}, {}
     for crit in ("point_to_point", "point_to_plane"):
-        cube = consensus_cube(src, tgt, extent=0.12, step=0.02, criterion=crit, center=pair.translation)
-        right, off = cube.count_at(pair.translation), cube.count_at(wrong)
-        share[crit], drop[crit] = right / len(src), (right - off) / right
-    # point-to-point: few points vote at all (point spacing >> eps) and a shift 14 cm off the
-    # truth gets about as many votes; point-to-plane: most points vote and the wrong shift loses
+        # grid centred on the truth, so that the truth is a cell
+        cube = consensus_cube(src, tgt, extent=0.2, step=0.02, criterion=crit, center=pair.translation)
+        right = cube.count_at(pair.translation)
+        grid = np.stack(np.meshgrid(*cube.axes, indexing="ij"), axis=-1)
+        away = np.linalg.norm(grid - pair.translation, axis=-1) >= 0.06 - 1e-9
+        share[crit] = right / len(src)
+        margin[crit] = (right - cube.counts[away].max()) / right  # < 0: a wrong shift beats the truth
+    # point-to-point: few points vote at all (point spacing >> eps) and some shift 6 cm or more off
+    # the truth collects more votes than the truth; point-to-plane: most points vote, the truth wins
     assert share["point_to_point"] < 0.25 < 0.6 < share["point_to_plane"]
-    assert drop["point_to_point"] < 0.05 < drop["point_to_plane"]
+    assert margin["point_to_point"] < 0 < margin["point_to_plane"]
 
 
 def test_max_consensus_optimum_and_refinement():

@@ -46,6 +46,10 @@ class PeakShape(ReportMixin):
     peak-to-median contrast) and that are connected to the peak form the *top
     region*; a principal component analysis of their positions tells whether it
     is a point, a ridge (one free direction) or a plane (two free directions).
+    The *summit* is the part of the top region within the counting noise of the
+    peak (3 sqrt(peak) for counts); its centroid is the best grid estimate of the
+    translation, because the consensus of an eps-tolerance is flat-topped and
+    its single highest cell wanders over the plateau by chance.
 
     Attributes
     ----------
@@ -65,6 +69,10 @@ class PeakShape(ReportMixin):
         Number of cells in the top region.
     free_spread : float
         Threshold (m) on the spread that separates determined from free directions.
+    summit : ndarray (3,)
+        Centroid (m) of the summit: the cells connected to the peak within the counting noise of it.
+    n_summit : int
+        Number of cells in the summit.
     """
 
     kind: str
@@ -75,6 +83,8 @@ class PeakShape(ReportMixin):
     contrast: float
     n_top: int
     free_spread: float
+    summit: np.ndarray
+    n_summit: int
 
     @property
     def constrained_axes(self) -> tuple:
@@ -95,7 +105,7 @@ class PeakShape(ReportMixin):
             ("constrained axes", ", ".join(self.constrained_axes) or "none"),
             ("spreads of the top region", fmt(self.spreads, 4, "m")),
             ("contrast (peak - median) / peak", fmt(self.contrast, 3)),
-            ("cells in the top region", str(self.n_top)),
+            ("cells in the top region / summit", f"{self.n_top} / {self.n_summit}"),
         ]
         return "Consensus peak", [("", rows)]
 
@@ -112,7 +122,8 @@ class ConsensusCube(ReportMixin):
         Translations (m) along X, Y, Z; ``counts[i, j, k]`` belongs to
         ``(axes[0][i], axes[1][j], axes[2][k])``.
     best_translation : ndarray (3,)
-        Translation of the highest cell, NaN in every axis the peak does not determine.
+        Centre of the summit of the peak (see :class:`PeakShape`), NaN in every axis the
+        peak does not determine.
     argmax_translation : ndarray (3,)
         Translation of the highest cell (the first one on a plateau), without that caution.
     best_count : float
@@ -327,7 +338,7 @@ def consensus_cube(
     center=None,
     normals=None,
     normal_k: int = 12,
-    level: float = 0.1,
+    level: float = 0.07,
     use_numba: bool | None = None,
     workers: int = 2,
 ) -> ConsensusCube:
@@ -359,7 +370,9 @@ def consensus_cube(
     normal_k : int
         Neighbours for PCA normals.
     level : float
-        The top region of the peak: counts above ``peak - level * (peak - median)``.
+        The top region of the peak: counts above ``peak - level * (peak - median)``; keep it
+        below the share of points on the surfaces that constrain the weakest direction
+        (roofs in a village: 10-20 %), else the top region leaks into the plateau of the ground.
     use_numba : bool, optional
         Force (True) or forbid (False) the compiled kernel; default: use it if installed.
     workers : int
@@ -391,7 +404,7 @@ def consensus_cube(
     peak = peak_shape(counts, axes, pb.eps, level)
     idx = np.unravel_index(np.argmax(counts), shape)
     t_max = np.array([a[i] for a, i in zip(axes, idx)])
-    best = np.where(peak.axis_constrained, t_max, np.nan) if peak.kind != "flat" else np.full(3, np.nan)
+    best = np.where(peak.axis_constrained, peak.summit, np.nan) if peak.kind != "flat" else np.full(3, np.nan)
     return ConsensusCube(
         counts, axes, best, t_max, float(counts[idx]), peak, pb.criterion, pb.eps, pb.radius, pb.max_angle,
         len(pb.src), int(D.shape[0]), step, kernel, time.perf_counter() - t0,
@@ -418,7 +431,7 @@ def _raster_parallel(ptr, U, nrm, pb, step, shape, use_numba, workers):
     return sum(parts[1:], parts[0]), "numba"
 
 
-def peak_shape(counts, axes, eps: float, level: float = 0.1) -> PeakShape:
+def peak_shape(counts, axes, eps: float, level: float = 0.07) -> PeakShape:
     """Shape of the consensus peak: point, ridge, plane or flat (eq. 6.9).
 
     Parameters
@@ -429,27 +442,39 @@ def peak_shape(counts, axes, eps: float, level: float = 0.1) -> PeakShape:
         Tolerance of the criterion; a peak narrower than the box by far is "determined".
     level : float
         Top region: counts >= peak - level * (peak - median).
+
+    A principal direction is free when the top region spreads along it by at
+    least 14 % of the box width (a top region filling the box has 29 %).
     """
     c = np.asarray(counts, dtype=np.float64)
     top, med = c.max(), np.median(c)
     contrast = (top - med) / top if top > 0 else 0.0
     width = np.array([a[-1] - a[0] for a in axes])
-    free_spread = max(0.15 * float(width.min()), 1.5 * eps / np.sqrt(3))
-    # no peak: the best cells are hardly better than the typical one
+    free_spread = max(0.14 * float(width.min()), 1.5 * eps / np.sqrt(3))
+    # no peak: the best cells are hardly better than the typical one (counting noise of the peak)
     noise = 3.0 * np.sqrt(max(top, 1.0)) if np.allclose(c, np.rint(c)) else 0.01 * top
     if top <= 0 or top - med <= noise:
         return PeakShape("flat", np.full(3, np.nan), np.eye(3), np.ones(3, bool), np.zeros(3, bool),
-                         float(contrast), int(c.size), free_spread)
-    # top region connected to the peak
-    labels, _ = ndimage.label(c >= top - level * (top - med))
-    region = labels == labels[np.unravel_index(np.argmax(c), c.shape)]
+                         float(contrast), int(c.size), free_spread, np.full(3, np.nan), int(c.size))
+    # top region and summit: cells connected to the peak above two thresholds
+    region = _connected_to_peak(c >= top - max(level * (top - med), noise), c)
+    summit = _connected_to_peak(c >= top - noise, c)
     X = np.column_stack([a[i] for a, i in zip(axes, np.nonzero(region))])
+    centre = np.array([a[i].mean() for a, i in zip(axes, np.nonzero(summit))])
+    # principal directions of the top region (eq. 6.9)
     lam, vec = np.linalg.eigh(np.cov(X.T, bias=True) if len(X) > 1 else np.zeros((3, 3)))
     spreads = np.sqrt(np.clip(lam, 0, None))
     free = spreads >= free_spread
     share = (vec[:, free] ** 2).sum(axis=1)
     kind = ("point", "ridge", "plane", "flat")[int(free.sum())]
-    return PeakShape(kind, spreads, vec, free, share < 0.5, float(contrast), int(region.sum()), free_spread)
+    return PeakShape(kind, spreads, vec, free, share < 0.5, float(contrast), int(region.sum()), free_spread,
+                     centre, int(summit.sum()))
+
+
+def _connected_to_peak(mask, c):
+    """The connected part of ``mask`` that holds the highest cell of ``c``."""
+    labels, _ = ndimage.label(mask)
+    return labels == labels[np.unravel_index(np.argmax(c), c.shape)]
 
 
 # --------------------------------------------------------------------------- maximum consensus
