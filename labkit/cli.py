@@ -145,6 +145,8 @@ def _rotation_text(result) -> str:
              np.array2string(result.matrix, precision=6, suppress_small=True, max_line_width=120)]
     names = tuple(result.parameter_names)
     if "rx" in names:
+        lines.append("(its last column includes the rotation about the frame's origin; dX, dY, dZ above are the "
+                     "shift about " + "[" + ", ".join(f"{v:.3f}" for v in result.origin) + "])")
         ang = np.degrees(angles_from_rotation(result.rotation)) * 3600
         std = np.degrees(result.std[[names.index(n) for n in ("rx", "ry", "rz")]]) * 3600
         lines.append("rotation (arcsec): " + ", ".join(f"{n} {a:+.2f} +- {s:.2f}"
@@ -158,10 +160,14 @@ def _print_tiles(field, test) -> None:
     print("\n  row col        dX        dY        dZ   sX (mm) sY (mm) sZ (mm)  area  status")
     for i, (t, s) in enumerate(zip(field.tiles, field.std)):
         if t.ok:
-            print(f"  {t.tile.row:3d} {t.tile.col:3d} " + " ".join(f"{v:+9.4f}" for v in t.translation)
+            print(f"  {t.tile.row:3d} {t.tile.col:3d} "
+                  + " ".join(f"{v:+9.4f}" if np.isfinite(sd) else f"{'undet.':>9s}" for v, sd in zip(t.translation, s))
                   + " " + " ".join(f"{1000 * v:7.1f}" for v in s) + f"  {test.areas[i]:4d}  ok")
         else:
             print(f"  {t.tile.row:3d} {t.tile.col:3d} " + " " * 60 + f"  {t.status}: {t.message}")
+    if len(test.pairs) and test.agree.mean() < 0.5 and test.extra_std == 0:
+        print("\nMost neighbours disagree. The formal standard deviations of a registration ignore systematic "
+              "effects;\nan extra standard deviation per tile (e.g. --extra-std 0.005) makes the test realistic.")
 
 
 def _distance_figure(source, change, title, seed):

@@ -236,3 +236,45 @@ def test_python_m_labkit(files, tmp_path):
                           str(files["tgt"])], capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert run.returncode == 2 and "missing.laz" in run.stderr and "Traceback" not in run.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+# --------------------------------------------------------------------------- the committed data files
+DATA = Path(__file__).resolve().parents[1] / "data" / "synthetic"
+
+
+def test_committed_data_match_their_generator(tmp_path):
+    """make_data.py still produces the committed files (points and attributes; JSON text)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("make_data", DATA / "make_data.py")
+    make_data = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(make_data)
+    make_data.main(["--out", str(tmp_path)])
+    fresh = sorted(p.name for p in tmp_path.iterdir())
+    skip = ("README.md", "make_data.py", "__pycache__")
+    assert fresh == sorted(p.name for p in DATA.iterdir() if p.name not in skip and not p.name.startswith("."))
+    for name in fresh:
+        if name.endswith(".json"):
+            assert (tmp_path / name).read_text() == (DATA / name).read_text(), f"{name}: run make_data.py"
+            continue
+        a, b = read_cloud(tmp_path / name), read_cloud(DATA / name)
+        np.testing.assert_array_equal(a.xyz, b.xyz, err_msg=f"{name}: run data/synthetic/make_data.py")
+        assert set(a.attributes) == set(b.attributes)
+        for key in a.attributes:
+            np.testing.assert_array_equal(a[key], b[key])
+    assert sum(p.stat().st_size for p in DATA.iterdir()) < 3 * 1024**2
+
+
+def test_committed_data_through_the_cli(tmp_path, capsys):
+    truth = json.loads((DATA / "tripod_truth.json").read_text())
+    assert main(["sphere", str(DATA / "tripod_scene.laz"), "--radius-range", "0.05", "0.1", "--sigma", "0.001"]) == 0
+    out = capsys.readouterr().out
+    std = _vector(out, "std centre") / 1000
+    assert np.all(np.abs(_vector(out, "centre") - truth["sphere_utm"][:3]) < np.maximum(4 * std, 2e-4))
+    table = tmp_path / "table.csv"
+    assert main(["compare", str(DATA / "pairs.json"), "--references", str(DATA / "references.json"),
+                 "--methods", "icp", "--out", str(table)]) == 0
+    rows = list(csv.DictReader(table.open()))
+    assert [(r["region"], r["case"]) for r in rows] == [("xyz", "als-als"), ("demolished", "changes"),
+                                                         ("xyz", "als-dim")]
+    assert all(float(r["error_norm_constrained"]) < 0.01 for r in rows)

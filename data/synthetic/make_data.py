@@ -34,9 +34,9 @@ ALS_PAIRS = (
     ("demolished", "changes", False, 15),
     ("xyz", "als-dim", True, 16),
 )
-ALS_SIZE = (40.0, 40.0)  # m
-ALS_DENSITY = 6.0  # pts/m^2 (ALS); the DIM source gets 12 pts/m^2
-DIM_DENSITY = 12.0
+ALS_SIZE = (60.0, 60.0)  # m; smaller regions leave rotation and shift poorly separated for rigid ICP
+ALS_DENSITY = 5.0  # pts/m^2 (ALS)
+DIM_DENSITY = 10.0  # pts/m^2 of the dense-image-matching source
 SHIFT = (0.23, -0.17, 0.11)  # m, the true shift 2016 -> 2014
 
 
