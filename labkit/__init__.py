@@ -66,10 +66,20 @@ _EXPORTS = {
     "setup_notebook": "labkit.notebook",
 }
 
+#: Sub-modules reachable as attributes (``labkit.registration.icp``) without an explicit import.
+_SUBMODULES = {
+    "adjustment", "compare", "distances", "errors", "features", "io", "plotting", "ransac",
+    "references", "regions", "registration", "sphere", "synthetic", "tiles", "transforms", "widgets",
+}
+
 __all__ = sorted(_EXPORTS) + ["__version__"]
 
 
 def __getattr__(name: str):
+    if name in _SUBMODULES:
+        value = importlib.import_module(f"labkit.{name}")
+        globals()[name] = value
+        return value
     module = _EXPORTS.get(name)
     if module is None:
         raise AttributeError(f"module 'labkit' has no attribute {name!r}")

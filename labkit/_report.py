@@ -47,6 +47,10 @@ class ReportMixin:
     def __str__(self) -> str:
         return self.summary()
 
+    def __repr__(self) -> str:
+        # one line; dataclasses using the mixin declare ``repr=False`` so that this one applies
+        return f"<{type(self).__name__}: {self._report()[0]}>"
+
     def _repr_html_(self) -> str:
         title, sections = self._report()
         parts = [f"<div class='labkit-report'><h4>{html.escape(title)}</h4><table>"]

@@ -70,7 +70,7 @@ def point_to_plane_distance(source, target, target_normals=None, *, k: int = 10,
     return np.einsum("ij,ij->i", nrm[j], p - q[j])  # (eq. 4)
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, repr=False)
 class DistanceChange(ReportMixin):
     """Distances of the source to the target before and after a transformation."""
 

@@ -595,7 +595,7 @@ def _split_npz(z, path: Path):
 
 
 # ============================================================================ header summary
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, repr=False)
 class CloudInfo(ReportMixin):
     """What a LAS/LAZ header says, read without loading the points."""
 

@@ -84,7 +84,7 @@ def _required_from_probability(w, p):
     return max(1, int(np.ceil(np.log1p(-p) / np.log1p(-w) * (1 - 1e-12))))
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, repr=False)
 class RansacResult(ReportMixin):
     """Outcome of :func:`ransac_sphere`.
 

@@ -276,7 +276,7 @@ def thin_voxel(cloud: PointCloud, size: float, *, keep: str = "centre") -> Point
 
 
 # ----------------------------------------------------------------------------- density
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, repr=False)
 class DensityGrid(ReportMixin):
     """Point counts on a horizontal grid.
 

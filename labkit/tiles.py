@@ -359,7 +359,7 @@ def _print_bar(done: int, total: int, width: int = 40) -> None:
 
 
 # --------------------------------------------------------------------------- the field and its test
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, repr=False)
 class NeighbourTest(ReportMixin):
     """Agreement of neighbouring tiles within their uncertainty (eq. 2, 3).
 
@@ -392,7 +392,7 @@ class NeighbourTest(ReportMixin):
         return "Neighbouring-tile agreement", [("", rows)]
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, repr=False)
 class ShiftField(ReportMixin):
     """The shift of every tile of a survey."""
 

@@ -16,7 +16,7 @@ from ..transforms import make_transform
 AXES = ("X", "Y", "Z")
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, repr=False)
 class Degeneracy(ReportMixin):
     """Which directions the data constrain, from the eigen decomposition of N.
 
@@ -88,7 +88,7 @@ def degeneracy_report(N, names, rel_threshold: float = 1e-2, translation_slice=s
     return Degeneracy(lam, vecs, constrained, axis_determined, float(rel_threshold), tuple(names))
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, repr=False)
 class RegistrationResult(ReportMixin):
     """Outcome of a registration of ``source`` onto ``target``.
 

@@ -86,7 +86,7 @@ _INFO = {
 }
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, repr=False)
 class EpochPair(ReportMixin):
     """Two epochs of a synthetic ALS region with the transformation between them.
 

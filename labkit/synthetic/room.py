@@ -36,7 +36,7 @@ _CABINET = (np.array([5.4, 0.3, 0.0]), np.array([6.0, 1.5, 2.0]))
 _CRATE = (np.array([2.9, 0.3, 0.0]), np.array([3.5, 0.9, 0.5]))
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, repr=False)
 class RoomScene(ReportMixin):
     """A synthetic TLS scan of a room with one sphere target.
 
