@@ -283,7 +283,9 @@ def _add_method_options(p) -> None:
 def build_parser() -> argparse.ArgumentParser:
     from .compare import METHODS
 
-    parser = argparse.ArgumentParser(prog="labkit", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="labkit", description="labkit: robust adjustment of 3D point clouds for engineering geodesy.",
+        epilog="Run 'labkit COMMAND --help' for the options of a command; 'labkit demo' needs no input files.")
     parser.add_argument("--version", action="version", version=_version())
     sub = parser.add_subparsers(dest="command", required=True)
 
