@@ -326,3 +326,25 @@ def test_nan_points_raise():
     tgt[10, 2] = np.inf
     with pytest.raises(LabkitError, match="NaN or infinite"):
         icp(src, tgt)
+
+
+# ----------------------------------------------------------------------------- plots
+
+
+def test_registration_plots_run_and_mark_only_inf_as_undetermined():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from labkit.plotting import registration as PR
+
+    pair = als_epochs("xz", size=(30.0, 30.0), density=10.0, rng=3)
+    res = icp(pair.source, pair.target, reject_sigma=3.0)
+    PR.plot_convergence(res, truth=pair.translation)
+    PR.plot_correspondences(res.correspondences, view="xz")
+    PR.plot_residuals(res.correspondences)
+    ax = PR.plot_shifts({"labkit": res, "peer (no std)": pair.translation + 0.001}, truth=pair.translation)
+    labels = [t.get_text() for t in ax.texts]
+    assert labels.count("undetermined") == 1  # Y of the labkit result; the peer's NaN std is not 'undetermined'
+    plt.close("all")

@@ -130,7 +130,8 @@ def plot_shifts(results, *, truth=None, ax=None, sigma=2.0):
         The true shift; plotted as errors in mm when given.
     sigma : float
         Error bars span +- sigma standard deviations. Undetermined components
-        (inf std) are drawn as hollow markers with an arrow label.
+        (inf std) are drawn as hollow markers with a label; NaN std (no
+        uncertainty known, e.g. a shift from another library) gets no error bar.
     """
     ax = _new_ax(ax, figsize=(7.5, 4.2))
     names = list(results)
@@ -140,11 +141,13 @@ def plot_shifts(results, *, truth=None, ax=None, sigma=2.0):
         value = shift if truth is None else shift - np.asarray(truth, dtype=float)
         scale = 1.0 if truth is None else 1000.0
         x = np.arange(3) + (m - (len(names) - 1) / 2) * width
-        finite = np.isfinite(std)
-        ax.errorbar(x[finite], scale * value[finite], yerr=scale * sigma * std[finite], fmt="o", capsize=3, label=name)
-        if (~finite).any():
-            ax.plot(x[~finite], scale * value[~finite], "o", mfc="none", color="#888888")
-            for xi, vi in zip(x[~finite], value[~finite]):
+        undetermined = np.isinf(std)  # NaN std: no uncertainty given (e.g. a peer library), no error bar
+        shown = ~undetermined
+        yerr = np.where(np.isnan(std), 0.0, std)[shown]
+        ax.errorbar(x[shown], scale * value[shown], yerr=scale * sigma * yerr, fmt="o", capsize=3, label=name)
+        if undetermined.any():
+            ax.plot(x[undetermined], scale * value[undetermined], "o", mfc="none", color="#888888")
+            for xi, vi in zip(x[undetermined], value[undetermined]):
                 ax.annotate("undetermined", (xi, scale * vi), fontsize=7, rotation=90, va="bottom", ha="center")
     ax.axhline(0, color=COLORS["reference"], lw=1)
     ax.set_xticks(range(3), ["dX", "dY", "dZ"])
