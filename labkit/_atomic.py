@@ -1,7 +1,13 @@
-"""Atomic file writing: a failed write never leaves a half-written file."""
+"""Atomic file writing: a failed write never leaves a half-written file.
+
+Everything is first written to a temporary file in the destination folder and
+renamed over the destination (``os.replace``) only when complete. Temporary
+files get the usual permissions (0666 minus the umask), not mkstemp's 0600.
+"""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
 from pathlib import Path
@@ -9,22 +15,47 @@ from pathlib import Path
 from .errors import LabkitError
 
 
-def atomic_write_text(path, text: str) -> Path:
-    """Write ``text`` to ``path`` atomically: a temp file in the same folder, then ``os.replace``.
+def file_mode() -> int:
+    """Permissions of a new file under the current umask (what ``open`` would give)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return 0o666 & ~mask
 
-    On any failure the temp file is removed and an existing file at ``path`` is left untouched.
+
+def temporary_path(path: Path, suffix: str = ".part") -> Path:
+    """A new empty temporary file next to ``path``, with the usual permissions."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=f"{suffix}{path.suffix}")
+    os.close(fd)
+    os.chmod(tmp, file_mode())
+    return Path(tmp)
+
+
+@contextlib.contextmanager
+def atomic_path(path):
+    """Yield a temporary path next to ``path``; rename it over ``path`` only on success.
+
+    On any failure the temporary file is removed and an existing file at ``path``
+    is left untouched.
     """
     path = Path(path)
     if not path.parent.is_dir():
         raise LabkitError(f"cannot write {path}: the folder {path.parent} does not exist")
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    tmp = temporary_path(path)
     try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def atomic_write_text(path, text: str) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` atomically."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", encoding="utf-8", newline="") as fh:
             fh.write(text)
             fh.flush()
             os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path

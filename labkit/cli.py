@@ -14,11 +14,11 @@ import argparse
 import contextlib
 import os
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from ._atomic import temporary_path
 from .errors import LabkitError
 
 LAS_SUFFIXES = (".las", ".laz")
@@ -221,15 +221,12 @@ class _Stage:
     def __call__(self, name: str) -> Path:
         self.folder.mkdir(parents=True, exist_ok=True)
         final = self.folder / name
-        fd, tmp = tempfile.mkstemp(dir=self.folder, prefix=f".{final.stem}.", suffix=f".part{final.suffix}")
-        os.close(fd)
-        self.pending.append((Path(tmp), final))
-        return Path(tmp)
+        tmp = temporary_path(final)
+        self.pending.append((tmp, final))
+        return tmp
 
     def commit(self) -> None:
-        mode = 0o666 & ~_umask()
         for tmp, final in self.pending:
-            os.chmod(tmp, mode)  # mkstemp creates 0600; give the file the usual permissions
             os.replace(tmp, final)
             self.written.append(final)
         self.pending = []
@@ -239,12 +236,6 @@ class _Stage:
             with contextlib.suppress(FileNotFoundError):
                 tmp.unlink()
         self.pending = []
-
-
-def _umask() -> int:
-    current = os.umask(0)
-    os.umask(current)
-    return current
 
 
 @contextlib.contextmanager

@@ -31,7 +31,6 @@ import os
 import re
 import struct
 import sys
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,6 +40,7 @@ import numpy as np
 from . import regions
 from ._report import ReportMixin, fmt
 from .cloud import PointCloud
+from ._atomic import atomic_path
 from .errors import CloudFileError, EmptyRegionError, LabkitError
 
 __all__ = ["read_cloud", "write_cloud", "cloud_info", "CloudInfo", "LAS_SUFFIXES", "ASCII_SUFFIXES"]
@@ -712,25 +712,12 @@ def write_cloud(cloud: PointCloud, path, *, scale=0.001, point_format: int | Non
 
 @contextlib.contextmanager
 def _atomic(path: Path):
-    """Yield a temporary path next to ``path``; rename it over ``path`` only on success."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
-    os.close(fd)
+    """Write through a temporary file next to ``path`` (see ``labkit._atomic``); OS errors as CloudFileError."""
     try:
-        yield Path(tmp)
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
-    except BaseException as exc:
-        with contextlib.suppress(FileNotFoundError):
-            os.remove(tmp)
-        if isinstance(exc, OSError):
-            raise CloudFileError(f"cannot write {path}: {exc}") from exc
-        raise
-
-
-def _umask() -> int:
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
+        with atomic_path(path) as tmp:
+            yield tmp
+    except OSError as exc:
+        raise CloudFileError(f"cannot write {path}: {exc}") from exc
 
 
 def _choose_scale(xyz: np.ndarray, scale) -> np.ndarray:

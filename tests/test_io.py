@@ -377,3 +377,22 @@ def test_failed_overwrite_keeps_the_old_file(tmp_path, monkeypatch):
 def test_write_into_missing_folder(tmp_path):
     with pytest.raises(CloudFileError, match="does not exist"):
         write_cloud(_cloud(n=10), tmp_path / "no" / "such.laz")
+
+
+def test_written_files_get_the_usual_permissions(tmp_path):
+    """Atomic writes go through mkstemp (mode 0600); the result must have 0666 minus the umask."""
+    import os
+    import stat
+
+    from labkit._atomic import atomic_write_text
+
+    mask = os.umask(0o022)
+    try:
+        cloud = PointCloud(np.arange(12.0).reshape(4, 3))
+        files = [write_cloud(cloud, tmp_path / f"c{s}") for s in (".laz", ".csv", ".npz")]
+        files.append(atomic_write_text(tmp_path / "t.json", "{}"))
+    finally:
+        os.umask(mask)
+    for f in files:
+        assert stat.S_IMODE(f.stat().st_mode) == 0o644, f
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(f.name for f in files)  # no temp files left
