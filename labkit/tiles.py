@@ -19,6 +19,7 @@ from __future__ import annotations
 import csv
 import io
 import time
+import warnings
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -420,6 +421,16 @@ class ShiftField(ReportMixin):
         return np.array([t.covariance for t in self.tiles]).reshape(-1, 3, 3)
 
     @property
+    def determined(self) -> np.ndarray:
+        """(n, 3) bool: which components of each tile's shift its data determine."""
+        return np.array([t.axis_determined for t in self.tiles], bool).reshape(-1, 3)
+
+    @property
+    def determined_translations(self) -> np.ndarray:
+        """The translations with undetermined components (held at 0 by the method) set to NaN."""
+        return np.where(self.determined, self.translations, np.nan)
+
+    @property
     def std(self) -> np.ndarray:
         return np.sqrt(np.clip(np.einsum("nii->ni", self.covariances), 0, None))
 
@@ -441,12 +452,18 @@ class ShiftField(ReportMixin):
 
     def _report(self):
         ok = self.ok
-        tr = self.translations[ok]
+        tr = self.determined_translations[ok]  # undetermined components do not enter the statistics
         rows = [("tiles", f"{len(self)} of {self.size:g} m; {int(ok.sum())} registered"),
                 ("method", self.method or "?")]
         if ok.any():
-            rows += [("median shift", "[" + ", ".join(f"{v:+.4f}" for v in np.median(tr, axis=0)) + "] m"),
-                     ("spread (std) of shifts", "[" + ", ".join(f"{v:.4f}" for v in tr.std(axis=0)) + "] m")]
+            with np.errstate(all="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # an axis no tile determines gives nan
+                med, spread = np.nanmedian(tr, axis=0), np.nanstd(tr, axis=0)
+            rows += [("median shift", "[" + ", ".join(f"{v:+.4f}" for v in med) + "] m"),
+                     ("spread (std) of shifts", "[" + ", ".join(f"{v:.4f}" for v in spread) + "] m")]
+            undet = (~self.determined[ok]).sum(axis=0)
+            if undet.any():
+                rows.append(("undetermined (tiles per axis)", ", ".join(f"{a} {k}" for a, k in zip("XYZ", undet))))
         for status in ("too few points", "failed"):
             n = sum(t.status == status for t in self.tiles)
             if n:

@@ -191,3 +191,27 @@ def test_write_tiles_partitions_the_cloud(tmp_path):
         tiles.write_tiles(src, tmp_path / "missing", 50.0)
     with pytest.raises(LabkitError, match="suffix"):
         tiles.write_tiles(src, tmp_path, 50.0, suffix=".csv")
+
+
+def test_undetermined_components_stay_out_of_statistics_and_arrows():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from labkit.plotting.compare import plot_shift_field
+
+    def shift(col, t, det):
+        tile = tiles.Tile(0, col, (100.0 * col, 0.0, 100.0 * (col + 1), 100.0))
+        return tiles.TileShift(tile, np.array(t), np.eye(3) * 1e-6, np.array(det), 900, 900, 800, 1.0, True,
+                               0.1, "ok")
+
+    # the field tile (col 1) holds X and Y at 0: they must not pull the median or the spread
+    field = tiles.ShiftField((shift(0, [0.10, 0.20, 0.05], [True] * 3), shift(1, [0.0, 0.0, 0.06], [False, False, True]),
+                              shift(2, [0.12, 0.22, 0.07], [True] * 3)), 100.0, "test")
+    assert np.isnan(field.determined_translations[1, :2]).all()
+    text = field.summary()
+    assert "[+0.1100, +0.2100, +0.0600] m" in text  # medians of the determined values only
+    assert "X 1, Y 1, Z 0" in text
+    ax = plot_shift_field(field)
+    q = ax.collections[-1]
+    assert np.allclose(q.U, [0.10, 0.0, 0.12]) and np.allclose(q.V, [0.20, 0.0, 0.22])
+    assert any("XY undetermined" in t.get_text() for t in ax.texts)

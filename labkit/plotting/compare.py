@@ -232,6 +232,10 @@ def plot_error_overview(table, *, ax=None, metric="error_norm_constrained"):
 def plot_shift_field(field, *, ax=None, test=None, scale=None, cmap=CMAP_SEQUENTIAL):
     """Arrows of the horizontal shift per tile, coloured by the 3D shift magnitude (mm).
 
+    Components a tile's data do not determine are left out: such a tile gets an
+    arrow along its determined horizontal axis only (none if neither is), is
+    labelled, and its colour uses the determined components.
+
     With ``test`` (a :class:`labkit.tiles.NeighbourTest`), borders between
     neighbours that do NOT agree within their uncertainty are drawn in red and
     each tile is labelled with its coherent area.
@@ -239,7 +243,9 @@ def plot_shift_field(field, *, ax=None, test=None, scale=None, cmap=CMAP_SEQUENT
     import matplotlib.patches as mpatches
 
     ax = _axes(ax, figsize=(7, 6))
-    c, t, ok = field.centres, field.translations, field.ok
+    c, ok = field.centres, field.ok
+    det = field.determined
+    t = np.where(det, field.translations, 0.0)  # undetermined components drawn as no arrow, not as 0 shift
     o = np.floor(c.min(axis=0) / field.size) * field.size if len(c) else np.zeros(2)
     xy = c - o
     for s, (x, y) in zip(field.tiles, xy):
@@ -248,6 +254,10 @@ def plot_shift_field(field, *, ax=None, test=None, scale=None, cmap=CMAP_SEQUENT
                                         fc=face, ec="#999999", lw=0.6))
         if not s.ok:
             ax.text(x, y, s.status, ha="center", va="center", fontsize=7, color="#666666")
+        elif not s.axis_determined.all():
+            free = "".join(a for a, d in zip("XYZ", s.axis_determined) if not d)
+            ax.text(x, y - 0.4 * field.size, f"{free} undetermined", ha="center", va="bottom", fontsize=7,
+                    color="#666666")
     mag = 1000 * np.linalg.norm(t[ok], axis=1)
     if ok.any():
         h = np.linalg.norm(t[ok, :2], axis=1).max()
