@@ -349,3 +349,19 @@ def test_registration_plots_run_and_mark_only_inf_as_undetermined():
     labels = [t.get_text() for t in ax.texts]
     assert labels.count("undetermined") == 1  # Y of the labkit result; the peer's NaN std is not 'undetermined'
     plt.close("all")
+
+
+def test_rigid_degeneracy_report_names_every_held_parameter():
+    # two weak eigen-directions mix rz with X and Y: ICP holds rz, X and Y (inf std), and the
+    # report must say so for both axes (it used to list only X, the axis with the larger share)
+    pair = als_epochs("demolished", size=(40.0, 40.0), density=6.0, rng=0)
+    res = icp(pair.source, pair.target, dof="rigid")
+    deg = res.degeneracy
+    held = tuple(n for n, s in zip(res.parameter_names, res.std) if np.isinf(s))
+    assert (~deg.constrained).sum() == 2
+    assert set(held) == {"rz", "tx", "ty"}
+    assert deg.undetermined_parameters == held
+    assert deg.undetermined_axes == ("X", "Y")
+    np.testing.assert_array_equal(~deg.axis_determined, np.isinf(res.translation_std))
+    assert "UNDETERMINED: X, Y" in res.message and "rz" in res.message
+    assert np.isfinite(res.translation_std[2]) and abs(res.translation[2] - pair.translation[2]) < 0.005

@@ -26,6 +26,8 @@ from .result import RegistrationResult, degeneracy_report
 
 NAMES = {"translation": ("tx", "ty", "tz"), "rigid": ("rx", "ry", "rz", "tx", "ty", "tz")}
 HUBER_C, TUKEY_C = 1.345, 4.685  # 95 % efficiency under normal errors
+#: A parameter with this squared share in the undetermined eigen-directions is held fixed (and reported).
+HELD_SHARE = 0.05
 MAD_TO_SIGMA = 1.4826  # 1 / Phi^-1(3/4)
 
 
@@ -309,7 +311,7 @@ def _adjust(corr, R, t, opts):
     N = np.einsum("mru,m,mrv->uv", A, P, A)  # N = A^T P A  (eq. 5.7)
     nvec = np.einsum("mru,m,mr->u", A, P, l)  # n = A^T P l
     names = NAMES[opts["dof"]]
-    deg = degeneracy_report(N, names, opts["rel"], slice(len(names) - 3, None))
+    deg = degeneracy_report(N, names, opts["rel"], slice(len(names) - 3, None), share_threshold=HELD_SHARE)
     dx_s, Q_s = _solve(N, nvec, deg)
     v = np.einsum("mru,u->mr", A, dx_s) - l  # residuals after the step
     vPv = float(np.einsum("mr,m,mr->", v, P, v))
@@ -335,8 +337,7 @@ def _solve(N, nvec, deg):
     if deg.well_posed:
         c = cho_factor(N)
         return cho_solve(c, nvec), cho_solve(c, np.eye(len(N)))
-    loose = deg.eigenvectors[:, ~deg.constrained]
-    free = (loose**2).sum(axis=1) > 0.05  # parameters with a real share in an undetermined direction
+    free = ~deg.parameter_determined  # a real share in an undetermined direction: held (the report names them)
     fixed = ~free
     dx = np.zeros(len(N))
     Q = np.full((len(N), len(N)), np.nan)
@@ -406,8 +407,11 @@ def _result(R, t, origin, adj, history, converged, matcher, opts, runtime):
             f"; UNDETERMINED: {', '.join(undetermined)} - the data do not constrain these components, "
             "they keep their initial value and their standard deviation is inf"
         )
+    rotations = [n for n in deg.undetermined_parameters if n.startswith("r")]
+    if rotations:
+        msg += f"; rotations {', '.join(rotations)} undetermined (held at their initial value, see the degeneracy report)"
     elif not deg.well_posed:
-        msg += "; some rotation directions are undetermined (see the degeneracy report)"
+        msg += "; some directions are weak (see the degeneracy report)"
     n_used = adj.corr.n_accepted
     return RegistrationResult(
         translation=t.copy(), rotation=R.copy(), origin=origin, covariance=cov,

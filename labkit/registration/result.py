@@ -29,12 +29,17 @@ class Degeneracy(ReportMixin):
     constrained : ndarray of bool (p,)
         Per eigen-direction: eigenvalue / largest eigenvalue >= ``rel_threshold``.
     axis_determined : ndarray of bool (3,)
-        Per translation axis X, Y, Z: True when the axis has (almost) no share
-        in any unconstrained translation direction.
+        Per translation axis X, Y, Z: the entry of ``parameter_determined`` for tx, ty, tz.
     rel_threshold : float
         The relative eigenvalue threshold used.
     names : tuple of str
         Parameter names in the order of N.
+    parameter_determined : ndarray of bool (p,)
+        Per parameter: False when its squared share summed over the unconstrained
+        eigen-directions reaches ``share_threshold`` (ICP holds exactly these
+        parameters fixed and reports their standard deviation as inf).
+    share_threshold : float
+        The share used for ``parameter_determined``.
     """
 
     eigenvalues: np.ndarray
@@ -43,6 +48,8 @@ class Degeneracy(ReportMixin):
     axis_determined: np.ndarray
     rel_threshold: float
     names: tuple
+    parameter_determined: np.ndarray | None = None
+    share_threshold: float = 0.5
 
     @property
     def well_posed(self) -> bool:
@@ -54,16 +61,28 @@ class Degeneracy(ReportMixin):
         """Names of the translation axes the data do not determine, e.g. ('Y',)."""
         return tuple(a for a, ok in zip(AXES, self.axis_determined) if not ok)
 
+    @property
+    def undetermined_parameters(self) -> tuple:
+        """Names of all parameters the data do not determine, e.g. ('rz', 'tx', 'ty')."""
+        if self.parameter_determined is None:
+            return ()
+        return tuple(n for n, ok in zip(self.names, self.parameter_determined) if not ok)
+
     def _report(self):
         rows = []
         for lam, ok, vec in zip(self.eigenvalues, self.constrained, self.eigenvectors.T):
             direction = ", ".join(f"{n}:{c:+.2f}" for n, c in zip(self.names, vec) if abs(c) > 0.05)
             rows.append((f"lambda = {lam:.4g}", f"{'constrained' if ok else 'UNDETERMINED'} along {direction}"))
         rows.append(("undetermined axes", ", ".join(self.undetermined_axes) or "none"))
+        rotations = [n for n in self.undetermined_parameters if n.startswith("r")]
+        if rotations:
+            rows.append(("undetermined rotations", ", ".join(rotations)))
         return "Degeneracy report", [("", rows)]
 
 
-def degeneracy_report(N, names, rel_threshold: float = 1e-2, translation_slice=slice(None)) -> Degeneracy:
+def degeneracy_report(
+    N, names, rel_threshold: float = 1e-2, translation_slice=slice(None), share_threshold: float = 0.5
+) -> Degeneracy:
     """Eigen-analysis of a normal matrix N (p x p, symmetric).
 
     Parameters
@@ -77,15 +96,24 @@ def degeneracy_report(N, names, rel_threshold: float = 1e-2, translation_slice=s
         called undetermined.
     translation_slice : slice
         Which parameters are the translation (tx, ty, tz) for the per-axis verdict.
+    share_threshold : float
+        A parameter whose squared components in the unconstrained eigen-directions
+        sum to at least this is undetermined. ICP uses 0.05, the share above which
+        it holds a parameter fixed, so that the report names every held parameter
+        (two weak directions mixing rz with X and Y make both X and Y undetermined,
+        even if neither has half of its weight in them).
     """
     N = np.asarray(N, dtype=np.float64)
     lam, vecs = np.linalg.eigh(0.5 * (N + N.T))
     top = lam[-1] if lam[-1] > 0 else 1.0
     constrained = lam >= rel_threshold * top
-    loose = vecs[:, ~constrained][translation_slice]  # translation part of weak directions
-    share = (loose**2).sum(axis=1) if loose.size else np.zeros(3)
-    axis_determined = share < 0.5
-    return Degeneracy(lam, vecs, constrained, axis_determined, float(rel_threshold), tuple(names))
+    loose = vecs[:, ~constrained]  # weak directions in the columns
+    share = (loose**2).sum(axis=1) if loose.size else np.zeros(len(lam))
+    determined = share < share_threshold
+    axis_determined = determined[translation_slice].copy()
+    return Degeneracy(
+        lam, vecs, constrained, axis_determined, float(rel_threshold), tuple(names), determined, float(share_threshold)
+    )
 
 
 @dataclass(frozen=True, eq=False, repr=False)
