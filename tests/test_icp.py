@@ -193,6 +193,7 @@ def _classified(rng):
     tgt = epoch(8000, rng)
     base, layer = epoch(8000, rng), patch(2500, rng, (0, -12), 6, 0.3, sigma=0.05)  # grown low vegetation
     cls = np.r_[np.full(len(base), 2), np.full(len(layer), 3)]
+    tgt = PointCloud(tgt, {"classification": np.full(len(tgt), 2)})  # the class rule needs classes on both sides
     return PointCloud(np.vstack([base, layer]) - SHIFT, {"classification": cls}), tgt
 
 

@@ -88,6 +88,19 @@ def test_class_rule_on_both_sides():
     assert corr.accepted.sum() == pytest.approx(3000 * 0.75 * 0.75, rel=0.1)
 
 
+@pytest.mark.parametrize("side", ["source", "target"])
+@pytest.mark.parametrize("plain", [True, False])
+def test_class_rule_without_classification_raises(side, plain):
+    # the rule used to be skipped silently on a cloud without classes: all its points passed
+    rng = np.random.default_rng(5)
+    xyz = {"source": plane(500, rng), "target": plane(500, rng)}
+    clouds = {k: PointCloud(v, {"classification": np.full(len(v), 2)}) for k, v in xyz.items()}
+    clouds[side] = xyz[side] if plain else PointCloud(xyz[side], {"intensity": np.ones(len(xyz[side]))})
+    with pytest.raises(LabkitError, match=f"the {side} cloud is a (plain array|PointCloud without)"):
+        match(clouds["source"], clouds["target"], classes=(2,))
+    assert match(clouds["source"], clouds["target"]).n_accepted > 0  # fine without the class rule
+
+
 def test_noise_rule_and_noise_weights():
     rng = np.random.default_rng(6)
     tgt = plane(6000, rng, sigma=0.01)

@@ -294,6 +294,16 @@ def _classes_of(cloud, n):
     return None
 
 
+def _require_classes(cloud, name):
+    """The class rule needs a classification on both clouds; without one it would silently do nothing."""
+    if _classes_of(cloud, 0) is None:
+        got = "a PointCloud without a 'classification' attribute" if hasattr(cloud, "attributes") else "a plain array"
+        raise LabkitError(
+            f"classes= needs the class of every point, but the {name} cloud is {got}; pass a PointCloud "
+            f"with a 'classification' attribute (e.g. from labkit.io.read_cloud) or leave classes=None"
+        )
+
+
 def _class_sigma(cls, class_sigma):
     """A priori standard deviation per point from its class (NaN where the class is not listed)."""
     out = np.full(len(cls), np.nan)
@@ -342,7 +352,7 @@ class _Matcher:
         d[live] = self.target[j] - p[live]
         nt[live], noise_t[live] = self.geometry.at(j, need_noise=opt["need_noise"])
         # (4) gates on the target point: class, noise, normal angle
-        if opt["classes"] is not None and self.target_class is not None:
+        if opt["classes"] is not None:  # prepare() made sure the target has classes
             bad = ~np.isin(self.target_class[j], opt["classes"])
             rule[live[bad & (rule[live] == 0)]] = _CODE["class"]
         if opt["max_noise"] is not None:
@@ -458,11 +468,14 @@ def prepare(
         k=int(k),
     )
     # (2) exclusions on the source side and a priori sigma per source point
+    src_cls, tgt_cls = _classes_of(source, len(src)), _classes_of(target, len(tgt))
+    if classes is not None:
+        _require_classes(source, "source")
+        _require_classes(target, "target")
     src_normals, src_noise = (None, None) if src_geo is None else src_geo.at(idx, need_noise=True)
-    rule, sigma = _source_rules(_classes_of(source, len(src)), idx, src_noise, options)
+    rule, sigma = _source_rules(src_cls, idx, src_noise, options)
     return _Matcher(
-        src_l[idx], idx, src_normals, sigma, rule, tgt_l, tree, tgt_geo,
-        _classes_of(target, len(tgt)), options, origin, len(src),
+        src_l[idx], idx, src_normals, sigma, rule, tgt_l, tree, tgt_geo, tgt_cls, options, origin, len(src),
     )  # fmt: skip
 
 
@@ -536,6 +549,7 @@ def match(
         Gate on the angle between the normals (orientation-free); None: no gate.
     classes : sequence of int, optional
         Allowed ASPRS classes (e.g. (2, 6, 11)); others are rejected by rule 'class'.
+        Both clouds need a ``classification`` attribute (else :class:`LabkitError`).
     class_sigma : dict int -> float, optional
         A priori standard deviation per class in metres (roof precise, vegetation not);
         classes not listed get ``default_sigma`` (default 0: only their local noise counts).
