@@ -564,18 +564,24 @@ def _orthogonal_fit(P, x, steps=3):
         return None
     P = P - x[:3]  # work relative to the current centre (UTM-safe)
     shift, x = x[:3].copy(), np.array([0.0, 0.0, 0.0, x[3]])
+    n = len(P)
     for _ in range(steps):
         diff = P - x[:3]
         dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
         if np.any(dist == 0):
             return None
-        J = np.column_stack([-diff / dist[:, None], -np.ones(len(P))])  # d d_i / d x
+        # Jacobian rows J_i = -[u_i, 1] (u_i the unit radial vector); J^T J and J^T d
+        # in blocks, without forming the n x 4 matrix J
+        u = diff / dist[:, None]
         d = dist - x[3]
-        JtJ = J.T @ J
+        su = u.sum(axis=0)
+        JtJ = np.empty((4, 4))
+        JtJ[:3, :3], JtJ[:3, 3], JtJ[3, :3], JtJ[3, 3] = u.T @ u, su, su, n
+        Jtd = -np.append(u.T @ d, d.sum())
         eig = np.linalg.eigvalsh(JtJ)
         if eig[0] <= 1e-12 * eig[-1]:
             return None
-        x = x + np.linalg.solve(JtJ, -(J.T @ d))
+        x = x + np.linalg.solve(JtJ, -Jtd)
     x[:3] += shift
     return x if np.all(np.isfinite(x)) and x[3] > 0 else None
 
