@@ -252,9 +252,11 @@ def local_pca(
     lam, vec = np.empty((n, 3)), np.empty((n, 3, 3))
     cen, counts = np.empty((n, 3)), np.empty(n, dtype=np.intp)
 
+    cols = local.T.copy()  # coordinate columns: contiguous gathers (see _covariances)
+
     def work(rows, per_scale, _):
         seg_counts, flat = per_scale[0]
-        c, C = _covariances(local, seg_counts, flat)
+        c, C = _covariances(local, seg_counts, flat, cols)
         lam[rows], vec[rows] = _sorted_eigh(C)
         cen[rows], counts[rows] = c, seg_counts
 
@@ -450,10 +452,11 @@ def multiscale_features(
     lam_all = np.empty((n, s, 3))
     vec, cen, counts = np.empty((n, 3, 3)), np.empty((n, 3)), np.empty(n, dtype=np.intp)
     best = np.empty(n, dtype=np.intp)
+    cols = local.T.copy()
 
     def work(rows, per_scale, _):
         # per scale: eigenvalues; keep the eigenvectors of the least-entropy scale
-        results = [(_covariances(local, c, f), c) for c, f in per_scale]
+        results = [(_covariances(local, c, f, cols), c) for c, f in per_scale]
         eig = [_sorted_eigh(C) for (_, C), _ in results]
         lam_all[rows] = np.stack([lam for lam, _ in eig], axis=1)
         h = eigen_features(lam_all[rows]).eigenentropy
@@ -745,10 +748,29 @@ def _query(tree, q, scales, workers):
     return out
 
 
-def _covariances(local, counts, flat):
-    """Centroids (c, 3) (eq. 1) and covariances (c, 3, 3) (eq. 2) of one chunk of neighbourhoods."""
+def _covariances(local, counts, flat, cols=None):
+    """Centroids (c, 3) (eq. 1) and covariances (c, 3, 3) (eq. 2) of one chunk of neighbourhoods.
+
+    ``cols`` = ``local.T`` as a contiguous (3, n) array. For kNN the coordinates are then
+    gathered per axis into contiguous (c, k) blocks and the six distinct products summed
+    along k: measured 4-5x faster than a batched (3 x k) @ (k x 3) matmul on (c, k, 3).
+    """
     if flat.ndim == 2:
-        return _weighted_covariances(local[flat], None)  # kNN: (c, k, 3), only one chunk at a time
+        if cols is None:
+            return _weighted_covariances(local[flat], None)  # (c, k, 3), only one chunk at a time
+        k = flat.shape[1]
+        cen = np.empty((len(flat), 3))
+        D = []
+        for a in range(3):
+            g = cols[a][flat]  # (c, k)
+            cen[:, a] = g.mean(axis=1)  # (eq. 1)
+            g -= cen[:, a, None]
+            D.append(g)
+        C = np.empty((len(flat), 3, 3))
+        for a in range(3):
+            for b in range(a, 3):
+                C[:, a, b] = C[:, b, a] = np.einsum("ck,ck->c", D[a], D[b]) / k  # (eq. 2)
+        return cen, C
     # ragged radius neighbourhoods: segment sums with bincount
     seg = np.repeat(np.arange(len(counts)), counts)
     m = np.maximum(counts, 1)
