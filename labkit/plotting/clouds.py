@@ -13,7 +13,7 @@ import numpy as np
 
 from ..cloud import PointCloud
 from ..errors import LabkitError
-from ._style import CMAP_SEQUENTIAL, POINT_SIZE, new_plotter
+from ._style import CMAP_SEQUENTIAL, POINT_SIZE, new_plotter, scalar_bar
 
 # ASPRS LAS 1.4 standard classes: name and display colour (close to common viewer palettes)
 ASPRS_CLASSES = {
@@ -126,7 +126,7 @@ def plot_cloud_height(cloud: PointCloud, *, plotter=None, values=None, title: st
     if clim is None:
         clim = tuple(np.percentile(vals[np.isfinite(vals)], [1, 99]))
     plotter.add_mesh(mesh, scalars=title, cmap=cmap, clim=clim, point_size=point_size,
-                     render_points_as_spheres=True, scalar_bar_args={"title": title})
+                     render_points_as_spheres=True, scalar_bar_args=scalar_bar(title))
     plotter.add_axes()
     return plotter
 

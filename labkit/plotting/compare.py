@@ -10,7 +10,7 @@ import numpy as np
 from .._checks import as_points
 from .._frame import local_origin
 from ..errors import LabkitError
-from ._style import CMAP_DIVERGING, CMAP_SEQUENTIAL, COLORS, POINT_SIZE, new_plotter
+from ._style import CMAP_DIVERGING, CMAP_SEQUENTIAL, COLORS, POINT_SIZE, new_plotter, scalar_bar
 
 ASPRS_NAMES = {0: "never classified", 1: "unclassified", 2: "ground", 3: "low vegetation", 4: "medium vegetation",
                5: "high vegetation", 6: "building", 7: "low point", 9: "water", 11: "road surface", 17: "bridge"}
@@ -48,7 +48,7 @@ def plot_distance_cloud(points, distances, *, plotter=None, clim=None, title="di
     poly[title] = d
     clim = symmetric_limits(d) if clim is None else clim
     plotter.add_mesh(poly, scalars=title, cmap=cmap, clim=clim, point_size=point_size,
-                     render_points_as_spheres=False, scalar_bar_args={"title": title, "n_labels": 5, "fmt": "%.3f"})
+                     render_points_as_spheres=False, scalar_bar_args=scalar_bar(title, n_labels=5, fmt="%.3f"))
     if view == "iso":
         plotter.view_isometric()
     elif view == "top":

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._style import CMAP_SEQUENTIAL, COLORS, new_plotter
+from ._style import CMAP_SEQUENTIAL, COLORS, new_plotter, scalar_bar
 
 PLANES = {"XY": (0, 1, 2), "XZ": (0, 2, 1), "YZ": (1, 2, 0)}
 
@@ -127,7 +127,8 @@ def plot_consensus_volume(cube, quantile=0.999, *, truth=None, plotter=None):
                         origin=[a[0] - cube.step / 2 for a in cube.axes])
     grid.cell_data["consensus"] = cube.counts.ravel(order="F").astype(float)
     top = grid.threshold(float(np.quantile(cube.counts, quantile)), scalars="consensus")
-    plotter.add_mesh(top, scalars="consensus", cmap=CMAP_SEQUENTIAL, show_edges=False)
+    plotter.add_mesh(top, scalars="consensus", cmap=CMAP_SEQUENTIAL, show_edges=False,
+                     scalar_bar_args=scalar_bar("consensus"))
     plotter.add_mesh(grid.outline(), color=COLORS["reference"])
     if truth is not None:
         plotter.add_mesh(pv.Sphere(radius=cube.step, center=truth), color=COLORS["outlier"])

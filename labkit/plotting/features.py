@@ -9,7 +9,7 @@ import numpy as np
 
 from .._checks import as_points, as_rng
 from .._frame import local_origin
-from ._style import CMAP_SEQUENTIAL, COLORS, POINT_SIZE, new_plotter
+from ._style import CMAP_SEQUENTIAL, COLORS, POINT_SIZE, new_plotter, scalar_bar
 from .compare import ASPRS_NAMES
 
 FEATURE_LABELS = {
@@ -59,7 +59,7 @@ def plot_normals(points, normals, *, scalars=None, scalar_name="", subsample=150
     if scalars is not None:
         cloud[scalar_name or "value"] = np.asarray(scalars, dtype=np.float64)
         plotter.add_mesh(cloud, scalars=scalar_name or "value", cmap=cmap, clim=clim, point_size=POINT_SIZE,
-                         render_points_as_spheres=True, scalar_bar_args={"title": scalar_name or "value"})
+                         render_points_as_spheres=True, scalar_bar_args=scalar_bar(scalar_name or "value"))
     else:
         plotter.add_mesh(cloud, color=COLORS["reference"], point_size=POINT_SIZE, render_points_as_spheres=True)
     ok = np.flatnonzero(np.isfinite(nrm).all(axis=1))
@@ -87,7 +87,8 @@ def plot_local_noise(points, noise, *, clim=None, plotter=None):
     cloud = pv.PolyData(xyz)
     cloud["sigma_n [m]"] = values
     plotter.add_mesh(cloud, scalars="sigma_n [m]", cmap="magma", clim=clim, point_size=POINT_SIZE,
-                     render_points_as_spheres=True, nan_color=COLORS["rejected"])
+                     render_points_as_spheres=True, nan_color=COLORS["rejected"],
+                     scalar_bar_args=scalar_bar("sigma_n [m]"))
     plotter.add_axes()
     return plotter
 

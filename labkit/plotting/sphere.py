@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
-from ._style import CMAP_DIVERGING, COLORS, POINT_SIZE, new_plotter
+from ._style import CMAP_DIVERGING, COLORS, POINT_SIZE, new_plotter, scalar_bar
 
 
 def _axes(ax, ncols=1, figsize=None):
@@ -126,7 +126,8 @@ def plot_sphere_residuals(points, fit, plotter=None, clim_mm=None, show_sphere=T
     cloud["residual [mm]"] = fit.normal_residuals * 1e3
     lim = clim_mm if clim_mm is not None else 3 * np.std(fit.normal_residuals) * 1e3
     plotter.add_mesh(cloud, scalars="residual [mm]", cmap=CMAP_DIVERGING, clim=[-lim, lim],
-                     point_size=POINT_SIZE + 2, render_points_as_spheres=True)
+                     point_size=POINT_SIZE + 2, render_points_as_spheres=True,
+                     scalar_bar_args=scalar_bar("residual [mm]"))
     if show_sphere:
         sphere = pv.Sphere(radius=fit.radius, center=(0.0, 0.0, 0.0), theta_resolution=60, phi_resolution=60)
         plotter.add_mesh(sphere, color=COLORS["sphere"], opacity=0.25)
