@@ -129,7 +129,8 @@ class RegistrationResult(ReportMixin):
     origin : ndarray (3,)
         Local origin the rotation refers to: ``p' = R (p - origin) + origin + t``.
     covariance : ndarray (p, p)
-        Covariance of the estimated parameters, sigma0^2 N^-1 of the last adjustment.
+        Covariance of the estimated parameters from the last adjustment (sigma0^2 N^-1 or,
+        for ICP by default, a cluster-robust sandwich; inf for undetermined parameters).
     parameter_names : tuple of str
         Names of the estimated parameters, e.g. ('tx', 'ty', 'tz') or
         ('rx', 'ry', 'rz', 'tx', 'ty', 'tz') (angles in radians).
