@@ -172,13 +172,30 @@ def _consensus_set(t, src_of, D, nrm, R, E):
     return idx[first]
 
 
-def _design(sel, D, nrm, w, src_of):
-    """A, l, p of the translation model: n.t = n.d (plane) or t = d (point), eq. 6.10."""
-    p = w[src_of[sel]]
-    if nrm is None:
-        A = np.tile(np.eye(3), (sel.size, 1))
-        return A, D[sel].reshape(-1), np.repeat(p, 3), 3
-    return nrm[sel], np.einsum("ij,ij->i", nrm[sel], D[sel]), p, 1
+def _local_planes(tgt, tree, x, k):
+    """Plane of the k target points nearest to each x: unit normal, centroid, noise^2 (eq. 6.11).
+
+    The noise is s^2 = k l3 / (k - 3), the spread of the neighbourhood along its normal;
+    it is large on vegetation, edges and ridges, where a plane does not describe the surface.
+    """
+    _, J = tree.query(x, k=k, workers=-1)
+    P = tgt[J]
+    c = P.mean(axis=1)
+    Y = P - c[:, None, :]
+    lam, V = np.linalg.eigh(np.einsum("nki,nkj->nij", Y, Y) / k)
+    return V[:, :, 0], c, lam[:, 0] * k / (k - 3)
+
+
+def _design(members, x, tgt, tree, k, w, src):
+    """A, l, p of the point-to-plane model n.t = n.(c - p) for every member at x = p + t (eq. 6.10, 6.12).
+
+    Weight p = w / var with var = s^2 (1 + 1/k) + s^2: the noise of the plane's centroid plus
+    that of the source point, which lies on a surface as rough as the target's neighbourhood.
+    """
+    n, c, s2 = _local_planes(tgt, tree, x, k)
+    var = np.maximum(s2, 1e-6) * (2.0 + 1.0 / k)  # at least (1 mm)^2 per epoch
+    var = var / np.median(var)  # sigma0 in metres: that of an observation of median noise
+    return n, np.einsum("ij,ij->i", n, c - src[members]), w[members] / var
 
 
 def _adjust(A, l, p, t_ref, box_var):
@@ -195,36 +212,62 @@ def _adjust(A, l, p, t_ref, box_var):
     Qc = (Vc / lc) @ Vc.T
     Vu = V[:, ~deg.constrained]
     cov = sigma0**2 * Qc + box_var * (Vu @ Vu.T)
-    qvv = 1.0 / p - np.einsum("ij,jk,ik->i", A, Qc, A)  # cofactors of the residuals
-    return x, v, sigma0, cov, deg, qvv
+    return x, v, sigma0, cov, deg
 
 
-def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: int = 10):
-    """Least squares on the consensus set with weights and iterative deletion (eq. 6.10)."""
+def _fit_with_deletion(A, l, p, t, t_ref, box_var, k_del, max_rounds=30):
+    """Adjustment with iterative deletion of |v| sqrt(p) > k_del sigma0 (eq. 6.13).
+
+    Start from a robust scale (MAD of the weighted residuals at t), then alternate the
+    adjustment and the test on all observations until the kept set no longer changes.
+    """
+    z = (A @ t - l) * np.sqrt(p)
+    keep = np.abs(z) <= k_del * max(1.4826 * float(np.median(np.abs(z))), 1e-12)
+    for _ in range(max_rounds):
+        if keep.sum() < 3:
+            return None
+        x, v, sigma0, cov, deg = _adjust(A[keep], l[keep], p[keep], t_ref, box_var)
+        new = np.abs(A @ x - l) * np.sqrt(p) <= k_del * sigma0 if sigma0 > 0 else keep
+        if (new == keep).all():
+            break
+        keep = new
+    return x, sigma0, cov, deg, keep
+
+
+def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: int = 20, k: int = 12):
+    """Least squares on the consensus set with weights and iterative deletion (eq. 6.10-6.13).
+
+    The consensus set of the branch-and-bound optimum names the source points that
+    agree (the inliers of maximum consensus). Each of them is then related to the
+    plane of its ``k`` nearest target points at the current translation, weighted by
+    the local noise of that plane, and the translation is adjusted with iterative
+    deletion; association and adjustment alternate until the translation settles.
+    The pairs of the consensus test itself are not used as observations: of all
+    target points within the search radius they are the one whose plane fits best
+    at the branch-and-bound translation, and residuals truncated at eps both pull the
+    estimate towards that translation and make sigma0 far too small (notebook 06).
+    """
     R, E = pb.radius, pb.eps
     box_var = float((2 * ext.max()) ** 2 / 12)  # undetermined directions: uniform over the search box
+    members = np.unique(src_of[_consensus_set(bb.translation, src_of, D, nrm, R, E)])
+    tree = cKDTree(pb.tgt)
+    k = int(min(k, len(pb.tgt)))
     t, records, it, ls_ok = bb.translation.copy(), [], 0, False
-    x, sigma0, cov, deg, n_used = t.copy(), float("nan"), np.full((3, 3), np.nan), None, 0
-    for _ in range(max_outer):
-        sel = _consensus_set(t, src_of, D, nrm, R, E)
-        if sel.size < 3:
+    sigma0, cov, deg, n_used = float("nan"), np.full((3, 3), np.nan), None, 0
+    for _ in range(max_outer if members.size >= 3 else 0):
+        # Associate every member with its local target plane at t, then adjust
+        A, l, p = _design(members, pb.src[members] + t, pb.tgt, tree, k, pb.w, pb.src)
+        fit = _fit_with_deletion(A, l, p, t, bb.translation, box_var, deletion_k)
+        if fit is None:
+            deg = None
             break
-        A, l, p, rows = _design(sel, D, nrm, pb.w, src_of)
-        keep = np.ones(sel.size, bool)
-        while True:  # iterative deletion of the worst observations
-            rk = np.repeat(keep, rows)
-            x, v, sigma0, cov, deg, qvv = _adjust(A[rk], l[rk], p[rk], bb.translation, box_var)
-            z = np.abs(v) / (sigma0 * np.sqrt(np.clip(qvv, 1e-12, None))) if sigma0 > 0 else np.zeros_like(v)
-            worst = z.reshape(-1, rows).max(axis=1) > deletion_k
-            if not worst.any() or keep.sum() - worst.sum() < 3:
-                break
-            keep[np.flatnonzero(keep)[worst]] = False
+        x, sigma0, cov, deg, keep = fit
         it += 1
         n_used = int(keep.sum())
-        records.append(AdjustmentRecord(it, x.copy(), sigma0, n_used, int(sel.size - n_used)))
+        records.append(AdjustmentRecord(it, x.copy(), sigma0, n_used, int(members.size - n_used)))
         moved = np.linalg.norm(x - t)
         t = x
-        if moved < 1e-5:
+        if moved < 1e-6:
             ls_ok = True
             break
     undetermined = deg.undetermined_axes if deg is not None else NAMES

@@ -544,4 +544,4 @@ def max_consensus(
     # Branch and bound over continuous translations
     bb = branch_and_bound(ptr, src_of, D, nrm, pb, c, ext, tol, max_boxes, init_step, gap_tol, use_numba)
     # Least squares with weights and iterative deletion on the consensus set
-    return refine(bb, src_of, D, nrm, pb, deletion_k, ext, time.perf_counter() - t0, t0)
+    return refine(bb, src_of, D, nrm, pb, deletion_k, ext, time.perf_counter() - t0, t0, k=max(4, int(normal_k)))
