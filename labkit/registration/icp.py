@@ -81,6 +81,7 @@ class _Adjustment:
     N: np.ndarray  # normal matrix in scaled parameters
     Qxx: np.ndarray  # cofactor matrix of the unscaled parameters (inf where undetermined)
     block_cov: np.ndarray | None  # cluster-robust covariance (unscaled), covariance="block"
+    held_cov: np.ndarray  # effect of the held rotations' prior on the other parameters (unscaled)
     sigma0: float
     rms: float
     redundancy: int
@@ -103,6 +104,7 @@ def icp(
     robust_start=0.01,
     initial=None,
     rel_threshold=1e-2,
+    held_rotation_std_deg=0.02,
     covariance="block",
     block_size=2.0,
     min_correspondences=20,
@@ -148,6 +150,11 @@ def icp(
         Initial transformation in the caller's frame.
     rel_threshold : float
         Eigenvalues of N below ``rel_threshold`` times the largest mark undetermined directions.
+    held_rotation_std_deg : float
+        Prior standard deviation (degrees) of a rotation that ICP holds at its initial value
+        (``dof='rigid'``, weak direction). The translation is then conditional on that value; this
+        prior's effect on the other parameters, B sigma^2 B^T with B = N_ff^-1 N_fh, is added to
+        their stated covariance (eq. 5.15). 0 states the conditional covariance alone.
     covariance : {'formal', 'block'}
         ``'formal'``: sigma0^2 N^-1 of the last adjustment (eq. 5.11). ``'block'``: a
         cluster-robust sandwich J^-1 M J^-1 (eq. 5.13) over square cells of the correspondences:
@@ -211,6 +218,7 @@ def icp(
     max_iterations = int(positive(max_iterations, "max_iterations"))
     tol = positive(tol, "tol")
     robust_start = positive(robust_start, "robust_start")
+    held_rotation_std = np.radians(_non_negative(held_rotation_std_deg, "held_rotation_std_deg"))
     kval = None if reject_sigma is None else positive(reject_sigma, "reject_sigma")
     # 1. shared local origin, initial transformation in the local frame
     origin = local_origin(as_points(target, min_points=3, name="target"))
@@ -226,6 +234,7 @@ def icp(
     opts = dict(
         origin=origin, dof=dof, metric=metric, robust=robust, k=kval, L=L, rel=rel_threshold,
         min_n=min_correspondences, covariance=covariance, block_size=block_size,
+        held_rotation_std=held_rotation_std,
     )  # fmt: skip
     plain = dict(opts, robust=None, k=None)  # warm-up stage without robust measures
     history, converged, adj, step, robust_stage = [], False, None, np.inf, False
@@ -396,7 +405,9 @@ def _adjust(corr, R, t, opts):
     N = np.einsum("mru,m,mrv->uv", A, P, A)  # N = A^T P A  (eq. 5.7)
     nvec = np.einsum("mru,m,mr->u", A, P, l)  # n = A^T P l
     names = NAMES[opts["dof"]]
-    deg = degeneracy_report(N, names, opts["rel"], slice(len(names) - 3, None), share_threshold=HELD_SHARE)
+    deg = degeneracy_report(
+        N, names, opts["rel"], slice(len(names) - 3, None), share_threshold=HELD_SHARE, hold_first=names[:-3]
+    )  # rotations are given up before translations
     dx_s, Q_s = _solve(N, nvec, deg)
     v = np.einsum("mru,u->mr", A, dx_s) - l  # residuals after the step
     vPv = float(np.einsum("mr,m,mr->", v, P, v))
@@ -407,13 +418,14 @@ def _adjust(corr, R, t, opts):
     S[: len(names) - 3] = opts["L"]  # rotation columns were divided by L
     dx = dx_s / S
     Qxx = Q_s / np.outer(S, S)
+    held_cov = _held_rotation_covariance(N, deg, opts) / np.outer(S, S)
     block = None
     if opts["covariance"] == "block":
         xy = corr.source_xyz[ok_rows, :2] - opts["origin"][:2]
         free = np.isinf(np.diag(Q_s))
         block = _block_covariance(A_all, l_all, w, u, centred, keep, factor, dx_s, free, {**opts, "xy": xy})
         block = block / np.outer(S, S)
-    return _Adjustment(dx, N, Qxx, block, float(sigma0), rms, r, deg, corr, float(scale), int((~keep).sum()))
+    return _Adjustment(dx, N, Qxx, block, held_cov, float(sigma0), rms, r, deg, corr, float(scale), int((~keep).sum()))
 
 
 def _solve(N, nvec, deg):
@@ -441,6 +453,33 @@ def _solve(N, nvec, deg):
         Q[np.ix_(fixed, fixed)] = (V / lam) @ V.T
     Q[free, free] = np.inf
     return dx, Q
+
+
+def _held_rotation_covariance(N, deg, opts):
+    """B Sigma_h B^T in the scaled parameters: what the held rotations' prior does to the others.
+
+    Holding h at its prior value h0 makes the free parameters conditional on it: their
+    solution moves by -B (h - h0) with B = N_ff^-1 N_fh (eq. 5.15), so a prior standard deviation
+    sigma_h of the rotation adds B sigma_h^2 B^T to their covariance. The scaled rotation is L omega.
+    """
+    p = len(N)
+    out = np.zeros((p, p))
+    if deg.parameter_determined is None or opts["held_rotation_std"] == 0:
+        return out
+    free = deg.parameter_determined.copy()
+    held_rot = ~free & np.array([n.startswith("r") for n in deg.names])
+    if not held_rot.any() or not free.any():
+        return out
+    B = np.linalg.lstsq(N[np.ix_(free, free)], N[np.ix_(free, held_rot)], rcond=None)[0]
+    s = opts["held_rotation_std"] * opts["L"]
+    out[np.ix_(free, free)] = s**2 * B @ B.T
+    return out
+
+
+def _non_negative(value, name):
+    if not np.isfinite(value) or value < 0:
+        raise LabkitError(f"{name} must be a finite number >= 0, got {value!r}")
+    return float(value)
 
 
 def _check_count(corr, opts):
@@ -493,6 +532,7 @@ def _result(R, t, origin, adj, history, converged, matcher, opts, runtime):
     cov = adj.sigma0**2 * adj.Qxx  # (eq. 5.11)
     if adj.block_cov is not None and np.isfinite(np.diag(adj.block_cov)).any():
         cov = adj.block_cov  # (eq. 5.13)
+    cov = cov + adj.held_cov  # prior of held rotations (eq. 5.15); inf stays inf
     undetermined = deg.undetermined_axes
     msg = "converged" if converged else f"not converged after {len(history)} iterations (last step {history[-1].step:.2e} m)"
     if undetermined:
@@ -502,7 +542,15 @@ def _result(R, t, origin, adj, history, converged, matcher, opts, runtime):
         )
     rotations = [n for n in deg.undetermined_parameters if n.startswith("r")]
     if rotations:
-        msg += f"; rotations {', '.join(rotations)} undetermined (held at their initial value, see the degeneracy report)"
+        msg += (
+            f"; rotations {', '.join(rotations)} undetermined (held at their initial value, see the degeneracy "
+            "report): the other parameters are conditional on that value"
+            + (
+                f", their covariance includes a prior std of {np.degrees(opts['held_rotation_std']):g} deg for it"
+                if opts["held_rotation_std"] > 0
+                else " and so is their covariance (held_rotation_std_deg=0)"
+            )
+        )
     elif not deg.well_posed:
         msg += "; some directions are weak (see the degeneracy report)"
     n_used = adj.corr.n_accepted

@@ -36,8 +36,9 @@ class Degeneracy(ReportMixin):
         Parameter names in the order of N.
     parameter_determined : ndarray of bool (p,)
         Per parameter: False when its squared share summed over the unconstrained
-        eigen-directions reaches ``share_threshold`` (ICP holds exactly these
-        parameters fixed and reports their standard deviation as inf).
+        eigen-directions reaches ``share_threshold``, or, with ``hold_first``, after the
+        rounds described in :func:`degeneracy_report` (ICP holds exactly these parameters
+        fixed and reports their standard deviation as inf).
     share_threshold : float
         The share used for ``parameter_determined``.
     """
@@ -81,7 +82,12 @@ class Degeneracy(ReportMixin):
 
 
 def degeneracy_report(
-    N, names, rel_threshold: float = 1e-2, translation_slice=slice(None), share_threshold: float = 0.5
+    N,
+    names,
+    rel_threshold: float = 1e-2,
+    translation_slice=slice(None),
+    share_threshold: float = 0.5,
+    hold_first=(),
 ) -> Degeneracy:
     """Eigen-analysis of a normal matrix N (p x p, symmetric).
 
@@ -102,14 +108,23 @@ def degeneracy_report(
         it holds a parameter fixed, so that the report names every held parameter
         (two weak directions mixing rz with X and Y make both X and Y undetermined,
         even if neither has half of its weight in them).
+    hold_first : sequence of str
+        Parameters to give up first when a weak direction involves them (ICP: the rotations).
+        Empty (the default): every parameter with a share in a weak direction is undetermined.
+        Otherwise, in rounds: the ``hold_first`` parameters with a share in the weak directions
+        are held, the normal matrix of the remaining parameters is tested again (eigenvalues
+        against the same level ``rel_threshold * max eigenvalue of N``), and only parameters
+        that are still weak in it are held as well. A weak direction mixing rz with X and Y
+        then costs rz, not the two translations: the rotation's initial value (none, or the
+        given one) is the plausible prior for epochs, a shift of zero is not.
     """
     N = np.asarray(N, dtype=np.float64)
     lam, vecs = np.linalg.eigh(0.5 * (N + N.T))
     top = lam[-1] if lam[-1] > 0 else 1.0
     constrained = lam >= rel_threshold * top
-    loose = vecs[:, ~constrained]  # weak directions in the columns
-    share = (loose**2).sum(axis=1) if loose.size else np.zeros(len(lam))
-    determined = share < share_threshold
+    determined = _weak_share(vecs, constrained) < share_threshold
+    if hold_first and not constrained.all():
+        determined = _hold_in_order(N, names, rel_threshold * top, share_threshold, hold_first)
     axis_determined = determined[translation_slice].copy()
     return Degeneracy(
         lam, vecs, constrained, axis_determined, float(rel_threshold), tuple(names), determined, float(share_threshold)
@@ -221,3 +236,28 @@ class RegistrationResult(ReportMixin):
         if self.degeneracy is not None:
             sections += self.degeneracy._report()[1]
         return f"Registration result ({self.method or 'unknown method'})", sections
+
+
+def _weak_share(vecs, constrained):
+    """Per parameter: squared components summed over the unconstrained eigen-directions."""
+    loose = vecs[:, ~constrained]  # weak directions in the columns
+    return (loose**2).sum(axis=1) if loose.size else np.zeros(len(vecs))
+
+
+def _hold_in_order(N, names, level, share_threshold, hold_first):
+    """Which parameters are determined when the ``hold_first`` ones are given up first (rounds)."""
+    first = np.isin(np.asarray(names), list(hold_first))
+    free = np.ones(len(N), dtype=bool)
+    while free.any():
+        lam, vecs = np.linalg.eigh(0.5 * (N + N.T)[np.ix_(free, free)])
+        weak = lam < level
+        if not weak.any():
+            break
+        share = np.zeros(len(N))
+        share[free] = _weak_share(vecs, ~weak)
+        candidates = free & (share >= share_threshold)
+        if not candidates.any():  # spread thinly: give up the parameter with the largest share
+            candidates = free & (share == share[free].max())
+        preferred = candidates & first
+        free &= ~(preferred if preferred.any() else candidates)
+    return free
