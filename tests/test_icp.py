@@ -455,3 +455,92 @@ def test_degeneracy_report_gives_up_rotations_first():
     flat = np.diag([1.0, 1.0, 1e-6, 1e-6, 1e-6, 1.0])
     rep = degeneracy_report(flat, names, 1e-2, slice(3, None), share_threshold=0.05, hold_first=names[:3])
     assert rep.undetermined_parameters == ("rz", "tx", "ty") and rep.undetermined_axes == ("X", "Y")
+
+
+# ----------------------------------------------------------------------------- model test: do the groups agree?
+
+
+def _error_at_origin(res, pair):
+    """Error of the result at its origin (the point its translation and covariance refer to)."""
+    o = res.origin[None]
+    return res.apply(o)[0] - apply_transform(pair.truth, o)[0]
+
+
+@pytest.mark.parametrize("region, dof, seed", [("xy", "translation", 1), ("trees_felled", "rigid", 2)])
+def test_changed_vegetation_is_flagged_and_not_a_confident_wrong_shift(region, dof, seed):
+    # xy: the low vegetation grew 0.2 m and pulls plain ICP down by about 7 cm (7-8 stated sigma
+    # before the test); trees_felled, rigid: regrowth on old ground tilts the result (Z 0.26 m off at
+    # the origin, 10-12 stated sigma)
+    pair = als_epochs(region, size=(30.0, 30.0), density=10.0, rng=seed)
+    res = icp(pair.source, pair.target, dof=dof)
+    err = _error_at_origin(res, pair)
+    assert np.abs(err).max() > 0.05  # the default is still pulled off: the test must say so
+    assert not res.consistent and not res.consistency.agree
+    assert res.consistency.grouping == "class" and res.consistency.worst == "vegetation"
+    assert "INCONSISTENT" in res.message and "classes=(2, 6, 11)" in res.message
+    assert "INCONSISTENT" in res.summary()
+    assert np.all(np.abs(err) < 3 * res.translation_std), (err, res.translation_std)
+    # the same shift without the test would claim millimetres
+    bare = icp(pair.source, pair.target, dof=dof, consistency_alpha=None)
+    np.testing.assert_allclose(bare.translation, res.translation, atol=1e-12)
+    assert bare.consistency is None and bare.consistent
+    assert np.any(np.abs(err) > 5 * bare.translation_std)
+    # on the stable classes the groups agree and the shift is right
+    good = icp(pair.source, pair.target, dof=dof, classes=(2, 6, 11))
+    assert good.consistent and (good.consistency is None or good.consistency.agree)  # xy: buildings only
+    assert np.all(np.abs(_error_at_origin(good, pair)) < np.maximum(4 * good.translation_std, 0.003))
+
+
+def test_without_classes_the_local_noise_groups_flag_grown_vegetation():
+    pair = als_epochs("xy", size=(30.0, 30.0), density=10.0, rng=1)
+    res = icp(pair.source.xyz, pair.target.xyz)
+    assert res.consistency.grouping == "local noise" and not res.consistent
+    assert "INCONSISTENT" in res.message and "classes=(2, 6, 11)" not in res.message
+    err = res.translation - pair.translation
+    assert abs(err[2]) > 0.05 and np.all(np.abs(err) < 3 * res.translation_std)
+
+
+def test_consistency_keeps_a_well_behaved_region_unchanged():
+    # village: the crowns grow and sway (the vegetation group differs), but it hardly moves the shift
+    pair = als_epochs("xyz", size=(30.0, 30.0), density=10.0, rng=1)
+    res = icp(pair.source, pair.target)
+    bare = icp(pair.source, pair.target, consistency_alpha=None)
+    assert res.consistent and "INCONSISTENT" not in res.message
+    assert np.all(res.translation_std <= np.sqrt(2) * bare.translation_std)
+    assert recovered(res, pair.translation)
+    flat = icp(pair.source.xyz, pair.target.xyz)  # local-noise groups agree as well
+    assert flat.consistency.agree and recovered(flat, pair.translation)
+
+
+def test_group_consistency_statistic_is_chi_square_and_has_power():
+    # an independent route: a linear model with two groups, one of which may carry an offset
+    from scipy.stats import kstest
+
+    from labkit.registration.result import group_consistency
+
+    rng = np.random.default_rng(3)
+    m = 400
+    A = rng.normal(size=(m, 1, 3))
+    labels = np.repeat([0, 1], m // 2)
+    cells = np.arange(m)  # independent rows: every row its own cell
+    p_values, T = [], []
+    for _ in range(300):
+        l = rng.normal(size=(m, 1))
+        c = group_consistency(A, l, np.ones(m), labels, ["a", "b"], cells, translation=[0, 1, 2], alpha=0.01)
+        p_values.append(c.p_value)
+        T.append(c.statistic)
+    assert c.dof == 3
+    assert kstest(p_values, "uniform").pvalue > 0.01  # uniform p-values under H0
+    assert 0.005 < np.mean(np.array(p_values) < 0.05) < 0.1
+    # an offset of 1 in the first parameter of group b: rejected, and b's offset is reported
+    l = rng.normal(size=(m, 1)) + (labels == 1)[:, None] * 1.0 * A[:, :, 0]
+    c = group_consistency(A, l, np.ones(m), labels, ["a", "b"], cells, translation=[0, 1, 2], alpha=0.01)
+    assert not c.agree and c.p_value < 1e-6
+    assert abs((c.offset[1, 0] - c.offset[0, 0]) - 1.0) < 4 * np.hypot(*c.offset_std[:, 0])
+    assert np.all(np.diag(c.between) > 0)
+
+
+def test_consistency_alpha_is_checked():
+    pair = als_epochs("xyz", size=(20.0, 20.0), density=5.0, rng=0)
+    with pytest.raises(LabkitError, match="consistency_alpha"):
+        icp(pair.source, pair.target, consistency_alpha=1.5)

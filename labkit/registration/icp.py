@@ -10,7 +10,7 @@ transformation. Equation numbers refer to notebook 05.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
@@ -22,13 +22,18 @@ from .._report import ReportMixin, fmt
 from ..errors import EmptyRegionError, LabkitError
 from ..transforms import angles_from_rotation, check_transform
 from .matching import Correspondences, prepare
-from .result import RegistrationResult, degeneracy_report
+from .result import RegistrationResult, degeneracy_report, group_consistency
 
 NAMES = {"translation": ("tx", "ty", "tz"), "rigid": ("rx", "ry", "rz", "tx", "ty", "tz")}
 HUBER_C, TUKEY_C = 1.345, 4.685  # 95 % efficiency under normal errors
 #: A parameter with this squared share in the undetermined eigen-directions is held fixed (and reported).
 HELD_SHARE = 0.05
 MAD_TO_SIGMA = 1.4826  # 1 / Phi^-1(3/4)
+#: Groups of the consistency test by the classes (ASPRS) of a correspondence's two points, in order of
+#: precedence (vegetation at either end makes it 'vegetation'); the rest is 'other'.
+CLASS_GROUPS = (("vegetation", (3, 4, 5)), ("buildings", (6,)), ("ground/road", (2, 11)))
+#: The stable classes suggested when the class groups disagree.
+STABLE = (2, 6, 11)
 
 
 @dataclass(frozen=True, eq=False)
@@ -107,6 +112,7 @@ def icp(
     held_rotation_std_deg=0.02,
     covariance="block",
     block_size=2.0,
+    consistency_alpha=1e-3,
     min_correspondences=20,
     max_distance=1.0,
     max_angle_deg=30.0,
@@ -165,6 +171,14 @@ def icp(
     block_size : float
         Edge of the cells for ``covariance='block'`` in metres (about the diameter of the
         k-neighbourhoods, whose shared points correlate neighbouring correspondences).
+    consistency_alpha : float or None
+        Level of the test whether all groups of the final correspondences support one
+        transformation (eq. 5.16): groups by class (vegetation at either end, buildings,
+        ground/road, other) when both clouds have a classification, else by terciles of the
+        source points' local noise (vegetation is rough), else the four spatial quadrants. When it rejects, the result says so (``consistent`` False, message,
+        summary) and its covariance includes the spread between the groups (a delete-a-group
+        jackknife, eq. 5.17), so that a shift pulled by a changed surface does not look
+        confident. None: no test.
     min_correspondences : int
         Fewer correspondences after rejection raise :class:`EmptyRegionError`.
     max_distance, max_angle_deg, classes, class_sigma, default_sigma, noise_weighting, max_noise, sample, unique, k,
@@ -219,6 +233,8 @@ def icp(
     tol = positive(tol, "tol")
     robust_start = positive(robust_start, "robust_start")
     held_rotation_std = np.radians(_non_negative(held_rotation_std_deg, "held_rotation_std_deg"))
+    if consistency_alpha is not None and not 0 < consistency_alpha < 1:
+        raise LabkitError(f"consistency_alpha must lie in (0, 1) or be None, got {consistency_alpha!r}")
     kval = None if reject_sigma is None else positive(reject_sigma, "reject_sigma")
     # 1. shared local origin, initial transformation in the local frame
     origin = local_origin(as_points(target, min_points=3, name="target"))
@@ -234,7 +250,7 @@ def icp(
     opts = dict(
         origin=origin, dof=dof, metric=metric, robust=robust, k=kval, L=L, rel=rel_threshold,
         min_n=min_correspondences, covariance=covariance, block_size=block_size,
-        held_rotation_std=held_rotation_std,
+        held_rotation_std=held_rotation_std, alpha=consistency_alpha,
     )  # fmt: skip
     plain = dict(opts, robust=None, k=None)  # warm-up stage without robust measures
     history, converged, adj, step, robust_stage = [], False, None, np.inf, False
@@ -553,6 +569,17 @@ def _result(R, t, origin, adj, history, converged, matcher, opts, runtime):
         )
     elif not deg.well_posed:
         msg += "; some directions are weak (see the degeneracy report)"
+    test = None if opts["alpha"] is None else _consistency(adj, matcher, opts)
+    if test is not None and not test.agree:  # the groups' spread enters the stated precision (eq. 5.17)
+        free = deg.parameter_determined
+        S = np.where([n.startswith("r") for n in NAMES[opts["dof"]]], opts["L"], 1.0)[free]
+        before = _translation_std(cov, opts)
+        cov = cov.copy()
+        cov[np.ix_(free, free)] += test.between / np.outer(S, S)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = np.where(np.isfinite(before), _translation_std(cov, opts) / before, 1.0)
+        test = replace(test, std_ratio=ratio)
+        msg += "; " + _disagreement(test, matcher.options["classes"])
     n_used = adj.corr.n_accepted
     return RegistrationResult(
         translation=t.copy(), rotation=R.copy(), origin=origin, covariance=cov,
@@ -560,4 +587,75 @@ def _result(R, t, origin, adj, history, converged, matcher, opts, runtime):
         share_used=n_used / max(len(adj.corr), 1), converged=converged, iterations=len(history),
         degeneracy=deg, method=f"icp ({opts['dof']}, {opts['metric']}, robust={opts['robust']})",
         history=tuple(history), runtime_s=runtime, message=msg, correspondences=adj.corr,
+        consistency=test,
     )  # fmt: skip
+
+
+def _consistency(adj, matcher, opts):
+    """Model test of the final correspondences: one transformation for every group? (eq. 5.16)"""
+    corr = adj.corr
+    ok = corr.accepted
+    A, l, P = _design(corr, None, None, opts)
+    free = adj.degeneracy.parameter_determined
+    A = A[:, :, free]  # held parameters stay out of the test
+    xy = corr.source_xyz[ok, :2] - opts["origin"][:2]
+    cells = np.floor(xy / opts["block_size"]).astype(np.int64)
+    _, cells = np.unique(cells, axis=0, return_inverse=True)
+    if matcher.target_class is not None and matcher.source_class is not None:
+        # a correspondence belongs to the first group that either of its points belongs to: a
+        # source point on regrowth matched to old ground counts as vegetation
+        rows = np.flatnonzero(ok)
+        cls_t = matcher.target_class[corr.target_index[ok]]
+        cls_s = matcher.source_class[rows]
+        labels = np.full(len(rows), len(CLASS_GROUPS))
+        for g, (_, codes) in reversed(list(enumerate(CLASS_GROUPS))):
+            labels[np.isin(cls_t, codes) | np.isin(cls_s, codes)] = g
+        names, grouping = [n for n, _ in CLASS_GROUPS] + ["other"], "class"
+    elif np.ptp(sigma := matcher.source_sigma[np.flatnonzero(ok)]) > 0:
+        # no classes: terciles of the source point's a priori sigma (local noise): vegetation is rough
+        labels = np.searchsorted(np.quantile(sigma, [1 / 3, 2 / 3]), sigma, side="right")
+        names, grouping = ["smooth third", "middle third", "rough third"], "local noise"
+    else:
+        above = (xy > np.median(xy, axis=0)).astype(int)
+        labels = above[:, 0] + 2 * above[:, 1]
+        names, grouping = ["block SW", "block SE", "block NW", "block NE"], "block"
+    names_free = [n for n, f in zip(NAMES[opts["dof"]], free) if f]
+    translation = [names_free.index(n) for n in ("tx", "ty", "tz") if n in names_free]
+    test = group_consistency(
+        A, l, P, labels, names, cells.ravel(), translation=translation, rel_threshold=opts["rel"],
+        alpha=opts["alpha"], grouping=grouping,
+    )  # fmt: skip
+    if test is not None and len(translation) < 3:  # report offsets on all three axes (NaN where held)
+        full = np.full((len(test.groups), 3), np.nan)
+        axes = [k for k, n in enumerate(("tx", "ty", "tz")) if n in names_free]
+        off, std = full.copy(), full.copy()
+        off[:, axes], std[:, axes] = test.offset, test.offset_std
+        test = replace(test, offset=off, offset_std=std)
+    return test
+
+
+def _translation_std(cov, opts):
+    idx = [NAMES[opts["dof"]].index(n) for n in ("tx", "ty", "tz")]
+    return np.sqrt(np.clip(np.diag(cov)[idx], 0, None))
+
+
+def _disagreement(test, classes):
+    """Warning text when the groups disagree."""
+    g = int(np.argmax(test.contribution))
+    off = [f"d{a} {1000 * o:+.0f} mm" for a, o in zip("XYZ", test.offset[g]) if np.isfinite(o)]
+    if test.consistent:
+        return (
+            f"the {test.grouping} groups differ ('{test.worst}': {', '.join(off) or 'see the report'} from the "
+            f"result, p = {test.p_value:.1g}), but the shift hardly depends on it (std widened by at most "
+            f"{np.nanmax(test.std_ratio):.2f})"
+        )
+    text = (
+        f"INCONSISTENT: the {test.grouping} groups disagree (T = {test.statistic:.0f}, dof = {test.dof}, "
+        f"p = {test.p_value:.1g}); '{test.worst}' differs most ({', '.join(off) or 'see the report'} from the "
+        f"result): changes between the epochs suspected, the covariance includes the spread between "
+        "the groups"
+    )
+    if test.grouping == "class" and classes is None:
+        return text + f"; consider classes={STABLE} (ground, buildings, roads)"
+    return text + "; consider robust='tukey', classes= of stable surfaces, or leaving out the changed area"
+

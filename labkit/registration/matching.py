@@ -328,6 +328,7 @@ class _Matcher:
     options: dict
     origin: np.ndarray
     n_source: int
+    source_class: np.ndarray | None = None  # class of each sampled source point (None: no classification)
 
     def __call__(self, R=None, t=None) -> Correspondences:
         """Correspondences of the source moved by p' = R p + t (local frame)."""
@@ -476,6 +477,7 @@ def prepare(
     rule, sigma = _source_rules(src_cls, idx, src_noise, options)
     return _Matcher(
         src_l[idx], idx, src_normals, sigma, rule, tgt_l, tree, tgt_geo, tgt_cls, options, origin, len(src),
+        None if src_cls is None else src_cls[idx],
     )  # fmt: skip
 
 
