@@ -335,7 +335,7 @@ class Consistency(ReportMixin):
     std_ratio: np.ndarray = field(default_factory=lambda: np.ones(3))
 
     #: The groups' spread counts as affecting the result when it widens a standard deviation by more.
-    AFFECTS = float(np.sqrt(2.0))
+    AFFECTS = 2.0
 
     @property
     def agree(self) -> bool:
@@ -345,7 +345,7 @@ class Consistency(ReportMixin):
     @property
     def consistent(self) -> bool:
         """False when the groups disagree and their spread widens a shift component's standard deviation
-        by more than sqrt(2) (the shift depends on which group one believes: changes suspected)."""
+        by more than a factor of 2 (the shift depends on which group one believes: changes suspected)."""
         return self.agree or bool(np.nanmax(self.std_ratio) <= self.AFFECTS)
 
     @property
