@@ -85,7 +85,7 @@ class _Adjustment:
     dx: np.ndarray  # update of the parameters (unscaled)
     N: np.ndarray  # normal matrix in scaled parameters
     Qxx: np.ndarray  # cofactor matrix of the unscaled parameters (inf where undetermined)
-    block_cov: np.ndarray | None  # cluster-robust covariance (unscaled), covariance="block"
+    block_cov: object  # () -> cluster-robust covariance (unscaled), covariance="block"; only the last one is used
     held_cov: np.ndarray  # effect of the held rotations' prior on the other parameters (unscaled)
     sigma0: float
     rms: float
@@ -439,8 +439,8 @@ def _adjust(corr, R, t, opts):
     if opts["covariance"] == "block":
         xy = corr.source_xyz[ok_rows, :2] - opts["origin"][:2]
         free = np.isinf(np.diag(Q_s))
-        block = _block_covariance(A_all, l_all, w, u, centred, keep, factor, dx_s, free, {**opts, "xy": xy})
-        block = block / np.outer(S, S)
+        args = (A_all, l_all, w, u, centred, keep, factor, dx_s, free, {**opts, "xy": xy})
+        block = lambda: _block_covariance(*args) / np.outer(S, S)  # noqa: E731 - evaluated for the last step only
     return _Adjustment(dx, N, Qxx, block, held_cov, float(sigma0), rms, r, deg, corr, float(scale), int((~keep).sum()))
 
 
@@ -546,8 +546,9 @@ def _record(it, R, t, adj, step):
 def _result(R, t, origin, adj, history, converged, matcher, opts, runtime):
     deg = adj.degeneracy
     cov = adj.sigma0**2 * adj.Qxx  # (eq. 5.11)
-    if adj.block_cov is not None and np.isfinite(np.diag(adj.block_cov)).any():
-        cov = adj.block_cov  # (eq. 5.13)
+    block = None if adj.block_cov is None else adj.block_cov()
+    if block is not None and np.isfinite(np.diag(block)).any():
+        cov = block  # (eq. 5.13)
     cov = cov + adj.held_cov  # prior of held rotations (eq. 5.15); inf stays inf
     undetermined = deg.undetermined_axes
     msg = "converged" if converged else f"not converged after {len(history)} iterations (last step {history[-1].step:.2e} m)"
