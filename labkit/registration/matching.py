@@ -167,7 +167,7 @@ def _replace(corr: Correspondences, **changes) -> Correspondences:
 # --------------------------------------------------------------------- geometry
 
 
-def _local_geometry(points, tree, index, k, rank):
+def _local_geometry(points, tree, index, k, rank, cols=None):
     """Normals and local noise of ``points[index]`` from their k neighbours in ``points``.
 
     The same PCA as :func:`labkit.features.local_pca` (notebook 04, eqs. 1-5), but
@@ -179,9 +179,15 @@ def _local_geometry(points, tree, index, k, rank):
     nb = np.empty((len(index), k), dtype=np.intp)
     workers = -1 if len(index) > 2000 else 1  # threads cost more than they save on small queries
     nb[order] = tree.query(points[index[order]], k=k, workers=workers)[1]
-    nbh = points[nb]
-    nbh = nbh - nbh.mean(axis=1, keepdims=True)
-    cov = np.einsum("nki,nkj->nij", nbh, nbh) / (k - 3)  # 3 dof used by the plane
+    cols = np.ascontiguousarray(points.T) if cols is None else cols
+    D = []
+    for a in range(3):  # per-axis contiguous gathers, as in labkit.features._covariances (4-5x faster)
+        g = cols[a][nb]  # (n, k)
+        D.append(g - g.mean(axis=1, keepdims=True))
+    cov = np.empty((len(index), 3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            cov[:, a, b] = cov[:, b, a] = np.einsum("nk,nk->n", D[a], D[b]) / (k - 3)  # 3 dof used by the plane
     lam, vecs = np.linalg.eigh(cov)  # ascending: normal = eigenvector of lambda_min
     n = vecs[:, :, 0]
     n = np.where(n[:, 2:3] < 0, -n, n)
@@ -201,6 +207,7 @@ class _Geometry:
         self.points, self.tree, self.k = points, tree, k
         self.rank = np.empty(tree.n, dtype=np.intp)
         self.rank[tree.indices] = np.arange(tree.n)  # leaf order of every point
+        self.cols = np.ascontiguousarray(points.T)  # coordinate columns for contiguous gathers
         n = len(points)
         self.normals = np.full((n, 3), np.nan) if normals is None else normals
         self.noise = np.full(n, np.nan)
@@ -219,7 +226,7 @@ class _Geometry:
 
     def compute(self, index, k):
         """Normals, noise and change of curvature at ``index`` with k neighbours (no caching)."""
-        return _local_geometry(self.points, self.tree, index, k, self.rank)
+        return _local_geometry(self.points, self.tree, index, k, self.rank, self.cols)
 
 
 # --------------------------------------------------------------------- sampling
