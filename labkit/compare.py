@@ -48,7 +48,10 @@ class ComparisonRow:
     e.g. ``"XZ"``); ``missed`` the constrained axes the method itself calls
     undetermined (infinite variance); ``chi2`` with ``dof`` and ``p_value`` of the
     test of eq. 6 on the remaining axes; ``inside`` True when the error lies inside
-    the combined stated uncertainty and no constrained axis was missed.
+    the combined stated uncertainty and no constrained axis was missed;
+    ``consistent`` False when the method's own model test found parts of the data
+    that disagree (ICP: classes pulling to different shifts, changes suspected; its
+    covariance is then widened accordingly, notebook 05).
     """
 
     method: str
@@ -83,6 +86,7 @@ class ComparisonRow:
     converged: bool
     runtime_s: float
     message: str = ""
+    consistent: bool = True
 
     @property
     def shift(self) -> np.ndarray:
@@ -114,7 +118,7 @@ COLUMNS = tuple(f.name for f in fields(ComparisonRow))
 _TEXT_COLUMNS = (("method", "{}"), ("region", "{}"), ("case", "{}"), ("dx", "{:+.4f}"), ("dy", "{:+.4f}"),
                  ("dz", "{:+.4f}"), ("ex", "{:+.4f}"), ("ey", "{:+.4f}"), ("ez", "{:+.4f}"),
                  ("error_norm_constrained", "{:.4f}"), ("constrained", "{}"), ("missed", "{}"), ("inside", "{}"),
-                 ("converged", "{}"), ("n_used", "{}"), ("runtime_s", "{:.2f}"))
+                 ("consistent", "{}"), ("converged", "{}"), ("n_used", "{}"), ("runtime_s", "{:.2f}"))
 
 
 @dataclass(frozen=True, eq=False, repr=False)
@@ -200,8 +204,10 @@ class ComparisonTable(ReportMixin):
             good = [r for r in sel if r.ok]
             med = np.median([r.error_norm_constrained for r in good]) if good else float("nan")
             inside = sum(r.inside for r in good)
+            flagged = sum(not r.consistent for r in good)
             rows.append((m, f"{len(good)}/{len(sel)} ran; median error {med:.4f} m (constrained axes); "
-                            f"{inside}/{len(sel)} inside stated uncertainty"))
+                            f"{inside}/{len(sel)} inside stated uncertainty"
+                            + (f"; {flagged} flagged inconsistent" if flagged else "")))
         title = f"Comparison: {len(self.methods)} methods x {len(self.regions)} regions x {len(self.cases)} cases"
         return title, [(f"per method (test level alpha = {self.alpha})", rows)]
 
@@ -441,6 +447,7 @@ def _row(name, region, case, pair, ref, result, runtime, error, alpha) -> Compar
         "".join(a for a, m in zip(AXES, missed) if m), chi2, int(test.sum()), p, inside,
         float(rot_err), int(getattr(result, "n_used", 0)), float(getattr(result, "share_used", np.nan)),
         bool(getattr(result, "converged", False)), float(runtime), str(getattr(result, "message", "")),
+        consistent=bool(getattr(result, "consistent", True)),
     )
 
 

@@ -399,3 +399,6 @@ def test_icp_on_stable_classes_resists_grown_vegetation():
     assert abs(plain.ez) > 0.03  # pulled down toward the grown vegetation
     assert stable.ok and stable.error_norm_constrained < 0.015 and abs(stable.ez) < 0.005
     assert "converged" in table.text().splitlines()[0]
+    # plain ICP's own model test sees the classes disagree; the table carries that flag
+    assert not plain.consistent and stable.consistent
+    assert "1 flagged inconsistent" in table.summary() and "consistent" in table.text().splitlines()[0]
