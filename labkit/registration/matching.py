@@ -21,6 +21,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .._checks import as_points, as_rng, choice, positive
+from .._eigh3 import eigh3
 from .._frame import local_origin, reduce
 from .._report import ReportMixin, fmt
 from ..errors import LabkitError
@@ -188,7 +189,7 @@ def _local_geometry(points, tree, index, k, rank, cols=None):
     for a in range(3):
         for b in range(a, 3):
             cov[:, a, b] = cov[:, b, a] = np.einsum("nk,nk->n", D[a], D[b]) / (k - 3)  # 3 dof used by the plane
-    lam, vecs = np.linalg.eigh(cov)  # ascending: normal = eigenvector of lambda_min
+    lam, vecs = eigh3(cov, workers=workers)  # as np.linalg.eigh, ascending: normal = eigenvector of lambda_min
     n = vecs[:, :, 0]
     n = np.where(n[:, 2:3] < 0, -n, n)
     lam = np.clip(lam, 0, None)
