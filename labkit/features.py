@@ -17,8 +17,9 @@ Notation (notebook 04):
 - (eq. 9) plane through three points n = (p2 - p1) x (p3 - p1) (robust normals)
 
 The seed warns that ``np.linalg.eig`` does not sort its eigenvalues; this module
-uses ``np.linalg.eigh`` (symmetric matrices: real, ascending) and reverses the
-order once, in :func:`_sorted_eigh`.
+uses an eigh (symmetric matrices: real, ascending; ``labkit._eigh3.eigh3``, the
+same decomposition as ``np.linalg.eigh`` compiled for stacks of 3x3 matrices) and
+reverses the order once, in :func:`_sorted_eigh`.
 
 Choice of the kd-tree, by measurement (scipy 1.17, numpy 2.4, 2 shared cores,
 10^6 points of an undulating terrain at 20 pts/m^2, k = 20, ``workers=-1``):
@@ -45,7 +46,15 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ._checks import as_points, as_rng, choice, positive, probability
-from ._eigh3 import eigh3
+from ._eigh3 import HAVE_NUMBA, eigh3
+
+if HAVE_NUMBA:
+    import numba
+
+    _njit_cov = numba.njit(cache=True, nogil=True)
+else:  # pragma: no cover - numpy route in _covariances
+    def _njit_cov(f):
+        return f
 from ._frame import local_origin, reduce
 from ._report import ReportMixin, fmt
 from .errors import LabkitError
@@ -718,7 +727,11 @@ def _run_chunks(local, scales, chunk_size, work, rng=None, at=None) -> None:
         order = np.argsort(rank[at], kind="stable")  # positions in ``at``, in leaf order
     queries = local if at is None else local[at]
     threads = max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
-    size = max(1, min(chunk_size, -(-len(queries) // threads)))  # at least one chunk per thread
+    # chunks of at most chunk_size, their number a multiple of the threads so that all threads get
+    # the same share (5 chunks on 2 threads would leave one thread idle for a fifth of the time)
+    n_chunks = -(-len(queries) // max(1, chunk_size))
+    n_chunks = max(1, -(-n_chunks // threads) * threads) if len(queries) >= threads else 1
+    size = max(1, -(-len(queries) // n_chunks))
     starts = range(0, len(queries), size)
     rngs = as_rng(rng).spawn(len(starts)) if rng is not None else [None] * len(starts)
     workers = -1 if len(starts) == 1 else 1
@@ -759,6 +772,10 @@ def _covariances(local, counts, flat, cols=None):
     if flat.ndim == 2:
         if cols is None:
             return _weighted_covariances(local[flat], None)  # (c, k, 3), only one chunk at a time
+        if HAVE_NUMBA:
+            cen, C = np.empty((len(flat), 3)), np.empty((len(flat), 3, 3))
+            _knn_covariances(cols, flat, cen, C)
+            return cen, C
         k = flat.shape[1]
         cen = np.empty((len(flat), 3))
         D = []
@@ -784,6 +801,38 @@ def _covariances(local, counts, flat, cols=None):
             C[:, a, b] = C[:, b, a] = np.bincount(seg, D[:, a] * D[:, b], len(counts)) / m  # (eq. 2)
     C[counts < 3] = np.nan  # too few neighbours: no plane
     return cen, C
+
+
+@_njit_cov
+def _knn_covariances(cols, idx, cen, C):  # pragma: no cover - compiled
+    """Compiled (eq. 1, 2) for kNN: centroid, then the mean outer product of the deviations,
+    in one pass over each point's neighbours (no (c, k, 3) temporaries). Same two-pass
+    arithmetic as the numpy route, so both agree to rounding."""
+    m, k = idx.shape
+    x, y, z = cols[0], cols[1], cols[2]
+    for i in range(m):
+        sx = sy = sz = 0.0
+        for j in range(k):
+            q = idx[i, j]
+            sx += x[q]
+            sy += y[q]
+            sz += z[q]
+        cx, cy, cz = sx / k, sy / k, sz / k
+        xx = xy = xz = yy = yz = zz = 0.0
+        for j in range(k):
+            q = idx[i, j]
+            dx, dy, dz = x[q] - cx, y[q] - cy, z[q] - cz
+            xx += dx * dx
+            xy += dx * dy
+            xz += dx * dz
+            yy += dy * dy
+            yz += dy * dz
+            zz += dz * dz
+        cen[i, 0], cen[i, 1], cen[i, 2] = cx, cy, cz
+        C[i, 0, 0], C[i, 1, 1], C[i, 2, 2] = xx / k, yy / k, zz / k
+        C[i, 0, 1] = C[i, 1, 0] = xy / k
+        C[i, 0, 2] = C[i, 2, 0] = xz / k
+        C[i, 1, 2] = C[i, 2, 1] = yz / k
 
 
 def _weighted_covariances(X, w):

@@ -326,3 +326,24 @@ def test_reports_render():
     xyz, _ = tilted_plane(rng, n=300)
     for res in (F.local_pca(xyz, k=10), F.neighbourhoods(xyz, k=5), F.robust_normals(xyz, k=10, rng=0)):
         assert res.summary() and "<table>" in res._repr_html_()
+
+
+def test_compiled_and_numpy_knn_covariances_agree(monkeypatch):
+    """The compiled kNN covariance kernel and the numpy route compute eq. 1-2 alike."""
+    import labkit.features as F
+
+    if not F.HAVE_NUMBA:
+        pytest.skip("numba not installed")
+    rng = np.random.default_rng(5)
+    local = rng.normal(size=(2000, 3)) * [30.0, 20.0, 0.05]
+    idx = rng.integers(0, 2000, size=(500, 12))
+    cols = local.T.copy()
+    cen_c, C_c = F._covariances(local, None, idx, cols)
+    monkeypatch.setattr(F, "HAVE_NUMBA", False)
+    cen_n, C_n = F._covariances(local, None, idx, cols)
+    X = local[idx]  # direct definition
+    D = X - X.mean(axis=1, keepdims=True)
+    C_ref = np.einsum("cka,ckb->cab", D, D) / idx.shape[1]
+    for C in (C_c, C_n):
+        assert np.allclose(C, C_ref, rtol=1e-12, atol=1e-12 * np.abs(C_ref).max())
+    assert np.allclose(cen_c, cen_n, rtol=0, atol=1e-12) and np.allclose(cen_c, X.mean(axis=1), atol=1e-12)

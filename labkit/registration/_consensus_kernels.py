@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-try:  # optional accelerator: numba is not a core dependency of labkit
+try:  # numba is a dependency of labkit; the numpy route stays for environments without it
     import numba
 
     HAVE_NUMBA = True
