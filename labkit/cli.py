@@ -93,10 +93,10 @@ def _cmd_compare(args) -> int:
 
     pairs = load_pairs(args.pairs)
     refs = load_references(args.references) if args.references else {}
-    missing = [f"{r} ({c})" for r, c in pairs if (r, c) not in refs]
+    missing = [f"{r} ({c})" for (r, c), pair in pairs.items() if (r, c) not in refs and pair.truth is None]
     if missing:
         raise LabkitError(f"no reference for {', '.join(missing)}: pass --references REF.json with an entry "
-                          "(region, case) for every pair")
+                          "(region, case) for every pair, or give the pair a 'truth' in the pair file")
     methods = standard_methods(args.methods, dof=args.dof, extent=args.extent, max_points=args.max_points,
                                rng=args.seed)
     table = compare_methods(pairs, methods, references=refs, alpha=args.alpha)

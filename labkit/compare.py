@@ -29,6 +29,7 @@ from .distances import (  # noqa: F401  (re-exported)
     DistanceChange, as_matrix, check_overlap, cloud_to_cloud, distances_before_after, point_to_plane_distance,
 )
 from .errors import LabkitError
+from .transforms import check_transform
 from .references import (  # noqa: F401  (re-exported)
     Reference, average_references, load_references, manual_reference, reference_from_pairs,
     reference_from_targets, save_references, truth_reference,
@@ -323,9 +324,11 @@ def load_pairs(path) -> dict:
     """Read a JSON list of epoch pairs ``{(region, case): FilePair}``.
 
     Each entry: ``{"region": ..., "case": ..., "source": file, "target": file}``
-    with optional ``"constrained": [true, false, true]`` and ``"bbox": [xmin,
-    ymin, xmax, ymax]`` (crop while reading). Relative file names are taken
-    relative to the JSON file.
+    with optional ``"constrained": [true, false, true]``, ``"bbox": [xmin,
+    ymin, xmax, ymax]`` (crop while reading) and ``"truth"``, a 4x4 matrix
+    source -> target (a known transformation, e.g. of synthetic data; used as the
+    reference when no other is given). Relative file names are taken relative to
+    the JSON file.
     """
     import json
 
@@ -346,8 +349,14 @@ def load_pairs(path) -> dict:
         files = [(path.parent / e[k]) for k in ("source", "target")]
         src, tgt = (read_cloud(f, bbox=e.get("bbox")) for f in files)
         c = e.get("constrained")
+        truth = None
+        if e.get("truth") is not None:
+            try:
+                truth = check_transform(np.asarray(e["truth"], dtype=np.float64))
+            except (LabkitError, ValueError, TypeError) as exc:
+                raise LabkitError(f"{path}: pair {i}: 'truth' must be a 4x4 transformation matrix ({exc})") from None
         out[(str(e["region"]), str(e.get("case", "")))] = FilePair(
-            src, tgt, str(e["region"]), str(e.get("case", "")), None if c is None else tuple(map(bool, c)))
+            src, tgt, str(e["region"]), str(e.get("case", "")), None if c is None else tuple(map(bool, c)), truth)
     return out
 
 

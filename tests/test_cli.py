@@ -35,9 +35,11 @@ def files(tmp_path_factory):
     (d / "pairs.json").write_text(json.dumps([{"region": "xyz", "case": "als-als", "source": "als_2016.laz",
                                                "target": "als_2014.laz"}]))
     save_references([truth_reference(pair.truth, region="xyz", case="als-als")], d / "refs.json")
+    (d / "pairs_truth.json").write_text(json.dumps([{"region": "xyz", "case": "als-als", "source": "als_2016.laz",
+                                                     "target": "als_2014.laz", "truth": pair.truth.tolist()}]))
     return {"dir": d, "sphere": scene.sphere, "truth": pair.translation, "n_source": len(pair.source),
             "xyz": d / "tripod.xyz", "laz": d / "tripod.laz", "src": d / "als_2016.laz", "tgt": d / "als_2014.laz",
-            "pairs": d / "pairs.json", "refs": d / "refs.json"}
+            "pairs": d / "pairs.json", "refs": d / "refs.json", "pairs_truth": d / "pairs_truth.json"}
 
 
 def _vector(text: str, label: str) -> np.ndarray:
@@ -152,6 +154,14 @@ def test_compare_needs_references(files, tmp_path, capsys):
     assert main(["compare", str(files["pairs"]), "--out", str(tmp_path / "t.csv")]) == 2
     assert "--references" in capsys.readouterr().err
     assert not (tmp_path / "t.csv").exists()
+
+
+def test_compare_takes_the_truth_from_the_pair_file(files, tmp_path, capsys):
+    out = tmp_path / "t.csv"
+    assert main(["compare", str(files["pairs_truth"]), "--methods", "icp", "--out", str(out)]) == 0
+    row = next(csv.DictReader(out.open()))
+    assert np.allclose([float(row[k]) for k in ("ref_dx", "ref_dy", "ref_dz")], files["truth"], atol=1e-9)
+    assert float(row["error_norm_constrained"]) < 0.02
 
 
 # --------------------------------------------------------------------------- tiles

@@ -368,6 +368,15 @@ def test_standard_methods_and_pair_file(tmp_path):
     (tmp_path / "bad.json").write_text(json.dumps([{"region": "xyz", "source": "s.laz"}]))
     with pytest.raises(LabkitError, match="pair 0"):
         compare.load_pairs(tmp_path / "bad.json")
+    # a known transformation in the pair file serves as the reference when none is given
+    (tmp_path / "truth.json").write_text(json.dumps(
+        [{"region": "xyz", "case": "als-als", "source": "s.laz", "target": "t.laz", "truth": pair.truth.tolist()}]))
+    with_truth = compare.compare_methods(compare.load_pairs(tmp_path / "truth.json"), compare.standard_methods(["icp"]))
+    assert np.allclose(with_truth.rows[0].error, row.error, atol=1e-12)
+    (tmp_path / "badtruth.json").write_text(json.dumps(
+        [{"region": "xyz", "source": "s.laz", "target": "t.laz", "truth": [[1, 0, 0], [0, 1, 0]]}]))
+    with pytest.raises(LabkitError, match="truth"):
+        compare.load_pairs(tmp_path / "badtruth.json")
 
 
 def test_missed_axis_fails_the_test_and_tables_add_up():
