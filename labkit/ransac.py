@@ -260,7 +260,8 @@ def ransac_sphere(
         'uniform': 4 random points. 'local': a random first point and three
         more from its neighbourhood of radius 2 r_max (needs a radius range or
         nominal radius); N is then computed with the local inlier shares.
-        'auto': local when r_max is known and the cloud is > 10 r_max wide.
+        'auto': local when r_max is known, the cloud is > 10 r_max wide and a
+        neighbourhood holds on average at most 10 % of the working set.
     max_iterations : int
         Upper bound on valid samples.
     min_inliers : int
@@ -328,6 +329,8 @@ def _detect(xyz, origin, idx, cfg, seed, gen):
     if not cfg.known:
         cfg = replace(cfg, r_max=max(extent, 1e-9))  # no sphere larger than the scan
     sampling = _pick_sampling(cfg.sampling, cfg.known, cfg.r_max, extent)
+    if cfg.sampling == "auto" and sampling == "local" and _mean_neighbourhood_share(W, 2.0 * cfg.r_max + cfg.threshold) > 0.1:
+        sampling = "uniform"  # the neighbourhoods hold much of the scene: local sampling gains little, costs O(m^2)
     sampler = _LocalSampler(W, 2.0 * cfg.r_max + cfg.threshold) if sampling == "local" else _UniformSampler(len(W))
 
     # Adaptive search (eqs. 25-27) on the working set
@@ -426,6 +429,12 @@ def _pick_sampling(sampling, known, r_max, extent):
     return sampling
 
 
+def _mean_neighbourhood_share(W, radius):
+    """Mean share of the working set within ``radius`` of a point (counted in C, no lists)."""
+    counts = cKDTree(W).query_ball_point(W, radius, return_length=True)
+    return float(counts.mean()) / len(W)
+
+
 # ----------------------------------------------------------------- sampling
 class _UniformSampler:
     """Four points drawn uniformly; N follows eq. (27) with eps = 1 - k/m."""
@@ -453,13 +462,15 @@ class _LocalSampler:
     """
 
     def __init__(self, W, radius):
-        lists = cKDTree(W).query_ball_point(W, radius, workers=-1)
-        deg = np.fromiter((len(nb) for nb in lists), dtype=np.int64, count=len(W))
-        flat = np.concatenate(lists).astype(np.int64) if deg.sum() else np.zeros(0, np.int64)
-        owner = np.repeat(np.arange(len(W)), deg)
-        keep = flat != owner  # drop the point itself
-        self.flat = flat[keep]
-        self.deg = np.bincount(owner[keep], minlength=len(W))
+        # all pairs closer than radius as one integer array (no per-point Python lists), both directions,
+        # grouped by their first point: the neighbours of i are flat[offsets[i]:offsets[i + 1]]
+        pairs = cKDTree(W).query_pairs(radius, output_type="ndarray").astype(np.int64)
+        owner = np.concatenate([pairs[:, 0], pairs[:, 1]])
+        other = np.concatenate([pairs[:, 1], pairs[:, 0]])
+        key = owner.astype(np.int16) if len(W) < 2**15 else owner  # 16-bit keys: numpy's stable sort is a radix sort
+        order = np.argsort(key, kind="stable")
+        self.flat = other[order]
+        self.deg = np.bincount(owner, minlength=len(W))
         self.offsets = np.concatenate([[0], np.cumsum(self.deg)])
         self.first = np.flatnonzero(self.deg >= 3)
 

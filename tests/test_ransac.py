@@ -270,3 +270,19 @@ def test_report_and_plots_and_headless_widget():
     assert box.last_result.found and len(box.figure.value) > 1000
     box.p_slider.value = 0.9  # observers rerun the detection headless
     assert box.last_result.p == 0.9
+
+
+def test_auto_sampling_is_local_only_where_neighbourhoods_are_small():
+    """A compact scan (neighbourhood of radius 2 r_max = a third of the scene) gains nothing from local
+    sampling and would pay O(m^2) pairs for it: 'auto' samples uniformly there, locally in a room."""
+    from labkit.ransac import _mean_neighbourhood_share
+
+    scene = sphere_on_tripod(n_sphere=2000, outlier_ratio=0.5, noise=0.001, rng=3)
+    res = ransac_sphere(scene.points, 0.003, radius_range=(0.05, 0.1), rng=3)
+    assert res.found and res.sampling == "uniform"
+    assert _mean_neighbourhood_share(scene.points - scene.points.mean(axis=0), 0.203) > 0.1
+    forced = ransac_sphere(scene.points, 0.003, radius_range=(0.05, 0.1), sampling="local", rng=3)
+    assert forced.found and forced.sampling == "local"
+    assert np.allclose(forced.fit.x, res.fit.x, atol=2e-4)  # same sphere either way
+    room = room_scene(n_points=20000, sphere_share=0.02, rng=4)
+    assert ransac_sphere(room.points, 0.005, radius_range=(0.25, 0.35), rng=4).sampling == "local"
