@@ -277,7 +277,7 @@ def _box(extent, center):
         ext = np.broadcast_to(np.asarray(extent, dtype=np.float64), (3,)).copy()
         c = np.zeros(3) if center is None else np.asarray(center, dtype=np.float64).reshape(3)
     except (TypeError, ValueError):
-        raise LabkitError(f"extent must be one or three numbers > 0 (m) and center three numbers") from None
+        raise LabkitError("extent must be one or three numbers > 0 (m) and center three numbers") from None
     if not np.isfinite(ext).all() or (ext <= 0).any() or not np.isfinite(c).all():
         raise LabkitError(f"extent must be one or three finite numbers > 0 (m), got {extent!r}")
     return ext, c
