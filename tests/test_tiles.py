@@ -215,3 +215,22 @@ def test_undetermined_components_stay_out_of_statistics_and_arrows():
     q = ax.collections[-1]
     assert np.allclose(q.U, [0.10, 0.0, 0.12]) and np.allclose(q.V, [0.20, 0.0, 0.22])
     assert any("XY undetermined" in t.get_text() for t in ax.texts)
+
+
+def test_distributed_worker_processes_equal_serial():
+    """Worker processes (not threads): the tile jobs and labkit's ICP method travel by pickle and give
+    exactly the serial numbers."""
+    distributed = pytest.importorskip("distributed")
+    from labkit import compare
+    from labkit.synthetic import als_epochs
+
+    pair = als_epochs("xyz", size=(80.0, 40.0), density=3.0, rng=5)
+    method = compare.standard_methods(["icp"])["icp"]
+    kw = dict(size=40.0, min_points=100)
+    serial = tiles.register_tiles(pair.source, pair.target, method, scheduler="serial", progress=False, **kw)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        dist = tiles.register_tiles(pair.source, pair.target, method, client=client, progress=False, **kw)
+    assert len(serial) == 2 and serial.ok.all()
+    np.testing.assert_array_equal(dist.translations, serial.translations)
+    np.testing.assert_array_equal(dist.covariances, serial.covariances)
