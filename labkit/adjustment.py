@@ -18,7 +18,7 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
 from ._checks import as_points, positive, probability
-from ._frame import local_origin, reduce
+from ._frame import local_origin
 from ._report import ReportMixin, fmt
 from ._stats import ConfidenceEllipsoid, GlobalTest, confidence_ellipsoid, global_test, w_critical
 from .errors import DegenerateGeometryError, LabkitError
@@ -253,7 +253,10 @@ def gauss_helmert_model(
     # Check input and reduce to a local origin
     l_in = as_points(points, min_points=4)
     origin = local_origin(l_in)
-    l = reduce(l_in, origin)
+    # reduced coordinates, one row per coordinate (contiguous, cache-friendly sweeps), in one pass
+    L = np.empty((3, len(l_in)))
+    np.subtract(l_in.T, origin[:, None], out=L)
+    l = L.T  # (n, 3) view of the same numbers
     cov = _Stochastic(sigma, len(l))
     r_fix = None if radius is None else positive(radius, "radius")
     tol, sigma0_apriori = positive(tol, "tol"), positive(sigma0_apriori, "sigma0_apriori")
@@ -263,7 +266,6 @@ def gauss_helmert_model(
     x_start = _initial_values(l, x0, origin, r_fix)
 
     # Iterate (eqs. 6-22)
-    L = np.ascontiguousarray(l.T)  # one row per coordinate: contiguous, cache-friendly sweeps
     it = _iterate(L, x_start, cov, r_fix is not None, tol, int(max_iter))
 
     # Main check and statistics
