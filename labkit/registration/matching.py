@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 
 from .._checks import as_points, as_rng, choice, positive
 from .._eigh3 import eigh3
+from ..features import _covariances  # shared kNN covariance kernel (compiled)
 from .._frame import local_origin, reduce
 from .._report import ReportMixin, fmt
 from ..errors import LabkitError
@@ -181,14 +182,8 @@ def _local_geometry(points, tree, index, k, rank, cols=None):
     workers = -1 if len(index) > 2000 else 1  # threads cost more than they save on small queries
     nb[order] = tree.query(points[index[order]], k=k, workers=workers)[1]
     cols = np.ascontiguousarray(points.T) if cols is None else cols
-    D = []
-    for a in range(3):  # per-axis contiguous gathers, as in labkit.features._covariances (4-5x faster)
-        g = cols[a][nb]  # (n, k)
-        D.append(g - g.mean(axis=1, keepdims=True))
-    cov = np.empty((len(index), 3, 3))
-    for a in range(3):
-        for b in range(a, 3):
-            cov[:, a, b] = cov[:, b, a] = np.einsum("nk,nk->n", D[a], D[b]) / (k - 3)  # 3 dof used by the plane
+    _, cov = _covariances(points, None, nb, cols)  # the local PCA's kernel (notebook 04, eqs. 1-2)
+    cov *= k / (k - 3)  # redundancy k - 3 of the plane (eq. 5): lambda_min is then sigma_n^2
     lam, vecs = eigh3(cov, workers=workers)  # as np.linalg.eigh, ascending: normal = eigenvector of lambda_min
     n = vecs[:, :, 0]
     n = np.where(n[:, 2:3] < 0, -n, n)
