@@ -20,10 +20,13 @@ def as_points(points, *, min_points: int = 1, name: str = "points", copy: bool =
     Raises
     ------
     LabkitError
-        If the shape is not (n, 3), fewer than ``min_points`` rows are given, or
-        any coordinate is NaN or infinite.
+        If the shape is not (n, 3), fewer than ``min_points`` rows are given,
+        any coordinate is NaN or infinite, or a PointCloud is known to be in
+        degrees or feet (:meth:`labkit.cloud.PointCloud.require_metric`).
     """
     xyz = getattr(points, "xyz", points)  # PointCloud or array-like
+    if callable(getattr(points, "require_metric", None)):  # a PointCloud in degrees or feet is refused
+        points.require_metric(f"a metric step (on {name})")
     try:
         arr = np.array(xyz, dtype=np.float64, copy=copy) if copy else np.asarray(xyz, dtype=np.float64)
     except (TypeError, ValueError) as exc:

@@ -3,6 +3,15 @@
 Attribute names follow laspy's dimension names (``classification``,
 ``intensity``, ``return_number``, ``number_of_returns``, ``gps_time``,
 ``point_source_id``, ...), so a cloud read from LAS keeps its meaning.
+
+Units
+-----
+Every cloud carries :class:`Units`: the units of its file's CRS and whether the
+coordinates were converted to metres when read. Metric steps (normals, ICP,
+consensus, spheres, distances, tiles) take their thresholds in metres; they
+call :meth:`PointCloud.require_metric` (through ``labkit._checks.as_points``)
+and refuse a cloud whose coordinates are known to be in degrees or in feet.
+A cloud whose units are not stated anywhere (no CRS) is accepted as metres.
 """
 
 from __future__ import annotations
@@ -15,6 +24,115 @@ from ._checks import as_points
 from .errors import LabkitError
 
 
+class UnitsError(LabkitError):
+    """The coordinates are not in metres (degrees of longitude/latitude, feet) where metres are needed."""
+
+
+_SHORT = {"metre": "m", "US survey foot": "ftUS", "foot": "ft", "degree": "deg", "radian": "rad",
+          "grad": "gon", "kilometre": "km", "unknown": "?"}
+_ANGULAR = ("degree", "radian", "grad")
+
+
+@dataclass(frozen=True)
+class Units:
+    """Units of a cloud's file and of its coordinates.
+
+    Parameters
+    ----------
+    horizontal, vertical : str
+        Unit of X/Y and of Z in the file's CRS (``"metre"``, ``"US survey foot"``,
+        ``"foot"``, ``"degree"``, ... or ``"unknown"`` when the file states none).
+    horizontal_to_metre, vertical_to_metre : float or None
+        Metres per file unit (1200/3937 for the US survey foot, 0.3048 for the
+        international foot); None for angles and unknown units.
+    converted : bool
+        True when the coordinates were converted from the file's units to metres
+        (``read_cloud(units="m")``); then ``xyz`` is in metres on all axes.
+    source : str
+        Where the units come from: ``"WKT"``, ``"GeoKeys"`` or ``"none"``.
+    conflict : str or None
+        WKT and GeoKeys (or the GeoKeys among themselves) disagree: what each
+        says and which one was used.
+    note : str
+        Assumptions made (e.g. an unstated vertical unit taken equal to the horizontal one).
+    """
+
+    horizontal: str = "unknown"
+    vertical: str = "unknown"
+    horizontal_to_metre: float | None = None
+    vertical_to_metre: float | None = None
+    converted: bool = False
+    source: str = "none"
+    conflict: str | None = None
+    note: str = ""
+
+    @property
+    def angular(self) -> bool:
+        """X/Y are longitude/latitude angles."""
+        return self.horizontal in _ANGULAR
+
+    @property
+    def coordinates(self) -> tuple[str, str]:
+        """Units of ``xyz`` as held now: (X/Y unit, Z unit)."""
+        return ("metre", "metre") if self.converted else (self.horizontal, self.vertical)
+
+    @property
+    def is_metric(self) -> bool:
+        """The coordinates are known to be in metres on every axis."""
+        return self.coordinates == ("metre", "metre")
+
+    @property
+    def known(self) -> bool:
+        return self.horizontal != "unknown"
+
+    @property
+    def factors(self) -> "np.ndarray | None":
+        """Metres per file unit for x, y, z, or None when not convertible."""
+        if self.horizontal_to_metre is None or self.vertical_to_metre is None:
+            return None
+        h, v = self.horizontal_to_metre, self.vertical_to_metre
+        return np.array([h, h, v])
+
+    def axis_labels(self, native: bool = False) -> tuple[str, str, str]:
+        """Short unit labels of x, y, z (``m``, ``ftUS``, ``ft``, ``deg``, ``?``) now or in the file."""
+        h, v = (self.horizontal, self.vertical) if native else self.coordinates
+        h, v = _SHORT.get(h, h), _SHORT.get(v, v)
+        return h, h, v
+
+    def label(self, native: bool = False) -> str:
+        """``"m"`` or ``"m (x, y), ftUS (z)"``; ``"units not stated"`` when unknown."""
+        h, _, v = self.axis_labels(native)
+        if h == "?" and v == "?":
+            return "units not stated"
+        return h if h == v else f"{h} (x, y), {v} (z)"
+
+    def describe(self) -> str:
+        """One line for reports: file units, conversion, source, conflict."""
+        if not self.known:
+            return "not stated in the file (taken as metres)"
+        text = f"file: X/Y {self.horizontal}, Z {self.vertical} (from {self.source})"
+        if self.converted:
+            text += "; converted to metres"
+        if self.conflict:
+            text += f"; CONFLICT: {self.conflict}"
+        return text
+
+    def require_metric(self, what: str = "this step", name: str = "the cloud") -> None:
+        """Raise :class:`UnitsError` unless the coordinates may be taken as metres."""
+        if self.angular:
+            raise UnitsError(
+                f"{name} is in {self.horizontal}s of longitude/latitude; {what} needs metric coordinates: "
+                "project it to a metric CRS (e.g. UTM) first"
+            )
+        h, v = self.coordinates
+        bad = [u for u in (h, v) if u not in ("metre", "unknown")]
+        if bad:
+            raise UnitsError(
+                f"{name} has coordinates in {self.label()} ({self.describe()}); {what} takes its distances in "
+                "metres: read the file with read_cloud(path) (units='m', the default) to convert"
+            )
+
+
 @dataclass(frozen=True, eq=False)
 class PointCloud:
     """Coordinates ``xyz`` (n, 3) float64 with per-point attributes by name.
@@ -24,19 +142,24 @@ class PointCloud:
     Parameters
     ----------
     xyz : array_like, shape (n, 3)
-        Coordinates in the file's (often UTM) frame, metres.
+        Coordinates in the file's (often UTM) frame; metres unless ``units`` says otherwise.
     attributes : dict of str -> ndarray, optional
         One array of length n per attribute.
     crs : str, optional
         Coordinate reference system as WKT or ``EPSG:nnnn`` when known.
     name : str, optional
         A label used in reports and plots.
+    units : Units, optional
+        Units of the coordinates and of the file (set by :func:`labkit.io.read_cloud`).
+        By default they are derived from ``crs`` with the coordinates taken in
+        the CRS's own units; without a CRS they are unknown (taken as metres).
     """
 
     xyz: np.ndarray
     attributes: dict = field(default_factory=dict)
     crs: str | None = None
     name: str = ""
+    units: Units | None = None
 
     def __post_init__(self):
         xyz = np.array(as_points(self.xyz, min_points=0, name="xyz"), dtype=np.float64, copy=True)
@@ -52,6 +175,14 @@ class PointCloud:
             attrs[key] = arr
         object.__setattr__(self, "xyz", xyz)
         object.__setattr__(self, "attributes", attrs)
+        units = self.units
+        if units is None:
+            from ._units import units_from_crs_text
+
+            units = units_from_crs_text(self.crs)
+        elif not isinstance(units, Units):
+            raise LabkitError(f"units must be a labkit.cloud.Units, got {type(units).__name__}")
+        object.__setattr__(self, "units", units)
 
     def __len__(self) -> int:
         return self.xyz.shape[0]
@@ -75,15 +206,20 @@ class PointCloud:
         """A new cloud with the selected points (boolean mask or integer index)."""
         sel = np.asarray(mask_or_index)
         attrs = {k: v[sel] for k, v in self.attributes.items()}
-        return PointCloud(self.xyz[sel], attrs, crs=self.crs, name=self.name)
+        return PointCloud(self.xyz[sel], attrs, crs=self.crs, name=self.name, units=self.units)
 
     def with_xyz(self, xyz) -> "PointCloud":
         """A new cloud with other coordinates and the same attributes (e.g. after a transform)."""
-        return PointCloud(xyz, self.attributes, crs=self.crs, name=self.name)
+        return PointCloud(xyz, self.attributes, crs=self.crs, name=self.name, units=self.units)
 
     def with_attributes(self, **attributes) -> "PointCloud":
         """A new cloud with attributes added or replaced."""
-        return PointCloud(self.xyz, {**self.attributes, **attributes}, crs=self.crs, name=self.name)
+        return PointCloud(self.xyz, {**self.attributes, **attributes}, crs=self.crs, name=self.name,
+                          units=self.units)
+
+    def require_metric(self, what: str = "this step") -> None:
+        """Raise :class:`UnitsError` when the coordinates are known not to be metres (degrees, feet)."""
+        self.units.require_metric(what, name=f"cloud {self.name!r}" if self.name else "the cloud")
 
     @property
     def bounds(self) -> np.ndarray:

@@ -16,6 +16,23 @@ Formats
   ``column_3``, ``column_4``, ...
 - NumPy ``.npy`` (an (n, >=3) array or a structured array with x, y, z fields)
   and ``.npz`` (``xyz`` or ``x``, ``y``, ``z`` plus one array per attribute).
+- PLY ``.ply`` (reading): ASCII and binary little/big endian; the ``vertex``
+  element's x, y, z plus every scalar property as an attribute.
+
+Units
+-----
+The units of a LAS/LAZ file are read from its CRS (WKT and GeoTIFF keys, see
+``labkit._units`` for the parser and the rule when they contradict each
+other). By default (``units="m"``) coordinates in feet (US survey foot
+1200/3937 m, international foot 0.3048 m; horizontal and vertical may differ)
+are converted to metres, and a file in longitude/latitude degrees is refused
+with :class:`labkit.cloud.UnitsError` before any point is read. With
+``units="native"`` the coordinates stay as stored and the cloud records its
+units, so metric steps refuse it later (:meth:`PointCloud.require_metric`).
+Either way ``cloud.units`` says what the file states, whether the
+coordinates were converted, and any conflict between WKT and GeoKeys. Writing
+a converted cloud to LAS/LAZ/NPZ stores it in its file's units again (the CRS
+is written with it), so a file never holds metres under a CRS in feet.
 
 Large files are read in chunks; a box, polygon or class filter is applied to
 each chunk, so only the kept points are ever held in memory. Files are written
@@ -32,15 +49,16 @@ import re
 import struct
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from . import regions
 from ._report import ReportMixin, fmt
-from .cloud import PointCloud
+from .cloud import PointCloud, Units, UnitsError
 from ._atomic import atomic_path
+from ._checks import choice
 from .errors import CloudFileError, EmptyRegionError, LabkitError
 
 __all__ = ["read_cloud", "write_cloud", "cloud_info", "CloudInfo", "LAS_SUFFIXES", "ASCII_SUFFIXES"]
@@ -48,6 +66,9 @@ __all__ = ["read_cloud", "write_cloud", "cloud_info", "CloudInfo", "LAS_SUFFIXES
 LAS_SUFFIXES = (".las", ".laz")
 ASCII_SUFFIXES = (".xyz", ".txt", ".csv", ".asc")
 NUMPY_SUFFIXES = (".npy", ".npz")
+PLY_SUFFIXES = (".ply",)
+UNIT_CHOICES = ("m", "native")
+SCAN_ANGLE_STEP = 0.006  # degrees per unit of the LAS 1.4 scan_angle field
 DEFAULT_CHUNK = 1_000_000
 _INT32_MAX = 2**31 - 1
 
@@ -86,6 +107,13 @@ _ALIASES = {
     "userdata": "user_data",
     "scanangle": "scan_angle",
     "scananglerank": "scan_angle_rank",
+    "scanchannel": "scanner_channel",
+    "scannerchannel": "scanner_channel",
+    "scandirectionflag": "scan_direction_flag",
+    "edgeofflightline": "edge_of_flight_line",
+    "keypoint": "key_point",
+    "scalarintensity": "intensity",
+    "scalarclassification": "classification",
     "r": "red",
     "g": "green",
     "b": "blue",
@@ -236,32 +264,43 @@ def read_cloud(
     attributes=None,
     chunk_size: int = DEFAULT_CHUNK,
     progress: bool = False,
+    units: str = "m",
 ) -> PointCloud:
-    """Read a LAS/LAZ, ASCII or NumPy point-cloud file into a :class:`PointCloud`.
+    """Read a LAS/LAZ, ASCII, NumPy or PLY point-cloud file into a :class:`PointCloud`.
 
     Parameters
     ----------
     path : str or Path
-        ``.las .laz .xyz .txt .csv .asc .npy .npz``.
+        ``.las .laz .xyz .txt .csv .asc .npy .npz .ply``.
     bbox : sequence, optional
         Keep points inside ``(xmin, ymin, xmax, ymax)`` or
-        ``(xmin, ymin, zmin, xmax, ymax, zmax)`` (see :func:`labkit.regions.crop_box`).
+        ``(xmin, ymin, zmin, xmax, ymax, zmax)`` (see :func:`labkit.regions.crop_box`),
+        in the units of the returned cloud (metres by default).
     polygon : array_like (m, 2) or list of rings, optional
-        Keep points inside this polygon in xy (even-odd rule).
+        Keep points inside this polygon in xy (even-odd rule), same units as ``bbox``.
     classes : int or sequence of int, optional
         Keep points of these ASPRS classes (needs a classification attribute).
-    attributes : sequence of str, optional
-        Attributes to keep (default: all). Reading fewer saves memory.
+    attributes : str or sequence of str, optional
+        Attribute(s) to keep (default: all); a single name may be given as a
+        string. A name the file does not have raises. Reading fewer saves memory.
     chunk_size : int
         Points (or text lines) per chunk. The filters act on each chunk, so the
         memory needed is one chunk plus the kept points.
     progress : bool
         Show a progress bar on stderr (tqdm if installed, else plain text).
+    units : {"m", "native"}
+        ``"m"`` (default): coordinates whose CRS states feet are converted to
+        metres (per axis: X/Y and Z may differ), and a file in longitude/latitude
+        degrees raises :class:`labkit.cloud.UnitsError`. ``"native"``: keep the
+        stored values; the cloud records its units and metric steps refuse it.
+        Files without a stated unit (no CRS, text, NumPy, PLY) are read as they are.
 
     Returns
     -------
     PointCloud
-        Named after the file stem; ``crs`` from the LAS header when present.
+        Named after the file stem; ``crs`` from the LAS header when present;
+        ``units`` (:class:`labkit.cloud.Units`) says what the file states and
+        whether the coordinates were converted.
 
     Raises
     ------
@@ -269,20 +308,26 @@ def read_cloud(
         Missing, unreadable, truncated or corrupt file, unsupported suffix.
     EmptyRegionError
         The filters keep no point.
+    UnitsError
+        ``units="m"`` and the file is in degrees (or in a unit with no metre factor).
     """
     path = _existing(path)
     flt = _Filter.build(bbox, polygon, classes)
-    if int(chunk_size) < 1:
-        raise LabkitError(f"chunk_size must be a positive number of points, got {chunk_size!r}")
-    keep = None if attributes is None else set(attributes)
+    chunk_size = _positive_int(chunk_size, "chunk_size")
+    choice(units, UNIT_CHOICES, "units")
+    keep = _attribute_names(attributes)
     suffix = path.suffix.lower()
     try:
         if suffix in LAS_SUFFIXES:
-            xyz, attrs, crs = _read_las(path, flt, keep, int(chunk_size), progress)
+            xyz, attrs, crs, found = _read_las(path, flt, keep, chunk_size, progress, units)
         elif suffix in ASCII_SUFFIXES:
-            xyz, attrs, crs = _read_ascii(path, flt, keep, int(chunk_size), progress)
+            xyz, attrs, crs = _read_ascii(path, flt, keep, chunk_size, progress)
+            found = Units()
         elif suffix in NUMPY_SUFFIXES:
-            xyz, attrs, crs = _read_numpy(path, flt, keep, int(chunk_size))
+            xyz, attrs, crs, found = _read_numpy(path, flt, keep, chunk_size, units)
+        elif suffix in PLY_SUFFIXES:
+            xyz, attrs, crs = _read_ply(path, flt, keep, chunk_size)
+            found = Units()
         else:
             raise CloudFileError(_unsupported(path))
     except (LabkitError, MemoryError, KeyboardInterrupt):
@@ -296,10 +341,44 @@ def read_cloud(
     if not np.isfinite(xyz).all():
         bad = int((~np.isfinite(xyz)).any(axis=1).sum())
         raise CloudFileError(f"{path} has {bad} point(s) with NaN or infinite coordinates")
-    return PointCloud(xyz, attrs, crs=crs, name=path.stem)
+    if keep is not None and keep - set(attrs):
+        raise LabkitError(
+            f"{path} has no attribute {', '.join(sorted(keep - set(attrs)))} "
+            f"(attributes kept: {', '.join(sorted(attrs)) or 'none'})"
+        )
+    return PointCloud(xyz, attrs, crs=crs, name=path.stem, units=found)
+
+
+def _positive_int(value, name: str) -> int:
+    """A whole number >= 1 (bool, fractions and text refused)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer, float, np.floating)):
+        raise LabkitError(f"{name} must be a whole number >= 1, got {value!r}")
+    if not np.isfinite(value) or value != int(value) or value < 1:
+        raise LabkitError(f"{name} must be a whole number >= 1, got {value!r}")
+    return int(value)
+
+
+def _attribute_names(attributes) -> set | None:
+    """The attribute selection as a set of names; a bare string is one name."""
+    if attributes is None:
+        return None
+    if isinstance(attributes, str):
+        return {attributes}
+    try:
+        names = list(attributes)
+    except TypeError:
+        raise LabkitError(f"attributes must be a name or a sequence of names, got {attributes!r}") from None
+    bad = [a for a in names if not isinstance(a, str)]
+    if bad:
+        raise LabkitError(f"attributes must be names (str), got {bad[0]!r}")
+    return set(names)
 
 
 def _existing(path) -> Path:
+    if not isinstance(path, (str, os.PathLike)):
+        raise CloudFileError(f"a point-cloud file path (str or Path) is needed, got {type(path).__name__}")
+    if isinstance(path, str) and not path.strip():
+        raise CloudFileError("a point-cloud file path is needed, got an empty string")
     path = Path(path)
     if not path.exists():
         raise CloudFileError(f"point-cloud file not found: {path}")
@@ -311,7 +390,7 @@ def _existing(path) -> Path:
 
 
 def _unsupported(path: Path) -> str:
-    known = " ".join(LAS_SUFFIXES + ASCII_SUFFIXES + NUMPY_SUFFIXES)
+    known = " ".join(LAS_SUFFIXES + ASCII_SUFFIXES + NUMPY_SUFFIXES + PLY_SUFFIXES)
     return f"unsupported point-cloud format {path.suffix!r} of {path}; known suffixes: {known}"
 
 
@@ -329,8 +408,8 @@ def _check_las_header(path: Path) -> None:
     """
     size = path.stat().st_size
     with open(path, "rb") as f:
-        head = f.read(107)
-    if len(head) < 107 or head[:4] != b"LASF":
+        head = f.read(179)
+    if len(head) < 179 or head[:4] != b"LASF":
         raise CloudFileError(f"{path} is not a LAS/LAZ file (no 'LASF' signature or header too short)")
     major, minor = head[24], head[25]
     header_size, offset, n_vlrs = struct.unpack_from("<HII", head, 94)
@@ -344,21 +423,29 @@ def _check_las_header(path: Path) -> None:
         problems.append(f"{n_vlrs} VLRs announced, room for at most {(offset - header_size) // 54}")
     if fmt_id > 10:
         problems.append(f"point format {fmt_id} (known: 0-10)")
+    scales = np.array(struct.unpack_from("<3d", head, 131))
+    offsets = np.array(struct.unpack_from("<3d", head, 155))
+    if not (np.isfinite(scales).all() and (scales != 0).all()):
+        problems.append(f"scale factors {scales.tolist()} (each must be a finite number other than 0)")
+    if not np.isfinite(offsets).all():
+        problems.append(f"offsets {offsets.tolist()} are not finite")
     if problems:
         raise CloudFileError(f"{path} has a corrupt or unsupported LAS header: " + "; ".join(problems))
 
 
-def _read_las(path: Path, flt: _Filter, keep, chunk_size: int, progress: bool):
+def _read_las(path: Path, flt: _Filter, keep, chunk_size: int, progress: bool, units: str):
     import laspy
 
     _check_las_header(path)
     with laspy.open(str(path)) as reader:
         header = reader.header
         total = int(header.point_count)
+        found, crs = las_units(header)
+        found, factors = _to_metres(found, units, path)
         names = [d for d in header.point_format.dimension_names if d not in ("X", "Y", "Z")]
         names = [d for d in names if keep is None or d in keep]
         _needs_class(flt, header.point_format.dimension_names, path)
-        _check_overlap(flt, header, path)
+        _check_overlap(flt, header, path, factors)
         gather = _Gather(None if flt.active else _plausible_count(header, path))
         bar = _Progress(total, f"reading {path.name}", progress)
         seen = 0
@@ -366,6 +453,8 @@ def _read_las(path: Path, flt: _Filter, keep, chunk_size: int, progress: bool):
             for points in reader.chunk_iterator(chunk_size):
                 seen += len(points)
                 xyz = np.column_stack([np.asarray(points.x), np.asarray(points.y), np.asarray(points.z)])
+                if factors is not None:
+                    xyz *= factors  # file units -> metres, per axis
                 cls = np.asarray(points["classification"]) if flt.classes is not None else None
                 mask = flt.mask(xyz, cls)
                 sel = slice(None) if mask is None else mask
@@ -376,7 +465,26 @@ def _read_las(path: Path, flt: _Filter, keep, chunk_size: int, progress: bool):
         if seen != total:
             raise CloudFileError(f"{path} is truncated: the header announces {total} points, the file holds {seen}")
         xyz, attrs = gather.result()
-        return xyz, attrs, _crs_from_header(header)
+        return xyz, attrs, crs, found
+
+
+def _to_metres(found: Units, units: str, path: Path):
+    """(units recorded on the cloud, per-axis factors to apply or None) for ``units='m'|'native'``."""
+    if units == "native" or not found.known:
+        return found, None
+    if found.angular:
+        raise UnitsError(
+            f"{path} is in {found.horizontal}s of longitude/latitude ({found.describe()}); labkit's metric steps "
+            "need projected coordinates: reproject it (e.g. to UTM) first, or read it with units='native' "
+            "for non-metric use"
+        )
+    factors = found.factors
+    if factors is None:
+        raise UnitsError(f"{path}: cannot convert {found.label(native=True)} to metres ({found.describe()}); "
+                         "read it with units='native'")
+    if np.all(factors == 1.0):
+        return found, None
+    return replace(found, converted=True), factors
 
 
 def _plausible_count(header, path: Path) -> int | None:
@@ -399,12 +507,13 @@ def _plausible_count(header, path: Path) -> int | None:
     return total if needed <= 50 * size else None
 
 
-def _check_overlap(flt: _Filter, header, path: Path) -> None:
+def _check_overlap(flt: _Filter, header, path: Path, factors=None) -> None:
     """Fail early when the filter's area misses the header's bounding box."""
     area = flt.xy_bounds()
     if area is None or header.point_count == 0:
         return
-    lo, hi = np.asarray(header.mins)[:2], np.asarray(header.maxs)[:2]
+    f = np.ones(2) if factors is None else factors[:2]
+    lo, hi = np.asarray(header.mins)[:2] * f, np.asarray(header.maxs)[:2] * f
     if (area[0] > hi).any() or (area[1] < lo).any() or (area[0] > area[1]).any():
         raise EmptyRegionError(
             f"{flt.describe()} lies outside the extent of {path} "
@@ -412,24 +521,74 @@ def _check_overlap(flt: _Filter, header, path: Path) -> None:
         )
 
 
-def _crs_from_header(header) -> str | None:
-    """CRS as text: the WKT VLR's string, else ``EPSG:code`` from the GeoTIFF keys."""
-    from laspy.vlrs.known import GeoKeyDirectoryVlr, WktCoordinateSystemVlr
+def _las_crs_records(header):
+    """(WKT text or None, GeoKey dict or None, GeoDoubleParams) of a LAS header.
 
-    records = list(header.vlrs) + list(header.evlrs or [])
-    for rec in records:
-        if isinstance(rec, WktCoordinateSystemVlr) and rec.string.strip():
-            return rec.string.strip()
-    for rec in records:
-        if isinstance(rec, GeoKeyDirectoryVlr):
-            keys = {k.id: k.value_offset for k in rec.geo_keys if k.tiff_tag_location == 0}
-            horizontal = keys.get(3072) or keys.get(2048)  # ProjectedCSType, GeographicType
-            if horizontal is not None and 1024 <= horizontal <= 32766:
-                vertical = keys.get(4096)  # VerticalCSType
-                if vertical is not None and 1024 <= vertical <= 32766:
-                    return f"EPSG:{horizontal}+{vertical}"
-                return f"EPSG:{horizontal}"
-    return None
+    The WKT is the LASF_Projection 2112 record, or the OGR WKT that libLAS wrote
+    as ``liblas`` 2112. GeoKeys map key id -> (location, count, value).
+    """
+    from laspy.vlrs.known import GeoDoubleParamsVlr, GeoKeyDirectoryVlr, WktCoordinateSystemVlr
+
+    from ._units import parse_wkt
+
+    wkt, keys, doubles = None, None, ()
+    for rec in list(header.vlrs) + list(header.evlrs or []):
+        text = None
+        if isinstance(rec, WktCoordinateSystemVlr):
+            text = rec.string
+        elif getattr(rec, "record_id", None) == 2112 and isinstance(getattr(rec, "record_data", None), bytes):
+            text = rec.record_data.decode("utf-8", errors="replace")
+        if text is not None:
+            text = text.strip().rstrip("\x00").strip()
+            if wkt is None and text and parse_wkt(text) is not None:
+                wkt = text
+        if isinstance(rec, GeoKeyDirectoryVlr) and keys is None:
+            keys = {k.id: (k.tiff_tag_location, k.count, k.value_offset) for k in rec.geo_keys if k.id}
+        if isinstance(rec, GeoDoubleParamsVlr):
+            doubles = tuple(float(getattr(d, "value", d)) for d in rec.doubles)
+    return wkt, keys or None, doubles
+
+
+def _epsg_text(keys) -> str | None:
+    """``EPSG:h[+v]`` from ProjectedCSType / GeographicType (+ VerticalCSType) GeoKeys."""
+    if not keys:
+        return None
+    direct = {k: v[2] for k, v in keys.items() if v[0] == 0}
+    horizontal = direct.get(3072) or direct.get(2048)
+    if horizontal is None or not 1024 <= horizontal <= 32766:
+        return None
+    vertical = direct.get(4096)
+    if vertical is not None and 1024 <= vertical <= 32766:
+        return f"EPSG:{horizontal}+{vertical}"
+    return f"EPSG:{horizontal}"
+
+
+def las_units(header) -> tuple[Units, str | None]:
+    """Units of a LAS header's coordinates and its CRS text (from the governing record).
+
+    The WKT governs a LAS 1.4 file with the global-encoding WKT bit set, the
+    GeoTIFF keys every other file (LAS specification); the other record is used
+    when the governing one names nothing. See ``labkit._units`` for the parser.
+    """
+    from ._units import decide_units
+
+    wkt, keys, doubles = _las_crs_records(header)
+    las14 = (header.version.major, header.version.minor) >= (1, 4)
+    wkt_bit = bool(header.global_encoding.wkt) if las14 else False
+    found = decide_units(wkt, keys, doubles, wkt_bit=wkt_bit, las14=las14)
+    epsg = _epsg_text(keys)
+    if found.source == "GeoKeys":
+        crs = epsg or wkt
+    elif found.source == "WKT":
+        crs = wkt
+    else:
+        crs = wkt if wkt and (las14 and wkt_bit or epsg is None) else epsg
+    return found, crs
+
+
+def _crs_from_header(header) -> str | None:
+    """CRS as text: the governing WKT, else ``EPSG:code`` from the GeoTIFF keys."""
+    return las_units(header)[1]
 
 
 # ---------------------------------------------------------------------------- ASCII
@@ -463,7 +622,7 @@ def _read_ascii(path: Path, flt: _Filter, keep, chunk_size: int, progress: bool)
         finally:
             bar.close()
     xyz, attrs = gather.result()
-    return xyz, {c: _text_dtype(c, v, path) for c, v in attrs.items()}, None
+    return xyz, _text_columns(attrs, path), None
 
 
 def _first_line(f, path: Path) -> tuple[str, int]:
@@ -522,6 +681,28 @@ def _parse_block(block: list[str], delimiter, ncol: int, path: Path, row: int) -
     return data
 
 
+def _text_columns(attrs: dict, path: Path) -> dict:
+    """Typed text columns; a scan-angle column in fractional degrees (PDAL's
+    ``ScanAngleRank`` of LAS 1.4 data) becomes ``scan_angle`` in 0.006-degree units."""
+    out = {}
+    for name, values in attrs.items():
+        if name == "scan_angle_rank" and "scan_angle" not in attrs and _fractional_degrees(values):
+            steps = np.rint(values / SCAN_ANGLE_STEP)
+            if np.abs(steps * SCAN_ANGLE_STEP - values).max() <= 1e-6 * max(1.0, np.abs(values).max()):
+                out["scan_angle"] = steps.astype(np.int16)  # LAS 1.4 units of 0.006 degrees, exact
+            else:
+                out["scan_angle_degrees"] = values  # finer than the LAS field: kept as degrees
+            continue
+        out[name] = _text_dtype(name, values, path)
+    return out
+
+
+def _fractional_degrees(values: np.ndarray) -> bool:
+    """Finite angles within +-180 degrees that are not all whole numbers."""
+    return bool(values.size and np.isfinite(values).all() and np.abs(values).max() <= 180.0
+                and not np.array_equal(values, np.round(values)))
+
+
 def _text_dtype(name: str, values: np.ndarray, path: Path) -> np.ndarray:
     """Known dimensions get laspy's dtype, other integral columns int64, the rest float64."""
     finite = np.isfinite(values).all()
@@ -537,8 +718,131 @@ def _text_dtype(name: str, values: np.ndarray, path: Path) -> np.ndarray:
     return values
 
 
+# ---------------------------------------------------------------------------- PLY
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+
+
+@dataclass(frozen=True)
+class _PlyElement:
+    name: str
+    count: int
+    properties: tuple  # ((name, numpy type code) or (name, "list", count type, item type), ...)
+
+
+def _ply_header(f, path: Path):
+    """(format, elements, byte offset of the data) from a PLY header."""
+    if f.readline().strip() != b"ply":
+        raise CloudFileError(f"{path} is not a PLY file (no 'ply' magic line)")
+    fmt, elements = None, []
+    for _ in range(100_000):
+        raw = f.readline()
+        if not raw:
+            raise CloudFileError(f"{path}: the PLY header has no 'end_header' line")
+        words = raw.decode("ascii", errors="replace").split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "end_header":
+            return fmt, elements, f.tell()
+        if words[0] == "format" and len(words) >= 2:
+            fmt = words[1]
+            if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+                raise CloudFileError(f"{path}: unknown PLY format {fmt!r}")
+        elif words[0] == "element" and len(words) == 3 and words[2].isdigit():
+            elements.append(_PlyElement(words[1], int(words[2]), ()))
+        elif words[0] == "property" and elements:
+            if len(words) == 3 and words[1] in _PLY_TYPES:
+                prop = (words[2], _PLY_TYPES[words[1]])
+            elif len(words) == 5 and words[1] == "list" and words[2] in _PLY_TYPES and words[3] in _PLY_TYPES:
+                prop = (words[4], "list", _PLY_TYPES[words[2]], _PLY_TYPES[words[3]])
+            else:
+                raise CloudFileError(f"{path}: cannot read the PLY property line {raw.strip()!r}")
+            last = elements[-1]
+            elements[-1] = _PlyElement(last.name, last.count, last.properties + (prop,))
+        else:
+            raise CloudFileError(f"{path}: unexpected PLY header line {raw.strip()!r}")
+    raise CloudFileError(f"{path}: the PLY header is too long")
+
+
+def _read_ply(path: Path, flt: _Filter, keep, chunk_size: int):
+    """Vertex x, y, z and scalar properties of an ASCII or binary PLY file."""
+    with open(path, "rb") as f:
+        fmt, elements, start = _ply_header(f, path)
+        if fmt is None:
+            raise CloudFileError(f"{path}: the PLY header has no 'format' line")
+        names = [e.name for e in elements]
+        if "vertex" not in names:
+            raise CloudFileError(f"{path}: the PLY file has no 'vertex' element (has {names})")
+        before = elements[: names.index("vertex")]
+        vertex = elements[names.index("vertex")]
+        props = vertex.properties
+        if any(len(p) != 2 for p in props):
+            raise CloudFileError(f"{path}: list properties in the PLY vertex element are not supported")
+        columns = [_canonical(p[0]) for p in props]
+        if len(set(columns)) != len(columns):
+            raise CloudFileError(f"{path}: the PLY vertex element repeats a property ({[p[0] for p in props]})")
+        missing = [c for c in "xyz" if c not in columns]
+        if missing:
+            raise CloudFileError(f"{path}: the PLY vertex element has no property {', '.join(missing)}")
+        if fmt == "ascii":
+            lines = itertools.islice(f, sum(e.count for e in before), None)  # earlier elements: one line each
+            blocks = _ply_ascii_blocks(lines, vertex.count, len(props), chunk_size, path)
+        else:
+            if any(len(p) != 2 for e in before for p in e.properties):
+                raise CloudFileError(f"{path}: a binary PLY with list properties before its vertices is not supported")
+            end = "<" if fmt == "binary_little_endian" else ">"
+            skip = sum(e.count * np.dtype([(f"p{i}", end + p[1]) for i, p in enumerate(e.properties)]).itemsize
+                       for e in before)
+            dtype = np.dtype([(f"p{i}", end + p[1]) for i, p in enumerate(props)])
+            blocks = _ply_binary_blocks(f, start + skip, dtype, vertex.count, chunk_size, path)
+        ix = [columns.index(c) for c in "xyz"]
+        extra = [(i, c) for i, c in enumerate(columns) if c not in "xyz" and (keep is None or c in keep)]
+        _needs_class(flt, columns, path)
+        gather = _Gather(None)
+        for block in blocks:  # list of column arrays
+            xyz = np.column_stack([block[i].astype(np.float64) for i in ix])
+            cls = block[columns.index("classification")] if flt.classes is not None else None
+            mask = flt.mask(xyz, cls)
+            sel = slice(None) if mask is None else mask
+            gather.add(xyz[sel], {c: block[i][sel] for i, c in extra})
+    xyz, attrs = gather.result()
+    if fmt == "ascii":
+        attrs = _text_columns(attrs, path)
+    return xyz, attrs, None
+
+
+def _ply_ascii_blocks(lines, count: int, ncol: int, chunk_size: int, path: Path):
+    done = 0
+    while done < count:
+        block = list(itertools.islice(lines, min(chunk_size, count - done)))
+        if len(block) < min(chunk_size, count - done):
+            raise CloudFileError(f"{path} is truncated: the PLY header announces {count} vertices, "
+                                 f"the file holds {done + len(block)}")
+        text = [b.decode("ascii", errors="replace") for b in block]
+        data = _parse_block(text, None, ncol, path, done)
+        done += len(block)
+        yield [data[:, j] for j in range(ncol)]
+
+
+def _ply_binary_blocks(f, offset: int, dtype: np.dtype, count: int, chunk_size: int, path: Path):
+    size = path.stat().st_size
+    if offset + count * dtype.itemsize > size:
+        raise CloudFileError(f"{path} is truncated: the PLY header announces {count} vertices "
+                             f"({offset + count * dtype.itemsize} bytes), the file has {size} bytes")
+    f.seek(offset)
+    for start in range(0, count, chunk_size):
+        rec = np.fromfile(f, dtype=dtype, count=min(chunk_size, count - start))
+        yield [rec[name].astype(rec.dtype[name].newbyteorder("=")) for name in dtype.names]
+
+
 # ---------------------------------------------------------------------------- NumPy
-def _read_numpy(path: Path, flt: _Filter, keep, chunk_size: int):
+def _read_numpy(path: Path, flt: _Filter, keep, chunk_size: int, units: str):
+    from ._units import units_from_crs_text
+
     if path.suffix.lower() == ".npy":
         arr = np.load(path, mmap_mode="r", allow_pickle=False)
         xyz, attrs = _split_npy(arr, path)
@@ -546,17 +850,25 @@ def _read_numpy(path: Path, flt: _Filter, keep, chunk_size: int):
     else:
         with np.load(path, allow_pickle=False) as z:
             xyz, attrs, crs = _split_npz(z, path)
+    found = units_from_crs_text(crs)
+    if path.suffix.lower() == ".npz":
+        with np.load(path, allow_pickle=False) as z:
+            if "units" in z.files:
+                found = _units_from_json(str(z["units"]), path)
+    found, factors = _to_metres(found, units, path)
     attrs = {k: v for k, v in attrs.items() if keep is None or k in keep}
     _needs_class(flt, attrs, path)
     gather = _Gather(None)
     for start in range(0, len(xyz), chunk_size):
-        part = np.asarray(xyz[start : start + chunk_size], dtype=np.float64)
+        part = np.array(xyz[start : start + chunk_size], dtype=np.float64)
+        if factors is not None:
+            part *= factors
         cls = np.asarray(attrs["classification"][start : start + chunk_size]) if flt.classes is not None else None
         mask = flt.mask(part, cls)
         sel = slice(None) if mask is None else mask
         gather.add(part[sel], {k: np.asarray(v[start : start + chunk_size])[sel] for k, v in attrs.items()})
     out_xyz, out_attrs = gather.result()
-    return out_xyz, out_attrs, crs
+    return out_xyz, out_attrs, crs, found
 
 
 def _split_npy(arr: np.ndarray, path: Path):
@@ -586,7 +898,7 @@ def _split_npz(z, path: Path):
         raise CloudFileError(f"{path}: 'xyz' must have shape (n, 3), got {xyz.shape}")
     crs = str(z["crs"]) if "crs" in keys and z["crs"].size else None
     attrs = {}
-    for k in sorted(keys - used - {"crs", "name"}):
+    for k in sorted(keys - used - {"crs", "name", "units"}):
         v = z[k]
         if v.ndim != 1 or len(v) != len(xyz):
             raise CloudFileError(f"{path}: array {k!r} has shape {v.shape}, expected ({len(xyz)},)")
@@ -610,6 +922,7 @@ class CloudInfo(ReportMixin):
     dimensions: tuple
     crs: str | None
     compressed: bool
+    units: Units = Units()
 
     def _report(self):
         crs = self.crs if self.crs is None or len(self.crs) < 60 else self.crs[:57] + "..."
@@ -617,14 +930,25 @@ class CloudInfo(ReportMixin):
             ("file", str(self.path.name)),
             ("LAS version / point format", f"{self.version} / {self.point_format}" + (" (LAZ)" if self.compressed else "")),
             ("points", f"{self.point_count:,}"),
-            ("min", fmt(self.mins, 3, "m")),
-            ("max", fmt(self.maxs, 3, "m")),
-            ("scale", fmt(self.scales, 6, "m")),
-            ("offset", fmt(self.offsets, 3, "m")),
+            ("min", _with_units(self.mins, 3, self.units)),
+            ("max", _with_units(self.maxs, 3, self.units)),
+            ("scale", _with_units(self.scales, 6, self.units)),
+            ("offset", _with_units(self.offsets, 3, self.units)),
+            ("units", self.units.describe()),
             ("CRS", str(crs)),
             ("dimensions", ", ".join(self.dimensions)),
         ]
         return "Point-cloud file", [("", rows)]
+
+
+def _with_units(values, digits: int, units: Units) -> str:
+    """``[x, y, z] m`` or ``[x, y] m, z ftUS``: the file's units, never 'm' when they are not metres."""
+    if not units.known:
+        return fmt(values, digits) + " (units not stated)"
+    h, _, v = units.axis_labels(native=True)
+    if h == v:
+        return fmt(values, digits, h)
+    return f"{fmt(values[:2], digits, h)}, {fmt(values[2], digits, v)}"
 
 
 def cloud_info(path) -> CloudInfo:
@@ -638,6 +962,7 @@ def cloud_info(path) -> CloudInfo:
     try:
         with laspy.open(str(path)) as reader:
             h = reader.header
+            found, crs = las_units(h)
             return CloudInfo(
                 path=path,
                 version=f"{h.version.major}.{h.version.minor}",
@@ -648,8 +973,9 @@ def cloud_info(path) -> CloudInfo:
                 scales=np.asarray(h.scales, dtype=float),
                 offsets=np.asarray(h.offsets, dtype=float),
                 dimensions=tuple(h.point_format.dimension_names),
-                crs=_crs_from_header(h),
+                crs=crs,
                 compressed=bool(h.are_points_compressed),
+                units=found,
             )
     except LabkitError:
         raise
@@ -667,7 +993,8 @@ def write_cloud(cloud: PointCloud, path, *, scale=0.001, point_format: int | Non
     path : str or Path
         The suffix picks the format: ``.las .laz .csv .txt .xyz .asc .npz``.
     scale : float, sequence of 3 floats or None
-        Coordinate resolution in metres: LAS scale factors, decimals in text.
+        Coordinate resolution in the file's units (metres, or the CRS's feet
+        for a cloud converted from feet): LAS scale factors, decimals in text.
         Default 0.001 (rounding error at most 0.5 mm). ``None`` picks, per
         axis, the coarsest decimal grid the coordinates already lie on (so a
         cloud read from a LAS file is written back without rounding), and 0.0001 m
@@ -688,26 +1015,45 @@ def write_cloud(cloud: PointCloud, path, *, scale=0.001, point_format: int | Non
     -----
     LAS offsets are the data minimum rounded down to a multiple of 1000 m, so
     UTM coordinates keep the whole int32 range for the fraction. Attributes
-    that are not dimensions of the point format become LAS extra bytes. The CRS
-    text is written as a WKT VLR (WKT) or GeoTIFF keys (``EPSG:code``).
+    that are not dimensions of the point format become LAS extra bytes (names
+    of at most 32 characters, unique within those 32). The CRS text is written
+    as a WKT VLR (WKT) or GeoTIFF keys (``EPSG:code``, with the unit keys of
+    ``cloud.units``). A cloud converted from feet on reading is written to
+    LAS/LAZ/NPZ in its CRS's units again; text files get the coordinates as held.
+    Integer attributes must fit their LAS field (e.g. intensity 0..65535,
+    classification 0..31 in formats 0-5): values outside raise, they never wrap.
     """
     if not isinstance(cloud, PointCloud):
         raise LabkitError(f"write_cloud needs a PointCloud, got {type(cloud).__name__}")
+    if not isinstance(path, (str, os.PathLike)) or (isinstance(path, str) and not path.strip()):
+        raise CloudFileError(f"write_cloud needs a file path (str or Path), got {path!r}")
+    chunk_size = _positive_int(chunk_size, "chunk_size")
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in LAS_SUFFIXES + ASCII_SUFFIXES + (".npz",):
         raise CloudFileError(_unsupported(path) + " (writing: .las .laz .csv .txt .xyz .asc .npz)")
     if not path.parent.is_dir():
         raise CloudFileError(f"cannot write {path}: folder {path.parent} does not exist")
+    if suffix in LAS_SUFFIXES + (".npz",):
+        cloud = _in_file_units(cloud)
     scales = _choose_scale(cloud.xyz, scale)
     with _atomic(path) as tmp:
         if suffix in LAS_SUFFIXES:
-            _write_las(cloud, tmp, suffix == ".laz", scales, point_format, int(chunk_size))
+            _write_las(cloud, tmp, suffix == ".laz", scales, point_format, chunk_size)
         elif suffix == ".npz":
             _write_npz(cloud, tmp)
         else:
-            _write_ascii(cloud, tmp, "," if suffix == ".csv" else " ", scales, int(chunk_size))
+            _write_ascii(cloud, tmp, "," if suffix == ".csv" else " ", scales, chunk_size)
     return path
+
+
+def _in_file_units(cloud: PointCloud) -> PointCloud:
+    """The cloud in its CRS's own units (undoes the conversion to metres made on reading)."""
+    u = cloud.units
+    if not (u.converted and cloud.crs and u.factors is not None):
+        return cloud
+    return PointCloud(cloud.xyz / u.factors, cloud.attributes, crs=cloud.crs, name=cloud.name,
+                      units=replace(u, converted=False))
 
 
 @contextlib.contextmanager
@@ -724,7 +1070,12 @@ def _choose_scale(xyz: np.ndarray, scale) -> np.ndarray:
     """Per-axis coordinate resolution (m)."""
     if scale is None:
         return np.array([_grid_step(xyz[:, j]) for j in range(3)])
-    s = np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,)).copy() if np.ndim(scale) <= 1 else None
+    try:
+        s = np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,)).copy() if np.ndim(scale) <= 1 else None
+    except (TypeError, ValueError):
+        s = None
+    if isinstance(scale, (bool, np.bool_, str, bytes)):
+        s = None
     if s is None or s.shape != (3,) or not np.isfinite(s).all() or (s <= 0).any():
         raise LabkitError(f"scale must be a positive number, three positive numbers or None, got {scale!r}")
     return s
@@ -769,10 +1120,13 @@ def _write_las(cloud, tmp: Path, compress: bool, scales, point_format, chunk_siz
     header.scales, header.offsets = scales, _las_offsets(cloud.xyz)
     header.generating_software = "labkit"
     standard = set(header.point_format.dimension_names)
+    _check_extra_names([n for n in attrs if n not in standard])
     for name, values in attrs.items():
-        if name not in standard:
+        if name in standard:
+            _check_fits(name, values, header.point_format.dimension_by_name(name), fmt_id)
+        else:
             header.add_extra_dim(laspy.ExtraBytesParams(name=name[:32], type=_extra_dtype(name, values)))
-    _add_crs(header, cloud.crs)
+    _add_crs(header, cloud.crs, cloud.units)
     ints = _quantize(cloud.xyz, header.offsets, header.scales)
     with laspy.open(str(tmp), mode="w", header=header, do_compress=compress) as writer:
         for start in range(0, max(len(cloud), 1), chunk_size):
@@ -791,6 +1145,43 @@ def _las_attributes(attrs: dict, point_format) -> dict:
     if "scan_angle_rank" in out and "scan_angle" not in out and (fmt_new or _auto_format(out) >= 6):
         out["scan_angle"] = np.round(out.pop("scan_angle_rank").astype(np.float64) / 0.006).astype(np.int16)  # 0.006 deg units
     return out
+
+
+def _check_extra_names(names: list) -> None:
+    """LAS extra-bytes names hold 32 characters: two names may not share them."""
+    seen = {}
+    for name in names:
+        if not name.isascii():
+            raise LabkitError(f"attribute {name!r}: LAS extra-bytes names must be ASCII")
+        short = name[:32]
+        if short in seen:
+            raise LabkitError(
+                f"attributes {seen[short]!r} and {name!r} share their first 32 characters ({short!r}), "
+                "the length of a LAS extra-bytes name: rename one of them"
+            )
+        seen[short] = name
+
+
+def _check_fits(name: str, values: np.ndarray, dim, fmt_id: int) -> None:
+    """Raise when an integer LAS field cannot hold the values (they would wrap around)."""
+    values = np.asarray(values)
+    if values.size == 0 or values.dtype.kind not in "biuf":
+        return
+    if dim.kind.name == "BitField":
+        lo, hi = 0, 2**dim.num_bits - 1
+    elif dim.kind.name in ("SignedInteger", "UnsignedInteger"):
+        info = np.iinfo(dim.dtype)
+        lo, hi = int(info.min), int(info.max)
+    else:
+        return
+    if values.dtype.kind == "f" and not np.isfinite(values).all():
+        raise LabkitError(f"attribute {name!r} holds NaN or infinite values; the LAS field takes integers {lo}..{hi}")
+    vmin, vmax = values.min(), values.max()
+    if vmin < lo or vmax > hi:
+        raise LabkitError(
+            f"attribute {name!r} holds values {vmin}..{vmax}, outside the range {lo}..{hi} of its LAS field "
+            f"(point format {fmt_id}); they would wrap around: fix or rescale the values"
+        )
 
 
 def _extra_dtype(name: str, values: np.ndarray):
@@ -826,8 +1217,11 @@ def _quantize(xyz: np.ndarray, offsets, scales) -> np.ndarray:
     return q.astype(np.int32)
 
 
-def _add_crs(header, crs: str | None) -> None:
-    """Store the CRS text: WKT as a WKT VLR, ``EPSG:h[+v]`` as GeoTIFF keys."""
+_EPSG_UNIT_CODES = {"metre": 9001, "foot": 9002, "US survey foot": 9003}
+
+
+def _add_crs(header, crs: str | None, units: Units | None = None) -> None:
+    """Store the CRS text: WKT as a WKT VLR, ``EPSG:h[+v]`` as GeoTIFF keys (with the unit keys)."""
     if not crs:
         return
     from laspy.vlrs.known import GeoKeyDirectoryVlr, GeoKeyEntryStruct, WktCoordinateSystemVlr
@@ -843,16 +1237,37 @@ def _add_crs(header, crs: str | None) -> None:
     keys = [(1024, 2 if geographic else 1), (1025, 1), (2048 if geographic else 3072, code)]
     if vertical:
         keys.append((4096, int(vertical)))
+    if units is not None and not geographic and units.horizontal in _EPSG_UNIT_CODES:
+        keys.append((3076, _EPSG_UNIT_CODES[units.horizontal]))  # ProjLinearUnitsGeoKey
+    if units is not None and units.vertical in _EPSG_UNIT_CODES:
+        keys.append((4099, _EPSG_UNIT_CODES[units.vertical]))  # VerticalUnitsGeoKey
+    keys.sort()
     vlr = GeoKeyDirectoryVlr()
     vlr.geo_keys = [GeoKeyEntryStruct(k, 0, 1, v) for k, v in keys]
     vlr.geo_keys_header.number_of_keys = len(keys)
     header.vlrs.append(vlr)
 
 
+def _units_from_json(text: str, path: Path) -> Units:
+    import json
+
+    try:
+        fields = json.loads(text)
+        return Units(**{k: v for k, v in fields.items() if k != "converted"})
+    except (ValueError, TypeError) as exc:
+        raise CloudFileError(f"{path}: unreadable 'units' entry: {exc}") from None
+
+
 def _write_npz(cloud: PointCloud, tmp: Path) -> None:
-    arrays = {"xyz": cloud.xyz, **{k: v for k, v in cloud.attributes.items() if k not in ("xyz", "crs", "name")}}
+    import dataclasses
+    import json
+
+    arrays = {"xyz": cloud.xyz,
+              **{k: v for k, v in cloud.attributes.items() if k not in ("xyz", "crs", "name", "units")}}
     if cloud.crs:
         arrays["crs"] = np.array(cloud.crs)
+    if cloud.units.known:
+        arrays["units"] = np.array(json.dumps(dataclasses.asdict(cloud.units)))
     with open(tmp, "wb") as f:
         np.savez_compressed(f, **arrays)
 

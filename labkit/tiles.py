@@ -207,7 +207,8 @@ def _concat(clouds):
         return clouds[0]
     keys = set.intersection(*(set(c.attributes) for c in clouds))
     return PointCloud(np.vstack([c.xyz for c in clouds]),
-                      {k: np.concatenate([c[k] for c in clouds]) for k in keys}, crs=clouds[0].crs)
+                      {k: np.concatenate([c[k] for c in clouds]) for k in keys}, crs=clouds[0].crs,
+                      units=clouds[0].units)
 
 
 # --------------------------------------------------------------------------- per-tile registration
