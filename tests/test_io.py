@@ -396,3 +396,276 @@ def test_written_files_get_the_usual_permissions(tmp_path):
     for f in files:
         assert stat.S_IMODE(f.stat().st_mode) == 0o644, f
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(f.name for f in files)  # no temp files left
+
+
+# ---------------------------------------------------------------------------- units from the file
+from pathlib import Path  # noqa: E402
+
+from labkit._units import parse_wkt, units_from_wkt  # noqa: E402
+from labkit.cloud import Units, UnitsError  # noqa: E402
+
+DATA_REAL = Path(__file__).resolve().parents[1] / "data" / "real"
+US_FT, FT = 1200.0 / 3937.0, 0.3048  # metres per US survey foot / international foot (definitions)
+
+
+def _raw_xyz(path):
+    """Stored coordinates X * scale + offset, straight from laspy (no labkit)."""
+    las = laspy.read(str(path))
+    return np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
+
+
+# file -> (X/Y unit, Z unit, conflict expected); from the CRS records as described in shared/realdata/README.md
+REAL_UNITS = {
+    "epochs/autzen-bmx-2010.las": ("metre", "US survey foot", False),
+    "epochs/autzen-bmx-2023.las": ("metre", "US survey foot", False),
+    "als/interesting.las": ("foot", "foot", False),
+    "als/4_6_crop.las": ("US survey foot", "US survey foot", False),
+    "als/file_with_both_wkt_and_geotiff_vlrs.las": ("US survey foot", "US survey foot", True),
+    "als/MixedConifer.laz": ("metre", "metre", False),
+    "als/las_with_several_extra_byte_bloc.laz": ("metre", "metre", False),
+    "als/append-bug.laz": ("metre", "metre", False),
+    "als/faceraster_numerical_imprecision.laz": ("metre", "metre", False),
+    "als/fullwave.laz": ("metre", "metre", False),
+    "als/warsaw_small.las": ("unknown", "unknown", False),
+    "als/sample_c.las": ("unknown", "unknown", False),
+    "dim/pybathysfm_sample_sfm_epsg27700.laz": ("metre", "metre", False),
+    "tls/plane.laz": ("metre", "metre", False),
+    "tls/vegetation_1_3.las": ("unknown", "unknown", False),
+}
+_FACTOR = {"metre": 1.0, "US survey foot": US_FT, "foot": FT, "unknown": 1.0}
+
+
+@pytest.mark.parametrize("name", sorted(REAL_UNITS))
+def test_units_of_the_real_files(realdata, name):
+    h, v, conflict = REAL_UNITS[name]
+    path = realdata / name
+    info = cloud_info(path)
+    assert (info.units.horizontal, info.units.vertical) == (h, v)
+    assert (info.units.conflict is not None) == conflict
+    raw = _raw_xyz(path)
+    metres = read_cloud(path)
+    factors = np.array([_FACTOR[h], _FACTOR[h], _FACTOR[v]])
+    np.testing.assert_allclose(metres.xyz, raw * factors, rtol=1e-15, atol=0)
+    assert metres.units.converted == bool((factors != 1).any())
+    assert metres.units.is_metric or metres.units.coordinates == ("unknown", "unknown")
+    native = read_cloud(path, units="native")
+    np.testing.assert_array_equal(native.xyz, raw)
+    assert native.units.coordinates == (h, v)
+    # the header summary labels each axis with the file's unit, never metres for feet
+    text = info.summary()
+    short = {"metre": "m", "US survey foot": "ftUS", "foot": "ft", "unknown": "(units not stated)"}
+    min_line = next(line for line in text.split("\n") if line.startswith("min "))
+    assert short[h] in min_line and short[v] in min_line
+    if h != "metre" and v != "metre":
+        assert not any(line.rstrip().endswith(" m") for line in text.split("\n") if line[:4] in ("min ", "max "))
+
+
+def test_epsg_4326_is_refused_before_any_metric_step(realdata):
+    path = realdata / "als" / "epsg_4326.las"
+    with pytest.raises(UnitsError, match="longitude/latitude"):
+        read_cloud(path)
+    cloud = read_cloud(path, units="native")
+    np.testing.assert_array_equal(cloud.xyz, _raw_xyz(path))  # reading for non-metric use is exact
+    assert cloud.units.angular and not cloud.units.is_metric
+    from labkit.features import normals
+
+    with pytest.raises(UnitsError, match="degrees of longitude/latitude"):
+        normals(cloud, k=8)
+    with pytest.raises(UnitsError, match="degrees"):
+        cloud.require_metric()
+
+
+def test_units_travel_with_subsets_transforms_and_merges():
+    cloud = read_cloud(DATA_REAL / "epochs" / "autzen-bmx-2010.las")
+    assert cloud.units.converted and cloud.units.vertical == "US survey foot"
+    for derived in (cloud.subset(np.arange(10)), cloud.with_xyz(cloud.xyz + 1.0),
+                    cloud.with_attributes(flag=np.zeros(len(cloud))), regions.merge(cloud, cloud)):
+        assert derived.units == cloud.units
+    native = read_cloud(DATA_REAL / "epochs" / "autzen-bmx-2010.las", units="native")
+    with pytest.raises(LabkitError, match="different units"):
+        regions.merge(cloud, native)
+
+
+def test_feet_and_metres_of_one_area_agree_after_conversion():
+    """Independent check: interesting.las (Oregon Lambert, international feet) and the Autzen epochs
+    (the same projection in metres, heights in US survey feet) cover the same ground. Converted to
+    metres, the ground of interesting.las around the epochs' patch has the epochs' height."""
+    epoch = read_cloud(DATA_REAL / "epochs" / "autzen-bmx-2010.las")
+    thin = read_cloud(DATA_REAL / "als" / "interesting.las", classes=[2])
+    centre = epoch.xyz.mean(axis=0)
+    d = np.hypot(*(thin.xyz[:, :2] - centre[:2]).T)
+    near = thin.xyz[np.argsort(d)[:5]]
+    assert d[np.argsort(d)[4]] < 300.0  # same place in metres (in feet the frames would be 3.3x apart)
+    assert abs(np.median(near[:, 2]) - np.median(epoch.xyz[:, 2])) < 5.0  # flat valley floor: within 5 m
+    native = read_cloud(DATA_REAL / "epochs" / "autzen-bmx-2010.las", units="native")
+    assert abs(np.median(near[:, 2]) - np.median(native.xyz[:, 2])) > 250.0  # unconverted feet are far off
+
+
+@pytest.mark.parametrize("name", ["epochs/autzen-bmx-2010.las", "als/4_6_crop_every24.las",
+                                  "als/interesting.las", "als/file_with_both_wkt_and_geotiff_vlrs_every25.las"])
+@pytest.mark.parametrize("suffix", [".las", ".npz"])
+def test_converted_clouds_are_written_in_their_file_units(tmp_path, name, suffix):
+    original = DATA_REAL / name
+    cloud = read_cloud(original)
+    out = write_cloud(cloud, tmp_path / f"copy{suffix}", scale=None)
+    back_native = read_cloud(out, units="native")
+    np.testing.assert_allclose(back_native.xyz, _raw_xyz(original), rtol=0, atol=1e-6)  # feet again
+    assert back_native.units.coordinates == (cloud.units.horizontal, cloud.units.vertical)
+    back = read_cloud(out)
+    np.testing.assert_allclose(back.xyz, cloud.xyz, rtol=0, atol=1e-6)
+    assert back.units.is_metric
+
+
+def test_filters_act_in_metres_on_a_feet_file():
+    path = DATA_REAL / "als" / "4_6_crop_every24.las"
+    full = read_cloud(path)
+    lo, hi = full.xyz.min(axis=0), full.xyz.max(axis=0)
+    box = (lo[0], lo[1], (lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2)
+    got = read_cloud(path, bbox=box, chunk_size=100)
+    want = regions.crop_box(full, box)
+    np.testing.assert_array_equal(got.xyz, want.xyz)
+    assert 0 < len(got) < len(full)
+
+
+def test_contradicting_wkt_and_geokeys_decided_by_the_wkt_bit(tmp_path):
+    from laspy.vlrs.known import GeoKeyDirectoryVlr, GeoKeyEntryStruct, WktCoordinateSystemVlr
+
+    wkt = ('PROJCS["local TM",GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]],'
+           'PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]],PROJECTION["Transverse_Mercator"],'
+           'PARAMETER["false_easting",500000],UNIT["metre",1]]')
+    results = {}
+    for version, bit in (("1.4", True), ("1.4", False), ("1.2", False)):
+        las = laspy.create(point_format=6 if version == "1.4" else 1, file_version=version)
+        las.x, las.y, las.z = [1000.0, 1001.0], [2000.0, 2001.0], [10.0, 11.0]
+        keys = GeoKeyDirectoryVlr()
+        keys.geo_keys = [GeoKeyEntryStruct(1024, 0, 1, 1), GeoKeyEntryStruct(3076, 0, 1, 9002)]
+        keys.geo_keys_header.number_of_keys = 2
+        las.header.vlrs.extend([keys, WktCoordinateSystemVlr(wkt)])
+        if version == "1.4":
+            las.header.global_encoding.wkt = bit
+        path = tmp_path / f"v{version}_{bit}.las"
+        las.write(str(path))
+        cloud = read_cloud(path)
+        results[(version, bit)] = cloud
+        assert "WKT says X/Y in metre" in cloud.units.conflict and "GeoKeys say X/Y in foot" in cloud.units.conflict
+    assert results[("1.4", True)].units.horizontal == "metre"
+    np.testing.assert_allclose(results[("1.4", True)].xyz[:, 2], [10.0, 11.0])
+    for key in (("1.4", False), ("1.2", False)):
+        assert results[key].units.horizontal == "foot" and results[key].units.source == "GeoKeys"
+        np.testing.assert_allclose(results[key].xyz[:, 2], np.array([10.0, 11.0]) * FT, rtol=1e-15)
+
+
+def test_real_conflicting_file_uses_the_wkt_and_records_why():
+    info = cloud_info(DATA_REAL / "als" / "file_with_both_wkt_and_geotiff_vlrs_every25.las")
+    assert info.units.source == "WKT" and info.units.horizontal == "US survey foot"
+    assert "EPSG:32104 is a metre CRS" in info.units.conflict and "LAS 1.4 WKT bit" in info.units.conflict
+    assert "CONFLICT" in info.summary()
+
+
+# WKT texts written by hand after the OGC 01-009 / 18-010r7 grammar and the ESRI dialect
+WKT2_FTUS = ('PROJCRS["NAD83 / Texas Central (ftUS)",BASEGEOGCRS["NAD83",DATUM["North American Datum 1983",'
+             'ELLIPSOID["GRS 1980",6378137,298.257222101,LENGTHUNIT["metre",1]]],ANGLEUNIT["degree",0.0174532925199433]],'
+             'CONVERSION["SPCS83 Texas Central zone (US Survey feet)",METHOD["Lambert Conic Conformal (2SP)"],'
+             'PARAMETER["Easting at false origin",2296583.333,LENGTHUNIT["metre",1]]],'
+             'CS[Cartesian,2],AXIS["easting (X)",east,ORDER[1],LENGTHUNIT["US survey foot",0.304800609601219]],'
+             'AXIS["northing (Y)",north,ORDER[2],LENGTHUNIT["US survey foot",0.304800609601219]],ID["EPSG",2277]]')
+
+
+@pytest.mark.parametrize("text, expected", [
+    (WKT2_FTUS, ("US survey foot", None)),  # the CONVERSION's metre parameter must not count
+    ('COMPOUNDCRS["x",' + WKT2_FTUS + ',VERTCRS["NAVD88 height (ftUS)",VDATUM["North American Vertical Datum 1988"],'
+     'CS[vertical,1],AXIS["gravity-related height (H)",up,LENGTHUNIT["US survey foot",0.304800609601219]]]]',
+     ("US survey foot", "US survey foot")),
+    ('GEOGCRS["WGS 84",DATUM["World Geodetic System 1984",ELLIPSOID["WGS 84",6378137,298.257223563]],'
+     'CS[ellipsoidal,2],AXIS["latitude",north],AXIS["longitude",east],ANGLEUNIT["degree",0.0174532925199433]]',
+     ("degree", None)),
+    ('GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]],PRIMEM["Greenwich",0],'
+     'UNIT["degree",0.0174532925199433]]', ("degree", None)),
+    ('PROJCS["NAD_1983_StatePlane_Oregon_North_FIPS_3601_Feet_Intl",GEOGCS["GCS_North_American_1983",'
+     'DATUM["D_North_American_1983",SPHEROID["GRS_1980",6378137.0,298.257222101]],PRIMEM["Greenwich",0.0],'
+     'UNIT["Degree",0.0174532925199433]],PROJECTION["Lambert_Conformal_Conic"],UNIT["Foot",0.3048]]', ("foot", None)),
+    ('BOUNDCRS[SOURCECRS[' + WKT2_FTUS + '],TARGETCRS[GEOGCRS["WGS 84",DATUM["WGS 84",ELLIPSOID["WGS 84",6378137,'
+     '298.257223563]],CS[ellipsoidal,2],ANGLEUNIT["degree",0.0174532925199433]]],ABRIDGEDTRANSFORMATION["t",'
+     'METHOD["Geocentric translations"],PARAMETER["X-axis translation",1,LENGTHUNIT["metre",1]]]]',
+     ("US survey foot", None)),
+    ('PROJCS["x",GEOGCS["y"],UNIT["kilometre",1000]]', ("kilometre", None)),
+])
+def test_wkt_units(text, expected):
+    h, v = units_from_wkt(text)
+    assert (h[0] if h else None, v[0] if v else None) == expected
+
+
+@pytest.mark.parametrize("text", ["", "not a crs", "POLYGON((6 15, 10 10, 20 10))", 'PROJCS["x",UNIT["m",1]',
+                                  "PROJCS[]]"])
+def test_non_crs_text_is_not_taken_for_a_crs(text):
+    assert units_from_wkt(text) is None or units_from_wkt(text) == (None, None)
+
+
+def test_wkt_parser_reads_nested_strings_and_numbers():
+    root = parse_wkt('A["q""uote",1.5e3,B[ENUM,-2]]')
+    assert root.key == "A" and root.args[0] == 'q"uote' and root.args[1] == 1500.0
+    assert root.first("B").args == ["ENUM", -2.0]
+
+
+def test_point_cloud_units_from_its_crs_text():
+    assert PointCloud(np.zeros((2, 3)), crs="EPSG:4326").units.angular
+    assert PointCloud(np.zeros((2, 3)), crs="EPSG:32632").units.is_metric
+    assert not PointCloud(np.zeros((2, 3)), crs="EPSG:2903").units.known  # not in the small table: unknown
+    assert not PointCloud(np.zeros((2, 3))).units.known
+    with pytest.raises(LabkitError, match="Units"):
+        PointCloud(np.zeros((2, 3)), units="m")
+
+
+# ---------------------------------------------------------------------------- PLY
+def _ply_bytes(fmt, xyz, intensity, extra_header=""):
+    n = len(xyz)
+    head = (f"ply\nformat {fmt} 1.0\ncomment written by the test\n{extra_header}element vertex {n}\n"
+            "property double x\nproperty double y\nproperty double z\nproperty ushort intensity\n"
+            "property float scalar_Deviation\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n")
+    dev = (np.arange(n) / 7.0).astype(np.float32)
+    if fmt == "ascii":
+        body = "".join(f"{x!r} {y!r} {z!r} {i} {d!r}\n" for (x, y, z), i, d in zip(xyz.tolist(), intensity.tolist(),
+                                                                                  dev.astype(float).tolist()))
+        return head.encode() + body.encode() + b"3 0 1 2\n", dev
+    end = "<" if fmt == "binary_little_endian" else ">"
+    rec = np.zeros(n, dtype=[("x", end + "f8"), ("y", end + "f8"), ("z", end + "f8"), ("i", end + "u2"), ("d", end + "f4")])
+    rec["x"], rec["y"], rec["z"], rec["i"], rec["d"] = xyz[:, 0], xyz[:, 1], xyz[:, 2], intensity, dev
+    face = np.array([3], np.uint8).tobytes() + np.array([0, 1, 2], end + "i4").tobytes()
+    return head.encode() + rec.tobytes() + face, dev
+
+
+@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian", "binary_big_endian"])
+def test_ply_files(tmp_path, fmt):
+    rng = np.random.default_rng(4)
+    xyz = rng.uniform(0, 50, (500, 3)) + [32_500_000.0, 5_600_000.0, 0.0]
+    intensity = rng.integers(0, 65535, 500).astype(np.uint16)
+    data, dev = _ply_bytes(fmt, xyz, intensity)
+    path = tmp_path / "c.ply"
+    path.write_bytes(data)
+    cloud = read_cloud(path, chunk_size=77)
+    np.testing.assert_array_equal(cloud.xyz, xyz)
+    np.testing.assert_array_equal(cloud["intensity"], intensity)
+    np.testing.assert_allclose(cloud["scalar_deviation"], dev, rtol=1e-6)
+    assert cloud["intensity"].dtype == np.uint16
+    box = (xyz[:, 0].min(), xyz[:, 1].min(), np.median(xyz[:, 0]), np.median(xyz[:, 1]))
+    np.testing.assert_array_equal(read_cloud(path, bbox=box).xyz, regions.crop_box(cloud, box).xyz)
+
+
+@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian", "binary_big_endian"])
+def test_ply_agrees_with_open3d(tmp_path, fmt):
+    o3d = pytest.importorskip("open3d")
+    xyz = np.random.default_rng(5).normal(size=(300, 3)) * 10
+    path = tmp_path / "o.ply"
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
+    o3d.io.write_point_cloud(str(path), pcd, write_ascii=fmt == "ascii")
+    if fmt == "binary_big_endian":  # open3d writes little endian only: swap the body by hand
+        raw = path.read_bytes()
+        head, body = raw.split(b"end_header\n", 1)
+        head = head.replace(b"binary_little_endian", b"binary_big_endian")
+        props = [ln.split()[1] for ln in head.decode().splitlines() if ln.startswith("property")]
+        dt = np.dtype([(f"p{i}", "<" + {"double": "f8", "float": "f4"}[t]) for i, t in enumerate(props)])
+        rec = np.frombuffer(body, dtype=dt)
+        path.write_bytes(head + b"end_header\n" + rec.astype(dt.newbyteorder(">")).tobytes())
+    ours = read_cloud(path).xyz
+    theirs = np.asarray(o3d.io.read_point_cloud(str(tmp_path / "o.ply")).points) if fmt != "binary_big_endian" else xyz
+    np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-9 if fmt != "ascii" else 1e-5)
