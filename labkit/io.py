@@ -984,7 +984,11 @@ def cloud_info(path) -> CloudInfo:
 
 
 # ============================================================================ writing
-def write_cloud(cloud: PointCloud, path, *, scale=0.001, point_format: int | None = None, chunk_size: int = DEFAULT_CHUNK) -> Path:
+DEFAULT_SCALE = 0.001  # metres (or the file's linear unit)
+ANGULAR_SCALE = 1e-7  # degrees: about 1 cm on the ground
+
+
+def write_cloud(cloud: PointCloud, path, *, scale=DEFAULT_SCALE, point_format: int | None = None, chunk_size: int = DEFAULT_CHUNK) -> Path:
     """Write a cloud to LAS/LAZ, ASCII (CSV/TXT/XYZ) or ``.npz``, atomically.
 
     Parameters
@@ -995,7 +999,8 @@ def write_cloud(cloud: PointCloud, path, *, scale=0.001, point_format: int | Non
     scale : float, sequence of 3 floats or None
         Coordinate resolution in the file's units (metres, or the CRS's feet
         for a cloud converted from feet): LAS scale factors, decimals in text.
-        Default 0.001 (rounding error at most 0.5 mm). ``None`` picks, per
+        Default 0.001 (rounding error at most 0.5 mm); for a cloud in degrees
+        the default is 1e-7 degrees for x, y (about 1 cm). ``None`` picks, per
         axis, the coarsest decimal grid the coordinates already lie on (so a
         cloud read from a LAS file is written back without rounding), and 0.0001 m
         when they lie on none.
@@ -1036,6 +1041,8 @@ def write_cloud(cloud: PointCloud, path, *, scale=0.001, point_format: int | Non
         raise CloudFileError(f"cannot write {path}: folder {path.parent} does not exist")
     if suffix in LAS_SUFFIXES + (".npz",):
         cloud = _in_file_units(cloud)
+    if scale is DEFAULT_SCALE and cloud.units.angular:  # 0.001 degrees would be about 100 m
+        scale = (ANGULAR_SCALE, ANGULAR_SCALE, DEFAULT_SCALE)
     scales = _choose_scale(cloud.xyz, scale)
     with _atomic(path) as tmp:
         if suffix in LAS_SUFFIXES:
@@ -1093,11 +1100,20 @@ def _grid_step(values: np.ndarray) -> float:
     return 1e-4
 
 
-def _las_offsets(xyz: np.ndarray) -> np.ndarray:
-    """Offsets at whole kilometres below the data (UTM-friendly, exact in binary)."""
+def _las_offsets(xyz: np.ndarray, scales=None) -> np.ndarray:
+    """Offsets at whole kilometres below the data (UTM-friendly, exact in binary).
+
+    Where that leaves too little int32 range at a fine scale (e.g. 1e-7 degrees),
+    the offset is the whole unit below the data instead.
+    """
     if len(xyz) == 0:
         return np.zeros(3)
-    return np.floor(xyz.min(axis=0) / 1000.0) * 1000.0
+    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    offsets = np.floor(lo / 1000.0) * 1000.0
+    if scales is not None:
+        tight = (hi - offsets) / np.asarray(scales) > 0.9 * _INT32_MAX
+        offsets[tight] = np.floor(lo[tight])
+    return offsets
 
 
 def _auto_format(attrs: dict) -> int:
@@ -1117,7 +1133,7 @@ def _write_las(cloud, tmp: Path, compress: bool, scales, point_format, chunk_siz
         raise LabkitError(f"point_format must be 0..10, got {point_format!r}")
     version = "1.2" if fmt_id <= 3 else "1.3" if fmt_id <= 5 else "1.4"
     header = laspy.LasHeader(version=version, point_format=fmt_id)
-    header.scales, header.offsets = scales, _las_offsets(cloud.xyz)
+    header.scales, header.offsets = scales, _las_offsets(cloud.xyz, scales)
     header.generating_software = "labkit"
     standard = set(header.point_format.dimension_names)
     _check_extra_names([n for n in attrs if n not in standard])

@@ -669,3 +669,14 @@ def test_ply_agrees_with_open3d(tmp_path, fmt):
     ours = read_cloud(path).xyz
     theirs = np.asarray(o3d.io.read_point_cloud(str(tmp_path / "o.ply")).points) if fmt != "binary_big_endian" else xyz
     np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-9 if fmt != "ascii" else 1e-5)
+
+
+@pytest.mark.parametrize("suffix", [".las", ".csv"])
+def test_a_cloud_in_degrees_is_written_at_a_fine_enough_scale(tmp_path, suffix):
+    native = read_cloud(DATA_REAL / "als" / "epsg_4326.las", units="native")
+    out = write_cloud(native, tmp_path / f"deg{suffix}")
+    back = read_cloud(out, units="native")
+    # 1e-7 degrees is the file's own resolution: nothing is lost (0.001 degrees would move points by ~100 m)
+    np.testing.assert_allclose(back.xyz[:, :2], native.xyz[:, :2], rtol=0, atol=0.51e-7)
+    if suffix == ".las":
+        assert back.units.angular
