@@ -72,7 +72,7 @@ def unit_name(factor: float, kind: str, label: str = "") -> str:
         for name, f in (("degree", DEGREE), ("radian", 1.0), ("grad", math.pi / 200.0)):
             if math.isclose(factor, f, rel_tol=1e-8):
                 return name
-        return label.lower() or f"angle unit of {factor:g} rad"
+        return f"angle unit {label!r} of {factor:g} rad"
     for name, f in (("metre", 1.0), ("US survey foot", US_FOOT), ("foot", FOOT), ("kilometre", 1000.0)):
         if math.isclose(factor, f, rel_tol=1e-9):
             return name
@@ -240,7 +240,8 @@ def units_from_geokeys(keys: dict, doubles=()):
             f = value(3077)
             return unit_name(f, "length"), f, "length"
         notes.append(f"GeoKey {key} names unit code {code}, which labkit does not know")
-        return None
+        name = f"angle unit code {code}" if kind == "angle" else f"unit code {code}"
+        return name, None, kind  # stated but not convertible: never taken for metres
 
     model = value(1024) if 1024 in keys else (1 if 3072 in keys else 2 if 2048 in keys else None)
     horizontal = None

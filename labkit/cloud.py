@@ -69,7 +69,14 @@ class Units:
     @property
     def angular(self) -> bool:
         """X/Y are longitude/latitude angles."""
-        return self.horizontal in _ANGULAR
+        return self.horizontal in _ANGULAR or self.horizontal.startswith("angle unit")
+
+    @property
+    def angle_text(self) -> str:
+        """``degrees of longitude/latitude`` (or the angle unit's name) for messages."""
+        if self.horizontal in _ANGULAR:
+            return f"{self.horizontal}s of longitude/latitude"
+        return f"longitude/latitude ({self.horizontal})"
 
     @property
     def coordinates(self) -> tuple[str, str]:
@@ -121,7 +128,7 @@ class Units:
         """Raise :class:`UnitsError` unless the coordinates may be taken as metres."""
         if self.angular:
             raise UnitsError(
-                f"{name} is in {self.horizontal}s of longitude/latitude; {what} needs metric coordinates: "
+                f"{name} is in {self.angle_text}; {what} needs metric coordinates: "
                 "project it to a metric CRS (e.g. UTM) first"
             )
         h, v = self.coordinates

@@ -474,7 +474,7 @@ def _to_metres(found: Units, units: str, path: Path):
         return found, None
     if found.angular:
         raise UnitsError(
-            f"{path} is in {found.horizontal}s of longitude/latitude ({found.describe()}); labkit's metric steps "
+            f"{path} is in {found.angle_text} ({found.describe()}); labkit's metric steps "
             "need projected coordinates: reproject it (e.g. to UTM) first, or read it with units='native' "
             "for non-metric use"
         )

@@ -332,3 +332,27 @@ def test_copy_of_a_read_only_file_reads(tmp_path):
     shutil.copy(DATA_REAL / "als" / "interesting.las", src)
     src.chmod(0o444)
     assert len(read_cloud(src)) == 1065
+
+
+@pytest.mark.parametrize("keys, error, fragment", [
+    ([(1024, 1), (3076, 9099)], UnitsError, "cannot convert unit code 9099 to metres"),
+    ([(1024, 2), (2054, 9104)], UnitsError, "is in longitude/latitude (angle unit code 9104)"),
+    ([(1024, 1), (3076, 9001), (4099, 9099)], UnitsError, "cannot convert m (x, y), unit code 9099 (z) to metres"),
+])
+def test_stated_but_unknown_units_are_never_taken_for_metres(tmp_path, keys, error, fragment):
+    from laspy.vlrs.known import GeoKeyDirectoryVlr, GeoKeyEntryStruct
+
+    las = laspy.create(point_format=1, file_version="1.2")
+    las.x, las.y, las.z = [1.0, 2.0], [3.0, 4.0], [5.0, 6.0]
+    vlr = GeoKeyDirectoryVlr()
+    vlr.geo_keys = [GeoKeyEntryStruct(k, 0, 1, v) for k, v in keys]
+    vlr.geo_keys_header.number_of_keys = len(keys)
+    las.header.vlrs.append(vlr)
+    path = tmp_path / "odd.las"
+    las.write(str(path))
+    with pytest.raises(error) as err:
+        read_cloud(path)
+    assert fragment in str(err.value)
+    native = read_cloud(path, units="native")
+    with pytest.raises(UnitsError):
+        native.require_metric()
