@@ -169,44 +169,33 @@ def _unit_of(node: _Node, default_kind: str):
     return None
 
 
-def units_from_wkt(text: str):
-    """(horizontal, vertical) as (name, factor, kind) or None each; None when no CRS is recognised."""
-    root = parse_wkt(text)
-    if root is None:
-        return None
-    if root.key == "BOUNDCRS":
-        src = root.first("SOURCECRS")
-        root = src.nodes()[0] if src is not None and src.nodes() else root
+def _crs_units(node: _Node):
+    """(horizontal, vertical) units of one CRS node; compound CRS are searched part by part."""
+    if node.key in _VERTICAL:
+        return None, _unit_of(node, "length")
+    if node.key in _HORIZONTAL_LINEAR:
+        return _unit_of(node, "length"), None
+    if node.key in _GEOGRAPHIC:
+        unit = _unit_of(node, "angle")
+        if unit is None and node.key in ("GEOGCRS", "GEOGRAPHICCRS"):
+            unit = ("degree", DEGREE, "angle")  # WKT2 geographic CRS without a stated unit
+        return unit, None
     horizontal, vertical = None, None
-    parts = root.nodes() if root.key in _COMPOUND else [root]
-    for part in parts:
-        if part.key in _VERTICAL:
-            vertical = vertical or _unit_of(part, "length")
-        elif part.key in _HORIZONTAL_LINEAR:
-            horizontal = horizontal or _unit_of(part, "length")
-        elif part.key in _GEOGRAPHIC:
-            unit = _unit_of(part, "angle")
-            if unit is None and part.key in ("GEOGCRS", "GEOGRAPHICCRS"):
-                unit = ("degree", DEGREE, "angle")
-            horizontal = horizontal or unit
-        elif part.key in _COMPOUND:
-            sub_h, sub_v = units_from_wkt_node(part)
-            horizontal, vertical = horizontal or sub_h, vertical or sub_v
-    if root.key not in _COMPOUND + _VERTICAL + _HORIZONTAL_LINEAR + _GEOGRAPHIC:
-        return None
+    for part in node.nodes():  # COMPD_CS / COMPOUNDCRS
+        h, v = _crs_units(part)
+        horizontal, vertical = horizontal or h, vertical or v
     return horizontal, vertical
 
 
-def units_from_wkt_node(node: _Node):
-    h, v = None, None
-    for part in node.nodes():
-        if part.key in _VERTICAL:
-            v = v or _unit_of(part, "length")
-        elif part.key in _HORIZONTAL_LINEAR:
-            h = h or _unit_of(part, "length")
-        elif part.key in _GEOGRAPHIC:
-            h = h or _unit_of(part, "angle")
-    return h, v
+def units_from_wkt(text: str):
+    """(horizontal, vertical) as (name, factor, kind) or None each; None when the text is no CRS."""
+    root = parse_wkt(text)
+    if root is not None and root.key == "BOUNDCRS":  # a CRS with its datum transformation: the source CRS
+        source = root.first("SOURCECRS")
+        root = source.nodes()[0] if source is not None and source.nodes() else None
+    if root is None or root.key not in _COMPOUND + _VERTICAL + _HORIZONTAL_LINEAR + _GEOGRAPHIC:
+        return None
+    return _crs_units(root)
 
 
 # ============================================================================ GeoTIFF keys
