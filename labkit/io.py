@@ -719,124 +719,31 @@ def _text_dtype(name: str, values: np.ndarray, path: Path) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------- PLY
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}
-
-
-@dataclass(frozen=True)
-class _PlyElement:
-    name: str
-    count: int
-    properties: tuple  # ((name, numpy type code) or (name, "list", count type, item type), ...)
-
-
-def _ply_header(f, path: Path):
-    """(format, elements, byte offset of the data) from a PLY header."""
-    if f.readline().strip() != b"ply":
-        raise CloudFileError(f"{path} is not a PLY file (no 'ply' magic line)")
-    fmt, elements = None, []
-    for _ in range(100_000):
-        raw = f.readline()
-        if not raw:
-            raise CloudFileError(f"{path}: the PLY header has no 'end_header' line")
-        words = raw.decode("ascii", errors="replace").split()
-        if not words or words[0] in ("comment", "obj_info"):
-            continue
-        if words[0] == "end_header":
-            return fmt, elements, f.tell()
-        if words[0] == "format" and len(words) >= 2:
-            fmt = words[1]
-            if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
-                raise CloudFileError(f"{path}: unknown PLY format {fmt!r}")
-        elif words[0] == "element" and len(words) == 3 and words[2].isdigit():
-            elements.append(_PlyElement(words[1], int(words[2]), ()))
-        elif words[0] == "property" and elements:
-            if len(words) == 3 and words[1] in _PLY_TYPES:
-                prop = (words[2], _PLY_TYPES[words[1]])
-            elif len(words) == 5 and words[1] == "list" and words[2] in _PLY_TYPES and words[3] in _PLY_TYPES:
-                prop = (words[4], "list", _PLY_TYPES[words[2]], _PLY_TYPES[words[3]])
-            else:
-                raise CloudFileError(f"{path}: cannot read the PLY property line {raw.strip()!r}")
-            last = elements[-1]
-            elements[-1] = _PlyElement(last.name, last.count, last.properties + (prop,))
-        else:
-            raise CloudFileError(f"{path}: unexpected PLY header line {raw.strip()!r}")
-    raise CloudFileError(f"{path}: the PLY header is too long")
-
-
 def _read_ply(path: Path, flt: _Filter, keep, chunk_size: int):
-    """Vertex x, y, z and scalar properties of an ASCII or binary PLY file."""
-    with open(path, "rb") as f:
-        fmt, elements, start = _ply_header(f, path)
-        if fmt is None:
-            raise CloudFileError(f"{path}: the PLY header has no 'format' line")
-        names = [e.name for e in elements]
-        if "vertex" not in names:
-            raise CloudFileError(f"{path}: the PLY file has no 'vertex' element (has {names})")
-        before = elements[: names.index("vertex")]
-        vertex = elements[names.index("vertex")]
-        props = vertex.properties
-        if any(len(p) != 2 for p in props):
-            raise CloudFileError(f"{path}: list properties in the PLY vertex element are not supported")
-        columns = [_canonical(p[0]) for p in props]
-        if len(set(columns)) != len(columns):
-            raise CloudFileError(f"{path}: the PLY vertex element repeats a property ({[p[0] for p in props]})")
-        missing = [c for c in "xyz" if c not in columns]
-        if missing:
-            raise CloudFileError(f"{path}: the PLY vertex element has no property {', '.join(missing)}")
-        if fmt == "ascii":
-            lines = itertools.islice(f, sum(e.count for e in before), None)  # earlier elements: one line each
-            blocks = _ply_ascii_blocks(lines, vertex.count, len(props), chunk_size, path)
-        else:
-            if any(len(p) != 2 for e in before for p in e.properties):
-                raise CloudFileError(f"{path}: a binary PLY with list properties before its vertices is not supported")
-            end = "<" if fmt == "binary_little_endian" else ">"
-            skip = sum(e.count * np.dtype([(f"p{i}", end + p[1]) for i, p in enumerate(e.properties)]).itemsize
-                       for e in before)
-            dtype = np.dtype([(f"p{i}", end + p[1]) for i, p in enumerate(props)])
-            blocks = _ply_binary_blocks(f, start + skip, dtype, vertex.count, chunk_size, path)
-        ix = [columns.index(c) for c in "xyz"]
-        extra = [(i, c) for i, c in enumerate(columns) if c not in "xyz" and (keep is None or c in keep)]
-        _needs_class(flt, columns, path)
-        gather = _Gather(None)
-        for block in blocks:  # list of column arrays
-            xyz = np.column_stack([block[i].astype(np.float64) for i in ix])
-            cls = block[columns.index("classification")] if flt.classes is not None else None
-            mask = flt.mask(xyz, cls)
-            sel = slice(None) if mask is None else mask
-            gather.add(xyz[sel], {c: block[i][sel] for i, c in extra})
+    """Vertex x, y, z and scalar properties of an ASCII or binary PLY file (see ``labkit._ply``)."""
+    from ._ply import ply_vertex_blocks
+
+    names, fmt, blocks = ply_vertex_blocks(path, chunk_size)
+    columns = [_canonical(n) for n in names]
+    if len(set(columns)) != len(columns):
+        raise CloudFileError(f"{path}: the PLY vertex element repeats a property ({names})")
+    missing = [c for c in "xyz" if c not in columns]
+    if missing:
+        raise CloudFileError(f"{path}: the PLY vertex element has no property {', '.join(missing)}")
+    ix = [columns.index(c) for c in "xyz"]
+    extra = [(i, c) for i, c in enumerate(columns) if c not in "xyz" and (keep is None or c in keep)]
+    _needs_class(flt, columns, path)
+    gather = _Gather(None)
+    for block in blocks:  # one array per property
+        xyz = np.column_stack([block[i].astype(np.float64) for i in ix])
+        cls = block[columns.index("classification")] if flt.classes is not None else None
+        mask = flt.mask(xyz, cls)
+        sel = slice(None) if mask is None else mask
+        gather.add(xyz[sel], {c: block[i][sel] for i, c in extra})
     xyz, attrs = gather.result()
-    if fmt == "ascii":
+    if fmt == "ascii":  # text: typed like the columns of an ASCII file
         attrs = _text_columns(attrs, path)
     return xyz, attrs, None
-
-
-def _ply_ascii_blocks(lines, count: int, ncol: int, chunk_size: int, path: Path):
-    done = 0
-    while done < count:
-        block = list(itertools.islice(lines, min(chunk_size, count - done)))
-        if len(block) < min(chunk_size, count - done):
-            raise CloudFileError(f"{path} is truncated: the PLY header announces {count} vertices, "
-                                 f"the file holds {done + len(block)}")
-        text = [b.decode("ascii", errors="replace") for b in block]
-        data = _parse_block(text, None, ncol, path, done)
-        done += len(block)
-        yield [data[:, j] for j in range(ncol)]
-
-
-def _ply_binary_blocks(f, offset: int, dtype: np.dtype, count: int, chunk_size: int, path: Path):
-    size = path.stat().st_size
-    if offset + count * dtype.itemsize > size:
-        raise CloudFileError(f"{path} is truncated: the PLY header announces {count} vertices "
-                             f"({offset + count * dtype.itemsize} bytes), the file has {size} bytes")
-    f.seek(offset)
-    for start in range(0, count, chunk_size):
-        rec = np.fromfile(f, dtype=dtype, count=min(chunk_size, count - start))
-        yield [rec[name].astype(rec.dtype[name].newbyteorder("=")) for name in dtype.names]
 
 
 # ---------------------------------------------------------------------------- NumPy
