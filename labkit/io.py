@@ -839,7 +839,7 @@ class CloudInfo(ReportMixin):
             ("points", f"{self.point_count:,}"),
             ("min", _with_units(self.mins, 3, self.units)),
             ("max", _with_units(self.maxs, 3, self.units)),
-            ("scale", _with_units(self.scales, 6, self.units)),
+            ("scale", _with_units(self.scales, _scale_digits(self.scales), self.units)),
             ("offset", _with_units(self.offsets, 3, self.units)),
             ("units", self.units.describe()),
             ("CRS", str(crs)),
@@ -848,14 +848,21 @@ class CloudInfo(ReportMixin):
         return "Point-cloud file", [("", rows)]
 
 
+def _scale_digits(scales) -> int:
+    """Decimals that show the finest scale factor (at least 6)."""
+    finest = np.abs(np.asarray(scales, dtype=float)).min()
+    return int(max(6, np.ceil(-np.log10(finest)) + 1)) if finest > 0 else 6
+
+
 def _with_units(values, digits: int, units: Units) -> str:
     """``[x, y, z] m`` or ``[x, y] m, z ftUS``: the file's units, never 'm' when they are not metres."""
     if not units.known:
         return fmt(values, digits) + " (units not stated)"
-    h, _, v = units.axis_labels(native=True)
-    if h == v:
+    h, _, v = (label if label != "?" else "(unit not stated)" for label in units.axis_labels(native=True))
+    hd = digits + 4 if units.angular and digits < 8 else digits  # 1e-7 degrees is about 1 cm
+    if h == v and hd == digits:
         return fmt(values, digits, h)
-    return f"{fmt(values[:2], digits, h)}, {fmt(values[2], digits, v)}"
+    return f"{fmt(values[:2], hd, h)}, {fmt(values[2], digits, v)}"
 
 
 def cloud_info(path) -> CloudInfo:
