@@ -1192,8 +1192,10 @@ def _write_npz(cloud: PointCloud, tmp: Path) -> None:
     import dataclasses
     import json
 
-    arrays = {"xyz": cloud.xyz,
-              **{k: v for k, v in cloud.attributes.items() if k not in ("xyz", "crs", "name", "units")}}
+    reserved = sorted({"xyz", "x", "y", "z", "crs", "name", "units"} & set(cloud.attributes))
+    if reserved:
+        raise LabkitError(f"attribute name(s) {reserved} are reserved in an .npz cloud file: rename them")
+    arrays = {"xyz": cloud.xyz, **cloud.attributes}
     if cloud.crs:
         arrays["crs"] = np.array(cloud.crs)
     if cloud.units.known:

@@ -100,6 +100,13 @@ def test_write_needs_a_point_cloud(tmp_path):
         write_cloud(np.zeros((3, 3)), tmp_path / "a.las")
 
 
+@pytest.mark.parametrize("name", ["units", "crs", "x"])
+def test_npz_reserved_attribute_names(tmp_path, name):
+    with pytest.raises(LabkitError, match=f"attribute name\\(s\\) \\['{name}'\\] are reserved"):
+        write_cloud(_cloud(**{name: np.arange(5.0)}), tmp_path / "a.npz")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_write_unknown_suffix_and_missing_folder(tmp_path):
     with pytest.raises(CloudFileError, match="unsupported point-cloud format '.foo'"):
         write_cloud(_cloud(), tmp_path / "a.foo")
