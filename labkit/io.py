@@ -586,11 +586,6 @@ def las_units(header) -> tuple[Units, str | None]:
     return found, crs
 
 
-def _crs_from_header(header) -> str | None:
-    """CRS as text: the governing WKT, else ``EPSG:code`` from the GeoTIFF keys."""
-    return las_units(header)[1]
-
-
 # ---------------------------------------------------------------------------- ASCII
 def _read_ascii(path: Path, flt: _Filter, keep, chunk_size: int, progress: bool):
     size = path.stat().st_size

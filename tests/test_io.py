@@ -402,7 +402,7 @@ def test_written_files_get_the_usual_permissions(tmp_path):
 from pathlib import Path  # noqa: E402
 
 from labkit._units import parse_wkt, units_from_wkt  # noqa: E402
-from labkit.cloud import Units, UnitsError  # noqa: E402
+from labkit.cloud import UnitsError  # noqa: E402
 
 DATA_REAL = Path(__file__).resolve().parents[1] / "data" / "real"
 US_FT, FT = 1200.0 / 3937.0, 0.3048  # metres per US survey foot / international foot (definitions)
