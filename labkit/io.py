@@ -341,11 +341,11 @@ def read_cloud(
     if not np.isfinite(xyz).all():
         bad = int((~np.isfinite(xyz)).any(axis=1).sum())
         raise CloudFileError(f"{path} has {bad} point(s) with NaN or infinite coordinates")
-    if keep is not None and keep - set(attrs):
-        raise LabkitError(
-            f"{path} has no attribute {', '.join(sorted(keep - set(attrs)))} "
-            f"(attributes kept: {', '.join(sorted(attrs)) or 'none'})"
-        )
+    missing = set() if keep is None else keep - set(attrs)
+    if missing and missing <= _SCAN_ANGLE_NAMES and set(attrs) & _SCAN_ANGLE_NAMES:
+        missing = set()  # a text scan-angle column, read under the name its values need
+    if missing:
+        raise LabkitError(f"{path} has no attribute {', '.join(sorted(missing))}")
     return PointCloud(xyz, attrs, crs=crs, name=path.stem, units=found)
 
 
@@ -596,7 +596,7 @@ def _read_ascii(path: Path, flt: _Filter, keep, chunk_size: int, progress: bool)
         header = not all(_is_number(t) for t in tokens)
         columns = _column_names(tokens, header, path)
         ix = [columns.index(c) for c in ("x", "y", "z")]
-        extra = [(i, c) for i, c in enumerate(columns) if c not in ("x", "y", "z") and (keep is None or c in keep)]
+        extra = [(i, c) for i, c in enumerate(columns) if c not in ("x", "y", "z") and _wanted(c, keep)]
         _needs_class(flt, columns, path)
         lines = f if header else itertools.chain([first], f)
         gather, bar, row = _Gather(None), _Progress(size, f"reading {path.name}", progress, unit="B"), skipped
@@ -692,6 +692,16 @@ def _text_columns(attrs: dict, path: Path) -> dict:
     return out
 
 
+_SCAN_ANGLE_NAMES = {"scan_angle_rank", "scan_angle", "scan_angle_degrees"}  # one text column, three names
+
+
+def _wanted(column: str, keep) -> bool:
+    """Is a text column asked for? A scan-angle column answers to each name it may be read under."""
+    if keep is None or column in keep:
+        return True
+    return column == "scan_angle_rank" and bool(keep & _SCAN_ANGLE_NAMES)
+
+
 def _fractional_degrees(values: np.ndarray) -> bool:
     """Finite angles within +-180 degrees that are not all whole numbers."""
     return bool(values.size and np.isfinite(values).all() and np.abs(values).max() <= 180.0
@@ -726,7 +736,7 @@ def _read_ply(path: Path, flt: _Filter, keep, chunk_size: int):
     if missing:
         raise CloudFileError(f"{path}: the PLY vertex element has no property {', '.join(missing)}")
     ix = [columns.index(c) for c in "xyz"]
-    extra = [(i, c) for i, c in enumerate(columns) if c not in "xyz" and (keep is None or c in keep)]
+    extra = [(i, c) for i, c in enumerate(columns) if c not in "xyz" and _wanted(c, keep)]
     _needs_class(flt, columns, path)
     gather = _Gather(None)
     for block in blocks:  # one array per property

@@ -206,6 +206,13 @@ def test_real_pdal_csv_with_fractional_scan_angles():
     assert csv["scanner_channel"].dtype == np.uint8 and "edge_of_flight_line" in csv
 
 
+@pytest.mark.parametrize("asked", ["scan_angle_rank", "scan_angle", ["scan_angle", "intensity"]])
+def test_pdal_scan_angle_answers_to_its_names(asked):
+    cloud = read_cloud(DATA_REAL / "epochs" / "autzen-bmx-largersample.txt", attributes=asked, units="native")
+    assert "scan_angle" in cloud and set(cloud.attributes) <= {"scan_angle", "intensity"}
+    assert cloud["scan_angle"].min() == -2666  # -15.996 degrees
+
+
 @pytest.mark.parametrize("column, values, name, expected", [
     ("ScanAngleRank", ["-15.996", "-15.000", "3.000"], "scan_angle", np.array([-2666, -2500, 500], np.int16)),
     ("ScanAngleRank", ["-15", "2", "3"], "scan_angle_rank", np.array([-15, 2, 3], np.int8)),
