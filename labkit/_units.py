@@ -279,8 +279,10 @@ def decide_units(wkt_text: str | None, geokeys: dict | None, doubles=(), *, wkt_
     chosen = next(((src, hv) for src, hv in order if hv is not None), None)
     conflicts = [n for n in key_notes if "contradict" in n]
     notes = [n for n in key_notes if "contradict" not in n] if chosen and chosen[0] == "GeoKeys" else []
-    if wkt_hv is not None and key_hv is not None and (wkt_hv[0][0], wkt_hv[1][0]) != (key_hv[0][0], key_hv[1][0]):
-        conflicts.append(f"WKT says {_describe(*wkt_hv[:2])}; GeoKeys say {_describe(*key_hv[:2])}")
+    if wkt_hv is not None and key_hv is not None:
+        both_vertical = from_wkt[1] is not None and from_keys[1] is not None  # compare only stated Z units
+        if wkt_hv[0][0] != key_hv[0][0] or (both_vertical and from_wkt[1][0] != from_keys[1][0]):
+            conflicts.append(f"WKT says {_describe(*from_wkt)}; GeoKeys say {_describe(*from_keys[:2])}")
     if chosen is None:
         return Units(note="; ".join(notes))
     source, (h, v, filled) = chosen

@@ -680,3 +680,21 @@ def test_a_cloud_in_degrees_is_written_at_a_fine_enough_scale(tmp_path, suffix):
     np.testing.assert_allclose(back.xyz[:, :2], native.xyz[:, :2], rtol=0, atol=0.51e-7)
     if suffix == ".las":
         assert back.units.angular
+
+
+AUTZEN_WKT = ('COMPD_CS["m + ftUS",PROJCS["NAD83 / Oregon LCC (m)",GEOGCS["NAD83",UNIT["degree",0.0174532925199433]],'
+              'UNIT["metre",1]],VERT_CS["NAVD88 height (ftUS)",UNIT["US survey foot",0.304800609601219]]]')
+
+
+@pytest.mark.parametrize("keys, bit, expected, conflict", [
+    ({1024: (0, 1, 1), 3076: (0, 1, 9001)}, True, ("metre", "US survey foot"), None),  # keys state no Z: no conflict
+    ({1024: (0, 1, 1), 3076: (0, 1, 9001), 4099: (0, 1, 9001)}, True, ("metre", "US survey foot"), "Z in metre"),
+    ({1024: (0, 1, 1), 3076: (0, 1, 9001), 4099: (0, 1, 9001)}, False, ("metre", "metre"), "used the GeoKeys"),
+    ({1024: (0, 1, 1), 3076: (0, 1, 32767), 3077: (34736, 1, 0)}, True, ("metre", "US survey foot"), "X/Y in US survey foot"),
+])
+def test_decision_rule_compares_only_stated_units(keys, bit, expected, conflict):
+    from labkit._units import decide_units
+
+    u = decide_units(AUTZEN_WKT, keys, doubles=(US_FT,), wkt_bit=bit, las14=True)
+    assert (u.horizontal, u.vertical) == expected
+    assert (u.conflict is None) if conflict is None else (conflict in u.conflict)
