@@ -1,0 +1,319 @@
+"""M3C2 change (labkit.m3c2): real references (PDAL, CloudCompare), synthetic truth, Monte Carlo LoD."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import labkit
+from labkit.errors import LabkitError
+from labkit.change import m3c2, registration_variance
+from labkit.transforms import rotation_from_angles
+
+EPOCHS = Path(__file__).resolve().parents[1] / "data" / "real" / "epochs"
+PDAL_PARAMS = dict(normal_radius=1.390432, cylinder_radius=2.890432, max_depth=5.5)
+ROUND = 0.0005 + 1e-9  # the reference files carry 3 decimals
+
+
+# --------------------------------------------------------------------------- helpers
+def _raw_las(name):
+    """Raw file coordinates (X/Y metres, Z US survey feet: the frame the references were computed in)."""
+    import laspy
+
+    las = laspy.read(EPOCHS / name)
+    return np.c_[las.x, las.y, las.z]
+
+
+@pytest.fixture(scope="module")
+def autzen():
+    a, b = _raw_las("autzen-bmx-2010.las"), _raw_las("autzen-bmx-2023.las")
+    load = lambda f: np.loadtxt(EPOCHS / f, delimiter=",", skiprows=1)  # noqa: E731
+    cores = load("autzen-bmx-largersample.txt")[:, :3]
+    return a, b, cores, load("autzen-bmx-m3c2.txt"), load("autzen-bmx-cc.txt")
+
+
+def _plane(rng, n, size, sigma, slope=(0.0, 0.0)):
+    xy = rng.uniform(0, size, (n, 2))
+    z = slope[0] * xy[:, 0] + slope[1] * xy[:, 1] + rng.normal(0, sigma, n)
+    return np.c_[xy, z]
+
+
+def _grid_cores(size, spacing, slope=(0.0, 0.0), margin=1.0):
+    g = np.arange(margin, size - margin + 1e-9, spacing)
+    X, Y = np.meshgrid(g, g)
+    return np.c_[X.ravel(), Y.ravel(), slope[0] * X.ravel() + slope[1] * Y.ravel()]
+
+
+# --------------------------------------------------------------------------- real references
+def test_autzen_distances_agree_with_pdal(autzen):
+    a, b, cores, pdal, _ = autzen
+    r = m3c2(a, b, cores, **PDAL_PARAMS)
+    dist, unc, sig, sd1, sd2, n1, n2 = pdal[:, 21:28].T
+    # the same cores get a value: PDAL leaves 0 with count 0 where a cylinder (or the normal) is empty
+    assert np.array_equal(r.valid, (n1 > 0) & (n2 > 0))
+    assert r.valid.sum() == 91
+    # PDAL drops the first neighbour of a core that coincides with the first point of the epoch
+    # (M3C2Filter::filterPoints); core 0 is that point, so PDAL counts one point less there
+    assert np.allclose(cores[0], a[0]) and r.count1[0] == n1[0] + 1
+    ok = r.valid.copy()
+    ok[0] = False
+    assert np.abs(r.distance - dist)[ok].max() <= ROUND  # 90 cores: within the files' rounding (< 1 mm)
+    assert np.array_equal(r.count1[ok], n1[ok]) and np.array_equal(r.count2, n2)
+    # PDAL's spread divides by n (ddof = 0), labkit's by n - 1
+    pop = lambda s, n: s * np.sqrt((n - 1) / np.maximum(n, 1))  # noqa: E731
+    assert np.abs(pop(r.spread1, r.count1) - sd1)[ok].max() <= ROUND
+    assert np.abs(pop(r.spread2, r.count2) - sd2)[ok].max() <= ROUND
+    lod_pdal = 1.96 * np.sqrt(pop(r.spread1, r.count1) ** 2 / r.count1 + pop(r.spread2, r.count2) ** 2 / r.count2)
+    assert np.abs(lod_pdal - unc)[ok].max() <= ROUND
+    assert np.array_equal(r.significant[ok], sig[ok] == 1)
+
+
+def test_autzen_distances_agree_with_cloudcompare(autzen):
+    a, b, cores, _, cc = autzen
+    r = m3c2(a, b, cores, **PDAL_PARAMS)
+    n1, n2, sd1, sd2, sig, unc, dist = cc[:, 18:25].T
+    normal = cc[:, 25:28]
+    # CloudCompare has no value where a cylinder of the compared epoch is empty: labkit neither
+    assert not r.valid[np.isnan(dist)].any()
+    # Where both used the same normal (3 printed decimals) and the same points: the same distance
+    angle = np.degrees(np.arccos(np.clip(np.abs(np.einsum("nd,nd->n", r.normals, normal)), 0, 1)))
+    both = r.valid & np.isfinite(dist)
+    same = both & (angle < 0.3) & (r.count1 == n1) & (r.count2 == n2)
+    assert both.sum() == 91 and same.sum() >= 45
+    assert np.abs(r.distance - dist)[same].max() < 0.001
+    # CloudCompare's normals differ by 0.5-2 deg at the other cores (its own normal fit): still close
+    diff = np.abs(r.distance - dist)[both]
+    assert np.median(diff) <= ROUND and (diff < 0.002).sum() >= 85
+    same = both & (r.count1 == n1) & (r.count2 == n2) & (np.abs(r.distance - dist) < 0.002)
+    # CloudCompare's STD is ddof = 0 as PDAL's
+    assert np.abs(r.spread1 * np.sqrt((r.count1 - 1) / r.count1) - sd1)[same].max() < 0.003
+    assert (r.significant[same] == (sig[same] == 1)).mean() > 0.97
+
+
+def test_normals_oriented_up_and_result_in_input_frame(autzen):
+    a, b, cores, _, _ = autzen
+    r = m3c2(a, b, cores, **PDAL_PARAMS)
+    ok = np.isfinite(r.normals).all(axis=1)
+    assert (r.normals[ok, 2] >= 0).all()
+    assert np.allclose(np.linalg.norm(r.normals[ok], axis=1), 1)
+    assert np.array_equal(r.corepoints, cores)
+    # a shift of the whole scene changes nothing (local origin inside)
+    shift = np.array([5e5, 5e6, 100.0])
+    r2 = m3c2(a + shift, b + shift, cores + shift, **PDAL_PARAMS)
+    assert np.allclose(r2.distance, r.distance, atol=1e-8, equal_nan=True)
+    assert np.allclose(r2.corepoints, cores + shift)
+
+
+# --------------------------------------------------------------------------- synthetic truth
+def test_step_change_found_with_right_size_and_significance():
+    rng = np.random.default_rng(1)
+    size, sigma, step = 20.0, 0.01, 0.05
+    ref = _plane(rng, 40_000, size, sigma)
+    cmp_ = _plane(rng, 40_000, size, sigma)
+    cmp_[cmp_[:, 0] > 10, 2] += step  # the right half rose by 5 cm
+    r = m3c2(ref, cmp_, 0.8, normal_radius=0.5, cylinder_radius=0.4, max_depth=0.5)
+    x = r.corepoints[:, 0]
+    up, flat = x > 10.6, x < 9.4  # away from the step edge by more than the cylinder radius
+    assert r.valid.all()
+    # distance within 3 standard errors of the truth
+    se = r.lod_without_registration / r.z
+    assert np.all(np.abs(r.distance[up] - step) < 4 * se[up] + 1e-3)
+    assert np.all(np.abs(r.distance[flat]) < 4 * se[flat] + 1e-3)
+    assert r.significant[up].all()
+    assert r.significant[flat].mean() < 0.12
+    assert "significant" in r.summary()
+
+
+def test_default_corepoints_are_an_even_subsample_of_the_reference():
+    rng = np.random.default_rng(2)
+    ref = _plane(rng, 20_000, 10.0, 0.005)
+    r = m3c2(ref, ref + [0, 0, 0.01], normal_radius=0.5, cylinder_radius=0.5, max_depth=1.0)
+    # every core is a reference point, at most one per 0.5 m cube, and cubes are covered
+    assert np.isin(r.corepoints.view([("", float)] * 3), ref.view([("", float)] * 3)).all()
+    cells = np.floor((r.corepoints - ref.min(axis=0)) / 0.5).astype(int)
+    assert len(np.unique(cells, axis=0)) == len(cells)
+    assert len(cells) > 0.9 * 20 * 20
+    assert np.allclose(np.nanmedian(r.distance), 0.01, atol=1e-3)
+
+
+def test_multiscale_normals_choose_the_most_planar_radius():
+    rng = np.random.default_rng(3)
+    ref = _plane(rng, 30_000, 10.0, 0.01, slope=(0.3, 0.0))
+    cores = _grid_cores(10.0, 2.0, slope=(0.3, 0.0), margin=2.0)
+    r = m3c2(ref, ref, cores, normal_radius=[0.15, 1.0], cylinder_radius=0.5, max_depth=1.0)
+    assert (r.normal_radius == 1.0).all()  # on a noisy plane the larger scale is smoother
+    truth = np.array([-0.3, 0.0, 1.0]) / np.hypot(0.3, 1.0)
+    assert np.degrees(np.arccos(r.normals @ truth)).max() < 1.0
+    # given normals are used as they are (normalised, oriented up)
+    g = m3c2(ref, ref, cores, normal_radius=None, normals=-2 * truth, cylinder_radius=0.5, max_depth=1.0)
+    assert np.allclose(g.normals, truth) and np.isnan(g.normal_radius).all()
+
+
+def test_long_cylinders_cut_into_slabs_count_every_point_once():
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(-3, 3, (30_000, 3))
+    cores = rng.uniform(-1, 1, (50, 3))
+    nrm = rng.normal(size=(50, 3))
+    nrm /= np.linalg.norm(nrm, axis=1)[:, None]
+    r = m3c2(pts, pts, cores, normal_radius=None, normals=nrm, cylinder_radius=0.3, max_depth=1.7,
+             orientation=(0, 0, 1))
+    # brute force: all points against all cylinders
+    n = r.normals
+    D = pts[None, :, :] - cores[:, None, :]
+    d = np.einsum("cpd,cd->cp", D, n)
+    inside = (np.abs(d) <= 1.7) & (np.einsum("cpd,cpd->cp", D, D) - d**2 <= 0.09)
+    assert np.array_equal(r.count1, inside.sum(axis=1))
+    mean = (d * inside).sum(axis=1) / inside.sum(axis=1)
+    assert np.allclose(r.distance, 0, atol=1e-12)
+    sd = np.sqrt(((d - mean[:, None]) ** 2 * inside).sum(axis=1) / (inside.sum(axis=1) - 1))
+    assert np.allclose(r.spread1, sd, rtol=1e-10)
+
+
+# --------------------------------------------------------------------------- level of detection
+def _no_change_epochs(rng, sigma=0.01, slope=(0.0, 0.0)):
+    return _plane(rng, 25_000, 20.0, sigma, slope), _plane(rng, 25_000, 20.0, sigma, slope)
+
+
+def test_lod_false_alarm_rate_without_change_is_one_minus_confidence():
+    """Monte Carlo: no change, 95 % LoD -> about 5 % of independent cores flagged (binomial bounds)."""
+    rng = np.random.default_rng(5)
+    cores = _grid_cores(20.0, 2.0)  # 100 cores, cylinders 1.2 m apart: independent
+    flags, dists, se = [], [], []
+    for _ in range(20):
+        ref, cmp_ = _no_change_epochs(rng)
+        r = m3c2(ref, cmp_, cores, normal_radius=1.0, cylinder_radius=0.4, max_depth=0.5)
+        flags.append(r.significant)
+        dists.append(r.distance)
+        se.append(r.lod / r.z)
+    flags = np.concatenate(flags)
+    n = len(flags)  # 2000 core tests
+    rate = flags.mean()
+    bound = 3 * np.sqrt(0.05 * 0.95 / n)
+    assert abs(rate - 0.05) < bound, (rate, bound)
+    # the stated standard error of the distance against the Monte Carlo spread
+    ratio = np.std(np.concatenate(dists)) / np.sqrt(np.mean(np.concatenate(se) ** 2))
+    assert 0.8 < ratio < 1.25
+
+
+def test_registration_covariance_widens_lod_by_exactly_the_projected_term():
+    rng = np.random.default_rng(6)
+    ref, cmp_ = _no_change_epochs(rng, slope=(1.0, 0.0))
+    cores = _grid_cores(20.0, 2.0, slope=(1.0, 0.0), margin=2.0)
+    Sigma = np.diag([0.02, 0.001, 0.004]) ** 2
+    plain = m3c2(ref, cmp_, cores, normal_radius=1.0, cylinder_radius=0.4, max_depth=0.5)
+    reg = m3c2(ref, cmp_, cores, normal_radius=1.0, cylinder_radius=0.4, max_depth=0.5,
+               registration_covariance=Sigma)
+    term = np.einsum("mi,ij,mj->m", plain.normals, Sigma, plain.normals)
+    assert np.allclose(reg.registration_variance, term, rtol=1e-12)
+    assert np.allclose(reg.lod**2 - plain.lod**2, reg.z**2 * term, rtol=1e-9)
+    assert np.array_equal(reg.distance, plain.distance)
+    # a 45 degree slope feels half of the X variance; flat ground would feel only Z
+    assert np.allclose(term, 0.5 * (0.02**2 + 0.004**2), rtol=0.01)
+
+
+def test_lod_with_registration_covariance_holds_over_random_shifts():
+    """Monte Carlo: each repetition shifts the compared epoch by a draw from Sigma; 5 % false alarms."""
+    rng = np.random.default_rng(7)
+    cores = _grid_cores(20.0, 2.0, slope=(1.0, 0.0), margin=1.0)
+    Sigma = np.array([[0.02**2, 0.5 * 0.02 * 0.01, 0], [0.5 * 0.02 * 0.01, 0.01**2, 0], [0, 0, 0.003**2]])
+    rates, plain_rates = [], []
+    for _ in range(60):
+        ref, cmp_ = _no_change_epochs(rng, sigma=0.005, slope=(1.0, 0.0))
+        cmp_ = cmp_ + rng.multivariate_normal(np.zeros(3), Sigma)
+        r = m3c2(ref, cmp_, cores, normal_radius=1.0, cylinder_radius=0.4, max_depth=0.5,
+                 registration_covariance=Sigma)
+        rates.append(r.significant.mean())
+        plain_rates.append((np.abs(r.distance) > r.lod_without_registration).mean())
+    rates = np.array(rates)
+    # cores share one shift per repetition: the uncertainty of the rate comes from the repetitions
+    se = max(rates.std(ddof=1), 0.01) / np.sqrt(len(rates))
+    assert abs(rates.mean() - 0.05) < 3 * se + 0.01, (rates.mean(), se)
+    assert np.mean(plain_rates) > 0.3  # ignoring the registration: far too many false alarms
+
+
+def test_rigid_registration_term_matches_monte_carlo():
+    """g^T Sigma g (eq. 6) against the spread of random rigid transformations along the normal."""
+    rng = np.random.default_rng(8)
+    names = ("rx", "ry", "rz", "tx", "ty", "tz")
+    sd = np.array([2e-4, 3e-4, 5e-4, 0.01, 0.02, 0.005])
+    C = np.diag(sd**2)
+    C[2, 3] = C[3, 2] = 0.5 * sd[2] * sd[3]
+
+    class Reg:  # the fields m3c2 reads from a RegistrationResult
+        parameter_names, covariance, origin = names, C, np.array([100.0, 200.0, 10.0])
+
+    pts = np.array([[130.0, 170.0, 12.0], [100.0, 200.0, 10.0], [80.0, 260.0, 5.0]])
+    nrm = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.6, 0.0, 0.8]])
+    var = registration_variance(Reg, pts, nrm)
+    draws = rng.multivariate_normal(np.zeros(6), C, size=20_000)
+    moved = np.stack([(rotation_from_angles(*w[:3]) @ (pts - Reg.origin).T).T + Reg.origin + w[3:] for w in draws])
+    along = np.einsum("spd,pd->sp", moved - pts, nrm)
+    ratio = along.std(axis=0) / np.sqrt(var)
+    assert np.all((ratio > 0.95) & (ratio < 1.05)), ratio
+
+
+def test_undetermined_registration_direction_gives_infinite_lod_where_it_matters():
+    C = np.diag([np.inf, 1e-4, 1e-4])
+
+    class Reg:
+        parameter_names, covariance, origin = ("tx", "ty", "tz"), C, np.zeros(3)
+
+    var = registration_variance(Reg, np.zeros((2, 3)), np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]]))
+    assert var[0] == pytest.approx(1e-4) and np.isinf(var[1])
+
+
+# --------------------------------------------------------------------------- bad input
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        (dict(reference=np.empty((0, 3))), "reference"),
+        (dict(compared=np.full((10, 3), np.nan)), "NaN"),
+        (dict(cylinder_radius=0.0), "cylinder_radius"),
+        (dict(max_depth=-1.0), "max_depth"),
+        (dict(normal_radius=[0.5, -1.0]), "normal_radius"),
+        (dict(registration_covariance=np.diag([1.0, -1.0, 1.0])), "positive semi-definite"),
+        (dict(registration_covariance=np.array([[1.0, 0.5, 0], [0, 1, 0], [0, 0, 1]])), "symmetric"),
+        (dict(registration_covariance=np.eye(2)), "shape"),
+        (dict(normals=np.ones((5, 3))), "normals"),
+        (dict(confidence=1.5), "confidence"),
+        (dict(min_points=1), "min_points"),
+    ],
+)
+def test_bad_input_raises_a_clear_labkit_error(change, match):
+    rng = np.random.default_rng(9)
+    args = dict(reference=_plane(rng, 500, 5.0, 0.01), compared=_plane(rng, 500, 5.0, 0.01), normal_radius=0.5,
+                cylinder_radius=0.5, max_depth=1.0)
+    args.update(change)
+    with pytest.raises(LabkitError, match=match):
+        m3c2(**args)
+
+
+def test_inputs_not_modified_and_exported():
+    rng = np.random.default_rng(10)
+    ref, cmp_ = _plane(rng, 2000, 5.0, 0.01), _plane(rng, 2000, 5.0, 0.01)
+    ref0, cmp0 = ref.copy(), cmp_.copy()
+    r = labkit.m3c2(ref, cmp_, normal_radius=0.5, cylinder_radius=0.5, max_depth=1.0)
+    assert np.array_equal(ref, ref0) and np.array_equal(cmp_, cmp0)
+    cloud = r.to_cloud()
+    assert set(cloud.attributes) >= {"m3c2_distance", "m3c2_lod", "m3c2_significant"}
+    assert "M3C2" in repr(r) and "<table>" in r._repr_html_()
+
+
+def test_agrees_with_py4dgeo():
+    """Peer check (py4dgeo is optional: ``pip install py4dgeo``, the ``bench`` extra)."""
+    py4dgeo = pytest.importorskip("py4dgeo")
+    rng = np.random.default_rng(11)
+    ref = _plane(rng, 30_000, 20.0, 0.02, slope=(0.2, 0.1))
+    cmp_ = _plane(rng, 30_000, 20.0, 0.02, slope=(0.2, 0.1)) + [0, 0, 0.03]
+    cores = ref[::50]
+    # max_depth 1.2 = 3 slabs of py4dgeo's cylinder search; with an even number of slabs py4dgeo
+    # counts a point lying on the boundary between two slabs twice, which hits the core point itself
+    r = m3c2(ref, cmp_, cores, normal_radius=1.0, cylinder_radius=0.5, max_depth=1.2)
+    algo = py4dgeo.M3C2(epochs=(py4dgeo.Epoch(ref), py4dgeo.Epoch(cmp_)), corepoints=cores, normal_radii=(1.0,),
+                        cyl_radius=0.5, max_distance=1.2)
+    dist, unc = algo.run()
+    assert np.array_equal(np.isfinite(dist), r.valid)
+    assert np.array_equal(unc["num_samples1"], r.count1) and np.array_equal(unc["num_samples2"], r.count2)
+    assert np.abs(r.distance - dist)[r.valid].max() < 1e-9
+    assert np.abs(r.spread1 - unc["spread1"])[r.valid].max() < 1e-9
+    assert np.allclose(r.lod[r.valid] * 1.96 / r.z, unc["lodetection"][r.valid], rtol=1e-9)
