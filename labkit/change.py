@@ -49,12 +49,15 @@ from scipy.spatial import cKDTree
 from scipy.stats import norm
 
 from . import _change_search as search
+from ._change_registration import (RegistrationCovariance, load_registration, registration_variance,
+                                   save_registration)
 from ._checks import as_points, positive, probability
 from ._frame import local_origin, reduce
 from ._report import ReportMixin, fmt
 from .errors import LabkitError
 
-__all__ = ["M3C2Result", "m3c2", "registration_variance"]
+__all__ = ["M3C2Result", "RegistrationCovariance", "load_registration", "m3c2", "registration_variance",
+           "save_registration"]
 
 
 @dataclass(frozen=True, eq=False, repr=False)
@@ -171,6 +174,7 @@ def m3c2(
     progress: bool = False,
     orientation=(0.0, 0.0, 1.0),
     min_points: int = 2,
+    held_std=None,
 ) -> M3C2Result:
     """M3C2 distances from ``reference`` to ``compared`` with a level of detection (eq. 1-7).
 
@@ -205,6 +209,10 @@ def m3c2(
     min_points : int
         Fewer points of either epoch in a cylinder: no distance (NaN). At least 2, so that
         the spread is defined.
+    held_std : dict, optional
+        Prior standard deviations for registration parameters the data did not determine,
+        e.g. ``{"rz": np.radians(0.02)}`` (see :func:`registration_variance`). Without it the
+        LoD is infinite wherever such a parameter moves the surface along the normal.
 
     Returns
     -------
@@ -253,7 +261,7 @@ def m3c2(
     enough = (n1 >= min_points) & (n2 >= min_points)
     distance = np.where(enough, mean2 - mean1, np.nan)  # (eq. 3)
     # Level of detection (eq. 5, 6) and significance (eq. 7)
-    reg = registration_variance(registration_covariance, cores_world, nrm)
+    reg = registration_variance(registration_covariance, cores_world, nrm, held_std)
     z = float(norm.ppf(0.5 + conf / 2))
     with np.errstate(invalid="ignore", divide="ignore"):
         lod = np.where(enough, z * np.sqrt(s1**2 / n1 + s2**2 / n2 + reg), np.nan)  # (eq. 5)
@@ -265,76 +273,7 @@ def m3c2(
     )
 
 
-def registration_variance(registration, points, normals) -> np.ndarray:
-    """The registration term n^T Sigma_t n of eq. 5 at each point (eq. 6 for a rigid registration).
-
-    Parameters
-    ----------
-    registration : None, (3, 3) array_like or RegistrationResult
-        Covariance of the shift (m^2), or a registration whose ``covariance`` refers to
-        ``parameter_names`` ('tx', 'ty', 'tz' and optionally 'rx', 'ry', 'rz' in radians
-        about ``origin``).
-    points : ndarray (m, 3)
-        Where the displacement is propagated (the core points, caller's frame).
-    normals : ndarray (m, 3)
-        Unit normals.
-
-    Returns
-    -------
-    ndarray (m,)
-        Variance of the registration displacement along the normal; inf where an
-        undetermined parameter (infinite variance) has a non-zero weight; NaN for NaN normals.
-    """
-    m = len(normals)
-    if registration is None:
-        return np.zeros(m)
-    if hasattr(registration, "covariance") and hasattr(registration, "parameter_names"):
-        names = tuple(registration.parameter_names)
-        Sigma = _check_covariance(registration.covariance, len(names), allow_inf=True)
-        G = np.zeros((m, len(names)))
-        for axis, name in enumerate(("tx", "ty", "tz")):
-            G[:, names.index(name)] = normals[:, axis]  # d(n . dp) / dt = n
-        if "rx" in names:
-            lever = np.cross(np.asarray(points) - np.asarray(registration.origin), normals)  # (eq. 6)
-            for axis, name in enumerate(("rx", "ry", "rz")):
-                G[:, names.index(name)] = lever[:, axis]  # n . (dw x a) = dw . (a x n)
-    else:
-        Sigma = _check_covariance(registration, 3, allow_inf=False)
-        G = np.asarray(normals, dtype=np.float64)
-    return _quadratic_form(G, Sigma)
-
-
 # --------------------------------------------------------------------------- private steps
-def _quadratic_form(G, Sigma):
-    """g^T Sigma g per row of G; parameters with infinite variance make it inf where their weight is not 0."""
-    loose = ~np.isfinite(np.diag(Sigma))
-    S = np.where(loose[:, None] | loose[None, :], 0.0, Sigma)
-    with np.errstate(invalid="ignore"):
-        q = np.einsum("mi,ij,mj->m", G, S, G)
-        touched = (np.abs(G[:, loose]) > 0).any(axis=1) if loose.any() else np.zeros(len(G), dtype=bool)
-    return np.where(touched, np.inf, np.clip(q, 0.0, None))
-
-
-def _check_covariance(cov, p, allow_inf):
-    try:
-        S = np.array(cov, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise LabkitError(f"registration_covariance must be a ({p}, {p}) matrix or a RegistrationResult") from None
-    if S.shape != (p, p):
-        raise LabkitError(f"registration_covariance must have shape ({p}, {p}), got {S.shape}")
-    loose = np.isinf(np.diag(S)) & allow_inf
-    core = S[np.ix_(~loose, ~loose)]
-    if not np.isfinite(core).all():
-        raise LabkitError("registration_covariance contains NaN or infinite entries")
-    if not np.allclose(core, core.T, rtol=1e-8, atol=1e-12 * max(1.0, np.abs(core).max(initial=0))):
-        raise LabkitError("registration_covariance must be symmetric")
-    if core.size:
-        lam = np.linalg.eigvalsh(0.5 * (core + core.T))
-        if lam[0] < -1e-9 * max(lam[-1], 1e-300):
-            raise LabkitError(f"registration_covariance must be positive semi-definite; smallest eigenvalue {lam[0]:.3g}")
-    return S
-
-
 def _check_radii(normal_radius):
     values = np.atleast_1d(np.asarray(normal_radius, dtype=object))
     if values.ndim != 1 or len(values) == 0:

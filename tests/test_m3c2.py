@@ -260,6 +260,18 @@ def test_undetermined_registration_direction_gives_infinite_lod_where_it_matters
 
     var = registration_variance(Reg, np.zeros((2, 3)), np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]]))
     assert var[0] == pytest.approx(1e-4) and np.isinf(var[1])
+    # a held rotation about Z: infinite unless a prior is given; then the lever arm times the prior
+    Cr = np.diag([1e-8, 1e-8, np.inf, 1e-4, 1e-4, 1e-4])
+
+    class Rigid:
+        parameter_names, covariance, origin = ("rx", "ry", "rz", "tx", "ty", "tz"), Cr, np.zeros(3)
+
+    p, n = np.array([[10.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]])  # rz moves this point along Y
+    assert np.isinf(registration_variance(Rigid, p, n)[0])
+    held = registration_variance(Rigid, p, n, {"rz": 1e-3})[0]
+    assert held == pytest.approx(1e-4 + (10 * 1e-3) ** 2)
+    with pytest.raises(LabkitError, match="held_std"):
+        registration_variance(Rigid, p, n, {"rq": 1e-3})
 
 
 # --------------------------------------------------------------------------- bad input
@@ -317,3 +329,79 @@ def test_agrees_with_py4dgeo():
     assert np.abs(r.distance - dist)[r.valid].max() < 1e-9
     assert np.abs(r.spread1 - unc["spread1"])[r.valid].max() < 1e-9
     assert np.allclose(r.lod[r.valid] * 1.96 / r.z, unc["lodetection"][r.valid], rtol=1e-9)
+
+
+# --------------------------------------------------------------------------- command line
+@pytest.fixture(scope="module")
+def epoch_files(tmp_path_factory):
+    from labkit.cloud import PointCloud
+    from labkit.io import write_cloud
+    from labkit.synthetic import als_epochs
+
+    d = tmp_path_factory.mktemp("change_data")
+    pair = als_epochs("xyz", size=(30.0, 30.0), density=4.0, rng=12)
+    write_cloud(pair.target, d / "als_2014.laz")
+    write_cloud(pair.source, d / "als_2016.laz")
+    return d, pair
+
+
+def test_cli_change_with_register_icp_writes_cores_csv_and_png(epoch_files, tmp_path, capsys):
+    import laspy
+
+    from labkit.cli import main
+    from labkit.io import read_cloud
+
+    d, pair = epoch_files
+    out = tmp_path / "out"
+    args = ["change", str(d / "als_2014.laz"), str(d / "als_2016.laz"), "--register", "icp", "--dof", "rigid",
+            "--normal-radius", "1.0", "2.0", "--cylinder-radius", "1.0", "--max-depth", "3.0", "--out", str(out)]
+    assert main(args) == 0
+    text = capsys.readouterr().out
+    assert "Registration result" in text and "M3C2 change" in text
+    stem = "als_2014_als_2016_m3c2"
+    assert sorted(p.name for p in out.iterdir()) == [f"{stem}.csv", f"{stem}.laz", f"{stem}.png"]
+    assert (out / f"{stem}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    las = laspy.read(out / f"{stem}.laz")
+    assert {"m3c2_distance", "m3c2_lod", "m3c2_significant"} <= set(las.point_format.extra_dimension_names)
+    # the files hold what the library computes on the registered pair
+    from labkit.compare import standard_methods
+
+    ref, cmp_ = read_cloud(d / "als_2014.laz"), read_cloud(d / "als_2016.laz")
+    reg = standard_methods(["icp"], dof="rigid", rng=0)["icp"](cmp_, ref)
+    held = {n: np.radians(0.02) for n, v in zip(reg.parameter_names, np.diag(reg.covariance)) if np.isinf(v)}
+    assert "undetermined rz: prior std 0.02 deg" in text and list(held) == ["rz"]  # flat-ish scene: rz is weak
+    r = m3c2(ref, reg.apply(cmp_.xyz), normal_radius=[1.0, 2.0], cylinder_radius=1.0, max_depth=3.0,
+             registration_covariance=reg, held_std=held)
+    csv_cloud = read_cloud(out / f"{stem}.csv")
+    assert len(csv_cloud) == len(r.distance) == len(las.points)
+    assert np.allclose(np.asarray(las["m3c2_distance"]), r.distance, atol=1e-9, equal_nan=True)
+    assert np.array_equal(np.asarray(las["m3c2_significant"]).astype(bool), r.significant)
+    assert np.allclose(csv_cloud["m3c2_lod"], r.lod, rtol=1e-12, equal_nan=True)
+    assert np.isfinite(r.registration_variance[r.valid]).all() and (r.registration_variance[r.valid] > 0).all()
+    assert r.significant.sum() > 0.05 * r.valid.sum()  # the scene has real change (vegetation, buildings)
+
+
+def test_cli_change_with_registration_json_and_all_or_nothing(epoch_files, tmp_path, capsys):
+    from labkit.change import load_registration, save_registration
+    from labkit.cli import main
+    from labkit.compare import standard_methods
+
+    d, pair = epoch_files
+    reg = standard_methods(["icp"], dof="rigid", rng=0)["icp"](pair.source, pair.target)
+    path = save_registration(reg, tmp_path / "reg.json")
+    back = load_registration(path)
+    assert np.allclose(back.matrix, reg.matrix) and back.parameter_names == tuple(reg.parameter_names)
+    pts, nrm = pair.target.xyz[:5], np.tile([0.6, 0.0, 0.8], (5, 1))
+    assert np.allclose(registration_variance(back, pts, nrm), registration_variance(reg, pts, nrm), rtol=1e-12)
+    out = tmp_path / "out"
+    base = ["change", str(d / "als_2014.laz"), str(d / "als_2016.laz"), "--normal-radius", "1.5",
+            "--cylinder-radius", "1.0", "--max-depth", "3.0", "--out", str(out)]
+    assert main(base + ["--registration", str(path)]) == 0
+    assert len(list(out.iterdir())) == 3
+    # a bare 3x3 covariance that is not positive semi-definite: clear error, nothing written
+    bad = tmp_path / "bad.json"
+    bad.write_text("[[1e-4, 0, 0], [0, -1e-4, 0], [0, 0, 1e-4]]")
+    out2 = tmp_path / "out2"
+    assert main(base[:-1] + [str(out2), "--registration", str(bad)]) == 2
+    assert "positive semi-definite" in capsys.readouterr().err
+    assert not out2.exists() or list(out2.iterdir()) == []
