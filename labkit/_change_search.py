@@ -1,7 +1,9 @@
 """Private steps of :func:`labkit.m3c2` (module labkit.change): core points, normals at core points, cylinder statistics.
 
 All functions work on coordinates already reduced to a local origin and never
-loop over core points in Python: a chunk of core points is searched at once
+loop over core points in Python. With numba (a core dependency) the searches run
+in the compiled voxel-grid kernels of ``labkit._change_grid``. The kd-tree route
+below is the fallback and the independent check in the tests: a chunk of core points is searched at once
 with ``cKDTree.query_ball_point`` (``return_sorted=False``), the ragged answer
 is flattened with ``np.repeat`` and every per-core sum is a ``np.bincount``.
 
@@ -20,7 +22,7 @@ import itertools
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ._eigh3 import eigh3
+from ._eigh3 import HAVE_NUMBA, eigh3
 
 CORE_CHUNK = 20_000  # core points per search batch (bounds the flattened neighbour arrays)
 
@@ -39,14 +41,57 @@ def even_subsample(local: np.ndarray, spacing: float) -> np.ndarray:
     return np.sort(order[first])
 
 
-# --------------------------------------------------------------------------- normals
-def pca_normals(tree: cKDTree, local: np.ndarray, cores: np.ndarray, radius: float):
-    """Normal (eigenvector of the smallest eigenvalue) and surface variation l3 / (l1 + l2 + l3) at each core.
+# --------------------------------------------------------------------------- public steps
+def pca_normals(local: np.ndarray, cores: np.ndarray, radius: float, *, compiled: bool = HAVE_NUMBA):
+    """Normal and surface variation l3 / (l1 + l2 + l3) at each core from the points within ``radius``.
 
-    The neighbourhood is every point of ``local`` within ``radius`` of the core point
-    (which need not be one of them). Fewer than 3 neighbours, or a line-like
-    neighbourhood (l2 ~ 0), give NaN.
+    ``compiled``: the numba voxel-grid kernel (``labkit._change_grid``); otherwise cKDTree ball queries.
+    Fewer than 3 neighbours, or a line-like neighbourhood, give NaN.
     """
+    if not compiled:
+        return _tree_pca_normals(cKDTree(local), local, cores, radius)
+    from ._change_grid import VoxelGrid, ball_covariances
+
+    counts, C = ball_covariances(VoxelGrid(local, radius), cores, radius)
+    return _normals_from_covariances(counts, C)
+
+
+def cylinder_stats(local: np.ndarray, cores: np.ndarray, normals: np.ndarray, radius: float, depth: float,
+                   progress=None, *, compiled: bool = HAVE_NUMBA):
+    """Count, mean and standard deviation (ddof = 1) of the axial coordinates in each cylinder.
+
+    A point p belongs to the cylinder of core c with unit axis n when its axial
+    coordinate d = (p - c) . n satisfies |d| <= depth and its squared distance from
+    the axis |p - c|^2 - d^2 is at most radius^2. Cores with a NaN normal get count 0.
+    """
+    if not compiled:
+        return _tree_cylinder_stats(cKDTree(local), local, cores, normals, radius, depth, progress)
+    from . import _change_grid as grid_kernels
+
+    grid = grid_kernels.VoxelGrid(local, min(radius, depth))
+    out = [np.zeros(len(cores), dtype=np.int64), np.full(len(cores), np.nan), np.full(len(cores), np.nan)]
+    step = CORE_CHUNK * 10
+    for start in range(0, len(cores), step):
+        rows = slice(start, start + step)
+        for arr, part in zip(out, grid_kernels.cylinder_stats(grid, cores[rows], normals[rows], radius, depth)):
+            arr[rows] = part
+        if progress is not None:
+            progress.update(len(cores[rows]))
+    return tuple(out)
+
+
+def _normals_from_covariances(counts, C):
+    C = np.where((counts >= 3)[:, None, None], C, np.nan)
+    lam, V = eigh3(C)  # ascending
+    ok = (counts >= 3) & (lam[:, 1] > 1e-12 * np.maximum(lam[:, 2], 1e-300))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        variation = np.where(ok, np.clip(lam[:, 0], 0, None) / lam.sum(axis=1), np.nan)
+    return np.where(ok[:, None], V[:, :, 0], np.nan), variation
+
+
+# --------------------------------------------------------------------------- kd-tree route (without numba)
+def _tree_pca_normals(tree: cKDTree, local: np.ndarray, cores: np.ndarray, radius: float):
+    """:func:`pca_normals` with kd-tree ball queries (no numba)."""
     normals = np.full((len(cores), 3), np.nan)
     variation = np.full(len(cores), np.nan)
     for start in range(0, len(cores), CORE_CHUNK):
@@ -62,12 +107,7 @@ def pca_normals(tree: cKDTree, local: np.ndarray, cores: np.ndarray, radius: flo
         for a in range(3):
             for b in range(a, 3):
                 C[:, a, b] = C[:, b, a] = np.bincount(seg, D[:, a] * D[:, b], n) / m  # covariance
-        C[counts < 3] = np.nan
-        lam, V = eigh3(C)  # ascending
-        ok = (counts >= 3) & (lam[:, 1] > 1e-12 * np.maximum(lam[:, 2], 1e-300))
-        normals[rows] = np.where(ok[:, None], V[:, :, 0], np.nan)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            variation[rows] = np.where(ok, np.clip(lam[:, 0], 0, None) / lam.sum(axis=1), np.nan)
+        normals[rows], variation[rows] = _normals_from_covariances(counts, C)
     return normals, variation
 
 
@@ -77,15 +117,9 @@ def orient(normals: np.ndarray, direction: np.ndarray) -> np.ndarray:
     return np.where(flip[:, None], -normals, normals)
 
 
-# --------------------------------------------------------------------------- cylinders
-def cylinder_stats(tree: cKDTree, local: np.ndarray, cores: np.ndarray, normals: np.ndarray, radius: float,
-                   depth: float, progress=None):
-    """Count, mean and standard deviation (ddof = 1) of the axial coordinates in each cylinder.
-
-    A point p belongs to the cylinder of core c with unit axis n when its axial
-    coordinate d = (p - c) . n satisfies |d| <= depth and its squared distance from
-    the axis |p - c|^2 - d^2 is at most radius^2. Cores with a NaN normal get count 0.
-    """
+def _tree_cylinder_stats(tree: cKDTree, local: np.ndarray, cores: np.ndarray, normals: np.ndarray, radius: float,
+                         depth: float, progress=None):
+    """:func:`cylinder_stats` with kd-tree ball queries, flattened (no numba)."""
     n = len(cores)
     count, mean, std = np.zeros(n, dtype=np.int64), np.full(n, np.nan), np.full(n, np.nan)
     slabs = max(1, int(np.ceil(depth / radius - 1e-9)))  # slab length 2 depth / slabs <= 2 radius

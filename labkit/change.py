@@ -45,7 +45,6 @@ import numbers
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 from scipy.stats import norm
 
 from . import _change_search as search
@@ -243,18 +242,17 @@ def m3c2(
     ref_l, cmp_l = reduce(ref, origin), reduce(cmp_, origin)
     cores_world = _corepoints(corepoints, ref, ref_l, r)
     cores = reduce(cores_world, origin)
-    tree1 = cKDTree(ref_l)
     # Normals (eq. 1): PCA in the reference, lowest surface variation over the radii, oriented
     if normals is None:
-        nrm, chosen = _multiscale_normals(tree1, ref_l, cores, radii)
+        nrm, chosen = _multiscale_normals(ref_l, cores, radii)
     else:
         nrm, chosen = _given_normals(normals, len(cores)), np.full(len(cores), np.nan)
     nrm = search.orient(nrm, up)
     # Cylinder statistics of both epochs (eq. 2-4)
     bar = _progress(progress, 2 * len(cores))
     try:
-        n1, mean1, s1 = search.cylinder_stats(tree1, ref_l, cores, nrm, r, h, bar)
-        n2, mean2, s2 = search.cylinder_stats(cKDTree(cmp_l), cmp_l, cores, nrm, r, h, bar)
+        n1, mean1, s1 = search.cylinder_stats(ref_l, cores, nrm, r, h, bar)
+        n2, mean2, s2 = search.cylinder_stats(cmp_l, cores, nrm, r, h, bar)
     finally:
         if bar is not None:
             bar.close()
@@ -302,12 +300,12 @@ def _corepoints(corepoints, ref, ref_l, r):
     return np.array(as_points(corepoints, min_points=1, name="corepoints"), copy=True)
 
 
-def _multiscale_normals(tree, ref_l, cores, radii):
+def _multiscale_normals(ref_l, cores, radii):
     """Per core the PCA normal at the radius of lowest surface variation (eq. 1)."""
     best_n, best_v = np.full((len(cores), 3), np.nan), np.full(len(cores), np.inf)
     chosen = np.full(len(cores), np.nan)
     for radius in radii:
-        nrm, var = search.pca_normals(tree, ref_l, cores, radius)
+        nrm, var = search.pca_normals(ref_l, cores, radius)
         better = np.isfinite(var) & (var < best_v)
         best_n[better], best_v[better], chosen[better] = nrm[better], var[better], radius
     return best_n, chosen

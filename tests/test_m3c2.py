@@ -169,6 +169,26 @@ def test_long_cylinders_cut_into_slabs_count_every_point_once():
     assert np.allclose(r.spread1, sd, rtol=1e-10)
 
 
+def test_compiled_grid_and_kdtree_routes_agree():
+    """The numba voxel-grid kernels against the kd-tree ball queries (two independent searches)."""
+    from labkit import _change_search as search
+
+    rng = np.random.default_rng(12)
+    pts = rng.uniform(-5, 5, (40_000, 3)) * [1, 1, 0.3]
+    cores = rng.uniform(-4, 4, (500, 3)) * [1, 1, 0.3]
+    for radius in (0.3, 1.1):
+        n_c, v_c = search.pca_normals(pts, cores, radius, compiled=True)
+        n_t, v_t = search.pca_normals(pts, cores, radius, compiled=False)
+        assert np.allclose(np.abs(np.einsum("nd,nd->n", n_c, n_t)), 1, atol=1e-9)
+        assert np.allclose(v_c, v_t, rtol=1e-8)
+    nrm = search.orient(n_c, np.array([0, 0, 1.0]))
+    for r, h in ((0.5, 0.3), (0.4, 2.5)):
+        c = search.cylinder_stats(pts, cores, nrm, r, h, compiled=True)
+        t = search.cylinder_stats(pts, cores, nrm, r, h, compiled=False)
+        assert np.array_equal(c[0], t[0]) and c[0].min() > 2
+        assert np.allclose(c[1], t[1], atol=1e-12) and np.allclose(c[2], t[2], rtol=1e-9)
+
+
 # --------------------------------------------------------------------------- level of detection
 def _no_change_epochs(rng, sigma=0.01, slope=(0.0, 0.0)):
     return _plane(rng, 25_000, 20.0, sigma, slope), _plane(rng, 25_000, 20.0, sigma, slope)
