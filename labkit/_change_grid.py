@@ -15,6 +15,8 @@ costs no memory).
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 
 from ._eigh3 import HAVE_NUMBA
@@ -27,6 +29,9 @@ if HAVE_NUMBA:
 else:  # pragma: no cover - the kd-tree route in _change_search is used instead
     _njit = None
     _prange = range
+
+PARALLEL_FROM = 50_000  # core points; below, one thread (measured: starting the OpenMP team on a loaded
+#                         2-core machine cost 30-60 ms against 0.5 ms of work for 829 cores)
 
 
 class VoxelGrid:
@@ -43,7 +48,9 @@ class VoxelGrid:
         key = (ijk[:, 0] * self.dims[1] + ijk[:, 1]) * self.dims[2] + ijk[:, 2]
         order = np.argsort(key, kind="stable")
         self.points = np.ascontiguousarray(local[order])
-        self.keys, first = np.unique(key[order], return_index=True)
+        sorted_keys = key[order]
+        first = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]])  # first point of each voxel
+        self.keys = sorted_keys[first]
         self.start = np.append(first, len(key)).astype(np.int64)
 
 
@@ -131,13 +138,28 @@ if HAVE_NUMBA:
         return max(a, 0), min(b, n - 1)
 
 
+@contextlib.contextmanager
+def _threads(m):
+    """One numba thread for fewer than PARALLEL_FROM core points (the setting is per calling thread)."""
+    if m >= PARALLEL_FROM:
+        yield
+        return
+    before = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before)
+
+
 def cylinder_stats(grid: VoxelGrid, cores, normals, radius, depth):
     """Count, mean and standard deviation (ddof = 1) of the axial coordinates in each cylinder (compiled)."""
     m = len(cores)
     count, mean, m2 = np.zeros(m, dtype=np.int64), np.zeros(m), np.zeros(m)
-    _cylinder_kernel(grid.points, grid.keys, grid.start, grid.lo, grid.dims, grid.cell,
-                     np.ascontiguousarray(cores), np.ascontiguousarray(normals), float(radius), float(depth),
-                     count, mean, m2)
+    with _threads(m):
+        _cylinder_kernel(grid.points, grid.keys, grid.start, grid.lo, grid.dims, grid.cell,
+                         np.ascontiguousarray(cores), np.ascontiguousarray(normals), float(radius), float(depth),
+                         count, mean, m2)
     with np.errstate(invalid="ignore", divide="ignore"):
         std = np.where(count > 1, np.sqrt(m2 / (count - 1)), np.nan)
     return count, np.where(count > 0, mean, np.nan), std
@@ -147,8 +169,9 @@ def ball_covariances(grid: VoxelGrid, cores, radius):
     """Counts and covariances (eq. 2 of notebook 04, divided by m) of the points within ``radius`` of each core."""
     m = len(cores)
     count, first, second = np.zeros(m, dtype=np.int64), np.zeros((m, 3)), np.zeros((m, 3, 3))
-    _ball_moments_kernel(grid.points, grid.keys, grid.start, grid.lo, grid.dims, grid.cell,
-                         np.ascontiguousarray(cores), float(radius), count, first, second)
+    with _threads(m):
+        _ball_moments_kernel(grid.points, grid.keys, grid.start, grid.lo, grid.dims, grid.cell,
+                             np.ascontiguousarray(cores), float(radius), count, first, second)
     k = np.maximum(count, 1).astype(np.float64)
     mu = first / k[:, None]  # centroid relative to the core point
     C = second / k[:, None, None] - mu[:, :, None] * mu[:, None, :]  # offsets from the core: no cancellation

@@ -334,6 +334,6 @@ def _progress(enabled, total):
 def _radius_text(chosen) -> str:
     vals = chosen[np.isfinite(chosen)]
     if not len(vals):
-        return "given normals"
+        return "none chosen (normals given, or too few points)"
     uniq, counts = np.unique(vals, return_counts=True)
     return ", ".join(f"{u:g} ({c})" for u, c in zip(uniq, counts))
