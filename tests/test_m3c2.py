@@ -331,6 +331,18 @@ def test_inputs_not_modified_and_exported():
     assert "M3C2" in repr(r) and "<table>" in r._repr_html_()
 
 
+def test_progress_bar_and_summary_without_any_distance(capsys):
+    rng = np.random.default_rng(13)
+    ref = _plane(rng, 3000, 5.0, 0.01)
+    r = m3c2(ref, ref + [0, 0, 0.02], normal_radius=0.5, cylinder_radius=0.5, max_depth=1.0, progress=True)
+    assert "m3c2" in capsys.readouterr().err
+    assert abs(np.nanmedian(r.distance) - 0.02) < 1e-4  # the vertical shift along nearly vertical normals
+    # the compared epoch lies elsewhere: no cylinder holds a point of it, every distance is NaN
+    far = m3c2(ref, ref + [100.0, 0, 0], normal_radius=0.5, cylinder_radius=0.5, max_depth=1.0)
+    assert not far.valid.any() and not far.significant.any() and (far.count2 == 0).all()
+    assert "0 of 0 core points significant" in far.summary()
+
+
 def test_agrees_with_py4dgeo():
     """Peer check (py4dgeo is optional: ``pip install py4dgeo``, the ``bench`` extra)."""
     py4dgeo = pytest.importorskip("py4dgeo")
