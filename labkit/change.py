@@ -238,6 +238,7 @@ def m3c2(
     conf = probability(confidence, "confidence")
     min_points = _check_min_points(min_points)
     up = _check_orientation(orientation)
+    registration_variance(registration_covariance, np.zeros((1, 3)), up[None], held_std)  # fail before the work
     origin = local_origin(ref)
     ref_l, cmp_l = reduce(ref, origin), reduce(cmp_, origin)
     cores_world = _corepoints(corepoints, ref, ref_l, r)
