@@ -62,13 +62,16 @@ _EXPORTS = {
     "register_tiles": "labkit.tiles",
     "neighbour_test": "labkit.tiles",
     "ShiftField": "labkit.tiles",
+    # change between epochs (issue 15)
+    "m3c2": "labkit.change",
+    "M3C2Result": "labkit.change",
     # notebooks
     "setup_notebook": "labkit.notebook",
 }
 
 #: Sub-modules reachable as attributes (``labkit.registration.icp``) without an explicit import.
 _SUBMODULES = {
-    "adjustment", "compare", "distances", "errors", "features", "io", "plotting", "ransac",
+    "adjustment", "change", "compare", "distances", "errors", "features", "io", "plotting", "ransac",
     "references", "regions", "registration", "sphere", "synthetic", "tiles", "transforms", "widgets",
 }
 

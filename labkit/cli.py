@@ -1,4 +1,4 @@
-"""Command line: ``labkit demo``, ``sphere``, ``register``, ``compare`` and ``tiles``.
+"""Command line: ``labkit demo``, ``sphere``, ``register``, ``compare``, ``tiles`` and ``change``.
 
 Each sub-command is a small function taking the parsed arguments. Bad input
 (a missing or corrupt file, an invalid option) ends with one clear line on
@@ -130,6 +130,52 @@ def _cmd_tiles(args) -> int:
     with staged_outputs(args.out) as stage:
         field.to_csv(stage("shift_field.csv"))
         save_figure(ax.figure, stage("shift_field.png"))
+    print()
+    for path in stage.written:
+        print(f"wrote {path}")
+    return 0
+
+
+def _cmd_change(args) -> int:
+    """M3C2 change REFERENCE -> COMPARED with a LoD carrying the registration's covariance (issue 15)."""
+    from .change import load_registration, m3c2
+    from .compare import standard_methods
+    from .io import read_cloud, write_cloud
+    from .plotting.change import plot_change_figure
+
+    ref, cmp_ = read_cloud(args.reference), read_cloud(args.compared)
+    print(f"reference {args.reference}: {len(ref)} points; compared {args.compared}: {len(cmp_)} points")
+    registration = None
+    if args.registration:
+        registration = load_registration(args.registration)
+        print(f"registration {args.registration}: {', '.join(registration.parameter_names)} with covariance")
+    elif args.register:
+        method = standard_methods([args.register], dof=args.dof, extent=args.extent, max_points=args.max_points,
+                                  rng=args.seed)[args.register]
+        registration = method(cmp_, ref)
+        print()
+        print(registration.summary())
+    moved = cmp_.xyz if registration is None else registration.apply(cmp_.xyz)
+    held = {}
+    if registration is not None:  # rotations the registration held at their initial value: the stated prior
+        held = {n: np.radians(args.held_rotation_std) for n, v in zip(registration.parameter_names,
+                                                                      np.diag(registration.covariance))
+                if n.startswith("r") and np.isinf(v)}
+        if held:
+            print(f"undetermined {', '.join(held)}: prior std {args.held_rotation_std:g} deg in the LoD")
+    result = m3c2(ref, moved, args.spacing, normal_radius=args.normal_radius, cylinder_radius=args.cylinder_radius,
+                  max_depth=args.max_depth, registration_covariance=registration, confidence=args.confidence,
+                  progress=sys.stderr.isatty(), held_std=held)
+    print()
+    print(result.summary())
+    stem = f"{Path(args.reference).stem}_{Path(args.compared).stem}_m3c2"
+    suffix = Path(args.reference).suffix.lower() if Path(args.reference).suffix.lower() in LAS_SUFFIXES else ".laz"
+    cores = result.to_cloud()
+    fig = plot_change_figure(result, f"M3C2 {Path(args.compared).stem} - {Path(args.reference).stem}")
+    with staged_outputs(args.out) as stage:
+        write_cloud(cores, stage(stem + suffix), scale=None)
+        write_cloud(cores, stage(stem + ".csv"), scale=None)
+        save_figure(fig, stage(stem + ".png"))
     print()
     for path in stage.written:
         print(f"wrote {path}")
@@ -342,6 +388,33 @@ def build_parser() -> argparse.ArgumentParser:
     _add_method_options(tiles)
     tiles.add_argument("--out", default=".", help="output folder (default: the current folder)")
     tiles.set_defaults(func=_cmd_tiles)
+
+    change = sub.add_parser("change", help="M3C2 change between two epochs with a level of detection",
+                            description="M3C2 distances from REFERENCE to COMPARED at core points, with a level of "
+                                        "detection that carries the registration's covariance; writes the core "
+                                        "points (LAS/LAZ with m3c2_distance, m3c2_lod, m3c2_significant), a CSV "
+                                        "and a PNG map of significant change.")
+    change.add_argument("reference", help="reference epoch (point-cloud file)")
+    change.add_argument("compared", help="compared (later) epoch")
+    how = change.add_mutually_exclusive_group()
+    how.add_argument("--registration", metavar="RESULT.json",
+                     help="registration of COMPARED onto REFERENCE as JSON (labkit.change.save_registration, or "
+                          "{'matrix': 4x4, 'covariance': 3x3}); applied, its covariance enters the LoD")
+    how.add_argument("--register", choices=METHODS, metavar="METHOD",
+                     help=f"register COMPARED onto REFERENCE first ({', '.join(METHODS)}) and use its covariance")
+    change.add_argument("--normal-radius", type=_positive_float, nargs="+", required=True,
+                        help="PCA radius for the normals; several: the most planar per core point")
+    change.add_argument("--cylinder-radius", type=_positive_float, required=True, help="cylinder radius")
+    change.add_argument("--max-depth", type=_positive_float, required=True, help="cylinder half length along the normal")
+    change.add_argument("--spacing", type=_positive_float,
+                        help="core points: one reference point per cube of this edge (default: the cylinder radius)")
+    change.add_argument("--confidence", type=float, default=0.95, help="LoD confidence (default: %(default)s)")
+    change.add_argument("--held-rotation-std", type=float, default=0.02, metavar="DEG",
+                        help="prior std (deg) of a rotation the registration left undetermined, as ICP's "
+                             "held_rotation_std_deg (default: %(default)s)")
+    _add_method_options(change)
+    change.add_argument("--out", default=".", help="output folder (default: the current folder)")
+    change.set_defaults(func=_cmd_change)
     return parser
 
 

@@ -1,0 +1,181 @@
+"""Registration uncertainty for :func:`labkit.m3c2` (module ``labkit.change``, eq. 5-6 of notebook 09).
+
+The registration term of the level of detection, n^T Sigma_t n, from a 3x3 shift
+covariance or from a registration's parameter covariance (angles and shift), and a
+small JSON form of a registration so that ``labkit change --registration`` can read it.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import LabkitError
+
+REGISTRATION_FORMAT = "labkit-registration"
+
+
+def registration_variance(registration, points, normals, held_std=None) -> np.ndarray:
+    """The registration term n^T Sigma_t n of eq. 5 at each point (eq. 6 for a rigid registration).
+
+    Parameters
+    ----------
+    registration : None, (3, 3) array_like or RegistrationResult
+        Covariance of the shift (m^2), or a registration whose ``covariance`` refers to
+        ``parameter_names`` ('tx', 'ty', 'tz' and optionally 'rx', 'ry', 'rz' in radians
+        about ``origin``).
+    points : ndarray (m, 3)
+        Where the displacement is propagated (the core points, caller's frame).
+    normals : ndarray (m, 3)
+        Unit normals.
+    held_std : dict of str -> float, optional
+        A prior standard deviation for parameters the registration did not determine (infinite
+        variance), e.g. ``{"rz": np.radians(0.02)}`` for a rotation ICP held at its initial
+        value. Without it such a parameter makes the term infinite wherever it moves the
+        point along the normal. Its covariance with the other parameters is taken as zero
+        (ICP already adds the prior's effect on them to their covariance).
+
+    Returns
+    -------
+    ndarray (m,)
+        Variance of the registration displacement along the normal; inf where an
+        undetermined parameter (infinite variance) has a non-zero weight; NaN for NaN normals.
+    """
+    m = len(normals)
+    if registration is None:
+        return np.zeros(m)
+    if hasattr(registration, "covariance") and hasattr(registration, "parameter_names"):
+        names = tuple(registration.parameter_names)
+        Sigma = _with_priors(_check_covariance(registration.covariance, len(names), allow_inf=True), names,
+                             held_std)
+        G = np.zeros((m, len(names)))
+        for axis, name in enumerate(("tx", "ty", "tz")):
+            G[:, names.index(name)] = normals[:, axis]  # d(n . dp) / dt = n
+        if "rx" in names:
+            lever = np.cross(np.asarray(points) - np.asarray(registration.origin), normals)  # (eq. 6)
+            for axis, name in enumerate(("rx", "ry", "rz")):
+                G[:, names.index(name)] = lever[:, axis]  # n . (dw x a) = dw . (a x n)
+    else:
+        Sigma = _check_covariance(registration, 3, allow_inf=False)
+        G = np.asarray(normals, dtype=np.float64)
+    return _quadratic_form(G, Sigma)
+
+
+@dataclass(frozen=True, eq=False)
+class RegistrationCovariance:
+    """A registration as read from JSON: the 4x4 matrix (compared -> reference) and its covariance.
+
+    It has the fields :func:`registration_variance` reads from a ``RegistrationResult``
+    (``covariance``, ``parameter_names``, ``origin``) and ``apply``, so either can be passed on.
+    """
+
+    matrix: np.ndarray
+    covariance: np.ndarray
+    parameter_names: tuple = ("tx", "ty", "tz")
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def apply(self, points) -> np.ndarray:
+        """Map compared points into the reference frame."""
+        from .transforms import apply_transform
+
+        return apply_transform(self.matrix, points)
+
+
+def save_registration(result, path) -> Path:
+    """Write a registration (``RegistrationResult`` or :class:`RegistrationCovariance`) as JSON, atomically.
+
+    Keys: ``format``, ``matrix`` (4x4, compared -> reference, caller's frame), ``parameter_names``,
+    ``covariance`` (p x p, m^2 and rad^2; ``null`` for an undetermined (infinite) entry) and
+    ``origin`` (the point the angles rotate about). :func:`load_registration` reads it back.
+    """
+    from ._atomic import atomic_write_text
+
+    cov = np.asarray(result.covariance, dtype=np.float64)
+    doc = {"format": REGISTRATION_FORMAT, "version": 1,
+           "matrix": np.asarray(result.matrix).tolist(), "parameter_names": list(result.parameter_names),
+           "covariance": [[v if np.isfinite(v) else None for v in row] for row in cov.tolist()],
+           "origin": np.asarray(result.origin, dtype=np.float64).tolist()}
+    return atomic_write_text(path, json.dumps(doc, indent=1) + "\n")
+
+
+def load_registration(path) -> RegistrationCovariance:
+    """Read a registration JSON: the file :func:`save_registration` writes, or a bare 3x3 shift covariance.
+
+    Accepted: ``{"matrix": 4x4 (optional, default identity), "covariance": 3x3}`` (a shift
+    covariance in m^2), the same with ``parameter_names`` and ``origin`` for a rigid
+    registration, or a plain JSON 3x3 list. ``null`` in the covariance means undetermined (inf).
+    """
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise LabkitError(f"cannot read the registration file {path}: {exc}") from None
+    if isinstance(doc, list):
+        doc = {"covariance": doc}
+    if not isinstance(doc, dict) or "covariance" not in doc:
+        raise LabkitError(f"{path}: expected a JSON object with 'covariance' (and optionally 'matrix', "
+                          "'parameter_names', 'origin') or a 3x3 list")
+    try:
+        cov = np.array([[np.inf if v is None else v for v in row] for row in doc["covariance"]], dtype=np.float64)
+        matrix = np.array(doc.get("matrix", np.eye(4)), dtype=np.float64)
+        names = tuple(doc.get("parameter_names", ("tx", "ty", "tz")))
+        origin = np.array(doc.get("origin", np.zeros(3)), dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise LabkitError(f"{path}: malformed registration: {exc}") from None
+    if matrix.shape != (4, 4) or not np.isfinite(matrix).all() or origin.shape != (3,):
+        raise LabkitError(f"{path}: 'matrix' must be a finite 4x4 list and 'origin' 3 numbers")
+    if not {"tx", "ty", "tz"} <= set(names) or not set(names) <= {"rx", "ry", "rz", "tx", "ty", "tz"}:
+        raise LabkitError(f"{path}: parameter_names must hold tx, ty, tz (and optionally rx, ry, rz), got {names}")
+    _check_covariance(cov, len(names), allow_inf=True)
+    return RegistrationCovariance(matrix, cov, names, origin)
+
+
+# --------------------------------------------------------------------------- private steps
+def _with_priors(Sigma, names, held_std):
+    """Sigma with an undetermined parameter's row and column replaced by its prior variance only."""
+    if not held_std:
+        return Sigma
+    S = Sigma.copy()
+    for name, std in dict(held_std).items():
+        if name not in names:
+            raise LabkitError(f"held_std names {name!r}, which is not one of the parameters {names}")
+        if not (np.isfinite(std) and std >= 0):
+            raise LabkitError(f"held_std[{name!r}] must be a finite number >= 0, got {std!r}")
+        i = names.index(name)
+        if np.isinf(S[i, i]):
+            S[i, :] = S[:, i] = 0.0
+            S[i, i] = float(std) ** 2
+    return S
+
+
+def _quadratic_form(G, Sigma):
+    """g^T Sigma g per row of G; parameters with infinite variance make it inf where their weight is not 0."""
+    loose = ~np.isfinite(np.diag(Sigma))
+    S = np.where(loose[:, None] | loose[None, :], 0.0, Sigma)
+    with np.errstate(invalid="ignore"):
+        q = np.einsum("mi,ij,mj->m", G, S, G)
+        touched = (np.abs(G[:, loose]) > 0).any(axis=1) if loose.any() else np.zeros(len(G), dtype=bool)
+    return np.where(touched, np.inf, np.clip(q, 0.0, None))
+
+
+def _check_covariance(cov, p, allow_inf):
+    try:
+        S = np.array(cov, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise LabkitError(f"registration_covariance must be a ({p}, {p}) matrix or a RegistrationResult") from None
+    if S.shape != (p, p):
+        raise LabkitError(f"registration_covariance must have shape ({p}, {p}), got {S.shape}")
+    loose = np.isinf(np.diag(S)) & allow_inf
+    core = S[np.ix_(~loose, ~loose)]
+    if not np.isfinite(core).all():
+        raise LabkitError("registration_covariance contains NaN or infinite entries")
+    if not np.allclose(core, core.T, rtol=1e-8, atol=1e-12 * max(1.0, np.abs(core).max(initial=0))):
+        raise LabkitError("registration_covariance must be symmetric")
+    if core.size:
+        lam = np.linalg.eigvalsh(0.5 * (core + core.T))
+        if lam[0] < -1e-9 * max(lam[-1], 1e-300):
+            raise LabkitError(f"registration_covariance must be positive semi-definite; smallest eigenvalue {lam[0]:.3g}")
+    return S

@@ -1,0 +1,340 @@
+"""Change between two epochs: M3C2 distances with a level of detection (notebook 09).
+
+M3C2 (Multiscale Model to Model Cloud Comparison, Lague, Brodu and Leroux 2013)
+measures change at *core points* along a local surface normal, from the mean
+positions of both epochs inside a short cylinder around that normal, and says
+whether the change is larger than the two clouds can tell apart.
+
+Notation (notebook 09):
+
+- (eq. 1) normal        n_i = eigenvector of the smallest eigenvalue of the reference points
+                        within ``normal_radius`` of core point c_i (several radii: the one of
+                        lowest surface variation l3 / (l1 + l2 + l3)), oriented so n_i . o >= 0
+- (eq. 2) cylinder      points p with |(p - c_i) . n_i| <= h and |p - c_i|^2 - ((p - c_i) . n_i)^2 <= r^2
+- (eq. 3) distance      d_i = mean_k((p2_k - c_i) . n_i) - mean_k((p1_k - c_i) . n_i)
+- (eq. 4) spread        s_j = standard deviation (ddof = 1) of the axial coordinates in epoch j
+- (eq. 5) level of detection
+                        LoD_i = z_(1 - alpha/2) sqrt(s1^2 / n1 + s2^2 / n2 + n_i^T Sigma_t n_i)
+- (eq. 6) with a rigid registration (angles w, shift t about the origin o):
+                        n_i^T Sigma_t n_i -> g_i^T Sigma_(w,t) g_i,  g_i = [(c_i - o) x n_i ; n_i]
+- (eq. 7) significant   |d_i| > LoD_i
+
+Eq. 5 without the registration term is the LoD of Lague et al. (2013, eq. 1); it
+treats the two mean positions as independent with standard errors s/sqrt(n). A
+registration error moves the whole compared epoch: its covariance Sigma_t adds
+the variance of that displacement along the normal, so a poorly determined X
+widens the LoD on steep faces (n along X) but not on flat ground (n along Z).
+This is the propagation of M3C2-EP (Winiwarter, Anders, Hoefle 2021), here with
+the covariance of the registration labkit has just estimated. CloudCompare, PDAL
+and py4dgeo's plain M3C2 instead add a scalar registration error outside the
+root (PDAL and py4dgeo: 1.96 (sqrt(...) + reg), CloudCompare 1.96 sqrt(...) + reg).
+
+References
+----------
+Lague, D., Brodu, N., Leroux, J. (2013). Accurate 3D comparison of complex topography with
+terrestrial laser scanner: application to the Rangitikei canyon (N-Z). ISPRS J. Photogramm.
+Remote Sens. 82, 10-26. doi:10.1016/j.isprsjprs.2013.04.009
+Winiwarter, L., Anders, K., Hoefle, B. (2021). M3C2-EP: Pushing the limits of 3D topographic
+point cloud change detection by error propagation. ISPRS J. Photogramm. Remote Sens. 178,
+240-258. doi:10.1016/j.isprsjprs.2021.06.011
+"""
+
+from __future__ import annotations
+
+import numbers
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import norm
+
+from . import _change_search as search
+from ._change_registration import (RegistrationCovariance, load_registration, registration_variance,
+                                   save_registration)
+from ._checks import as_points, positive, probability
+from ._frame import local_origin, reduce
+from ._report import ReportMixin, fmt
+from .errors import LabkitError
+
+__all__ = ["M3C2Result", "RegistrationCovariance", "load_registration", "m3c2", "registration_variance",
+           "save_registration"]
+
+
+@dataclass(frozen=True, eq=False, repr=False)
+class M3C2Result(ReportMixin):
+    """M3C2 change at core points (eq. 1-7 of notebook 09).
+
+    Attributes
+    ----------
+    corepoints : ndarray (m, 3)
+        Core points in the caller's frame.
+    normals : ndarray (m, 3)
+        Unit cylinder axes (eq. 1); NaN where the normal is undetermined.
+    distance : ndarray (m,)
+        M3C2 distance compared - reference along the normal (eq. 3), in the units of the
+        input; NaN where a cylinder holds fewer than ``min_points`` points of either epoch.
+    lod : ndarray (m,)
+        Level of detection at ``confidence`` (eq. 5); inf where the registration leaves the
+        displacement along the normal undetermined.
+    significant : ndarray of bool (m,)
+        |distance| > lod (eq. 7); False where the distance is NaN.
+    spread1, spread2 : ndarray (m,)
+        Standard deviation (ddof = 1) of the axial coordinates in each cylinder (eq. 4).
+    count1, count2 : ndarray of int (m,)
+        Points of the reference / compared epoch in each cylinder.
+    registration_variance : ndarray (m,)
+        The registration term n^T Sigma_t n of eq. 5 (zero without a registration covariance).
+    normal_radius : ndarray (m,)
+        The normal radius chosen at each core point (NaN for given normals).
+    cylinder_radius, max_depth, confidence, z, min_points :
+        The parameters used (z is the two-sided normal quantile of ``confidence``).
+    """
+
+    corepoints: np.ndarray
+    normals: np.ndarray
+    distance: np.ndarray
+    lod: np.ndarray
+    significant: np.ndarray
+    spread1: np.ndarray
+    spread2: np.ndarray
+    count1: np.ndarray
+    count2: np.ndarray
+    registration_variance: np.ndarray
+    normal_radius: np.ndarray
+    cylinder_radius: float
+    max_depth: float
+    confidence: float
+    z: float
+    min_points: int
+
+    @property
+    def valid(self) -> np.ndarray:
+        """True where a distance was computed."""
+        return np.isfinite(self.distance)
+
+    @property
+    def lod_without_registration(self) -> np.ndarray:
+        """z sqrt(s1^2/n1 + s2^2/n2): eq. 5 without the registration term."""
+        return self.z * np.sqrt(self.spread1**2 / self.count1 + self.spread2**2 / self.count2)
+
+    def to_cloud(self):
+        """The core points as a :class:`labkit.PointCloud` with ``m3c2_*`` attributes (for LAS/CSV)."""
+        from .cloud import PointCloud
+
+        attrs = {"m3c2_distance": self.distance, "m3c2_lod": self.lod,
+                 "m3c2_significant": self.significant.astype(np.uint8),
+                 "m3c2_spread1": self.spread1, "m3c2_spread2": self.spread2,
+                 "m3c2_count1": self.count1.astype(np.int32), "m3c2_count2": self.count2.astype(np.int32),
+                 "normal_x": self.normals[:, 0], "normal_y": self.normals[:, 1], "normal_z": self.normals[:, 2]}
+        return PointCloud(self.corepoints, attrs, name="m3c2")
+
+    def _report(self):
+        ok = self.valid
+        n, nv, ns = len(self.distance), int(ok.sum()), int(self.significant.sum())
+        d = self.distance[ok]
+        rows = [
+            ("core points", f"{n} ({nv} with a distance, {n - nv} without)"),
+            ("cylinder", f"radius {fmt(self.cylinder_radius, 3)}, half length {fmt(self.max_depth, 3)}"),
+            ("normal radius", _radius_text(self.normal_radius)),
+            ("confidence", f"{self.confidence:.3f} (z = {self.z:.3f}), at least {self.min_points} points per cylinder"),
+        ]
+        if nv:
+            lod = self.lod[ok]
+            rows += [
+                ("distance median", fmt(np.median(d), 4)),
+                ("distance 2.5 / 97.5 %", fmt(np.quantile(d, [0.025, 0.975]), 4)),
+                ("LoD median", fmt(np.median(lod[np.isfinite(lod)]) if np.isfinite(lod).any() else np.inf, 4)),
+                ("points per cylinder median", f"{np.median(self.count1[ok]):.0f} / {np.median(self.count2[ok]):.0f}"),
+                ("significant change", f"{ns} of {nv} ({100 * ns / nv:.1f} %): "
+                                       f"{int((self.significant & (self.distance > 0)).sum())} up, "
+                                       f"{int((self.significant & (self.distance < 0)).sum())} down"),
+            ]
+        reg = self.registration_variance[ok]
+        if np.any(reg != 0):
+            finite = np.isfinite(reg)
+            rows.append(("registration term median", fmt(np.sqrt(np.median(reg[finite])) if finite.any() else np.inf,
+                                                         4) + " (sqrt of n^T Sigma_t n)"))
+            if not finite.all():
+                rows.append(("LoD infinite", f"{int((~finite).sum())} cores: the registration does not determine "
+                                             "the shift along their normal"))
+        return f"M3C2 change: {ns} of {nv} core points significant", [("", rows)]
+
+
+def m3c2(
+    reference,
+    compared,
+    corepoints=None,
+    *,
+    normal_radius,
+    cylinder_radius: float,
+    max_depth: float,
+    registration_covariance=None,
+    normals=None,
+    confidence: float = 0.95,
+    progress: bool = False,
+    orientation=(0.0, 0.0, 1.0),
+    min_points: int = 2,
+    held_std=None,
+) -> M3C2Result:
+    """M3C2 distances from ``reference`` to ``compared`` with a level of detection (eq. 1-7).
+
+    Parameters
+    ----------
+    reference, compared : array_like (n, 3) or PointCloud
+        The two epochs in one frame (the compared epoch already registered onto the
+        reference). UTM-sized coordinates are reduced to a local origin internally.
+    corepoints : array_like (m, 3), float or None
+        Where to measure. None: an even subsample of the reference, one point per cube of
+        edge ``cylinder_radius``; a float: the same with that cube edge.
+    normal_radius : float or sequence of float
+        Radius of the PCA neighbourhood in the reference (eq. 1). Several radii: per core,
+        the one of lowest surface variation (the most planar scale, Lague et al. 2013).
+    cylinder_radius : float
+        Radius r of the projection cylinder (eq. 2).
+    max_depth : float
+        Half length h of the cylinder along the normal (eq. 2): changes larger than this
+        are not found.
+    registration_covariance : (3, 3) array_like or RegistrationResult, optional
+        Covariance of the compared epoch's registration shift (m^2), or the registration
+        result itself (its translation, or angle and translation, covariance; eq. 6).
+        An isotropic registration error sigma is ``sigma**2 * np.eye(3)``.
+    normals : array_like (m, 3) or (3,), optional
+        Given cylinder axes instead of PCA normals (normalised and oriented here).
+    confidence : float
+        Confidence of the level of detection (two-sided), default 0.95 (z = 1.96).
+    progress : bool
+        Show a progress bar on stderr.
+    orientation : array_like (3,)
+        Normals are flipped to a positive component along it (default up, for ALS).
+    min_points : int
+        Fewer points of either epoch in a cylinder: no distance (NaN). At least 2, so that
+        the spread is defined.
+    held_std : dict, optional
+        Prior standard deviations for registration parameters the data did not determine,
+        e.g. ``{"rz": np.radians(0.02)}`` (see :func:`registration_variance`). Without it the
+        LoD is infinite wherever such a parameter moves the surface along the normal.
+
+    Returns
+    -------
+    M3C2Result
+
+    Raises
+    ------
+    LabkitError
+        Empty clouds, NaN coordinates, radii <= 0, a covariance that is not symmetric
+        positive semi-definite, normals of the wrong shape, confidence outside (0, 1).
+
+    Notes
+    -----
+    Distances are differences of means (PDAL, py4dgeo and CloudCompare's default);
+    the spread uses ddof = 1, as py4dgeo, while PDAL divides by n. Cores with an
+    undetermined normal (fewer than 3 reference points within the normal radius) get NaN.
+    """
+    # Check the arguments; reduce everything to one local origin
+    ref = as_points(reference, min_points=1, name="reference")
+    cmp_ = as_points(compared, min_points=1, name="compared")
+    radii = _check_radii(normal_radius) if normals is None else None
+    r = positive(cylinder_radius, "cylinder_radius")
+    h = positive(max_depth, "max_depth")
+    conf = probability(confidence, "confidence")
+    min_points = _check_min_points(min_points)
+    up = _check_orientation(orientation)
+    registration_variance(registration_covariance, np.zeros((1, 3)), up[None], held_std)  # fail before the work
+    origin = local_origin(ref)
+    ref_l, cmp_l = reduce(ref, origin), reduce(cmp_, origin)
+    cores_world = _corepoints(corepoints, ref, ref_l, r)
+    cores = reduce(cores_world, origin)
+    # Normals (eq. 1): PCA in the reference, lowest surface variation over the radii, oriented
+    if normals is None:
+        nrm, chosen = _multiscale_normals(ref_l, cores, radii)
+    else:
+        nrm, chosen = _given_normals(normals, len(cores)), np.full(len(cores), np.nan)
+    nrm = search.orient(nrm, up)
+    # Cylinder statistics of both epochs (eq. 2-4)
+    bar = _progress(progress, 2 * len(cores))
+    try:
+        n1, mean1, s1 = search.cylinder_stats(ref_l, cores, nrm, r, h, bar)
+        n2, mean2, s2 = search.cylinder_stats(cmp_l, cores, nrm, r, h, bar)
+    finally:
+        if bar is not None:
+            bar.close()
+    enough = (n1 >= min_points) & (n2 >= min_points)
+    distance = np.where(enough, mean2 - mean1, np.nan)  # (eq. 3)
+    # Level of detection (eq. 5, 6) and significance (eq. 7)
+    reg = registration_variance(registration_covariance, cores_world, nrm, held_std)
+    z = float(norm.ppf(0.5 + conf / 2))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        lod = np.where(enough, z * np.sqrt(s1**2 / n1 + s2**2 / n2 + reg), np.nan)  # (eq. 5)
+    significant = np.abs(np.nan_to_num(distance)) > np.where(enough, lod, np.inf)  # (eq. 7)
+    nan = np.nan
+    return M3C2Result(
+        cores_world, nrm, distance, lod, significant,
+        np.where(enough, s1, nan), np.where(enough, s2, nan), n1, n2, reg, chosen, r, h, conf, z, min_points,
+    )
+
+
+# --------------------------------------------------------------------------- private steps
+def _check_radii(normal_radius):
+    values = np.atleast_1d(np.asarray(normal_radius, dtype=object))
+    if values.ndim != 1 or len(values) == 0:
+        raise LabkitError(f"normal_radius must be a number or a sequence of numbers, got {normal_radius!r}")
+    return [positive(v, "normal_radius") for v in values]
+
+
+def _check_min_points(min_points) -> int:
+    if isinstance(min_points, bool) or not isinstance(min_points, numbers.Integral) or min_points < 2:
+        raise LabkitError(f"min_points must be an integer >= 2, got {min_points!r}")
+    return int(min_points)
+
+
+def _check_orientation(orientation) -> np.ndarray:
+    o = np.asarray(orientation, dtype=np.float64)
+    if o.shape != (3,) or not np.isfinite(o).all() or np.linalg.norm(o) == 0:
+        raise LabkitError(f"orientation must be a non-zero vector of 3 numbers, got {orientation!r}")
+    return o / np.linalg.norm(o)
+
+
+def _corepoints(corepoints, ref, ref_l, r):
+    """Core points in the caller's frame: given, or reference points of an even subsample (copies)."""
+    if corepoints is None or (isinstance(corepoints, numbers.Real) and not isinstance(corepoints, bool)):
+        spacing = r if corepoints is None else positive(corepoints, "corepoints (spacing)")
+        return ref[search.even_subsample(ref_l, spacing)]
+    return np.array(as_points(corepoints, min_points=1, name="corepoints"), copy=True)
+
+
+def _multiscale_normals(ref_l, cores, radii):
+    """Per core the PCA normal at the radius of lowest surface variation (eq. 1)."""
+    best_n, best_v = np.full((len(cores), 3), np.nan), np.full(len(cores), np.inf)
+    chosen = np.full(len(cores), np.nan)
+    for radius in radii:
+        nrm, var = search.pca_normals(ref_l, cores, radius)
+        better = np.isfinite(var) & (var < best_v)
+        best_n[better], best_v[better], chosen[better] = nrm[better], var[better], radius
+    return best_n, chosen
+
+
+def _given_normals(normals, m):
+    N = np.asarray(normals, dtype=np.float64)
+    if N.shape == (3,):
+        N = np.broadcast_to(N, (m, 3))
+    if N.shape != (m, 3):
+        raise LabkitError(f"normals must have shape (3,) or ({m}, 3) (one per core point), got {N.shape}")
+    length = np.linalg.norm(N, axis=1)
+    if not (np.isfinite(N).all() and (length > 0).all()):
+        raise LabkitError("normals must be finite and non-zero")
+    return N / length[:, None]
+
+
+def _progress(enabled, total):
+    if not enabled:
+        return None
+    from .io import _Progress
+
+    return _Progress(total, "m3c2", True, unit="cylinders")
+
+
+def _radius_text(chosen) -> str:
+    vals = chosen[np.isfinite(chosen)]
+    if not len(vals):
+        return "none chosen (normals given, or too few points)"
+    uniq, counts = np.unique(vals, return_counts=True)
+    return ", ".join(f"{u:g} ({c})" for u, c in zip(uniq, counts))
