@@ -144,7 +144,7 @@ def _result_line(name, res, truth, before, after) -> str:
         f"; undetermined {''.join(res.degeneracy.undetermined_axes)}"
     return (f"{name:10s} shift [" + ", ".join(f"{v:+.4f}" for v in res.translation) + "] m, std ["
             + ", ".join(f"{s:.1f}" for s in std) + "] mm, error [" + ", ".join(f"{e:+.1f}" for e in err)
-            + f"] mm; median |d| {1000 * np.median(np.abs(before)):.0f} -> {1000 * np.median(np.abs(after)):.0f} mm; "
+            + f"] mm; median |d| {1000 * np.nanmedian(np.abs(before)):.0f} -> {1000 * np.nanmedian(np.abs(after)):.0f} mm; "
             f"{res.runtime_s:.2f} s{und}")
 
 
@@ -155,7 +155,7 @@ def _distance_panels(pair, dists, path: Path) -> Path:
     from .plotting import screenshot
     from .plotting.compare import plot_distance_cloud
 
-    a = max(2.5 * float(np.median(np.abs(dists["before"]))), 0.05)
+    a = max(2.5 * float(np.nanmedian(np.abs(dists["before"]))), 0.05)
     ncols = 2 if len(dists) > 2 else len(dists)
     nrows = -(-len(dists) // ncols)
     fig, axes = plt.subplots(nrows, ncols, figsize=(6.0 * ncols, 4.6 * nrows), layout="constrained", squeeze=False)
@@ -167,7 +167,7 @@ def _distance_panels(pair, dists, path: Path) -> Path:
         ax.imshow(screenshot(p))
         p.close()
         ax.set_axis_off()
-        ax.set_title(f"{label}: median |d| {1000 * np.median(np.abs(d)):.0f} mm")
+        ax.set_title(f"{label}: median |d| {1000 * np.nanmedian(np.abs(d)):.0f} mm")
     fig.suptitle(f"{pair.region} ({pair.source.name} -> {pair.target.name}): point-to-plane distance, "
                  f"colours clipped at +-{a:.2f} m")
     return _save(fig, path)
