@@ -87,17 +87,28 @@ def as_points(points, *, min_points: int = 1, name: str = "points", copy: bool =
     if not np.isfinite(arr).all():
         bad = int((~np.isfinite(arr)).any(axis=1).sum())
         raise LabkitError(f"{name} contains {bad} point(s) with NaN or infinite coordinates")
-    _check_precision(xyz, arr, name, tolerance)
+    check_precision(xyz, name, tolerance, _values=arr)
     return arr
 
 
-def _check_precision(original, arr: np.ndarray, name: str, tolerance) -> None:
-    """Refuse low-precision float coordinates whose rounding at their magnitude exceeds ``tolerance``."""
-    dtype = getattr(original, "dtype", None)
-    if dtype is None or arr.size == 0 or not np.issubdtype(dtype, np.floating) or np.finfo(dtype).bits >= 64:
+def check_precision(values, name: str = "points", tolerance: float | None = None, *, _values=None) -> None:
+    """Refuse low-precision float coordinates whose rounding at their magnitude exceeds ``tolerance``.
+
+    ``values`` keeps its own dtype (e.g. a float32 array read from a file); float64
+    and integer input always pass. Readers that convert to float64 themselves
+    call this on the raw array first. See the module notes (precision guard).
+    """
+    dtype = getattr(values, "dtype", None)
+    if dtype is None or not np.issubdtype(dtype, np.floating) or np.finfo(dtype).bits >= 64:
+        return
+    arr = values if _values is None else _values
+    if arr.size == 0:
         return
     tol = _tolerance.get() if tolerance is None else float(tolerance)
-    big = float(np.abs(arr).max())
+    with np.errstate(invalid="ignore"):
+        big = float(np.nanmax(np.abs(np.asarray(arr))))
+    if not np.isfinite(big):
+        return  # NaN / inf are refused elsewhere
     step = float(np.spacing(dtype.type(big)))  # distance to the next representable value at the largest |x|
     if step / 2 > tol:
         raise LabkitError(

@@ -546,6 +546,9 @@ def _read_numpy(path: Path, flt: _Filter, keep, chunk_size: int):
     else:
         with np.load(path, allow_pickle=False) as z:
             xyz, attrs, crs = _split_npz(z, path)
+    from ._checks import check_precision  # (issue 16) float32 files are cast to float64 below
+
+    check_precision(xyz, f"the coordinates in {path.name}")
     attrs = {k: v for k, v in attrs.items() if keep is None or k in keep}
     _needs_class(flt, attrs, path)
     gather = _Gather(None)
