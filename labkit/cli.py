@@ -358,7 +358,8 @@ def build_parser() -> argparse.ArgumentParser:
     sphere.add_argument("--hold-radius", action="store_true", help="hold the radius at --radius in the adjustment")
     sphere.add_argument("--sigma", type=_positive_float,
                         help="a priori standard deviation of the coordinates in m (default: estimated robustly)")
-    sphere.add_argument("--p", type=_probability, default=0.99, help="RANSAC success probability (default: %(default)s)")
+    sphere.add_argument("--p", type=_probability, default=0.99,
+                        help="RANSAC success probability (default: %(default)s)")
     sphere.add_argument("--seed", type=_seed, default=0, help="random seed (default: %(default)s)")
     sphere.set_defaults(func=_cmd_sphere)
 
@@ -396,10 +397,12 @@ def build_parser() -> argparse.ArgumentParser:
     tiles.add_argument("--buffer", type=_non_negative_float, default=0.0, help="margin read around each tile in m")
     tiles.add_argument("--max-tiles", type=_count, default=None,
                        help="refuse grids of more tiles (default: labkit.tiles.MAX_TILES)")
-    tiles.add_argument("--min-points", type=_count, default=200, help="fewer points: tile skipped (default: %(default)s)")
+    tiles.add_argument("--min-points", type=_count, default=200,
+                       help="fewer points: tile skipped (default: %(default)s)")
     tiles.add_argument("--method", choices=METHODS, default="icp", help="registration per tile (default: %(default)s)")
     tiles.add_argument("--alpha", type=_probability, default=0.05, help="test level (default: %(default)s)")
-    tiles.add_argument("--extra-std", type=_non_negative_float, default=0.0, help="extra std per tile in m for the neighbour test")
+    tiles.add_argument("--extra-std", type=_non_negative_float, default=0.0,
+                       help="extra std per tile in m for the neighbour test")
     tiles.add_argument("--scheduler", choices=("threads", "processes", "sync", "serial"), default="threads",
                        help="Dask scheduler (default: %(default)s)")
     _add_method_options(tiles)
