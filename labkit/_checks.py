@@ -182,6 +182,13 @@ def count(value, name: str, *, minimum: int = 1, maximum: int | None = None) -> 
     return int(val)
 
 
+def flag(value, name: str) -> bool:
+    """Return ``value`` as bool; only True/False (or 0/1) are accepted, not any truthy object like ``'no'``."""
+    if isinstance(value, (bool, np.bool_)) or (isinstance(value, numbers.Integral) and value in (0, 1)):
+        return bool(value)
+    raise LabkitError(f"{name} must be True or False, got {value!r}")
+
+
 def as_seed(seed, name: str = "seed") -> int | None:
     """A random seed: None or a whole number >= 0 (numpy refuses negative seeds)."""
     return None if seed is None else count(seed, name, minimum=0)

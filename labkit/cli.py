@@ -240,6 +240,8 @@ class _Stage:
         return tmp
 
     def _make_folder(self) -> None:
+        if self.folder.exists() and not self.folder.is_dir():
+            raise LabkitError(f"cannot write into {self.folder}: it is a file, not a folder")
         missing = [p for p in (self.folder, *self.folder.parents) if not p.exists()]
         for folder in reversed(missing):
             folder.mkdir()

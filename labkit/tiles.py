@@ -30,7 +30,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from ._atomic import atomic_write_text
-from ._checks import as_points, choice, count, non_negative, positive, probability
+from ._checks import as_points, choice, count, flag, non_negative, positive, probability
 from ._report import ReportMixin
 from .errors import CloudFileError, EmptyRegionError, LabkitError
 
@@ -277,6 +277,7 @@ def register_tile(tile: Tile, source, target, method, min_points: int = 200) -> 
     from .compare import shift_at, shift_covariance
 
     t0 = time.perf_counter()
+    min_points = count(min_points, "min_points")
     # Load the tile's points (lazily read for files)
     src = source.load(tile) if isinstance(source, _Files) else source
     tgt = target.load(tile) if isinstance(target, _Files) else target
@@ -344,6 +345,7 @@ def register_tiles(source, target, method=None, *, size: float = 100.0, buffer: 
     choice(scheduler, ("threads", "processes", "sync", "serial"), "scheduler")
     size, buffer = positive(size, "size"), non_negative(buffer, "buffer")
     min_points = count(min_points, "min_points", minimum=1)
+    progress = flag(progress, "progress")
     if classes is not None:
         from .regions import as_classes
 
@@ -544,6 +546,7 @@ def neighbour_test(field: ShiftField, alpha: float = 0.05, *, extra_std: float =
     """
     alpha = probability(alpha, "alpha")
     extra_std = non_negative(extra_std, "extra_std")
+    diagonal = flag(diagonal, "diagonal")
     if not isinstance(field, ShiftField):
         raise LabkitError(f"neighbour_test needs a ShiftField (from register_tiles), got {type(field).__name__}")
     pairs = _neighbour_pairs(field, diagonal)

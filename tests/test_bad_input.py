@@ -13,7 +13,7 @@ import pytest
 import labkit
 from labkit import cli
 from labkit._checks import (
-    PRECISION_TOLERANCE, as_points, as_rng, as_seed, check_precision, choice, count, finite, non_negative,
+    PRECISION_TOLERANCE, as_points, as_rng, as_seed, check_precision, choice, count, finite, flag, non_negative,
     positive, precision_tolerance, probability,
 )
 from labkit.cli import main
@@ -133,6 +133,7 @@ def test_as_points_never_modifies_its_input():
     (finite, -7.25, -7.25), (finite, 0, 0.0),
     (probability, 0.05, 0.05),
     (count, 20, 20), (count, 20.0, 20), (count, np.int64(7), 7),
+    (flag, np.True_, True), (flag, 0, False),
 ])
 def test_number_checks_accept(check, value, expected):
     out = check(value, "v")
@@ -162,6 +163,8 @@ def test_number_checks_accept(check, value, expected):
     (count, 0, "whole number >= 1, got 0"),
     (count, np.nan, "got nan"),
     (count, np.inf, "got inf"),
+    (flag, "no", "v must be True or False, got 'no'"),
+    (flag, 2, "v must be True or False, got 2"),
 ])
 def test_number_checks_refuse(check, value, fragment):
     with pytest.raises(LabkitError) as exc:
@@ -269,6 +272,7 @@ def _tiles(epochs, **kwargs):
     ({"size": -5}, LabkitError, "size must be a finite number > 0"),
     ({"scheduler": "gpu"}, LabkitError, "scheduler must be one of 'threads'"),
     ({"max_tiles": 2.5}, LabkitError, "max_tiles must be a whole number"),
+    ({"progress": "no"}, LabkitError, "progress must be True or False, got 'no'"),
 ])
 def test_register_tiles_refuses_before_any_work(epochs, kwargs, error, fragment, monkeypatch):
     import labkit.tiles as T
@@ -317,6 +321,7 @@ def small_field(epochs):
     ({"extra_std": "0.005"}, "extra_std must be a number >= 0, got '0.005' (str)"),
     ({"alpha": 0}, "alpha must lie strictly between 0 and 1"),
     ({"alpha": np.nan}, "alpha must lie strictly between 0 and 1, got nan"),
+    ({"diagonal": "no"}, "diagonal must be True or False, got 'no'"),
 ])
 def test_neighbour_test_refuses(small_field, kwargs, fragment):
     with pytest.raises(LabkitError) as exc:
@@ -540,6 +545,13 @@ def test_cli_second_move_fails_rolls_back_and_restores(clouds, tmp_path, capsys,
     assert code == 2 and "No space left on device" in err and len(err.strip().splitlines()) == 1
     assert sorted(p.name for p in out.iterdir()) == ["s_registered.laz"]
     assert (out / "s_registered.laz").read_bytes() == b"older result"
+
+
+def test_cli_out_is_a_file(clouds, tmp_path, capsys):
+    (tmp_path / "out").write_text("not a folder")
+    code, err = _run(["register", clouds / "s.laz", clouds / "t.laz", "--out", tmp_path / "out"], capsys)
+    assert code == 2 and "it is a file, not a folder" in err and len(err.strip().splitlines()) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"] and (tmp_path / "out").read_text() == "not a folder"
 
 
 def test_cli_failure_removes_the_folders_it_created(clouds, tmp_path, capsys, monkeypatch):
