@@ -112,9 +112,9 @@ def check_precision(values, name: str = "points", tolerance: float | None = None
     step = float(np.spacing(dtype.type(big)))  # distance to the next representable value at the largest |x|
     if step / 2 > tol:
         raise LabkitError(
-            f"{name} are {dtype.name}: at {big:.3g} m {dtype.name} has steps of {step:.3g} m, so every coordinate "
-            f"is rounded by up to {step / 2:.3g} m, more than the tolerance of {tol:.3g} m; read or keep the "
-            f"coordinates as float64 (or reduce them to a local origin before converting), or accept the loss "
+            f"{name}: {dtype.name} coordinates up to {big:.3g} m are rounded by up to {step / 2:.3g} m "
+            f"({dtype.name} has steps of {step:.3g} m there), more than the tolerance of {tol:.3g} m; keep the "
+            f"coordinates in float64 (or reduce them to a local origin before converting), or accept the loss "
             f"with labkit.precision_tolerance({step / 2:.3g})"
         )
 

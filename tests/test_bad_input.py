@@ -105,11 +105,27 @@ def test_float32_utm_refused_by_public_functions_and_files(tmp_path):
     with pytest.raises(LabkitError, match="float32"):
         labkit.cloud_to_cloud(pts, pts.astype(np.float64))
     np.save(tmp_path / "utm32.npy", pts)
-    with pytest.raises(LabkitError, match="utm32.npy are float32"):
+    with pytest.raises(LabkitError, match="utm32.npy: float32 coordinates up to 5.4e\\+06 m"):
         read_cloud(tmp_path / "utm32.npy")
     local = (pts.astype(np.float64) - UTM).astype(np.float32)
     np.save(tmp_path / "local32.npy", local)
     np.testing.assert_array_equal(read_cloud(tmp_path / "local32.npy").xyz, local.astype(np.float64))
+
+
+@pytest.mark.parametrize("name, call", [
+    ("ransac_sphere", lambda a, b: labkit.ransac_sphere(a, 0.01, radius_range=(0.1, 1.0))),
+    ("gauss_helmert_model", lambda a, b: labkit.gauss_helmert_model(a)),
+    ("local_pca", lambda a, b: labkit.local_pca(a)),
+    ("icp source", lambda a, b: labkit.icp(a, b)),
+    ("icp target", lambda a, b: labkit.icp(b, a)),
+    ("max_consensus", lambda a, b: labkit.max_consensus(a, b)),
+    ("point_to_plane_distance", lambda a, b: labkit.point_to_plane_distance(b, a)),
+    ("register_tiles", lambda a, b: labkit.register_tiles(a, b, progress=False)),
+])
+def test_float32_utm_refused_by_every_entry_point(name, call):
+    b = _cloud(500) + UTM
+    with pytest.raises(LabkitError, match=r"float32 has steps of 0\.5 m"):
+        call(b.astype(np.float32), b)
 
 
 def test_float64_and_integers_pass_the_guard():
