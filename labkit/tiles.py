@@ -231,6 +231,39 @@ def _for_tile(data, tile: Tile):
     return data.subset(mask) if hasattr(data, "subset") else xyz[mask]
 
 
+def _cut_all(data, tiles: tuple) -> list:
+    """``_for_tile`` for every tile; in-memory points are binned to grid cells once.
+
+    Masking the whole cloud per tile costs tiles x points; instead each point gets
+    its cell index, and a tile tests only the points of the cells its buffered box
+    can reach, with :meth:`Tile.contains` (so the result is the same as per tile).
+    """
+    if isinstance(data, _Files) or not tiles:
+        return [_for_tile(data, t) for t in tiles]
+    xyz = as_points(data, name="survey cloud")
+    x0, y0, x1, _ = tiles[0].bounds
+    size = x1 - x0
+    reach = 1 + int(np.ceil(tiles[0].buffer / size))  # neighbouring cells a buffered box may touch
+    ncol, nrow = max(t.col for t in tiles) + 1, max(t.row for t in tiles) + 1
+    # (col, row) of each point; points far outside the grid are clamped (Tile.contains still decides)
+    col = np.clip(np.floor((xyz[:, 0] - x0) / size), -reach - 1, ncol + reach).astype(np.int64)
+    row = np.clip(np.floor((xyz[:, 1] - y0) / size), -reach - 1, nrow + reach).astype(np.int64)
+    key = row * (1 << 31) + col
+    order = np.argsort(key, kind="stable")
+    uniq, start = np.unique(key[order], return_index=True)
+    bounds = np.r_[start, len(order)]
+    out = []
+    for t in tiles:
+        keys = [(t.row + dr) * (1 << 31) + (t.col + dc) for dr in range(-reach, reach + 1)
+                for dc in range(-reach, reach + 1)]
+        pos = np.searchsorted(uniq, keys)
+        hit = [p for p, k in zip(pos, keys) if p < len(uniq) and uniq[p] == k]
+        idx = np.concatenate([order[bounds[p]:bounds[p + 1]] for p in hit]) if hit else np.zeros(0, int)
+        idx = np.sort(idx[t.contains(xyz[idx])])  # the points in their original order
+        out.append(data.subset(idx) if hasattr(data, "subset") else xyz[idx])
+    return out
+
+
 def _concat(clouds):
     from .cloud import PointCloud
 
@@ -358,7 +391,7 @@ def register_tiles(source, target, method=None, *, size: float = 100.0, buffer: 
         raise LabkitError("source and target surveys do not overlap in x, y")
     tiles = tile_grid(common, size, buffer=buffer, max_tiles=max_tiles)
     # One job per tile: its inputs are cut out (clouds) or listed (files) here, read in the job
-    jobs = [(t, _for_tile(src, t), _for_tile(tgt, t)) for t in tiles]
+    jobs = list(zip(tiles, _cut_all(src, tiles), _cut_all(tgt, tiles)))
     run = partial(register_tile, method=method, min_points=min_points)
     shifts = _run_jobs(run, jobs, client, scheduler, progress)
     return ShiftField(tuple(shifts), float(size), _method_name(method))
