@@ -59,26 +59,24 @@ def as_points(points, *, min_points: int = 1, name: str = "points", copy: bool =
               tolerance: float | None = None) -> np.ndarray:
     """Return ``points`` as a finite float64 array of shape (n, 3).
 
-    Parameters
-    ----------
-    tolerance : float, optional
-        Largest rounding (m) accepted for low-precision float input (float32,
-        float16); default the current :func:`precision_tolerance`, normally
-        :data:`PRECISION_TOLERANCE` = 1e-4 m.
+    Low-precision float input (float32, float16) is refused when its rounding at
+    the largest coordinate exceeds ``tolerance`` (m; default the current
+    :func:`precision_tolerance`, normally :data:`PRECISION_TOLERANCE` = 1e-4 m),
+    see :func:`check_precision`.
 
     Raises
     ------
     LabkitError
-        If the shape is not (n, 3), fewer than ``min_points`` rows are given, any
-        coordinate is NaN or infinite, or low-precision coordinates are rounded
-        by more than ``tolerance`` at their magnitude.
+        If the shape is not (n, 3), fewer than ``min_points`` rows are given, or
+        any coordinate is NaN or infinite.
     """
     xyz = getattr(points, "xyz", points)  # PointCloud or array-like
-    if isinstance(xyz, (str, bytes)):
-        raise LabkitError(f"{name} must be numeric with shape (n, 3), got a string; read files with read_cloud")
     try:
         arr = np.array(xyz, dtype=np.float64, copy=copy) if copy else np.asarray(xyz, dtype=np.float64)
     except (TypeError, ValueError) as exc:
+        if isinstance(xyz, (str, bytes)):
+            raise LabkitError(f"{name} must be numeric with shape (n, 3), got a string (read files with "
+                              "read_cloud)") from None
         raise LabkitError(f"{name} must be numeric with shape (n, 3): {exc}") from None
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise LabkitError(f"{name} must have shape (n, 3), got {arr.shape}")
