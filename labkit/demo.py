@@ -142,10 +142,10 @@ def _result_line(name, res, truth, before, after) -> str:
     std = np.asarray(res.translation_std) * 1000
     und = "" if res.degeneracy is None or not res.degeneracy.undetermined_axes else \
         f"; undetermined {''.join(res.degeneracy.undetermined_axes)}"
+    med_before, med_after = (1000 * np.nanmedian(np.abs(d)) for d in (before, after))  # NaN: no usable normal
     return (f"{name:10s} shift [" + ", ".join(f"{v:+.4f}" for v in res.translation) + "] m, std ["
             + ", ".join(f"{s:.1f}" for s in std) + "] mm, error [" + ", ".join(f"{e:+.1f}" for e in err)
-            + f"] mm; median |d| {1000 * np.nanmedian(np.abs(before)):.0f} -> {1000 * np.nanmedian(np.abs(after)):.0f} mm; "
-            f"{res.runtime_s:.2f} s{und}")
+            + f"] mm; median |d| {med_before:.0f} -> {med_after:.0f} mm; {res.runtime_s:.2f} s{und}")
 
 
 def _distance_panels(pair, dists, path: Path) -> Path:
