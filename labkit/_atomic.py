@@ -61,8 +61,6 @@ def atomic_path(path):
 
 def atomic_write_text(path, text: str) -> Path:
     """Write ``text`` (UTF-8) to ``path`` atomically."""
-    if not isinstance(text, str):
-        raise LabkitError(f"text to write must be a str, got {type(text).__name__}")
     path = as_path(path)
     with atomic_path(path) as tmp:
         with open(tmp, "w", encoding="utf-8", newline="") as fh:
