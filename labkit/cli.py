@@ -17,7 +17,9 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import shutil
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -281,6 +283,25 @@ class _Stage:
             with contextlib.suppress(OSError):  # only empty folders go
                 folder.rmdir()
         self.created = []
+
+
+@contextlib.contextmanager
+def staged_folder(folder):
+    """``with staged_folder(dir) as work: ...``: files written into the empty folder ``work`` move into
+    ``dir`` together when the block succeeds (all or nothing, as :func:`staged_outputs`)."""
+    stage = _Stage(Path(folder))
+    stage._make_folder()
+    work = Path(tempfile.mkdtemp(dir=stage.folder, prefix=".staging-"))
+    try:
+        yield work
+        stage.pending = [(f, stage.folder / f.name) for f in sorted(work.iterdir()) if f.is_file()]
+        stage.commit()
+    except BaseException:
+        stage.pending = []
+        shutil.rmtree(work, ignore_errors=True)
+        stage.discard()
+        raise
+    shutil.rmtree(work, ignore_errors=True)
 
 
 @contextlib.contextmanager

@@ -32,19 +32,25 @@ def _steps():
 
 
 def run_demo(out_dir: Path, quick: bool = False) -> list[Path]:
-    """Run every demo step; return the paths of the figures written."""
+    """Run every demo step; return the paths of the figures written.
+
+    The figures are written into a staging folder and moved into ``out_dir``
+    together at the end: a step that fails leaves nothing new behind.
+    """
+    from .cli import staged_folder
     from .notebook import setup_headless
 
     setup_headless()
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    written: list[Path] = []
+    names: list[str] = []
     start = time.perf_counter()
-    for title, step in _steps():
-        print(f"\n### {title}\n")
-        t0 = time.perf_counter()
-        written += step(out_dir, quick)
-        print(f"({title}: {time.perf_counter() - t0:.1f} s)")
+    with staged_folder(out_dir) as work:
+        for title, step in _steps():
+            print(f"\n### {title}\n")
+            t0 = time.perf_counter()
+            names += [Path(p).name for p in step(work, quick)]
+            print(f"({title}: {time.perf_counter() - t0:.1f} s)")
+    written = [out_dir / name for name in names]
     print(f"\nDemo finished in {time.perf_counter() - start:.1f} s. Files written to {out_dir.resolve()}:")
     for path in written:
         print(f"  {path.name}")
