@@ -11,6 +11,10 @@ Tiles of LAS/LAZ files are read lazily inside their task (only the files whose
 header extent meets the tile, filtered by the tile's box while reading), so a
 survey of hundreds of files never has to fit in memory.
 
+Every option is checked before any file is opened, and a grid of more than
+:data:`MAX_TILES` tiles (a size typed in centimetres, say) is refused with the
+count and a size that fits, instead of running on for hours.
+
 Equation numbers refer to ``notebooks/08-shift-field-over-tiles.ipynb``.
 """
 
