@@ -64,9 +64,7 @@ def _cmd_register(args) -> int:
     from .distances import distances_before_after
     from .io import read_cloud, write_cloud
 
-    if args.method == "consensus" and args.dof == "rigid":
-        raise LabkitError("--method consensus estimates a translation only; use --dof translation, "
-                          "or --method consensus+icp / icp for a rigid transformation")
+    _check_dof([args.method], args.dof)
     source, target = read_cloud(args.source), read_cloud(args.target)
     print(f"source {args.source}: {len(source)} points; target {args.target}: {len(target)} points")
     method = standard_methods([args.method], dof=args.dof, extent=args.extent, max_points=args.max_points,
@@ -98,6 +96,7 @@ def _cmd_compare(args) -> int:
     from .compare import compare_methods, load_pairs, standard_methods
     from .references import load_references
 
+    _check_dof(args.methods, args.dof)
     pairs = load_pairs(args.pairs)
     refs = load_references(args.references) if args.references else {}
     missing = [f"{r} ({c})" for (r, c), pair in pairs.items() if (r, c) not in refs and pair.truth is None]
@@ -123,6 +122,7 @@ def _cmd_tiles(args) -> int:
     from .plotting.compare import plot_shift_field
     from .tiles import MAX_TILES, neighbour_test, register_tiles
 
+    _check_dof([args.method], args.dof)
     method = standard_methods([args.method], dof=args.dof, extent=args.extent, max_points=args.max_points,
                               rng=args.seed)[args.method]
     field = register_tiles([Path(p) for p in args.source], [Path(p) for p in args.target], method,
@@ -142,6 +142,13 @@ def _cmd_tiles(args) -> int:
     for path in stage.written:
         print(f"wrote {path}")
     return 0
+
+
+def _check_dof(methods, dof: str) -> None:
+    """Maximum consensus estimates a translation only: refuse ``--dof rigid`` rather than ignore it."""
+    if "consensus" in methods and dof == "rigid":
+        raise LabkitError("--method consensus estimates a translation only; use --dof translation, "
+                          "or --method consensus+icp / icp for a rigid transformation")
 
 
 # --------------------------------------------------------------------------- text and figures

@@ -521,6 +521,8 @@ REG, TIL, SPH, CMP = ["register", "{s}", "{t}"], ["tiles", "{s}", "--target", "{
     (TIL + ["--max-tiles", "0"], "argument --max-tiles: expected a whole number >= 1, got '0'"),
     (TIL + ["--scheduler", "gpu"], "argument --scheduler: invalid choice: 'gpu'"),
     (TIL + ["--size", "0.01"], "tiles of 0.01 m"),
+    (TIL + ["--method", "consensus", "--dof", "rigid"], "consensus estimates a translation only"),
+    (CMP + ["--methods", "icp", "consensus", "--dof", "rigid"], "consensus estimates a translation only"),
     (TIL + ["--size", "15", "--max-tiles", "3"], "4 tiles of 15 m (2 x 2)"),
     (["tiles", "{s}"], "the following arguments are required: --target"),
     (CMP + ["--alpha", "nan"], "argument --alpha: expected a number between 0 and 1, got 'nan'"),
