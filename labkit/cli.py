@@ -20,6 +20,7 @@ import os
 import shutil
 import sys
 import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -455,7 +456,12 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return args.func(args)
+        with warnings.catch_warnings(record=True) as caught:  # one line each, and none after an error
+            warnings.simplefilter("default")
+            code = args.func(args)
+        for text in dict.fromkeys(f"{w.category.__name__}: {_one_line(w.message)}" for w in caught):
+            print(f"labkit {args.command}: warning: {text}", file=sys.stderr)
+        return code
     except (LabkitError, OSError) as exc:  # bad input, or an output folder that cannot be written
         print(f"labkit {args.command}: error: {_one_line(exc)}", file=sys.stderr)
         return 2

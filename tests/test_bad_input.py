@@ -612,3 +612,27 @@ def test_cli_float32_utm_file_is_refused(tmp_path, capsys):
     code, err = _run(["sphere", tmp_path / "utm32.npy", "--radius-range", "0.1", "0.5"], capsys)
     assert code == 2 and len(err.strip().splitlines()) == 1
     assert f"float32 has steps of {_float32_step(5.4e6):.3g} m" in err
+
+
+def test_cli_warnings_before_an_error_do_not_add_lines(clouds, tmp_path, capsys, monkeypatch):
+    import warnings
+
+    import labkit.compare as C
+
+    def noisy(*args, **kwargs):
+        warnings.warn("Mean of empty slice", RuntimeWarning)
+        warnings.warn("Mean of empty slice", RuntimeWarning)
+        raise LabkitError("bad\ninput")
+
+    monkeypatch.setattr(C, "standard_methods", noisy)
+    code, err = _run(["register", clouds / "s.laz", clouds / "t.laz", "--out", tmp_path / "o"], capsys)
+    assert code == 2 and err == "labkit register: error: bad input\n"
+
+    def demo_ok(args):
+        warnings.warn("Mean of\nempty slice", RuntimeWarning)
+        warnings.warn("Mean of\nempty slice", RuntimeWarning)
+        return 0
+
+    monkeypatch.setattr(cli, "_cmd_demo", demo_ok)
+    code, err = _run(["demo", "--out", tmp_path / "o"], capsys)
+    assert code == 0 and err == "labkit demo: warning: RuntimeWarning: Mean of empty slice\n"  # once, one line
