@@ -636,3 +636,19 @@ def test_cli_warnings_before_an_error_do_not_add_lines(clouds, tmp_path, capsys,
     monkeypatch.setattr(cli, "_cmd_demo", demo_ok)
     code, err = _run(["demo", "--out", tmp_path / "o"], capsys)
     assert code == 0 and err == "labkit demo: warning: RuntimeWarning: Mean of empty slice\n"  # once, one line
+
+
+def test_cli_tile_limit_on_real_epochs(realdata, tmp_path, capsys):
+    """Real ALS epochs (35 m x 42 m): a size typed in millimetres is refused at once, naming the count."""
+    import laspy
+
+    a, b = realdata / "epochs" / "autzen-bmx-2023.las", realdata / "epochs" / "autzen-bmx-2010.las"
+    with laspy.open(a) as ra, laspy.open(b) as rb:
+        lo = np.maximum(ra.header.mins[:2], rb.header.mins[:2])
+        hi = np.minimum(ra.header.maxs[:2], rb.header.maxs[:2])
+    cols, rows = np.floor(hi / 0.001) - np.floor(lo / 0.001) + 1  # tiles from index arithmetic
+    code, err = _run(["tiles", a, "--target", b, "--size", "0.001", "--out", tmp_path / "o"], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    count = float(err.split("error: ")[1].split(" tiles of 0.001 m")[0].replace(",", ""))
+    assert abs(count - cols * rows) <= cols + rows + 1  # a bound on a 1 mm edge may round to either side
+    assert not (tmp_path / "o").exists()
