@@ -481,8 +481,10 @@ def _run(argv, capsys):
     return code, cap.err
 
 
-REG, TIL, SPH, CMP = ["register", "{s}", "{t}"], ["tiles", "{s}", "--target", "{t}"], ["sphere", "{s}"], \
-    ["compare", "{p}"]
+REG = ["register", "{s}", "{t}"]
+TIL = ["tiles", "{s}", "--target", "{t}"]
+SPH = ["sphere", "{s}"]
+CMP = ["compare", "{p}"]
 
 
 @pytest.mark.parametrize("argv, fragment", [
