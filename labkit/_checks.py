@@ -102,7 +102,9 @@ def check_precision(values, name: str = "points", tolerance: float | None = None
     arr = values if _values is None else _values
     if arr.size == 0:
         return
-    tol = _tolerance.get() if tolerance is None else float(tolerance)
+    tol = _tolerance.get() if tolerance is None else _number(tolerance, "tolerance", "a number > 0 (m)")
+    if not tol > 0:  # NaN too; inf switches the guard off
+        raise LabkitError(f"tolerance must be a number > 0 (m), got {tolerance!r}")
     with np.errstate(invalid="ignore"):
         big = float(np.nanmax(np.abs(np.asarray(arr))))
     if not np.isfinite(big):

@@ -91,6 +91,14 @@ def test_precision_tolerance_by_argument_and_by_context():
         as_points(pts)  # the context ends with the block
 
 
+@pytest.mark.parametrize("tol, fragment", [(-1, "tolerance must be a number > 0 (m), got -1"),
+                                            (np.nan, "got nan"), ("0.5", "got '0.5' (str)")])
+def test_tolerance_argument_is_checked(tol, fragment):
+    with pytest.raises(LabkitError) as exc:
+        as_points((_cloud() + UTM).astype(np.float32), tolerance=tol)
+    assert fragment in str(exc.value)
+
+
 @pytest.mark.parametrize("tol", [0, -1, np.nan])
 def test_precision_tolerance_must_be_positive(tol):
     with pytest.raises(LabkitError, match="precision tolerance must be a number > 0"):
