@@ -45,8 +45,8 @@ def precision_tolerance(tolerance: float):
     ``with precision_tolerance(0.5): icp(a32, b32)`` accepts float32 coordinates at
     UTM size (rounded to 0.25 m); ``precision_tolerance(np.inf)`` switches the guard off.
     """
-    tol = float(tolerance)
-    if np.isnan(tol) or tol <= 0:
+    tol = _number(tolerance, "the precision tolerance", "a number > 0 (m)")
+    if not tol > 0:
         raise LabkitError(f"the precision tolerance must be a number > 0 (m), got {tolerance!r}")
     token = _tolerance.set(tol)
     try:
