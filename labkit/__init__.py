@@ -18,6 +18,7 @@ _EXPORTS = {
     "ConvergenceError": "labkit.errors",
     "EmptyRegionError": "labkit.errors",
     "CloudFileError": "labkit.errors",
+    "precision_tolerance": "labkit._checks",
     # data
     "PointCloud": "labkit.cloud",
     "read_cloud": "labkit.io",

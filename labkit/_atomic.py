@@ -31,6 +31,13 @@ def temporary_path(path: Path, suffix: str = ".part") -> Path:
     return Path(tmp)
 
 
+def as_path(path, what: str = "output file") -> Path:
+    """``path`` as a Path; anything but a str or os.PathLike (None, a number) is refused."""
+    if not isinstance(path, (str, os.PathLike)) or str(path) == "":
+        raise LabkitError(f"the {what} must be a file path (str or pathlib.Path), got {path!r}")
+    return Path(path)
+
+
 @contextlib.contextmanager
 def atomic_path(path):
     """Yield a temporary path next to ``path``; rename it over ``path`` only on success.
@@ -38,9 +45,11 @@ def atomic_path(path):
     On any failure the temporary file is removed and an existing file at ``path``
     is left untouched.
     """
-    path = Path(path)
+    path = as_path(path)
     if not path.parent.is_dir():
         raise LabkitError(f"cannot write {path}: the folder {path.parent} does not exist")
+    if path.is_dir():
+        raise LabkitError(f"cannot write {path}: a folder of that name exists")
     tmp = temporary_path(path)
     try:
         yield tmp
@@ -52,7 +61,7 @@ def atomic_path(path):
 
 def atomic_write_text(path, text: str) -> Path:
     """Write ``text`` (UTF-8) to ``path`` atomically."""
-    path = Path(path)
+    path = as_path(path)
     with atomic_path(path) as tmp:
         with open(tmp, "w", encoding="utf-8", newline="") as fh:
             fh.write(text)

@@ -1,11 +1,15 @@
 """Command line: ``labkit demo``, ``sphere``, ``register``, ``compare``, ``tiles`` and ``change``.
 
 Each sub-command is a small function taking the parsed arguments. Bad input
-(a missing or corrupt file, an invalid option) ends with one clear line on
-stderr and exit status 2; ``labkit sphere`` exits with 1 when no sphere is
-found. Output files are staged next to their destination and renamed only when
-every file of the command has been written, so a failure leaves nothing
-half-written.
+(a missing or corrupt file, an invalid option or number) ends with exactly one
+line on stderr and exit status 2, never a traceback; ``labkit sphere`` exits
+with 1 when no sphere is found; an unexpected internal error prints one line
+and exits with 3 (``LABKIT_TRACEBACK=1`` shows the traceback).
+
+Output files are staged next to their destination and moved into place only
+when every file of the command has been written; if moving one fails, those
+already moved are rolled back (files they replaced are restored) and folders
+the command created are removed, so a failure leaves nothing new behind.
 """
 
 from __future__ import annotations
@@ -13,12 +17,16 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import shutil
 import sys
+import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from ._atomic import temporary_path
+from ._checks import count, non_negative, positive, probability
 from .errors import LabkitError
 
 LAS_SUFFIXES = (".las", ".laz")
@@ -57,9 +65,7 @@ def _cmd_register(args) -> int:
     from .distances import distances_before_after
     from .io import read_cloud, write_cloud
 
-    if args.method == "consensus" and args.dof == "rigid":
-        raise LabkitError("--method consensus estimates a translation only; use --dof translation, "
-                          "or --method consensus+icp / icp for a rigid transformation")
+    _check_dof([args.method], args.dof)
     source, target = read_cloud(args.source), read_cloud(args.target)
     print(f"source {args.source}: {len(source)} points; target {args.target}: {len(target)} points")
     method = standard_methods([args.method], dof=args.dof, extent=args.extent, max_points=args.max_points,
@@ -91,6 +97,7 @@ def _cmd_compare(args) -> int:
     from .compare import compare_methods, load_pairs, standard_methods
     from .references import load_references
 
+    _check_dof(args.methods, args.dof)
     pairs = load_pairs(args.pairs)
     refs = load_references(args.references) if args.references else {}
     missing = [f"{r} ({c})" for (r, c), pair in pairs.items() if (r, c) not in refs and pair.truth is None]
@@ -114,13 +121,15 @@ def _cmd_compare(args) -> int:
 def _cmd_tiles(args) -> int:
     from .compare import standard_methods
     from .plotting.compare import plot_shift_field
-    from .tiles import neighbour_test, register_tiles
+    from .tiles import MAX_TILES, neighbour_test, register_tiles
 
+    _check_dof([args.method], args.dof)
     method = standard_methods([args.method], dof=args.dof, extent=args.extent, max_points=args.max_points,
                               rng=args.seed)[args.method]
     field = register_tiles([Path(p) for p in args.source], [Path(p) for p in args.target], method,
                            size=args.size, buffer=args.buffer, min_points=args.min_points,
-                           scheduler=args.scheduler, progress=sys.stdout.isatty())
+                           scheduler=args.scheduler, progress=sys.stdout.isatty(),
+                           max_tiles=MAX_TILES if args.max_tiles is None else args.max_tiles)
     test = neighbour_test(field, args.alpha, extra_std=args.extra_std)
     print(field.summary())
     print()
@@ -182,6 +191,13 @@ def _cmd_change(args) -> int:
     return 0
 
 
+def _check_dof(methods, dof: str) -> None:
+    """Maximum consensus estimates a translation only: refuse ``--dof rigid`` rather than ignore it."""
+    if "consensus" in methods and dof == "rigid":
+        raise LabkitError("--method consensus estimates a translation only; use --dof translation, "
+                          "or --method consensus+icp / icp for a rigid transformation")
+
+
 # --------------------------------------------------------------------------- text and figures
 def _rotation_text(result) -> str:
     """The 4x4 matrix and, for a rigid result, the angles with standard deviations (arcsec)."""
@@ -225,8 +241,8 @@ def _distance_figure(source, change, title, seed):
     n = len(source)
     sel = np.sort(np.random.default_rng(seed).choice(n, PLOT_POINTS, replace=False)) if n > PLOT_POINTS else slice(None)
     # colour scale: a few times the typical misfit before, so that the shift shows and changes saturate
-    a = 2.5 * float(np.median(np.abs(change.before)))
-    clim = (-a, a) if a > 0 else symmetric_limits(change.before)
+    a = 2.5 * float(np.nanmedian(np.abs(change.before)))
+    clim = (-a, a) if a > 0 else symmetric_limits(change.before[np.isfinite(change.before)])
     fig, axes = plt.subplots(1, 2, figsize=(12, 5.2), layout="constrained")
     for ax, d, label in zip(axes, (change.before, change.after), ("before", "after")):
         s = change.stats(label)
@@ -257,23 +273,58 @@ def save_render(plotter, path) -> Path:
 
 
 class _Stage:
-    """Hands out temporary paths next to their destinations; :meth:`commit` renames them all."""
+    """Hands out temporary paths next to their destinations; :meth:`commit` moves them all into place.
+
+    The commit is all or nothing: a destination that exists is first set aside;
+    if any move fails, the files already moved are removed, the set-aside files
+    restored, and folders the stage created are deleted again.
+    """
 
     def __init__(self, folder: Path):
-        self.folder = folder
+        self.folder = Path(folder)
         self.pending: list[tuple[Path, Path]] = []
         self.written: list[Path] = []
+        self.created: list[Path] = []  # folders made for the outputs, deepest last
 
     def __call__(self, name: str) -> Path:
-        self.folder.mkdir(parents=True, exist_ok=True)
+        self._make_folder()
         final = self.folder / name
+        if final.is_dir():
+            raise LabkitError(f"cannot write {final}: a folder of that name exists")
         tmp = temporary_path(final)
         self.pending.append((tmp, final))
         return tmp
 
+    def _make_folder(self) -> None:
+        if self.folder.exists() and not self.folder.is_dir():
+            raise LabkitError(f"cannot write into {self.folder}: it is a file, not a folder")
+        missing = [p for p in (self.folder, *self.folder.parents) if not p.exists()]
+        for folder in reversed(missing):
+            folder.mkdir()
+            self.created.append(folder)
+
     def commit(self) -> None:
-        for tmp, final in self.pending:
-            os.replace(tmp, final)
+        moved: list[tuple[Path, Path | None]] = []  # (final, set-aside old file or None)
+        try:
+            for tmp, final in self.pending:
+                old = None
+                if final.exists() or final.is_symlink():
+                    old = temporary_path(final, ".old")
+                    os.replace(final, old)
+                moved.append((final, old))
+                os.replace(tmp, final)
+        except BaseException:
+            for final, old in reversed(moved):  # roll back: new files out, old files back
+                with contextlib.suppress(OSError):
+                    if old is not None:
+                        os.replace(old, final)
+                    else:
+                        final.unlink(missing_ok=True)
+            raise
+        for final, old in moved:
+            if old is not None:
+                with contextlib.suppress(OSError):
+                    old.unlink()
             self.written.append(final)
         self.pending = []
 
@@ -282,6 +333,29 @@ class _Stage:
             with contextlib.suppress(FileNotFoundError):
                 tmp.unlink()
         self.pending = []
+        for folder in reversed(self.created):
+            with contextlib.suppress(OSError):  # only empty folders go
+                folder.rmdir()
+        self.created = []
+
+
+@contextlib.contextmanager
+def staged_folder(folder):
+    """``with staged_folder(dir) as work: ...``: files written into the empty folder ``work`` move into
+    ``dir`` together when the block succeeds (all or nothing, as :func:`staged_outputs`)."""
+    stage = _Stage(Path(folder))
+    stage._make_folder()
+    work = Path(tempfile.mkdtemp(dir=stage.folder, prefix=".staging-"))
+    try:
+        yield work
+        stage.pending = [(f, stage.folder / f.name) for f in sorted(work.iterdir()) if f.is_file()]
+        stage.commit()
+    except BaseException:
+        stage.pending = []
+        shutil.rmtree(work, ignore_errors=True)
+        stage.discard()
+        raise
+    shutil.rmtree(work, ignore_errors=True)
 
 
 @contextlib.contextmanager
@@ -297,14 +371,32 @@ def staged_outputs(folder):
 
 
 # --------------------------------------------------------------------------- parser
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not np.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
-    return value
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line on stderr (exit status 2), without the usage block."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see '{self.prog} --help')\n")
+
+
+def _option_type(check, expected: str, convert=float):
+    """An argparse type: ``convert`` the text, then run the shared validator ``check``."""
+
+    def parse(text: str):
+        try:
+            value = convert(text)
+            return check(value, "value")
+        except (ValueError, LabkitError):
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
+
+    parse.__name__ = expected  # argparse names the type in some messages
+    return parse
+
+
+_positive_float = _option_type(positive, "a positive number")
+_non_negative_float = _option_type(non_negative, "a number >= 0")
+_probability = _option_type(probability, "a number between 0 and 1")
+_count = _option_type(count, "a whole number >= 1", int)
+_seed = _option_type(lambda v, name: count(v, name, minimum=0), "a whole number >= 0", int)
 
 
 def _add_method_options(p) -> None:
@@ -312,15 +404,15 @@ def _add_method_options(p) -> None:
                    help="estimate a translation or a rigid transformation (default: %(default)s)")
     p.add_argument("--extent", type=_positive_float, default=1.0,
                    help="consensus: search a translation within +-EXTENT m (default: %(default)s)")
-    p.add_argument("--max-points", type=int, default=5000,
+    p.add_argument("--max-points", type=_count, default=5000,
                    help="consensus: use at most this many random source points (default: %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default: %(default)s)")
+    p.add_argument("--seed", type=_seed, default=0, help="random seed (default: %(default)s)")
 
 
 def build_parser() -> argparse.ArgumentParser:
     from .compare import METHODS
 
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="labkit", description="labkit: robust adjustment of 3D point clouds for engineering geodesy.",
         epilog="Run 'labkit COMMAND --help' for the options of a command; 'labkit demo' needs no input files.")
     parser.add_argument("--version", action="version", version=_version())
@@ -343,8 +435,9 @@ def build_parser() -> argparse.ArgumentParser:
     sphere.add_argument("--hold-radius", action="store_true", help="hold the radius at --radius in the adjustment")
     sphere.add_argument("--sigma", type=_positive_float,
                         help="a priori standard deviation of the coordinates in m (default: estimated robustly)")
-    sphere.add_argument("--p", type=float, default=0.99, help="RANSAC success probability (default: %(default)s)")
-    sphere.add_argument("--seed", type=int, default=0, help="random seed (default: %(default)s)")
+    sphere.add_argument("--p", type=_probability, default=0.99,
+                        help="RANSAC success probability (default: %(default)s)")
+    sphere.add_argument("--seed", type=_seed, default=0, help="random seed (default: %(default)s)")
     sphere.set_defaults(func=_cmd_sphere)
 
     reg = sub.add_parser("register", help="register SOURCE onto TARGET (ICP or maximum consensus)",
@@ -367,7 +460,7 @@ def build_parser() -> argparse.ArgumentParser:
     cmp_.add_argument("--methods", nargs="+", choices=METHODS, default=["icp", "icp-tukey", "consensus"],
                       metavar="METHOD", help=f"methods among {', '.join(METHODS)} (default: %(default)s)")
     cmp_.add_argument("--references", help="JSON reference file (see labkit.references.load_references)")
-    cmp_.add_argument("--alpha", type=float, default=0.05, help="test level (default: %(default)s)")
+    cmp_.add_argument("--alpha", type=_probability, default=0.05, help="test level (default: %(default)s)")
     _add_method_options(cmp_)
     cmp_.add_argument("--out", default="comparison.csv", help="CSV file to write (default: %(default)s)")
     cmp_.set_defaults(func=_cmd_compare)
@@ -378,11 +471,15 @@ def build_parser() -> argparse.ArgumentParser:
     tiles.add_argument("source", nargs="+", help="point-cloud file(s) of the epoch to move")
     tiles.add_argument("--target", nargs="+", required=True, help="point-cloud file(s) of the reference epoch")
     tiles.add_argument("--size", type=_positive_float, default=100.0, help="tile edge in m (default: %(default)s)")
-    tiles.add_argument("--buffer", type=float, default=0.0, help="margin read around each tile in m")
-    tiles.add_argument("--min-points", type=int, default=200, help="fewer points: tile skipped (default: %(default)s)")
+    tiles.add_argument("--buffer", type=_non_negative_float, default=0.0, help="margin read around each tile in m")
+    tiles.add_argument("--max-tiles", type=_count, default=None,
+                       help="refuse grids of more tiles (default: labkit.tiles.MAX_TILES)")
+    tiles.add_argument("--min-points", type=_count, default=200,
+                       help="fewer points: tile skipped (default: %(default)s)")
     tiles.add_argument("--method", choices=METHODS, default="icp", help="registration per tile (default: %(default)s)")
-    tiles.add_argument("--alpha", type=float, default=0.05, help="test level (default: %(default)s)")
-    tiles.add_argument("--extra-std", type=float, default=0.0, help="extra std per tile in m for the neighbour test")
+    tiles.add_argument("--alpha", type=_probability, default=0.05, help="test level (default: %(default)s)")
+    tiles.add_argument("--extra-std", type=_non_negative_float, default=0.0,
+                       help="extra std per tile in m for the neighbour test")
     tiles.add_argument("--scheduler", choices=("threads", "processes", "sync", "serial"), default="threads",
                        help="Dask scheduler (default: %(default)s)")
     _add_method_options(tiles)
@@ -408,8 +505,8 @@ def build_parser() -> argparse.ArgumentParser:
     change.add_argument("--max-depth", type=_positive_float, required=True, help="cylinder half length along the normal")
     change.add_argument("--spacing", type=_positive_float,
                         help="core points: one reference point per cube of this edge (default: the cylinder radius)")
-    change.add_argument("--confidence", type=float, default=0.95, help="LoD confidence (default: %(default)s)")
-    change.add_argument("--held-rotation-std", type=float, default=0.02, metavar="DEG",
+    change.add_argument("--confidence", type=_probability, default=0.95, help="LoD confidence (default: %(default)s)")
+    change.add_argument("--held-rotation-std", type=_non_negative_float, default=0.02, metavar="DEG",
                         help="prior std (deg) of a rotation the registration left undetermined, as ICP's "
                              "held_rotation_std_deg (default: %(default)s)")
     _add_method_options(change)
@@ -424,17 +521,32 @@ def _version() -> str:
     return f"labkit {__version__}"
 
 
+def _one_line(text) -> str:
+    return " ".join(str(text).split())
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return args.func(args)
-    except LabkitError as exc:
-        print(f"labkit {args.command}: error: {exc}", file=sys.stderr)
+        with warnings.catch_warnings(record=True) as caught:  # one line each, and none after an error
+            warnings.simplefilter("default")
+            code = args.func(args)
+        for text in dict.fromkeys(f"{w.category.__name__}: {_one_line(w.message)}" for w in caught):
+            print(f"labkit {args.command}: warning: {text}", file=sys.stderr)
+        return code
+    except (LabkitError, OSError) as exc:  # bad input, or an output folder that cannot be written
+        print(f"labkit {args.command}: error: {_one_line(exc)}", file=sys.stderr)
         return 2
-    except OSError as exc:  # e.g. an output folder that cannot be created or written
-        print(f"labkit {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+    except KeyboardInterrupt:
+        print(f"labkit {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # a bug, not bad input: one line unless the traceback is asked for
+        if os.environ.get("LABKIT_TRACEBACK"):
+            raise
+        print(f"labkit {args.command}: internal error: {type(exc).__name__}: {_one_line(exc)} "
+              "(please report; LABKIT_TRACEBACK=1 shows the traceback)", file=sys.stderr)
+        return 3
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -32,19 +32,25 @@ def _steps():
 
 
 def run_demo(out_dir: Path, quick: bool = False) -> list[Path]:
-    """Run every demo step; return the paths of the figures written."""
+    """Run every demo step; return the paths of the figures written.
+
+    The figures are written into a staging folder and moved into ``out_dir``
+    together at the end: a step that fails leaves nothing new behind.
+    """
+    from .cli import staged_folder
     from .notebook import setup_headless
 
     setup_headless()
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    written: list[Path] = []
+    names: list[str] = []
     start = time.perf_counter()
-    for title, step in _steps():
-        print(f"\n### {title}\n")
-        t0 = time.perf_counter()
-        written += step(out_dir, quick)
-        print(f"({title}: {time.perf_counter() - t0:.1f} s)")
+    with staged_folder(out_dir) as work:
+        for title, step in _steps():
+            print(f"\n### {title}\n")
+            t0 = time.perf_counter()
+            names += [Path(p).name for p in step(work, quick)]
+            print(f"({title}: {time.perf_counter() - t0:.1f} s)")
+    written = [out_dir / name for name in names]
     print(f"\nDemo finished in {time.perf_counter() - start:.1f} s. Files written to {out_dir.resolve()}:")
     for path in written:
         print(f"  {path.name}")
@@ -142,10 +148,10 @@ def _result_line(name, res, truth, before, after) -> str:
     std = np.asarray(res.translation_std) * 1000
     und = "" if res.degeneracy is None or not res.degeneracy.undetermined_axes else \
         f"; undetermined {''.join(res.degeneracy.undetermined_axes)}"
+    med_before, med_after = (1000 * np.nanmedian(np.abs(d)) for d in (before, after))  # NaN: no usable normal
     return (f"{name:10s} shift [" + ", ".join(f"{v:+.4f}" for v in res.translation) + "] m, std ["
             + ", ".join(f"{s:.1f}" for s in std) + "] mm, error [" + ", ".join(f"{e:+.1f}" for e in err)
-            + f"] mm; median |d| {1000 * np.median(np.abs(before)):.0f} -> {1000 * np.median(np.abs(after)):.0f} mm; "
-            f"{res.runtime_s:.2f} s{und}")
+            + f"] mm; median |d| {med_before:.0f} -> {med_after:.0f} mm; {res.runtime_s:.2f} s{und}")
 
 
 def _distance_panels(pair, dists, path: Path) -> Path:
@@ -155,7 +161,7 @@ def _distance_panels(pair, dists, path: Path) -> Path:
     from .plotting import screenshot
     from .plotting.compare import plot_distance_cloud
 
-    a = max(2.5 * float(np.median(np.abs(dists["before"]))), 0.05)
+    a = max(2.5 * float(np.nanmedian(np.abs(dists["before"]))), 0.05)
     ncols = 2 if len(dists) > 2 else len(dists)
     nrows = -(-len(dists) // ncols)
     fig, axes = plt.subplots(nrows, ncols, figsize=(6.0 * ncols, 4.6 * nrows), layout="constrained", squeeze=False)
@@ -167,7 +173,7 @@ def _distance_panels(pair, dists, path: Path) -> Path:
         ax.imshow(screenshot(p))
         p.close()
         ax.set_axis_off()
-        ax.set_title(f"{label}: median |d| {1000 * np.median(np.abs(d)):.0f} mm")
+        ax.set_title(f"{label}: median |d| {1000 * np.nanmedian(np.abs(d)):.0f} mm")
     fig.suptitle(f"{pair.region} ({pair.source.name} -> {pair.target.name}): point-to-plane distance, "
                  f"colours clipped at +-{a:.2f} m")
     return _save(fig, path)

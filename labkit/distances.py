@@ -4,6 +4,11 @@ Cloud to cloud: the distance from each point of one epoch to its nearest
 neighbour in the other. Point to plane: the signed distance to the tangent
 plane of that neighbour, which is what a shift of a surface changes.
 
+A point whose nearest target point has no usable normal (a degenerate
+neighbourhood gives a NaN normal; a zero-length normal is treated the same)
+gets a NaN point-to-plane distance instead of a made-up 0; the statistics of
+:class:`DistanceChange` leave those points out and count them.
+
 Equation numbers refer to ``notebooks/07-comparing-transformations.ipynb``.
 """
 
@@ -14,10 +19,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ._checks import as_points
+from ._checks import as_points, choice, count
 from ._frame import local_origin, reduce
 from ._report import ReportMixin
-from .errors import EmptyRegionError, LabkitError
+from .errors import DegenerateGeometryError, EmptyRegionError, LabkitError
 from .transforms import apply_transform, check_transform
 
 
@@ -54,36 +59,72 @@ def point_to_plane_distance(source, target, target_normals=None, *, k: int = 10,
     d_i = n_j . (p_i - q_j) (eq. 4), with q_j the nearest target point and n_j its
     unit normal (``target_normals`` or PCA normals of ``k`` neighbours). Positive
     means the source point lies above (on the normal side of) the target surface.
+
+    Given normals of any non-zero length are scaled to unit length. Where n_j is
+    unknown - NaN (a degenerate neighbourhood) or of zero length - d_i is NaN,
+    never 0; ``np.isnan(d).sum()`` counts those points. If no target point has a
+    usable normal, :class:`~labkit.errors.DegenerateGeometryError` is raised.
     """
     src, tgt = _prepared(source, target, transform)
     if target_normals is None:
         from .features import normals
 
-        nrm = normals(tgt, k=k)
+        nrm = normals(tgt, k=count(k, "k", minimum=3))
     else:
-        nrm = np.asarray(target_normals, dtype=float)
-        if nrm.shape != tgt.shape:
-            raise LabkitError(f"target_normals must have shape {tgt.shape}, got {nrm.shape}")
+        nrm = _unit_normals(target_normals, tgt.shape)
     origin = local_origin(tgt)
     q, p = reduce(tgt, origin), reduce(src, origin)
     _, j = cKDTree(q).query(p, k=1, workers=-1)
     return np.einsum("ij,ij->i", nrm[j], p - q[j])  # (eq. 4)
 
 
+def _unit_normals(target_normals, shape) -> np.ndarray:
+    """Given normals as unit vectors; NaN rows for NaN or zero-length ones (unknown normals)."""
+    try:
+        nrm = np.array(target_normals, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise LabkitError(f"target_normals must be numbers with shape {shape}") from None
+    if nrm.shape != shape:
+        raise LabkitError(f"target_normals must have shape {shape}, got {nrm.shape}")
+    if np.isinf(nrm).any():
+        raise LabkitError("target_normals contain infinite values")
+    length = np.linalg.norm(nrm, axis=1)
+    usable = np.isfinite(length) & (length > 0)
+    if not usable.any():
+        raise DegenerateGeometryError(f"none of the {len(nrm)} target normals is usable (all NaN or zero length)")
+    nrm[~usable] = np.nan
+    nrm[usable] /= length[usable, None]
+    return nrm
+
+
 @dataclass(frozen=True, eq=False, repr=False)
 class DistanceChange(ReportMixin):
-    """Distances of the source to the target before and after a transformation."""
+    """Distances of the source to the target before and after a transformation.
+
+    Points without a distance (NaN: their nearest target point has no usable
+    normal) are left out of :meth:`stats` and counted in ``n_undetermined``.
+    """
 
     before: np.ndarray
     after: np.ndarray
     kind: str
 
+    @property
+    def n_undetermined(self) -> int:
+        """Points without a distance (NaN) after the transformation."""
+        return int(np.isnan(self.after).sum())
+
     def stats(self, which: str = "after") -> dict:
-        """Median |d|, RMS, mean, 95 % quantile of |d| (m)."""
+        """Median |d|, RMS, mean, 95 % quantile of |d| (m) over the points that have a distance; their count ``n``."""
+        choice(which, ("before", "after"), "which")
         d = self.before if which == "before" else self.after
+        d = d[np.isfinite(d)]
+        if d.size == 0:
+            nan = float("nan")
+            return {"median_abs": nan, "rms": nan, "mean": nan, "q95_abs": nan, "n": 0}
         a = np.abs(d)
         return {"median_abs": float(np.median(a)), "rms": float(np.sqrt(np.mean(d**2))),
-                "mean": float(np.mean(d)), "q95_abs": float(np.quantile(a, 0.95))}
+                "mean": float(np.mean(d)), "q95_abs": float(np.quantile(a, 0.95)), "n": int(d.size)}
 
     def _report(self):
         rows = []
@@ -91,6 +132,8 @@ class DistanceChange(ReportMixin):
             s = self.stats(which)
             rows.append((which, f"median |d| {s['median_abs']:.4f} m, RMS {s['rms']:.4f} m, "
                                 f"mean {s['mean']:+.4f} m, 95% |d| {s['q95_abs']:.4f} m"))
+        if self.n_undetermined:
+            rows.append(("without a distance", f"{self.n_undetermined} points (no usable target normal; left out)"))
         return f"Distances ({self.kind}, {len(self.after)} points)", [("", rows)]
 
 
@@ -102,7 +145,7 @@ def distances_before_after(source, target, transform, *, kind: str = "point_to_p
         if target_normals is None:
             from .features import normals
 
-            target_normals = normals(as_points(target, min_points=3), k=k)
+            target_normals = normals(as_points(target, min_points=3), k=count(k, "k", minimum=3))
         f = lambda tr: point_to_plane_distance(source, target, target_normals, transform=tr)  # noqa: E731
     elif kind == "cloud_to_cloud":
         f = lambda tr: cloud_to_cloud(source, target, transform=tr)  # noqa: E731

@@ -19,10 +19,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._checks import as_rng, choice, positive
+from ._checks import as_points, as_rng, choice, count, positive
 from ._report import ReportMixin, fmt
 from .cloud import PointCloud
 from .errors import EmptyRegionError, LabkitError
+
+#: Most grid cells a density grid may have (a cell typed in mm instead of m would exhaust the memory).
+MAX_CELLS = 50_000_000
 
 __all__ = [
     "crop_box",
@@ -90,11 +93,22 @@ def as_rings(polygon) -> list[np.ndarray]:
 
 
 def as_classes(classes) -> np.ndarray:
-    """Return class codes as a sorted int array (a single int is accepted)."""
+    """Return class codes as a sorted int array (a single int is accepted); codes lie in 0..255 (LAS)."""
+    if isinstance(classes, (str, bytes)):
+        raise LabkitError(f"classes must be one or more integer class codes (ASPRS), got the string {classes!r}")
     arr = np.unique(np.atleast_1d(np.asarray(classes)))
     if arr.size == 0 or not np.issubdtype(arr.dtype, np.integer):
         raise LabkitError(f"classes must be one or more integer class codes (ASPRS), got {classes!r}")
+    if arr.min() < 0 or arr.max() > 255:
+        raise LabkitError(f"class codes lie in 0..255 (LAS classification), got {arr.tolist()}")
     return arr.astype(np.int64)
+
+
+def as_cloud(cloud, name: str = "cloud") -> PointCloud:
+    """A PointCloud as is; an (n, 3) array-like wrapped into one (checked by ``as_points``)."""
+    if isinstance(cloud, PointCloud):
+        return cloud
+    return PointCloud(as_points(cloud, min_points=0, name=name))
 
 
 # ----------------------------------------------------------------------------- masks
@@ -150,6 +164,7 @@ def class_mask(classification: np.ndarray, classes: np.ndarray) -> np.ndarray:
 
 # ----------------------------------------------------------------------------- crops
 def _keep(cloud: PointCloud, mask: np.ndarray, region: str) -> PointCloud:
+    # (callers pass the cloud through as_cloud first)
     if not mask.any():
         raise EmptyRegionError(f"{region} contains none of the {len(cloud)} points of {_label(cloud)}")
     return cloud.subset(mask)
@@ -175,6 +190,7 @@ def crop_box(cloud: PointCloud, bbox) -> PointCloud:
         If no point lies inside the box.
     """
     box = as_bbox(bbox)
+    cloud = as_cloud(cloud)
     return _keep(cloud, box_mask(cloud.xyz, box), f"box {box.ravel().tolist()}")
 
 
@@ -184,6 +200,7 @@ def crop_circle(cloud: PointCloud, centre, radius: float) -> PointCloud:
     if c.size not in (2, 3) or not np.isfinite(c).all():
         raise LabkitError(f"centre must be (x, y) in the cloud's frame, got {centre!r}")
     r = positive(radius, "radius")
+    cloud = as_cloud(cloud)
     return _keep(cloud, circle_mask(cloud.xyz, c[:2], r), f"circle around ({c[0]:.3f}, {c[1]:.3f}) with r = {r:g} m")
 
 
@@ -194,12 +211,14 @@ def crop_polygon(cloud: PointCloud, polygon) -> PointCloud:
     as in every crossing-number implementation.
     """
     rings = as_rings(polygon)
+    cloud = as_cloud(cloud)
     n_vertices = sum(len(r) for r in rings)
     return _keep(cloud, polygon_mask(cloud.xyz, rings), f"polygon with {n_vertices} vertices")
 
 
 def crop_classes(cloud: PointCloud, classes, *, exclude: bool = False) -> PointCloud:
     """Points of the given ASPRS classes (or all others with ``exclude=True``)."""
+    cloud = as_cloud(cloud)
     if "classification" not in cloud:
         raise LabkitError(f"{_label(cloud)} has no 'classification' attribute to select classes from")
     codes = as_classes(classes)
@@ -216,13 +235,16 @@ def thin_random(cloud: PointCloud, fraction: float | None = None, *, n: int | No
     """
     if (fraction is None) == (n is None):
         raise LabkitError("give exactly one of fraction (0 < f <= 1) or n (number of points to keep)")
+    cloud = as_cloud(cloud)
     total = len(cloud)
     if fraction is not None:
         f = positive(fraction, "fraction")
         if f > 1:
             raise LabkitError(f"fraction must lie in (0, 1], got {fraction!r}")
         n = int(round(f * total))
-    if not isinstance(n, (int, np.integer)) or not 1 <= n <= total:
+    else:
+        n = count(n, "n", minimum=0)  # a whole number: 20.5 is refused, not truncated
+    if not 1 <= n <= total:
         raise EmptyRegionError(f"random thinning must keep between 1 and {total} points, asked for {n}")
     idx = np.sort(as_rng(rng).choice(total, size=int(n), replace=False))
     return cloud.subset(idx)
@@ -230,6 +252,8 @@ def thin_random(cloud: PointCloud, fraction: float | None = None, *, n: int | No
 
 def _cell_keys(xy: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
     """Integer cell indices (n, d) and the grid origin for cells of edge ``size``."""
+    if len(xy) and float((xy.max(axis=0) - xy.min(axis=0)).max()) / size > 2.0**52:
+        raise LabkitError(f"a cell size of {size:g} m is too small for the cloud's extent (cell indices overflow)")
     origin = np.floor(xy.min(axis=0) / size) * size
     return np.floor((xy - origin) / size).astype(np.int64), origin
 
@@ -262,6 +286,7 @@ def thin_voxel(cloud: PointCloud, size: float, *, keep: str = "centre") -> Point
     """
     choice(keep, ("centre", "first"), "keep")
     size = positive(size, "size")
+    cloud = as_cloud(cloud)
     cells, origin = _cell_keys(cloud.xyz, size)
     key = _flat_keys(cells)
     if keep == "first":
@@ -319,8 +344,14 @@ class DensityGrid(ReportMixin):
 def density_grid(cloud: PointCloud, cell: float = 1.0) -> DensityGrid:
     """Count points per horizontal grid cell of edge ``cell`` metres."""
     cell = positive(cell, "cell")
+    cloud = as_cloud(cloud)
     if len(cloud) == 0:
         raise EmptyRegionError(f"{_label(cloud)} is empty; no density to compute")
+    span = cloud.xyz[:, :2].max(axis=0) - np.floor(cloud.xyz[:, :2].min(axis=0) / cell) * cell
+    n_cells = float(np.prod(np.floor(span / cell) + 1))
+    if n_cells > MAX_CELLS:
+        raise LabkitError(f"a density grid of {cell:g} m cells over {span[0]:,.1f} m x {span[1]:,.1f} m has "
+                          f"{n_cells:,.0f} cells, more than {MAX_CELLS:,}; is the cell in metres?")
     cells, origin = _cell_keys(cloud.xyz[:, :2], cell)
     nx, ny = cells.max(axis=0) + 1
     counts = np.bincount(cells[:, 1] * nx + cells[:, 0], minlength=nx * ny).reshape(ny, nx)
@@ -343,6 +374,7 @@ def point_density(cloud: PointCloud, cell: float | None = None) -> float:
     Counting occupied cells follows the cloud's real footprint (gaps such as
     water or data holes do not dilute the density), unlike ``n / hull area``.
     """
+    cloud = as_cloud(cloud)
     if len(cloud) < 3:
         raise EmptyRegionError(f"{_label(cloud)} has {len(cloud)} points; density needs at least 3")
     if cell is None:
@@ -385,6 +417,7 @@ def equalize_density(cloud: PointCloud, target, *, cell: float = 1.0, rng=None) 
     """
     density = point_density(target) if isinstance(target, PointCloud) else positive(target, "target density")
     cell = positive(cell, "cell")
+    cloud = as_cloud(cloud)
     gen = as_rng(rng)
     cells, _ = _cell_keys(cloud.xyz[:, :2], cell)
     key = _flat_keys(cells)
@@ -414,6 +447,9 @@ def merge(*clouds: PointCloud, name: str = "") -> PointCloud:
     """
     if not clouds:
         raise LabkitError("merge needs at least one PointCloud")
+    if not all(isinstance(c, PointCloud) for c in clouds):
+        bad = next(type(c).__name__ for c in clouds if not isinstance(c, PointCloud))
+        raise LabkitError(f"merge takes PointClouds (wrap arrays with PointCloud(xyz)), got a {bad}")
     crs = {c.crs for c in clouds if c.crs}
     if len(crs) > 1:
         raise LabkitError(f"cannot merge clouds in different reference systems: {sorted(crs)}")

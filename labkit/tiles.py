@@ -11,6 +11,10 @@ Tiles of LAS/LAZ files are read lazily inside their task (only the files whose
 header extent meets the tile, filtered by the tile's box while reading), so a
 survey of hundreds of files never has to fit in memory.
 
+Every option is checked before any file is opened, and a grid of more than
+:data:`MAX_TILES` tiles (a size typed in centimetres, say) is refused with the
+count and a size that fits, instead of running on for hours.
+
 Equation numbers refer to ``notebooks/08-shift-field-over-tiles.ipynb``.
 """
 
@@ -30,11 +34,13 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from ._atomic import atomic_write_text
-from ._checks import as_points, positive, probability
+from ._checks import as_points, choice, count, flag, non_negative, positive, probability
 from ._report import ReportMixin
 from .errors import CloudFileError, EmptyRegionError, LabkitError
 
 LAS_SUFFIXES = (".las", ".laz")
+#: Most tiles a grid may have; a larger grid is refused before any work starts (a size typed in cm, not m).
+MAX_TILES = 100_000
 
 
 # --------------------------------------------------------------------------- tiles
@@ -68,26 +74,49 @@ class Tile:
         return (x >= x0) & (x < x1) & (y >= y0) & (y < y1)
 
 
-def tile_grid(bounds, size: float = 100.0, *, buffer: float = 0.0) -> tuple:
+def tile_grid(bounds, size: float = 100.0, *, buffer: float = 0.0, max_tiles: int = MAX_TILES) -> tuple:
     """Square tiles of ``size`` metres covering ``bounds`` = (xmin, ymin, xmax, ymax).
 
     The grid is anchored at multiples of ``size`` (a 100 m grid starts at
-    round hundreds), as survey tiling schemes are.
+    round hundreds), as survey tiling schemes are. A grid of more than
+    ``max_tiles`` tiles is refused before it is built (``size=0.01`` over a
+    60 m survey would be 36 million tiles).
     """
     size = positive(size, "size")
-    if buffer < 0:
-        raise LabkitError(f"buffer must be >= 0, got {buffer}")
-    x0, y0, x1, y1 = map(float, bounds)
-    if not (x1 >= x0 and y1 >= y0):
-        raise LabkitError(f"bounds must be (xmin, ymin, xmax, ymax) with min <= max, got {bounds}")
+    buffer = non_negative(buffer, "buffer")
+    max_tiles = count(max_tiles, "max_tiles")
+    try:
+        x0, y0, x1, y1 = (float(v) for v in np.asarray(bounds, dtype=np.float64).ravel())
+    except (TypeError, ValueError):
+        raise LabkitError(f"bounds must be four numbers (xmin, ymin, xmax, ymax), got {bounds!r}") from None
+    if not np.isfinite([x0, y0, x1, y1]).all() or not (x1 >= x0 and y1 >= y0):
+        raise LabkitError(f"bounds must be finite (xmin, ymin, xmax, ymax) with min <= max, got {bounds}")
     gx0, gy0 = np.floor(x0 / size) * size, np.floor(y0 / size) * size
-    ncol = max(1, int(np.floor((x1 - gx0) / size)) + 1)
-    nrow = max(1, int(np.floor((y1 - gy0) / size)) + 1)
+    # Count the tiles in floating point first: the grid is refused before anything is allocated
+    ncol_f, nrow_f = max(1.0, np.floor((x1 - gx0) / size) + 1), max(1.0, np.floor((y1 - gy0) / size) + 1)
+    if ncol_f * nrow_f > max_tiles:
+        raise LabkitError(
+            f"{ncol_f * nrow_f:,.0f} tiles of {size:g} m ({ncol_f:,.0f} x {nrow_f:,.0f}) over "
+            f"{x1 - x0:,.1f} m x {y1 - y0:,.1f} m exceed the limit of {max_tiles:,}; is the size in metres? "
+            f"Use a size of at least {_size_for(x1 - x0, y1 - y0, max_tiles):.3g} m "
+            "or raise max_tiles (labkit tiles --max-tiles)")
+    ncol, nrow = int(ncol_f), int(nrow_f)
     return tuple(Tile(r, c, (gx0 + c * size, gy0 + r * size, gx0 + (c + 1) * size, gy0 + (r + 1) * size),
                       float(buffer)) for r in range(nrow) for c in range(ncol))
 
 
-def write_tiles(cloud, folder, size: float = 100.0, *, prefix: str = "tile", suffix: str = ".laz") -> list:
+def _size_for(width: float, height: float, max_tiles: int) -> float:
+    """About the smallest tile edge that keeps a width x height area within ``max_tiles`` (anchoring adds a row)."""
+    s = max(np.sqrt(width * height / max_tiles), 1e-9)
+    for _ in range(60):  # grow until the anchored grid fits
+        if (np.floor(width / s) + 2) * (np.floor(height / s) + 2) <= max_tiles:
+            return s
+        s *= 1.1
+    return s
+
+
+def write_tiles(cloud, folder, size: float = 100.0, *, prefix: str = "tile", suffix: str = ".laz",
+                max_tiles: int = MAX_TILES) -> list:
     """Cut a cloud into square tiles of ``size`` metres and write one file per non-empty tile.
 
     The tiles are those of :func:`tile_grid` (anchored at multiples of
@@ -100,14 +129,14 @@ def write_tiles(cloud, folder, size: float = 100.0, *, prefix: str = "tile", suf
     folder = Path(folder)
     if not folder.is_dir():
         raise LabkitError(f"folder {folder} does not exist")
-    if suffix.lower() not in LAS_SUFFIXES:
+    if not isinstance(suffix, str) or suffix.lower() not in LAS_SUFFIXES:
         raise LabkitError(f"suffix must be one of {LAS_SUFFIXES}, got {suffix!r}")
     from .cloud import PointCloud
 
     xyz = as_points(cloud, name="cloud to cut into tiles")
     cloud = cloud if isinstance(cloud, PointCloud) else PointCloud(xyz)
     paths = []
-    for tile in tile_grid(np.r_[xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)], size):
+    for tile in tile_grid(np.r_[xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)], size, max_tiles=max_tiles):
         inside = tile.contains(xyz)
         if inside.any():
             x0, y0 = tile.bounds[:2]
@@ -149,8 +178,12 @@ def _read_part(path: str, bbox: tuple, classes):
         return None
 
 
-def _survey(data, classes=None):
-    """PointCloud/array -> itself; path or list of paths -> _Files (LAS/LAZ lazily, others read now)."""
+def _survey(data, classes=None, name: str = "survey"):
+    """PointCloud/array -> itself; path or list of paths -> _Files (LAS/LAZ lazily, others read now).
+
+    A class filter on points without a ``classification`` attribute (an array, or a
+    cloud read from a format without classes) is refused rather than ignored.
+    """
     if isinstance(data, (str, Path)) or (isinstance(data, (list, tuple)) and data
                                          and all(isinstance(p, (str, Path)) for p in data)):
         paths = [Path(p) for p in ([data] if isinstance(data, (str, Path)) else data)]
@@ -163,9 +196,13 @@ def _survey(data, classes=None):
         from .io import read_cloud
 
         return _concat([read_cloud(p, classes=classes) for p in paths])
-    if classes is not None and "classification" in getattr(data, "attributes", {}):
-        return data.subset(np.isin(data["classification"], list(classes)))
-    return data
+    if classes is None:
+        return data
+    if "classification" not in getattr(data, "attributes", {}):
+        what = "an array" if not hasattr(data, "attributes") else "a PointCloud"
+        raise LabkitError(f"classes={list(classes)} needs a 'classification' attribute, but the {name} is {what} "
+                          "without one; pass a PointCloud (or LAS/LAZ files) with classes, or classes=None")
+    return data.subset(np.isin(data["classification"], list(classes)))
 
 
 def _las_extent(path: Path) -> tuple:
@@ -196,6 +233,39 @@ def _for_tile(data, tile: Tile):
     xyz = as_points(data, name="survey cloud")
     mask = tile.contains(xyz)
     return data.subset(mask) if hasattr(data, "subset") else xyz[mask]
+
+
+def _cut_all(data, tiles: tuple) -> list:
+    """``_for_tile`` for every tile; in-memory points are binned to grid cells once.
+
+    Masking the whole cloud per tile costs tiles x points; instead each point gets
+    its cell index, and a tile tests only the points of the cells its buffered box
+    can reach, with :meth:`Tile.contains` (so the result is the same as per tile).
+    """
+    if isinstance(data, _Files) or not tiles:
+        return [_for_tile(data, t) for t in tiles]
+    xyz = as_points(data, name="survey cloud")
+    x0, y0, x1, _ = tiles[0].bounds
+    size = x1 - x0
+    reach = 1 + int(np.ceil(tiles[0].buffer / size))  # neighbouring cells a buffered box may touch
+    ncol, nrow = max(t.col for t in tiles) + 1, max(t.row for t in tiles) + 1
+    # (col, row) of each point; points far outside the grid are clamped (Tile.contains still decides)
+    col = np.clip(np.floor((xyz[:, 0] - x0) / size), -reach - 1, ncol + reach).astype(np.int64)
+    row = np.clip(np.floor((xyz[:, 1] - y0) / size), -reach - 1, nrow + reach).astype(np.int64)
+    key = row * (1 << 31) + col
+    order = np.argsort(key, kind="stable")
+    uniq, start = np.unique(key[order], return_index=True)
+    bounds = np.r_[start, len(order)]
+    out = []
+    for t in tiles:
+        keys = [(t.row + dr) * (1 << 31) + (t.col + dc) for dr in range(-reach, reach + 1)
+                for dc in range(-reach, reach + 1)]
+        pos = np.searchsorted(uniq, keys)
+        hit = [p for p, k in zip(pos, keys) if p < len(uniq) and uniq[p] == k]
+        idx = np.concatenate([order[bounds[p]:bounds[p + 1]] for p in hit]) if hit else np.zeros(0, int)
+        idx = np.sort(idx[t.contains(xyz[idx])])  # the points in their original order
+        out.append(data.subset(idx) if hasattr(data, "subset") else xyz[idx])
+    return out
 
 
 def _concat(clouds):
@@ -245,6 +315,7 @@ def register_tile(tile: Tile, source, target, method, min_points: int = 200) -> 
     from .compare import shift_at, shift_covariance
 
     t0 = time.perf_counter()
+    min_points = count(min_points, "min_points")
     # Load the tile's points (lazily read for files)
     src = source.load(tile) if isinstance(source, _Files) else source
     tgt = target.load(tile) if isinstance(target, _Files) else target
@@ -270,7 +341,7 @@ def register_tile(tile: Tile, source, target, method, min_points: int = 200) -> 
 
 def register_tiles(source, target, method=None, *, size: float = 100.0, buffer: float = 0.0,
                    min_points: int = 200, classes=None, client=None, scheduler: str = "threads",
-                   progress: bool = True) -> "ShiftField":
+                   progress: bool = True, max_tiles: int = MAX_TILES) -> "ShiftField":
     """Split a survey into tiles and register every tile; the per-tile work runs on Dask.
 
     Parameters
@@ -279,9 +350,11 @@ def register_tiles(source, target, method=None, *, size: float = 100.0, buffer: 
         The two epochs. LAS/LAZ paths are read lazily per tile (header extents
         decide which files a tile touches; points are filtered by the tile's
         box while reading).
-    method : callable(source, target) -> RegistrationResult, optional
-        Default: ``labkit.icp`` with ``dof="translation"``. With a distributed
-        cluster of processes it must be picklable by cloudpickle.
+    method : callable(source, target) -> RegistrationResult, or str, optional
+        Default: ``labkit.icp`` with ``dof="translation"``. A name among
+        :data:`labkit.compare.METHODS` (``'icp'``, ``'consensus'``, ...) means that
+        standard method with ``dof="translation"``. With a distributed cluster of
+        processes it must be picklable by cloudpickle.
     size : float
         Tile edge in metres.
     buffer : float
@@ -290,31 +363,41 @@ def register_tiles(source, target, method=None, *, size: float = 100.0, buffer: 
     min_points : int
         Tiles with fewer source or target points are reported, not registered.
     classes : sequence of int, optional
-        Keep only these ASPRS classes (e.g. ground and buildings).
+        Keep only these ASPRS classes (e.g. ground and buildings); refused for
+        input without a ``classification`` attribute (e.g. plain arrays).
     client : distributed.Client, optional
         Run on this cluster; otherwise Dask's local ``scheduler``.
     scheduler : {'threads', 'processes', 'sync', 'serial'}
         The local Dask scheduler; ``'serial'`` is a plain loop without Dask.
     progress : bool
         Show a progress bar counting tiles.
+    max_tiles : int
+        Refuse grids of more tiles (:data:`MAX_TILES`), before anything is read.
 
     Returns
     -------
     ShiftField
     """
-    method = _default_method() if method is None else method
-    if scheduler not in ("threads", "processes", "sync", "serial"):
-        raise LabkitError(f"scheduler must be 'threads', 'processes', 'sync' or 'serial', got {scheduler!r}")
+    # Check every option before any file is opened
+    method = _as_method(method)
+    choice(scheduler, ("threads", "processes", "sync", "serial"), "scheduler")
+    size, buffer = positive(size, "size"), non_negative(buffer, "buffer")
+    min_points = count(min_points, "min_points", minimum=1)
+    progress = flag(progress, "progress")
+    if classes is not None:
+        from .regions import as_classes
+
+        classes = tuple(int(c) for c in as_classes(classes))
     # Describe the survey and cut the grid
-    src, tgt = _survey(source, classes), _survey(target, classes)
+    src, tgt = _survey(source, classes, "source"), _survey(target, classes, "target")
     b_src, b_tgt = _bounds_of(src, "source"), _bounds_of(tgt, "target")
     common = np.r_[np.maximum(b_src[:2], b_tgt[:2]), np.minimum(b_src[2:], b_tgt[2:])]
     if (common[2:] < common[:2]).any():
         raise LabkitError("source and target surveys do not overlap in x, y")
-    tiles = tile_grid(common, size, buffer=buffer)
+    tiles = tile_grid(common, size, buffer=buffer, max_tiles=max_tiles)
     # One job per tile: its inputs are cut out (clouds) or listed (files) here, read in the job
-    jobs = [(t, _for_tile(src, t), _for_tile(tgt, t)) for t in tiles]
-    run = partial(register_tile, method=method, min_points=int(min_points))
+    jobs = list(zip(tiles, _cut_all(src, tiles), _cut_all(tgt, tiles)))
+    run = partial(register_tile, method=method, min_points=min_points)
     shifts = _run_jobs(run, jobs, client, scheduler, progress)
     return ShiftField(tuple(shifts), float(size), _method_name(method))
 
@@ -329,6 +412,21 @@ def _default_method():
     from .registration import icp
 
     return partial(icp, dof="translation", rng=0)
+
+
+def _as_method(method):
+    """None -> the default ICP; a standard method's name -> that method (translation); a callable -> itself."""
+    if method is None:
+        return _default_method()
+    if isinstance(method, str):
+        from .compare import METHODS, standard_methods
+
+        choice(method, METHODS, "method")
+        return standard_methods([method], dof="translation", rng=0)[method]
+    if not callable(method):
+        raise LabkitError("method must be a callable (source, target) -> RegistrationResult or the name of a "
+                          f"standard method, got {type(method).__name__}")
+    return method
 
 
 def _run_jobs(run, jobs, client, scheduler, progress) -> list:
@@ -485,8 +583,10 @@ def neighbour_test(field: ShiftField, alpha: float = 0.05, *, extra_std: float =
     Tiles connected by agreeing pairs form coherent areas.
     """
     alpha = probability(alpha, "alpha")
-    if extra_std < 0:
-        raise LabkitError(f"extra_std must be >= 0, got {extra_std}")
+    extra_std = non_negative(extra_std, "extra_std")
+    diagonal = flag(diagonal, "diagonal")
+    if not isinstance(field, ShiftField):
+        raise LabkitError(f"neighbour_test needs a ShiftField (from register_tiles), got {type(field).__name__}")
     pairs = _neighbour_pairs(field, diagonal)
     t, C = field.translations, field.covariances + extra_std**2 * np.eye(3)
     det = np.array([s.axis_determined for s in field.tiles], bool).reshape(-1, 3)

@@ -41,3 +41,35 @@ def test_demo_quick_writes_figures_and_table(tmp_path, capsys):
         if r["method"] == "icp":
             assert float(r["error_norm_constrained"]) < 0.02, r
             assert np.isfinite(float(r["dx"]))
+
+
+def test_a_failing_step_leaves_nothing_new(tmp_path, monkeypatch, capsys):
+    """Figures of earlier steps do not stay behind when a later step fails; an existing folder keeps its files."""
+    from labkit.errors import LabkitError
+
+    def first(out, quick):
+        return [demo._save(_figure(), out / "first.png")]
+
+    def second(out, quick):
+        raise LabkitError("step two failed")
+
+    monkeypatch.setattr(demo, "_steps", lambda: [("one", first), ("two", second)])
+    assert main(["demo", "--out", str(tmp_path / "new" / "demo")]) == 2
+    assert "step two failed" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "old.txt").write_text("keep")
+    assert main(["demo", "--out", str(tmp_path)]) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["old.txt"]
+    # and when every step succeeds, the files arrive together
+    monkeypatch.setattr(demo, "_steps", lambda: [("one", first)])
+    assert main(["demo", "--out", str(tmp_path)]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["first.png", "old.txt"]
+    assert (tmp_path / "first.png").read_bytes()[:8] == PNG_MAGIC
+
+
+def _figure():
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots()
+    ax.plot([0, 1], [0, 1])
+    return fig

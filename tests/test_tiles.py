@@ -234,3 +234,23 @@ def test_distributed_worker_processes_equal_serial():
     assert len(serial) == 2 and serial.ok.all()
     np.testing.assert_array_equal(dist.translations, serial.translations)
     np.testing.assert_array_equal(dist.covariances, serial.covariances)
+
+
+@pytest.mark.parametrize("buffer", [0.0, 2.5, 7.0])
+def test_binned_cut_equals_masking_every_tile(buffer):
+    """The cells-first cut gives every tile exactly the points Tile.contains selects (edges included)."""
+    from labkit.tiles import _cut_all, _for_tile
+
+    rng = np.random.default_rng(8)
+    xyz = np.r_[rng.uniform(-3, 33, (3000, 3)), np.round(rng.uniform(0, 30, (500, 3)))]  # many on tile edges
+    xyz = np.r_[xyz, [[1e7, -1e7, 0.0]]]  # one point far outside the grid
+    cloud = PointCloud(xyz, {"i": np.arange(len(xyz))})
+    grid = tiles.tile_grid((0, 0, 30, 30), 5.0, buffer=buffer)
+    for data in (xyz, cloud):
+        for t, got in zip(grid, _cut_all(data, grid)):
+            want = _for_tile(data, t)
+            np.testing.assert_array_equal(getattr(got, "xyz", got), getattr(want, "xyz", want))
+    sizes = [len(c) for c in _cut_all(cloud, grid)]
+    if buffer == 0:  # no buffer: the tiles partition the points inside the grid
+        inside = ((xyz[:, :2] >= 0) & (xyz[:, :2] < 35)).all(axis=1)
+        assert sum(sizes) == inside.sum()
