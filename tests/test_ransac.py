@@ -179,18 +179,45 @@ def test_refitted_radius_outside_the_range_is_reported():
     assert "outside" in res.reason or "radius" in res.reason
 
 
-def test_data_snooping_removes_gross_errors_inside_the_threshold():
+def test_final_inliers_come_from_a_robust_band_not_from_the_threshold():
+    """Gross errors at 6-9 sigma inside a generous t = 10 sigma: the final band (3 sigma_hat) leaves them out
+    with or without data snooping, and the band, inliers and sphere do not depend on t."""
     rng = np.random.default_rng(7)
     c, r = np.array([1.0, 2.0, 3.0]), 0.2
     good = _on_sphere(rng, 2000, c, r, noise=0.001)
     u = _on_sphere(rng, 15, [0, 0, 0], 1.0)
     gross = c + (r + rng.choice([-1, 1], 15)[:, None] * rng.uniform(0.006, 0.009, (15, 1))) * u
     pts = np.concatenate([good, gross])
-    on = ransac_sphere(pts, 0.01, rng=0, sigma=0.001)
-    off = ransac_sphere(pts, 0.01, rng=0, sigma=0.001, snooping=False)
-    assert off.inliers[2000:].all() and not on.inliers[2000:].any()
-    assert on.n_snooped >= 15 and on.n_snooped < 40
-    assert abs(on.fit.sigma0 - 1) < 0.1
+    on = ransac_sphere(pts, 0.01, rng=0)
+    off = ransac_sphere(pts, 0.01, rng=0, snooping=False)
+    tight = ransac_sphere(pts, 0.002, rng=0)
+    for res in (on, off, tight):
+        assert res.found and not res.inliers[2000:].any()
+        # normal residuals of isotropic 1 mm noise: sigma 1 mm; the band is 3 of it
+        assert res.sigma == pytest.approx(0.001, rel=0.1) and res.band == pytest.approx(3 * res.sigma, rel=1e-6)
+        assert abs(res.fit.sigma0 - 1) < 0.1
+    assert np.array_equal(on.inliers, tight.inliers)
+    np.testing.assert_allclose(on.fit.x, tight.fit.x, atol=1e-9)
+    # with a given sigma the band is 3 sigma at once
+    given = ransac_sphere(pts, 0.01, rng=0, sigma=0.001)
+    assert given.band == pytest.approx(0.003) and not given.inliers[2000:].any()
+
+
+def test_per_point_sigma_gives_a_per_point_band():
+    """Per-point sigma (1 mm and 3 mm): the band is 3 sigma_i for each point, so 4 mm errors on 1 mm points
+    are left out while the 3 mm points are not truncated (sigma0 stays 1, with or without snooping)."""
+    rng = np.random.default_rng(8)
+    c, r = np.array([1.0, 2.0, 3.0]), 0.2
+    sig = np.where(np.arange(2010) % 2 == 0, 0.001, 0.003)
+    u = _on_sphere(rng, 2010, [0, 0, 0], 1.0)
+    pts = c + (r + sig[:, None] * rng.normal(size=(2010, 1))) * u
+    bad = np.arange(2000, 2010)[sig[2000:] == 0.001]
+    pts[bad] = c + (r + rng.choice([-1, 1], len(bad))[:, None] * 0.004) * u[bad]
+    for snooping in (True, False):
+        res = ransac_sphere(pts, 0.006, rng=0, sigma=sig, snooping=snooping)
+        assert res.found and not res.inliers[bad].any()
+        assert res.inliers[:2000][sig[:2000] == 0.003].mean() > 0.99
+        assert abs(res.fit.sigma0 - 1) < 0.06
 
 
 def test_reproducible_with_a_seed_and_with_the_recorded_seed():
@@ -273,15 +300,15 @@ def test_report_and_plots_and_headless_widget():
 
 
 def test_auto_sampling_is_local_only_where_neighbourhoods_are_small():
-    """A compact scan (neighbourhood of radius 2 r_max = a third of the scene) gains nothing from local
+    """A compact scan (a neighbourhood of radius r_max + t holds a third of the scene) gains nothing from local
     sampling and would pay O(m^2) pairs for it: 'auto' samples uniformly there, locally in a room."""
-    from labkit.ransac import _mean_neighbourhood_share
+    from labkit.ransac import _LOCAL_MAX_SHARE, _mean_neighbourhood_share
 
     scene = sphere_on_tripod(n_sphere=2000, outlier_ratio=0.5, noise=0.001, rng=3)
-    res = ransac_sphere(scene.points, 0.003, radius_range=(0.05, 0.1), rng=3)
+    res = ransac_sphere(scene.points, 0.003, radius_range=(0.05, 0.2), rng=3)
     assert res.found and res.sampling == "uniform"
-    assert _mean_neighbourhood_share(scene.points - scene.points.mean(axis=0), 0.203) > 0.1
-    forced = ransac_sphere(scene.points, 0.003, radius_range=(0.05, 0.1), sampling="local", rng=3)
+    assert _mean_neighbourhood_share(scene.points - scene.points.mean(axis=0), 0.203) > _LOCAL_MAX_SHARE
+    forced = ransac_sphere(scene.points, 0.003, radius_range=(0.05, 0.2), sampling="local", rng=3)
     assert forced.found and forced.sampling == "local"
     assert np.allclose(forced.fit.x, res.fit.x, atol=2e-4)  # same sphere either way
     room = room_scene(n_points=20000, sphere_share=0.02, rng=4)
