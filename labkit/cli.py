@@ -34,14 +34,19 @@ def _cmd_demo(args) -> int:
 
 
 def _cmd_sphere(args) -> int:
-    from .io import read_cloud
     from .ransac import ransac_sphere
 
-    cloud = read_cloud(args.file)
-    print(f"{args.file}: {len(cloud)} points")
-    result = ransac_sphere(cloud.xyz, args.threshold, p=args.p, rng=args.seed,
+    xyz = _read_sphere_cloud(args.file)
+    print(f"{args.file}: {len(xyz)} points")
+    station, why = _sphere_station(xyz, args.station, args.no_station)
+    print(f"station: {why}")
+    if args.radius_range is None and args.radius is None:
+        print("radius range: none given - any radius up to the extent of the scan; a sphere must still pass the "
+              "verification (pass --radius-range MIN MAX to search faster and exclude other round objects)")
+    result = ransac_sphere(xyz, args.threshold, p=args.p, rng=args.seed,
                            radius_range=None if args.radius_range is None else tuple(args.radius_range),
-                           nominal_radius=args.radius, hold_radius=args.hold_radius, sigma=args.sigma)
+                           nominal_radius=args.radius, hold_radius=args.hold_radius, sigma=args.sigma,
+                           station=station)
     print()
     print(result.summary())
     if not result.found:
@@ -50,6 +55,87 @@ def _cmd_sphere(args) -> int:
     print()
     print(result.fit.summary())
     return 0
+
+
+def _read_sphere_cloud(path):
+    """Coordinates of a cloud file; ``.ply`` through a small local reader where read_cloud lacks it."""
+    from .io import read_cloud
+
+    try:
+        return read_cloud(path).xyz
+    except LabkitError:
+        if Path(path).suffix.lower() != ".ply" or not Path(path).is_file():
+            raise
+    return _read_ply_xyz(Path(path))
+
+
+_PLY_TYPES = {"char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2", "int": "i4", "uint": "u4",
+              "float": "f4", "double": "f8", "int8": "i1", "uint8": "u1", "int16": "i2", "uint16": "u2",
+              "int32": "i4", "uint32": "u4", "float32": "f4", "float64": "f8"}
+
+
+def _read_ply_xyz(path):
+    """x, y, z of the vertex element of an ASCII or binary PLY file (fallback reader, no list properties)."""
+    with open(path, "rb") as fh:
+        raw = fh.read()
+    end = raw.find(b"end_header")
+    if not raw.startswith(b"ply") or end < 0:
+        raise LabkitError(f"{path}: not a PLY file (no 'ply' magic or no end_header)")
+    header = raw[:end].decode("ascii", "replace").splitlines()
+    body = raw[raw.index(b"\n", end) + 1:]
+    fmt_, n, props, in_vertex, before = None, 0, [], False, 0
+    for line in header:
+        words = line.split()
+        if not words:
+            continue
+        if words[0] == "format":
+            fmt_ = words[1]
+        elif words[0] == "element":
+            in_vertex = words[1] == "vertex"
+            if in_vertex:
+                n = int(words[2])
+            elif not props:
+                before += 1
+        elif words[0] == "property" and in_vertex:
+            if words[1] == "list" or words[1] not in _PLY_TYPES:
+                raise LabkitError(f"{path}: vertex property {' '.join(words[1:])!r} is not supported")
+            props.append((words[2], _PLY_TYPES[words[1]]))
+    names = [p[0] for p in props]
+    if before or not {"x", "y", "z"} <= set(names):
+        raise LabkitError(f"{path}: the PLY file needs a first element 'vertex' with x, y, z")
+    if fmt_ == "ascii":
+        table = np.loadtxt(body.decode("ascii").splitlines()[:n], ndmin=2)
+        cols = [table[:, names.index(k)] for k in "xyz"]
+    elif fmt_ in ("binary_little_endian", "binary_big_endian"):
+        order = "<" if fmt_ == "binary_little_endian" else ">"
+        dtype = np.dtype([(k, order + t) for k, t in props])
+        if len(body) < n * dtype.itemsize:
+            raise LabkitError(f"{path}: the PLY file is truncated ({n} vertices announced)")
+        rec = np.frombuffer(body, dtype=dtype, count=n)
+        cols = [rec[k] for k in "xyz"]
+    else:
+        raise LabkitError(f"{path}: unknown PLY format {fmt_!r}")
+    xyz = np.column_stack(cols).astype(np.float64)
+    if not np.isfinite(xyz).all():
+        raise LabkitError(f"{path}: NaN or infinite coordinates")
+    return xyz
+
+
+def _sphere_station(xyz, given, off):
+    """The scanner position for the visibility checks, and a line saying which and why.
+
+    Default: the origin when the file looks scanner-centred (the origin inside the bounding box and no
+    point within 0.25 m of it, the blind zone around a scanner); otherwise no station.
+    """
+    if off:
+        return None, "not used (--no-station): no visibility checks"
+    if given is not None:
+        return np.asarray(given, dtype=np.float64), f"{given[0]:g} {given[1]:g} {given[2]:g} (given)"
+    inside = bool(np.all(xyz.min(axis=0) < 0) and np.all(xyz.max(axis=0) > 0))
+    if inside and float(np.min(np.einsum("ij,ij->i", xyz, xyz))) > 0.25**2:
+        return np.zeros(3), "0 0 0 (the file looks scanner-centred: points all round the origin, none within 0.25 m)"
+    return None, ("not used: the file does not look scanner-centred (give --station X Y Z for the visibility "
+                  "checks)")
 
 
 def _cmd_register(args) -> int:
@@ -286,7 +372,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=_cmd_demo)
 
     sphere = sub.add_parser("sphere", help="find a sphere target by RANSAC and adjust it (Gauss-Helmert)",
-                            description="Detect a sphere in a point cloud (ASCII xyz, LAS/LAZ, npy/npz) with "
+                            description="Detect a sphere in a point cloud (ASCII xyz, LAS/LAZ, npy/npz, PLY) with "
                                         "RANSAC and adjust it in the Gauss-Helmert model.")
     sphere.add_argument("file", help="point-cloud file")
     sphere.add_argument("--threshold", type=_positive_float, default=0.003,
@@ -299,6 +385,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="a priori standard deviation of the coordinates in m (default: estimated robustly)")
     sphere.add_argument("--p", type=float, default=0.99, help="RANSAC success probability (default: %(default)s)")
     sphere.add_argument("--seed", type=int, default=0, help="random seed (default: %(default)s)")
+    sphere.add_argument("--station", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                        help="scanner position in m for the visibility checks (default: the origin when the file "
+                             "looks scanner-centred, otherwise none)")
+    sphere.add_argument("--no-station", action="store_true", help="skip the visibility checks")
     sphere.set_defaults(func=_cmd_sphere)
 
     reg = sub.add_parser("register", help="register SOURCE onto TARGET (ICP or maximum consensus)",

@@ -40,12 +40,15 @@ _BAND_K = 3.0  # final inliers: |d| < k sigma_hat (robust scale), whatever the s
 _INTERIOR_SHARE = 0.1  # points clearly inside a solid sphere, per inlier (true spheres: ~0)
 _SHADOW_SHARE = 0.1  # points behind the sphere seen from the station, per inlier (true spheres: ~0)
 _BACKFACE_SHARE = 0.2  # inliers on the side turned away from the station (true spheres: ~0)
-_CONTRAST = 2.0  # inliers on the shell per point in the shell just outside it (t..3t)
+_CONTRAST = 5.0  # inliers on the shell per point in the shell just outside it, t..3t (true spheres: > 14,
+# spheres fitted to a cylinder or to pieces of planes: 2-3)
 _TWO_PLANES_SHARE = 0.9  # inliers on one or two planes: plane pieces cut by the sphere
+_MIN_LEVELS = 3  # a cap spans at least three scan lines (elevation levels) seen from the station
 _MIN_SPREAD = 0.01  # smallest variance of the inliers' normals across the cap (units of 1; a ring: ~0)
 _LOCAL_REACH = 1.0  # local sampling: the other three points lie within LOCAL_REACH r_max + t of the first
 _LOCAL_MAX_SHARE = 0.25  # 'auto' samples locally only where a neighbourhood holds less of the working set
 _LOCAL_MAX_PAIRS = 8_000_000  # ... and the neighbour pairs stay affordable
+_FINAL_ATTEMPTS = 3  # searches per working set when the final refit of the best fails its checks
 _VERIFY_PER_BATCH = 16  # candidates verified per batch at most (the best-scoring ones)
 _VERIFY_MAX = 400  # candidates verified per search at most
 
@@ -339,9 +342,10 @@ def ransac_sphere(
     scan lines and its PCA normal says little:
 
     - at least ``min_inliers`` points on the shell |d| < t in the full cloud;
-    - no points clearly inside the (solid) sphere, and at least twice as many
-      points on the shell as in the shell just outside it (a surface, not a
-      piece of a volume or of a plane cut by the sphere);
+    - no points clearly inside the (solid) sphere, and at least five times as
+      many points on the shell as in the shell just outside it, t..3t (a
+      spherical surface, not a cylinder, a volume or planes cut by it);
+    - not nearly all inliers on one or two planes (a floor, a wall, an edge);
     - the inliers are not flat (plane rms >= 3 x sphere rms) and their model
       normals (p - c)/r spread in two directions over the cap (not a ring);
     - with ``station``: the station lies outside the sphere, the inliers face
@@ -399,35 +403,38 @@ def _detect(xyz, origin, idx, cfg, seed, gen, verifier):
             sampling = "uniform"
     sampler = _LocalSampler(W, _LOCAL_REACH * cfg.r_max + cfg.threshold) if sampling == "local" else _UniformSampler(len(W))
 
-    # Adaptive search (eqs. 25-27) on the working set
-    verifier.start(cfg)
-    search = _search(W, sampler, cfg, gen, verifier)
-    common = dict(
-        iterations=search.iterations, n_required_history=search.history, seed=seed, n_invalid=search.n_invalid,
-        sampling=sampling, scoring=cfg.scoring, minimal_solver=cfg.minimal_solver, threshold=cfg.threshold,
-        p=cfg.p, n_required=float(search.N), n_working=len(W), n_rejected=verifier.n_rejected,
-        station=cfg.station,
-    )
-    if search.x is None:
-        reason = search.reason
-        if verifier.n_rejected:
-            reason = (f"{reason}; {verifier.n_rejected} candidate(s) rejected by the verification, "
-                      f"the first because {verifier.best_rejection}")
-        return _not_found(len(xyz), reason, **common), verifier.n_rejected > 0 or search.had_range
+    # Adaptive search (eqs. 25-27) on the working set; a best whose final refit fails the checks is
+    # rejected and the search runs again without it (at most _FINAL_ATTEMPTS times)
+    shift = np.append(origin, 0.0)
+    for attempt in range(_FINAL_ATTEMPTS):
+        verifier.start(cfg)
+        search = _search(W, sampler, cfg, gen, verifier)
+        common = dict(
+            iterations=search.iterations, n_required_history=search.history, seed=seed, n_invalid=search.n_invalid,
+            sampling=sampling, scoring=cfg.scoring, minimal_solver=cfg.minimal_solver, threshold=cfg.threshold,
+            p=cfg.p, n_required=float(search.N), n_working=len(W), n_rejected=verifier.n_rejected,
+            station=cfg.station,
+        )
+        if search.x is None:
+            reason = search.reason
+            if verifier.n_rejected:
+                reason = (f"{reason}; {verifier.n_rejected} candidate(s) rejected by the verification, "
+                          f"the first because {verifier.best_rejection}")
+            return _not_found(len(xyz), reason, **common), verifier.n_rejected > 0 or search.had_range
 
-    # Final inliers from the full cloud (robust band), Gauss-Helmert refit, data snooping, checks
-    x0 = search.x + np.append(origin, 0.0)
-    final = _refit(xyz, x0, cfg)
-    reason = final.reason
-    if not reason:
-        reason = verifier.final_check(final.fit.x - np.append(origin, 0.0), final.band)
-    if reason:
-        return _not_found(len(xyz), reason, n_snooped=final.n_snooped, sigma=final.sigma, band=final.band,
-                          **common), True
-    return RansacResult(
-        fit=final.fit, inliers=final.inliers, found=True, outlier_ratio=1.0 - final.inliers.mean(),
-        reason=search.reason, n_snooped=final.n_snooped, sigma=final.sigma, band=final.band, **common,
-    ), True
+        # Final inliers from the full cloud (robust band), Gauss-Helmert refit, data snooping, checks
+        final = _refit(xyz, search.x + shift, cfg)
+        reason = final.reason
+        if not reason:
+            reason = verifier.final_check(final.fit.x - shift, final.band)
+        if not reason:
+            return RansacResult(
+                fit=final.fit, inliers=final.inliers, found=True, outlier_ratio=1.0 - final.inliers.mean(),
+                reason=search.reason, n_snooped=final.n_snooped, sigma=final.sigma, band=final.band, **common,
+            ), True
+        verifier.reject(search.x, None if final.fit is None else final.fit.x - shift)
+    return _not_found(len(xyz), f"{reason} (the final refit of the best failed in {_FINAL_ATTEMPTS} searches)",
+                      n_snooped=final.n_snooped, sigma=final.sigma, band=final.band, **common), True
 
 
 def _reduction_sizes(n, preliminary_size):
@@ -568,6 +575,13 @@ class _LocalSampler:
         self.deg = np.bincount(owner, minlength=len(W))
         self.offsets = np.concatenate([[0], np.cumsum(self.deg)])
         self.first = np.flatnonzero(self.deg >= 3)
+        self._W, self.radius, self._blocks = W, radius, None
+
+    @property
+    def blocks(self):
+        if self._blocks is None:
+            self._blocks = _Blocks(self._W, self.radius)
+        return self._blocks
 
     def draw(self, gen, size):
         if self.first.size == 0:
@@ -593,6 +607,48 @@ class _LocalSampler:
         share = k[ok] * (k[ok] - 1) * (k[ok] - 2) / (d[ok] * (d[ok] - 1) * (d[ok] - 2))
         w = share.sum() / max(self.first.size, 1)
         return _required_from_probability(w, p)
+
+
+class _Blocks:
+    """Grid of the working set for scoring local hypotheses on the points that can be their inliers.
+
+    A local hypothesis passes through its first point f and three points within
+    rho = LOCAL_REACH r_max + t of f; for r <= r_max every point with |d| < t
+    lies within 2 (r_max + t) of f. With grid cells of that size, those points
+    are in the 3 x 3 x 3 cells around f's cell: scoring there gives exactly the
+    scores over the whole working set, at a fraction of the cost.
+    """
+
+    def __init__(self, W, radius):
+        self.W = W
+        self.size = 2.0 * radius + 1e-9  # >= 2 (r_max + t) as LOCAL_REACH <= 1
+        cells = np.floor(W / self.size).astype(np.int64)
+        self.cells = cells
+        keys, inv = np.unique(cells, axis=0, return_inverse=True)
+        inv = inv.ravel()
+        order = np.argsort(inv, kind="stable")
+        bounds = np.searchsorted(inv[order], np.arange(len(keys) + 1))
+        self._members = {tuple(k): order[bounds[j]:bounds[j + 1]] for j, k in enumerate(keys)}
+        self._block_cache = {}
+        self._offsets = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])
+
+    def _block(self, cell):
+        key = tuple(cell)
+        if key not in self._block_cache:
+            parts = [self._members.get(tuple(c)) for c in cell + self._offsets]
+            self._block_cache[key] = np.concatenate([q for q in parts if q is not None])
+        return self._block_cache[key]
+
+    def score(self, W, Wsq, X, first, cfg):
+        """Scores of hypotheses X (B, 4) with first points ``first`` (B,), equal to _score on all of W."""
+        scores = np.empty(len(X))
+        cell_ids, inv = np.unique(self.cells[first], axis=0, return_inverse=True)
+        inv = inv.ravel()
+        for j, cell in enumerate(cell_ids):  # a loop over grid cells, not over points
+            sel = np.flatnonzero(inv == j)
+            pts = self._block(cell)
+            scores[sel] = _score(W[pts], Wsq[pts], X[sel], cfg.threshold, cfg.scoring)[0]
+        return scores
 
 
 # ----------------------------------------------------------------- hypotheses and scores
@@ -729,7 +785,10 @@ def _search(W, sampler, cfg, gen, verifier=None):
         scores = np.full(len(X), -np.inf)
         ok = (X[:, 3] >= cfg.r_min) & (X[:, 3] <= cfg.r_max)
         if ok.any():
-            scores[ok] = _score(W, Wsq, X[ok], cfg.threshold, cfg.scoring)[0]
+            if isinstance(sampler, _LocalSampler):  # inliers lie near the first point: score its block only
+                scores[ok] = sampler.blocks.score(W, Wsq, X[ok], idx[position[ok], 0], cfg)
+            else:
+                scores[ok] = _score(W, Wsq, X[ok], cfg.threshold, cfg.scoring)[0]
             had_range = True
 
         # Replay in sample order: new bests (verified, with LO), N after each (eq. 27), stop at N
@@ -859,7 +918,7 @@ def _refit(xyz, x0, cfg):
     if sigma is None:  # a priori sigma for the adjustment and the w-test: the robust scale
         sigma = sigma_hat
     fit = None
-    for _ in range(3):
+    for round_ in range(3):
         if inliers.sum() < min_inliers:
             return _Final(None, inliers, 0, None, f"only {inliers.sum()} inliers (< min_inliers = {min_inliers})", band)
         try:
@@ -868,10 +927,10 @@ def _refit(xyz, x0, cfg):
             return _Final(None, inliers, 0, None, f"Gauss-Helmert refit failed: {exc}", band)
         if not fit.converged:
             return _Final(None, inliers, 0, None, f"Gauss-Helmert refit did not converge: {fit.reason}", band)
-        changed = np.count_nonzero(_inlier_mask(xyz, fit.x, band) != inliers)
-        if changed <= 0.01 * inliers.sum():
-            break
-        inliers = _inlier_mask(xyz, fit.x, band)
+        new = _inlier_mask(xyz, fit.x, band)
+        if np.count_nonzero(new != inliers) <= 0.01 * inliers.sum() or round_ == 2:
+            break  # (the fit always belongs to exactly these inliers)
+        inliers = new
     band = float(band) if np.ndim(band) == 0 else float(np.median(band))  # reported: the typical band
     if not cfg.snooping:
         return _Final(fit, inliers, 0, _sigma_scalar(sigma), "", band)
@@ -993,6 +1052,7 @@ class _Verifier:
         self.n_rejected, self.n_checked = 0, 0
         self.best_rejection = ""
         self._rejected = []  # polished spheres that failed
+        self._R = None  # the same as an array (cached)
 
     @property
     def tree(self):
@@ -1022,6 +1082,11 @@ class _Verifier:
             self._rejected.append(np.asarray(x if x_pol is None else x_pol, dtype=np.float64))
         return not reason
 
+    def reject(self, *spheres):
+        """Remember spheres that failed (e.g. in the final refit): hypotheses near them are not tried again."""
+        self._rejected += [np.asarray(x, dtype=np.float64) for x in spheres if x is not None]
+        self.n_rejected += 1
+
     def final_check(self, x, band):
         """Reasons to reject the final adjusted sphere (with the final band as shell half-width)."""
         return self.reasons(np.asarray(x, dtype=np.float64), max(band, self.cfg.threshold))
@@ -1031,7 +1096,9 @@ class _Verifier:
         max(t, 10 % of r))?"""
         if not self._rejected:
             return np.zeros(len(X), dtype=bool)
-        R = np.array(self._rejected)
+        if self._R is None or len(self._R) != len(self._rejected):
+            self._R = np.array(self._rejected)
+        R = self._R
         tol = np.maximum(self.cfg.threshold, 0.1 * R[:, 3])[None, :]
         dc = np.linalg.norm(X[:, None, :3] - R[None, :, :3], axis=2)
         return ((dc < tol) & (np.abs(X[:, None, 3] - R[None, :, 3]) < tol)).any(axis=1)
@@ -1043,15 +1110,21 @@ class _Verifier:
         return idx, np.sqrt(np.einsum("ij,ij->i", diff, diff)) - x[3]
 
     def _polish(self, x, t):
-        for _ in range(2):
-            idx, d = self._local(x, t)
-            inl = idx[np.abs(d) < t]
-            if len(inl) <= S:
+        """Inliers -> orthogonal fit, three rounds; the band widens to k sigma_hat when t is below the noise."""
+        band = t
+        for _ in range(3):
+            idx, d = self._local(x, band)
+            on = np.abs(d) < band
+            if on.sum() <= S:
                 return None
-            x_new = _orthogonal_fit(self.X[inl], x, steps=2)
+            x_new = _orthogonal_fit(self.X[idx[on]], x, steps=2)
             if x_new is None:
                 return None
             x = x_new
+            _, d = self._local(x, band)
+            d = d[np.abs(d) < band]
+            if len(d) > S:
+                band = max(t, min(_BAND_K * _truncated_mad_scale(np.abs(d), band), 3.0 * t))
         return x
 
     def reasons(self, x, t):
@@ -1060,21 +1133,25 @@ class _Verifier:
         c, r = x[:3], float(x[3])
         if not cfg.r_min <= r <= cfg.r_max:
             return f"the adjusted radius {r:.5g} m lies outside [{cfg.r_min:.5g}, {cfg.r_max:.5g}] m"
-        idx, d = self._local(x, 3.0 * t)
+        idx, d = self._local(x, 3.0 * max(t, 2.0 * _BAND_K * t))
         on = np.abs(d) < t
         n_in = int(on.sum())
         if n_in < cfg.min_inliers:
             return f"only {n_in} points on its shell |d| < {t:.3g} m in the full cloud (< min_inliers = {cfg.min_inliers})"
         sigma_hat = _truncated_mad_scale(np.abs(d[on]), t)  # robust, and consistent for the cut at t
         margin = max(t, 3.5 * sigma_hat)
+        # the shell: at least the noise band k sigma_hat (a t below the noise must not thin it out)
+        t = max(t, min(_BAND_K * sigma_hat, 2.0 * t))
+        on = np.abs(d) < t
+        n_in = int(on.sum())
         inside = int(np.count_nonzero(d < -margin))
         if inside > _INTERIOR_SHARE * n_in:
             return (f"{inside} points lie inside it (for {n_in} on its shell): a solid sphere hides its interior, "
                     "so this is a cut through other surfaces or a volume of points, not a sphere")
         outside = int(np.count_nonzero((d >= t) & (d < 3.0 * t)))
         if n_in < _CONTRAST * outside:
-            return (f"as many points just outside the shell ({outside}) as on it ({n_in}): "
-                    "no surface stands out, the points only pass through the shell")
+            return (f"too many points just outside the shell ({outside}, for {n_in} on it): no spherical surface "
+                    "stands out, the points only pass through the shell (a cylinder, plane pieces, clutter)")
         P = self.X[idx[on]]
         q = P - P.mean(axis=0)
         rms_plane = np.sqrt(max(np.linalg.eigvalsh(q.T @ q / len(q))[0], 0.0))
@@ -1105,6 +1182,10 @@ class _Verifier:
         if back > _BACKFACE_SHARE:
             return (f"{back:.0%} of its inliers lie on the side turned away from the station: "
                     "they cannot be a sphere the scanner saw")
+        lines = _elevation_levels(P - s, 2.0 * np.arcsin(min(r / np.linalg.norm(s - c), 1.0)))
+        if lines < _MIN_LEVELS:
+            return (f"its inliers lie on only {lines} scan line(s) (elevation levels seen from the station): "
+                    "two rings on a round object such as a cylinder fit such a sphere as well")
         shadow = _points_behind(self.X, s, c, r - margin, margin)
         if shadow > _SHADOW_SHARE * n_in:
             return (f"{shadow} points lie behind it seen from the station (for {n_in} on its shell): "
@@ -1164,6 +1245,14 @@ def _two_plane_share(P, t, trials=256):
         left[idx[on[:, best]]] = False
         held += int(on[:, best].sum())
     return held / n
+
+
+def _elevation_levels(V, diameter):
+    """Distinct elevation levels (z up) of the directions V from the station, in bins of 1/8 of the
+    sphere's angular diameter: the scan lines of a multi-beam scanner, many for a TLS."""
+    el = np.arcsin(np.clip(V[:, 2] / np.linalg.norm(V, axis=1), -1.0, 1.0))
+    width = max(diameter / 8.0, 1e-9)
+    return int(np.unique(np.floor(el / width)).size)
 
 
 def _points_behind(X, s, c, r_inner, margin):
