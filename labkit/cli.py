@@ -36,13 +36,14 @@ def _cmd_demo(args) -> int:
 def _cmd_sphere(args) -> int:
     from .ransac import ransac_sphere
 
-    xyz = _read_sphere_cloud(args.file)
+    xyz = _read_sphere_cloud(args.file)  # (a missing or corrupt file is reported first)
     print(f"{args.file}: {len(xyz)} points")
     station, why = _sphere_station(xyz, args.station, args.no_station)
     print(f"station: {why}")
     if args.radius_range is None and args.radius is None:
-        print("radius range: none given - any radius up to the extent of the scan; a sphere must still pass the "
-              "verification (pass --radius-range MIN MAX to search faster and exclude other round objects)")
+        # a sphere of unknown size competes with every round object and needs uniform sampling: refuse
+        raise LabkitError("labkit sphere needs the size of the target: --radius-range MIN MAX or --radius R "
+                          "(in m; e.g. --radius-range 0.1 0.2 for a 0.145 m target)")
     result = ransac_sphere(xyz, args.threshold, p=args.p, rng=args.seed,
                            radius_range=None if args.radius_range is None else tuple(args.radius_range),
                            nominal_radius=args.radius, hold_radius=args.hold_radius, sigma=args.sigma,
@@ -378,7 +379,7 @@ def build_parser() -> argparse.ArgumentParser:
     sphere.add_argument("--threshold", type=_positive_float, default=0.003,
                         help="inlier threshold t in m (about 2-3 x the noise; default: %(default)s)")
     sphere.add_argument("--radius-range", type=_positive_float, nargs=2, metavar=("MIN", "MAX"),
-                        help="admissible radii in m")
+                        help="admissible radii in m (this or --radius is required)")
     sphere.add_argument("--radius", type=_positive_float, help="nominal radius of the target in m")
     sphere.add_argument("--hold-radius", action="store_true", help="hold the radius at --radius in the adjustment")
     sphere.add_argument("--sigma", type=_positive_float,

@@ -48,6 +48,7 @@ _MIN_SPREAD = 0.01  # smallest variance of the inliers' normals across the cap (
 _LOCAL_REACH = 1.0  # local sampling: the other three points lie within LOCAL_REACH r_max + t of the first
 _LOCAL_MAX_SHARE = 0.25  # 'auto' samples locally only where a neighbourhood holds less of the working set
 _LOCAL_MAX_PAIRS = 8_000_000  # ... and the neighbour pairs stay affordable
+_UNKNOWN_R_SHARE = 0.1  # without a radius range: radii up to this share of the extent of the scan
 _FINAL_ATTEMPTS = 3  # searches per working set when the final refit of the best fails its checks
 _VERIFY_PER_BATCH = 16  # candidates verified per batch at most (the best-scoring ones)
 _VERIFY_MAX = 400  # candidates verified per search at most
@@ -279,10 +280,12 @@ def ransac_sphere(
     radius_range : (r_min, r_max), optional
         Admissible radii (m). Hypotheses outside are rejected (they still count
         as samples); the radius is checked again after the refit. Default:
-        ``nominal_radius`` +- 10 %, otherwise radii up to the extent of the
-        cloud - a large sphere is then still only "found" when it passes the
-        verification below (no points inside it, a surface rather than a
-        volume of points), which a wall, a floor or random points do not.
+        ``nominal_radius`` +- 10 %, otherwise radii up to a tenth of the
+        extent of the cloud (a target is small against the scene) - and a
+        sphere is then still only "found" when it passes the verification
+        below (no points inside it, a surface rather than a volume of
+        points), which walls, floors or random points do not. Without a
+        range the search is slower and larger round objects compete: give one.
     nominal_radius : float, optional
         Known radius of the target (m).
     hold_radius : bool
@@ -393,8 +396,8 @@ def _detect(xyz, origin, idx, cfg, seed, gen, verifier):
     # The working set, reduced to the local origin, and its sampler
     W = reduce(xyz[idx], origin)
     extent = float(np.linalg.norm(np.ptp(W, axis=0)))
-    if not cfg.known:
-        cfg = replace(cfg, r_max=max(extent, 1e-9))  # no sphere larger than the scan
+    if not cfg.known:  # no sphere target larger than a tenth of the scan
+        cfg = replace(cfg, r_max=max(_UNKNOWN_R_SHARE * extent, 1e-9))
     sampling = _pick_sampling(cfg.sampling, cfg.known, cfg.r_max, extent)
     if cfg.sampling == "auto" and sampling == "local":
         share = _mean_neighbourhood_share(W, _LOCAL_REACH * cfg.r_max + cfg.threshold)
@@ -1073,14 +1076,34 @@ class _Verifier:
         if self.near_rejected(x[None, :])[0] or self.exhausted:
             return False
         self.n_checked += 1
+        coarse = self._coarse_reason(x, cfg.threshold)
+        if coarse:  # clearly not a sphere (counted in C, no polishing): most large spheres end here
+            self._remember(coarse, x)
+            return False
         x_pol = self._polish(x, cfg.threshold)
         reason = "its inliers do not determine a sphere" if x_pol is None else self.reasons(x_pol, cfg.threshold)
         if reason:
-            if not self.best_rejection:
-                self.best_rejection = reason
-            self.n_rejected += 1
-            self._rejected.append(np.asarray(x if x_pol is None else x_pol, dtype=np.float64))
+            self._remember(reason, x if x_pol is None else x_pol)
         return not reason
+
+    def _remember(self, reason, x):
+        if not self.best_rejection:
+            self.best_rejection = reason
+        self.n_rejected += 1
+        self._rejected.append(np.asarray(x, dtype=np.float64))
+
+    def _coarse_reason(self, x, t):
+        """A quick interior test on the raw hypothesis: many points deep inside (beyond 5 t)."""
+        c, r = x[:3], float(x[3])
+        if r <= 5.0 * t:
+            return ""
+        shell = self.tree.query_ball_point(c, r + t, return_length=True) - self.tree.query_ball_point(
+            c, r - t, return_length=True)
+        deep = self.tree.query_ball_point(c, r - 5.0 * t, return_length=True)
+        if deep > max(5.0 * _INTERIOR_SHARE * shell, 20):
+            return (f"{deep} points lie deep inside it (for {shell} on its shell): a solid sphere hides its "
+                    "interior, so this is a cut through other surfaces or a volume of points, not a sphere")
+        return ""
 
     def reject(self, *spheres):
         """Remember spheres that failed (e.g. in the final refit): hypotheses near them are not tried again."""
