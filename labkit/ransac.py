@@ -48,7 +48,6 @@ _MIN_SPREAD = 0.01  # smallest variance of the inliers' normals across the cap (
 _LOCAL_REACH = 1.0  # local sampling: the other three points lie within LOCAL_REACH r_max + t of the first
 _LOCAL_MAX_SHARE = 0.25  # 'auto' samples locally only where a neighbourhood holds less of the working set
 _LOCAL_MAX_PAIRS = 8_000_000  # ... and the neighbour pairs stay affordable
-_UNKNOWN_R_SHARE = 0.1  # without a radius range: radii up to this share of the extent of the scan
 _FINAL_ATTEMPTS = 3  # searches per working set when the final refit of the best fails its checks
 _VERIFY_PER_BATCH = 16  # candidates verified per batch at most (the best-scoring ones)
 _VERIFY_MAX = 400  # candidates verified per search at most
@@ -280,12 +279,12 @@ def ransac_sphere(
     radius_range : (r_min, r_max), optional
         Admissible radii (m). Hypotheses outside are rejected (they still count
         as samples); the radius is checked again after the refit. Default:
-        ``nominal_radius`` +- 10 %, otherwise radii up to a tenth of the
-        extent of the cloud (a target is small against the scene) - and a
-        sphere is then still only "found" when it passes the verification
-        below (no points inside it, a surface rather than a volume of
-        points), which walls, floors or random points do not. Without a
-        range the search is slower and larger round objects compete: give one.
+        ``nominal_radius`` +- 10 %, otherwise radii up to the extent of the
+        cloud - and a sphere is then still only "found" when it passes the
+        verification below (no points inside it, a surface rather than a
+        volume of points), which walls, floors or random points do not.
+        Without a range the search is slower (uniform sampling only) and
+        larger round objects compete: give one.
     nominal_radius : float, optional
         Known radius of the target (m).
     hold_radius : bool
@@ -396,8 +395,8 @@ def _detect(xyz, origin, idx, cfg, seed, gen, verifier):
     # The working set, reduced to the local origin, and its sampler
     W = reduce(xyz[idx], origin)
     extent = float(np.linalg.norm(np.ptp(W, axis=0)))
-    if not cfg.known:  # no sphere target larger than a tenth of the scan
-        cfg = replace(cfg, r_max=max(_UNKNOWN_R_SHARE * extent, 1e-9))
+    if not cfg.known:  # no sphere larger than the scan (a cropped cap is as wide as about its radius)
+        cfg = replace(cfg, r_max=max(extent, 1e-9))
     sampling = _pick_sampling(cfg.sampling, cfg.known, cfg.r_max, extent)
     if cfg.sampling == "auto" and sampling == "local":
         share = _mean_neighbourhood_share(W, _LOCAL_REACH * cfg.r_max + cfg.threshold)
@@ -422,7 +421,7 @@ def _detect(xyz, origin, idx, cfg, seed, gen, verifier):
             reason = search.reason
             if verifier.n_rejected:
                 reason = (f"{reason}; {verifier.n_rejected} candidate(s) rejected by the verification, "
-                          f"the first because {verifier.best_rejection}")
+                          f"the best-scoring because {verifier.best_rejection}")
             return _not_found(len(xyz), reason, **common), verifier.n_rejected > 0 or search.had_range
 
         # Final inliers from the full cloud (robust band), Gauss-Helmert refit, data snooping, checks
@@ -827,7 +826,9 @@ def _replay(X, scores, best, n_valid, N, W, Wsq, sampler, cfg, verifier=None):
     """
     candidates = np.flatnonzero((scores > best.score) & np.isfinite(scores))
     if verifier is not None and len(candidates):
-        candidates = candidates[~verifier.near_rejected(X[candidates])]  # known failures cost no check
+        # known failures cost no check (looked up for the best-scoring few only)
+        top = candidates[np.argsort(-scores[candidates], kind="stable")[: 4 * _VERIFY_PER_BATCH]]
+        candidates = np.sort(top[~verifier.near_rejected(X[top])])
     if verifier is not None and len(candidates) > _VERIFY_PER_BATCH:
         # too many to verify: the running maxima (the new bests of the plain loop) and the
         # best-scoring others, still walked in sample order
@@ -841,7 +842,7 @@ def _replay(X, scores, best, n_valid, N, W, Wsq, sampler, cfg, verifier=None):
             break  # the loop stopped at sample N, before sample j
         if scores[j] <= best.score:
             continue  # beaten by an earlier (or LO-refined) best meanwhile
-        if verifier is not None and not verifier.accepts(X[j]):
+        if verifier is not None and not verifier.accepts(X[j], scores[j]):
             continue  # not a sphere cap: the next best may be
         best = _Best(X[j], scores[j])
         N = sampler.required(_inlier_mask(W, best.x, cfg.threshold), cfg.p)  # (eq. 27)
@@ -1054,6 +1055,7 @@ class _Verifier:
         self._tree = None
         self.n_rejected, self.n_checked = 0, 0
         self.best_rejection = ""
+        self._best_rejected_score = -np.inf
         self._rejected = []  # polished spheres that failed
         self._R = None  # the same as an array (cached)
 
@@ -1071,24 +1073,24 @@ class _Verifier:
     def exhausted(self):
         return self.n_checked >= _VERIFY_MAX
 
-    def accepts(self, x):
+    def accepts(self, x, score=0.0):
         cfg = self.cfg
         if self.near_rejected(x[None, :])[0] or self.exhausted:
             return False
         self.n_checked += 1
         coarse = self._coarse_reason(x, cfg.threshold)
         if coarse:  # clearly not a sphere (counted in C, no polishing): most large spheres end here
-            self._remember(coarse, x)
+            self._remember(coarse, x, score)
             return False
         x_pol = self._polish(x, cfg.threshold)
         reason = "its inliers do not determine a sphere" if x_pol is None else self.reasons(x_pol, cfg.threshold)
         if reason:
-            self._remember(reason, x if x_pol is None else x_pol)
+            self._remember(reason, x if x_pol is None else x_pol, score)
         return not reason
 
-    def _remember(self, reason, x):
-        if not self.best_rejection:
-            self.best_rejection = reason
+    def _remember(self, reason, x, score=0.0):
+        if not self.best_rejection or score > self._best_rejected_score:
+            self.best_rejection, self._best_rejected_score = reason, score
         self.n_rejected += 1
         self._rejected.append(np.asarray(x, dtype=np.float64))
 
@@ -1123,8 +1125,8 @@ class _Verifier:
             self._R = np.array(self._rejected)
         R = self._R
         tol = np.maximum(self.cfg.threshold, 0.1 * R[:, 3])[None, :]
-        dc = np.linalg.norm(X[:, None, :3] - R[None, :, :3], axis=2)
-        return ((dc < tol) & (np.abs(X[:, None, 3] - R[None, :, 3]) < tol)).any(axis=1)
+        dc2 = _squared_center_distances(X[:, :3], np.einsum("ij,ij->i", X[:, :3], X[:, :3]), R[:, :3])
+        return ((dc2 < tol * tol) & (np.abs(X[:, None, 3] - R[None, :, 3]) < tol)).any(axis=1)
 
     def _local(self, x, reach):
         """Indices and residuals d (eq. 25) of the points within r + reach of the centre."""
