@@ -9,6 +9,14 @@ MSAC scoring, local optimization (LO-RANSAC), preliminary scoring on a random
 reduction of the cloud, local sampling for tiny spheres in large scenes, and a
 final data-snooping pass with Baarda's w-test.
 
+Added for ring-structured (multi-beam) and cluttered real scans: every
+hypothesis that would become the best is verified on the full cloud
+(:class:`_Verifier`: free space inside the sphere, shell contrast, plane pieces,
+cap spread, and from the scanner station: facing side, scan lines, points
+behind the sphere); a rejected one is skipped and the search continues. The
+final inliers come from a robust band k sigma_hat around the refit, not from
+the search threshold t, so the stated precision holds for any t.
+
 Hypotheses are generated and scored in vectorized batches; the batch is then
 replayed in sample order, so the bookkeeping (new bests, N after each new best,
 the stopping sample) is exactly that of the one-sample-at-a-time loop.
@@ -21,7 +29,9 @@ import numbers
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.optimize import brentq
 from scipy.spatial import cKDTree
+from scipy.special import ndtr
 
 from ._checks import as_points, choice, positive, probability
 from ._frame import local_origin, reduce
@@ -1005,9 +1015,6 @@ def _truncated_mad_scale(abs_d, band):
         return 2.0 * band / _BAND_K
     if q <= 1e-9:
         return max(m, 1e-12)
-    from scipy.special import ndtr
-    from scipy.optimize import brentq
-
     g = lambda z: 2.0 * (2.0 * ndtr(q * z) - 1.0) - (2.0 * ndtr(z) - 1.0)  # noqa: E731  (z = b / sigma)
     hi = 1.0
     while g(hi) < 0 and hi < 1e6:
