@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import stats
 from scipy.linalg import cho_factor, cho_solve
 
 from ._checks import as_points, positive, probability
@@ -64,15 +65,19 @@ class SphereFit(ReportMixin):
     redundancy_numbers : ndarray (n,)
         Share r_i of each condition in the redundancy; sum = redundancy.
     w_test : ndarray (n,)
-        Baarda's w statistic per point (N(0, 1) under H0, a priori sigma0);
-        positive for points outside the sphere; NaN where r_i = 0.
+        Test statistic per point, positive for points outside the sphere, NaN
+        where r_i = 0. With a given ``sigma`` (``sigma_known``): Baarda's w
+        (N(0, 1) under H0, a priori sigma0). Without it: Pope's tau, the same
+        residual scaled with the estimated sigma0 (tau-distributed under H0).
     normal_residuals : ndarray (n,)
         Residual component along the surface normal, -b_i^T v_i (m); positive
         outside the sphere.
     global_test : GlobalTest
-        Chi-square test of sigma0^2 against sigma0_apriori^2.
+        Chi-square test of sigma0^2 against sigma0_apriori^2; not run
+        (``passed=None``) when no a priori precision was given.
     w_critical : float
-        Critical value of the w-test (two-sided, level ``alpha_w``).
+        Critical value of the point test (two-sided, level ``alpha_w``): the
+        normal quantile for Baarda's w, the tau quantile for Pope's tau.
     alpha_w : float
         Significance level of each w-test.
     N : ndarray (u, u)
@@ -81,6 +86,10 @@ class SphereFit(ReportMixin):
         The radius was held at a nominal value.
     sigma0_apriori : float
         A priori standard deviation of unit weight.
+    sigma_known : bool
+        An a priori precision was given (``sigma`` or ``sigma0_apriori``):
+        global test and w-test. False: unit weights of unknown scale, no
+        global test, Pope's tau test on the estimated sigma0.
     reason : str
         Empty when everything is fine; otherwise why the result must not be trusted.
     """
@@ -106,6 +115,7 @@ class SphereFit(ReportMixin):
     fixed_radius: bool
     sigma0_apriori: float
     reason: str = ""
+    sigma_known: bool = True
 
     @property
     def center(self) -> np.ndarray:
@@ -132,8 +142,15 @@ class SphereFit(ReportMixin):
         return self.v.shape[0]
 
     @property
+    def test_name(self) -> str:
+        """'w' (Baarda, a priori sigma given) or 'tau' (Pope, estimated sigma0)."""
+        return "w" if self.sigma_known else "tau"
+
+    @property
     def standardized_residuals(self) -> np.ndarray:
-        """w statistics scaled with the a posteriori sigma0 (Pope's tau), NaN without redundancy."""
+        """Residuals scaled with the a posteriori sigma0 (Pope's tau), NaN without redundancy."""
+        if not self.sigma_known:
+            return self.w_test
         return self.w_test * self.sigma0_apriori / self.sigma0
 
     @property
@@ -164,6 +181,14 @@ class SphereFit(ReportMixin):
         w_row = "no redundancy" if j < 0 else (
             f"{self.w_test[j]:+.2f} at point {j} (critical {self.w_critical:.2f}): "
             + ("GROSS ERROR SUSPECTED" if self.flagged[j] else "no gross error"))
+        if self.sigma_known:
+            g = self.global_test
+            global_row = (f"T = {g.statistic:.1f}, accepted [{g.lower:.1f}, {g.upper:.1f}]: "
+                          + {True: "passed", False: "REJECTED", None: "not testable"}[g.passed])
+            apriori = f"a priori {self.sigma0_apriori:g}"
+        else:
+            global_row = "not run: no a priori sigma given (sigma0 is estimated, not tested)"
+            apriori = "no a priori value"
         sections = [
             ("Sphere", [
                 ("centre", fmt(self.center, 5, "m")),
@@ -176,13 +201,11 @@ class SphereFit(ReportMixin):
                 ("redundancy", f"{self.redundancy:d}"),
                 ("iterations", f"{self.iterations:d} ({status})"),
                 ("main check", f"max|f(l+v, x)| = {self.main_check:.2e} m ({'passed' if self.main_check_passed else 'FAILED'})"),
-                ("sigma0", f"{self.sigma0:.4g} (a priori {self.sigma0_apriori:g})"),
+                ("sigma0", f"{self.sigma0:.4g} ({apriori})"),
             ]),
             ("Tests", [
-                ("global test", f"T = {self.global_test.statistic:.1f}, accepted "
-                 f"[{self.global_test.lower:.1f}, {self.global_test.upper:.1f}]: "
-                 + {True: "passed", False: "REJECTED", None: "not testable"}[self.global_test.passed]),
-                ("largest w", w_row),
+                ("global test", global_row),
+                (f"largest {self.test_name}" + ("" if self.sigma_known else " (Pope)"), w_row),
                 ("flagged points", f"{int(self.flagged.sum()):d} (false alarms expected by chance: "
                  f"{np.isfinite(self.w_test).sum() * self.alpha_w:.1f})"),
                 ("95% ellipsoid", fmt(ell.semi_axes * 1e3, 3, "mm")),
@@ -202,7 +225,7 @@ def gauss_helmert_model(
     tol: float = 1e-10,
     max_iter: int = 50,
     alpha: float = 0.05,
-    sigma0_apriori: float = 1.0,
+    sigma0_apriori: float | None = None,
     alpha_w: float = 0.001,
 ) -> SphereFit:
     """Adjust a sphere to points in the Gauss-Helmert model (eqs. 1-24).
@@ -226,10 +249,14 @@ def gauss_helmert_model(
         Maximum number of iterations.
     alpha : float
         Significance level of the global test.
-    sigma0_apriori : float
-        A priori standard deviation of unit weight.
+    sigma0_apriori : float, optional
+        A priori standard deviation of unit weight (default 1 when ``sigma``
+        is given). With neither ``sigma`` nor ``sigma0_apriori`` the scale of
+        the weights is unknown: no global test is run (one against a made-up
+        value would say nothing) and the residuals are tested with Pope's tau
+        test on the estimated sigma0 instead of Baarda's w-test.
     alpha_w : float
-        Significance level of each w-test (Baarda: 0.001, critical value 3.29).
+        Significance level of each w- or tau-test (Baarda: 0.001, critical value 3.29).
 
     Returns
     -------
@@ -259,7 +286,9 @@ def gauss_helmert_model(
     l = L.T  # (n, 3) view of the same numbers
     cov = _Stochastic(sigma, len(l))
     r_fix = None if radius is None else positive(radius, "radius")
-    tol, sigma0_apriori = positive(tol, "tol"), positive(sigma0_apriori, "sigma0_apriori")
+    sigma_known = sigma is not None or sigma0_apriori is not None
+    sigma0_apriori = 1.0 if sigma0_apriori is None else positive(sigma0_apriori, "sigma0_apriori")
+    tol = positive(tol, "tol")
     alpha, alpha_w = probability(alpha, "alpha"), probability(alpha_w, "alpha_w")
     if int(max_iter) != max_iter or max_iter < 1:
         raise LabkitError(f"max_iter must be a whole number >= 1, got {max_iter!r}")
@@ -269,7 +298,7 @@ def gauss_helmert_model(
     it = _iterate(L, x_start, cov, r_fix is not None, tol, int(max_iter))
 
     # Main check and statistics
-    return _result(L, it, cov, origin, r_fix is not None, tol, alpha, alpha_w, sigma0_apriori)
+    return _result(L, it, cov, origin, r_fix is not None, tol, alpha, alpha_w, sigma0_apriori, sigma_known)
 
 
 # --------------------------------------------------------------- stochastic model
@@ -479,7 +508,7 @@ def _iterate(L, x0, cov, fixed, tol, max_iter):
 
 
 # --------------------------------------------------------------- statistics
-def _result(L, it, cov, origin, fixed, tol, alpha, alpha_w, sigma0_apriori):
+def _result(L, it, cov, origin, fixed, tol, alpha, alpha_w, sigma0_apriori, sigma_known=True):
     """Main check, sigma0, Sigma_xx, redundancy numbers, w-test; back to the caller's frame."""
     n, u = L.shape[1], (3 if fixed else 4)
     dof = n - u
@@ -496,8 +525,14 @@ def _result(L, it, cov, origin, fixed, tol, alpha, alpha_w, sigma0_apriori):
     P = 1.0 / it.qbb
     ri = np.clip(1.0 - P * _leverage(it.b, Qxx), 0.0, 1.0)
     e = -it.qbb * it.k  # -b_i^T v_i: residual along the normal, positive outside
+    # Baarda's w with the a priori sigma0; without one, Pope's tau with the estimated sigma0
+    scale = sigma0_apriori if sigma_known else sigma0
     with np.errstate(divide="ignore", invalid="ignore"):
-        w = np.where(ri > 1e-10, e / (sigma0_apriori * np.sqrt(it.qbb * ri)), np.nan)
+        w = np.where(ri > 1e-10, e / (scale * np.sqrt(it.qbb * ri)), np.nan)
+    if sigma_known:
+        g_test, crit = global_test(omega, dof, sigma0_apriori, alpha), w_critical(alpha_w)
+    else:
+        g_test, crit = GlobalTest(np.nan, int(dof), np.nan, np.nan, alpha, None, np.nan), tau_critical(alpha_w, dof)
     reason = it.reason or _plausibility(L, it.x, main_check, check_tol, it.converged)
     return SphereFit(
         x=np.concatenate([it.x[:3] + origin, it.x[3:]]),
@@ -514,14 +549,30 @@ def _result(L, it, cov, origin, fixed, tol, alpha, alpha_w, sigma0_apriori):
         redundancy_numbers=ri,
         w_test=w,
         normal_residuals=e,
-        global_test=global_test(omega, dof, sigma0_apriori, alpha),
-        w_critical=w_critical(alpha_w),
+        global_test=g_test,
+        w_critical=crit,
         alpha_w=alpha_w,
         N=it.N,
         fixed_radius=fixed,
         sigma0_apriori=sigma0_apriori,
         reason=reason,
+        sigma_known=sigma_known,
     )
+
+
+def tau_critical(alpha_w: float, dof: int) -> float:
+    """Two-sided critical value of Pope's tau test with ``dof`` = n - u degrees of freedom.
+
+    tau = e_i / (sigma0_hat sqrt(q_i r_i)) uses the estimated sigma0, so it is
+    not normal but tau-distributed: ``tau = sqrt(f) T / sqrt(f - 1 + T^2)``
+    with T Student-t with f - 1 degrees of freedom (Pope 1976), |tau| <= sqrt(f).
+    NaN for f < 2 (no test possible).
+    """
+    alpha_w = probability(alpha_w, "alpha_w")
+    if dof < 2:
+        return float("nan")
+    t = float(stats.t.ppf(1.0 - alpha_w / 2.0, dof - 1))
+    return float(np.sqrt(dof) * t / np.sqrt(dof - 1 + t * t))
 
 
 def _max_misclosure(lv, x):

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ._atomic import temporary_path
-from ._checks import count, non_negative, positive, probability
+from ._checks import count, finite, non_negative, positive, probability
 from .errors import LabkitError
 
 LAS_SUFFIXES = (".las", ".laz")
@@ -42,14 +42,20 @@ def _cmd_demo(args) -> int:
 
 
 def _cmd_sphere(args) -> int:
-    from .io import read_cloud
     from .ransac import ransac_sphere
 
-    cloud = read_cloud(args.file)
-    print(f"{args.file}: {len(cloud)} points")
-    result = ransac_sphere(cloud.xyz, args.threshold, p=args.p, rng=args.seed,
+    xyz = _read_sphere_cloud(args.file)  # (a missing or corrupt file is reported first)
+    print(f"{args.file}: {len(xyz)} points")
+    station, why = _sphere_station(xyz, args.station, args.no_station)
+    print(f"station: {why}")
+    if args.radius_range is None and args.radius is None:
+        # a sphere of unknown size competes with every round object and needs uniform sampling: refuse
+        raise LabkitError("labkit sphere needs the size of the target: --radius-range MIN MAX or --radius R "
+                          "(in m; e.g. --radius-range 0.1 0.2 for a 0.145 m target)")
+    result = ransac_sphere(xyz, args.threshold, p=args.p, rng=args.seed,
                            radius_range=None if args.radius_range is None else tuple(args.radius_range),
-                           nominal_radius=args.radius, hold_radius=args.hold_radius, sigma=args.sigma)
+                           nominal_radius=args.radius, hold_radius=args.hold_radius, sigma=args.sigma,
+                           station=station)
     print()
     print(result.summary())
     if not result.found:
@@ -58,6 +64,87 @@ def _cmd_sphere(args) -> int:
     print()
     print(result.fit.summary())
     return 0
+
+
+def _read_sphere_cloud(path):
+    """Coordinates of a cloud file; ``.ply`` through a small local reader where read_cloud lacks it."""
+    from .io import read_cloud
+
+    try:
+        return read_cloud(path).xyz
+    except LabkitError:
+        if Path(path).suffix.lower() != ".ply" or not Path(path).is_file():
+            raise
+    return _read_ply_xyz(Path(path))
+
+
+_PLY_TYPES = {"char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2", "int": "i4", "uint": "u4",
+              "float": "f4", "double": "f8", "int8": "i1", "uint8": "u1", "int16": "i2", "uint16": "u2",
+              "int32": "i4", "uint32": "u4", "float32": "f4", "float64": "f8"}
+
+
+def _read_ply_xyz(path):
+    """x, y, z of the vertex element of an ASCII or binary PLY file (fallback reader, no list properties)."""
+    with open(path, "rb") as fh:
+        raw = fh.read()
+    end = raw.find(b"end_header")
+    if not raw.startswith(b"ply") or end < 0:
+        raise LabkitError(f"{path}: not a PLY file (no 'ply' magic or no end_header)")
+    header = raw[:end].decode("ascii", "replace").splitlines()
+    body = raw[raw.index(b"\n", end) + 1:]
+    fmt_, n, props, in_vertex, before = None, 0, [], False, 0
+    for line in header:
+        words = line.split()
+        if not words:
+            continue
+        if words[0] == "format":
+            fmt_ = words[1]
+        elif words[0] == "element":
+            in_vertex = words[1] == "vertex"
+            if in_vertex:
+                n = int(words[2])
+            elif not props:
+                before += 1
+        elif words[0] == "property" and in_vertex:
+            if words[1] == "list" or words[1] not in _PLY_TYPES:
+                raise LabkitError(f"{path}: vertex property {' '.join(words[1:])!r} is not supported")
+            props.append((words[2], _PLY_TYPES[words[1]]))
+    names = [p[0] for p in props]
+    if before or not {"x", "y", "z"} <= set(names):
+        raise LabkitError(f"{path}: the PLY file needs a first element 'vertex' with x, y, z")
+    if fmt_ == "ascii":
+        table = np.loadtxt(body.decode("ascii").splitlines()[:n], ndmin=2)
+        cols = [table[:, names.index(k)] for k in "xyz"]
+    elif fmt_ in ("binary_little_endian", "binary_big_endian"):
+        order = "<" if fmt_ == "binary_little_endian" else ">"
+        dtype = np.dtype([(k, order + t) for k, t in props])
+        if len(body) < n * dtype.itemsize:
+            raise LabkitError(f"{path}: the PLY file is truncated ({n} vertices announced)")
+        rec = np.frombuffer(body, dtype=dtype, count=n)
+        cols = [rec[k] for k in "xyz"]
+    else:
+        raise LabkitError(f"{path}: unknown PLY format {fmt_!r}")
+    xyz = np.column_stack(cols).astype(np.float64)
+    if not np.isfinite(xyz).all():
+        raise LabkitError(f"{path}: NaN or infinite coordinates")
+    return xyz
+
+
+def _sphere_station(xyz, given, off):
+    """The scanner position for the visibility checks, and a line saying which and why.
+
+    Default: the origin when the file looks scanner-centred (the origin inside the bounding box and no
+    point within 0.25 m of it, the blind zone around a scanner); otherwise no station.
+    """
+    if off:
+        return None, "not used (--no-station): no visibility checks"
+    if given is not None:
+        return np.asarray(given, dtype=np.float64), f"{given[0]:g} {given[1]:g} {given[2]:g} (given)"
+    inside = bool(np.all(xyz.min(axis=0) < 0) and np.all(xyz.max(axis=0) > 0))
+    if inside and float(np.min(np.einsum("ij,ij->i", xyz, xyz))) > 0.25**2:
+        return np.zeros(3), "0 0 0 (the file looks scanner-centred: points all round the origin, none within 0.25 m)"
+    return None, ("not used: the file does not look scanner-centred (give --station X Y Z for the visibility "
+                  "checks)")
 
 
 def _cmd_register(args) -> int:
@@ -396,6 +483,7 @@ _positive_float = _option_type(positive, "a positive number")
 _non_negative_float = _option_type(non_negative, "a number >= 0")
 _probability = _option_type(probability, "a number between 0 and 1")
 _count = _option_type(count, "a whole number >= 1", int)
+_finite_float = _option_type(finite, "a finite number")
 _seed = _option_type(lambda v, name: count(v, name, minimum=0), "a whole number >= 0", int)
 
 
@@ -424,13 +512,13 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=_cmd_demo)
 
     sphere = sub.add_parser("sphere", help="find a sphere target by RANSAC and adjust it (Gauss-Helmert)",
-                            description="Detect a sphere in a point cloud (ASCII xyz, LAS/LAZ, npy/npz) with "
+                            description="Detect a sphere in a point cloud (ASCII xyz, LAS/LAZ, npy/npz, PLY) with "
                                         "RANSAC and adjust it in the Gauss-Helmert model.")
     sphere.add_argument("file", help="point-cloud file")
     sphere.add_argument("--threshold", type=_positive_float, default=0.003,
                         help="inlier threshold t in m (about 2-3 x the noise; default: %(default)s)")
     sphere.add_argument("--radius-range", type=_positive_float, nargs=2, metavar=("MIN", "MAX"),
-                        help="admissible radii in m")
+                        help="admissible radii in m (this or --radius is required)")
     sphere.add_argument("--radius", type=_positive_float, help="nominal radius of the target in m")
     sphere.add_argument("--hold-radius", action="store_true", help="hold the radius at --radius in the adjustment")
     sphere.add_argument("--sigma", type=_positive_float,
@@ -438,6 +526,10 @@ def build_parser() -> argparse.ArgumentParser:
     sphere.add_argument("--p", type=_probability, default=0.99,
                         help="RANSAC success probability (default: %(default)s)")
     sphere.add_argument("--seed", type=_seed, default=0, help="random seed (default: %(default)s)")
+    sphere.add_argument("--station", type=_finite_float, nargs=3, metavar=("X", "Y", "Z"),
+                        help="scanner position in m for the visibility checks (default: the origin when the file "
+                             "looks scanner-centred, otherwise none)")
+    sphere.add_argument("--no-station", action="store_true", help="skip the visibility checks")
     sphere.set_defaults(func=_cmd_sphere)
 
     reg = sub.add_parser("register", help="register SOURCE onto TARGET (ICP or maximum consensus)",

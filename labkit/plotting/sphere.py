@@ -51,7 +51,9 @@ def plot_residuals(fit, axes=None, bins=50):
     ax_h.hist(e, bins=bins, density=True, color=COLORS["inlier"], alpha=0.7, label="residuals")
     w = fit.w_test[np.isfinite(fit.w_test)]
     if len(w):
-        scale = np.nanmedian(np.abs(e[np.isfinite(fit.w_test)] / w)) * fit.sigma0 / fit.sigma0_apriori
+        # w uses the a priori sigma0 (rescale to the estimated one); Pope's tau already uses the estimated
+        scale = np.nanmedian(np.abs(e[np.isfinite(fit.w_test)] / w)) * (
+            fit.sigma0 / fit.sigma0_apriori if getattr(fit, "sigma_known", True) else 1.0)
         grid = np.linspace(e.min(), e.max(), 200)
         ax_h.plot(grid, stats.norm.pdf(grid, 0, scale), color=COLORS["reference"], label=f"N(0, {scale:.2f} mm)")
     ax_h.set_xlabel("residual along the normal [mm]  (+ outside)")

@@ -2,6 +2,7 @@
 
 - ``sphere_on_tripod``: a TLS sphere target on a tripod with base, ground and clutter.
 - ``room_scene``: a small sphere in a scanned room (walls, floor, furniture).
+- ``multibeam_room``: a sphere in a room scanned by a 16-beam lidar (rings, occlusion).
 - ``als_epochs``: two airborne laser scanning epochs of a named test region.
 """
 
@@ -13,6 +14,8 @@ _EXPORTS = {
     "sphere_on_tripod": "labkit.synthetic.tripod",
     "TripodScene": "labkit.synthetic.tripod",
     "room_scene": "labkit.synthetic.room",
+    "multibeam_room": "labkit.synthetic.multibeam",
+    "MultibeamScene": "labkit.synthetic.multibeam",
     "als_scene": "labkit.synthetic.als",
     "als_epochs": "labkit.synthetic.als",
     "EpochPair": "labkit.synthetic.als",
