@@ -145,7 +145,7 @@ def test_cli_sphere_requires_the_target_size(tmp_path, capsys):
 
 @pytest.mark.parametrize("argv, fragment", [
     (["--station", "1", "2"], "expected 3 arguments"),
-    (["--station", "a", "b", "c"], "invalid float"),
+    (["--station", "a", "b", "c"], "expected a finite number"),
 ])
 def test_cli_sphere_bad_station(tmp_path, capsys, argv, fragment):
     np.savetxt(tmp_path / "s.xyz", _sphere_points())
