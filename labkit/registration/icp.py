@@ -109,6 +109,7 @@ def icp(
     robust_start=0.01,
     initial=None,
     rel_threshold=1e-2,
+    max_std=None,
     held_rotation_std_deg=0.02,
     covariance="block",
     block_size=2.0,
@@ -155,7 +156,19 @@ def icp(
     initial : ndarray (4, 4), optional
         Initial transformation in the caller's frame.
     rel_threshold : float
-        Eigenvalues of N below ``rel_threshold`` times the largest mark undetermined directions.
+        Numerical floor only: the groups of the consistency test determine the eigen-directions
+        of their normal matrix above ``rel_threshold`` times the largest one. Whether a component
+        of the result is determined is decided by its precision (``max_std``), not by a ratio of
+        eigenvalues.
+    max_std : float, optional
+        Precision limit (m) of determinability (eq. 5.12a): an eigen-direction of the normal
+        matrix whose standard deviation ``sigma0 / sqrt(lambda)`` exceeds it is undetermined, and
+        the parameters that take part in it are held and reported with std inf. The eigenvalues
+        count only the information that survives the re-matching: the part of N that the noise
+        of the target normals fakes (a flat field's random normal tilts) is removed first
+        (eq. 5.12b). Default: a quarter of ``max_distance`` (0.25 m without a distance gate): a
+        component that the data know only to a sizeable fraction of the matching distance is not
+        determined by them. Rotations count in metres at the cloud's radius.
     held_rotation_std_deg : float
         Prior standard deviation (degrees) of a rotation that ICP holds at its initial value
         (``dof='rigid'``, weak direction). The translation is then conditional on that value; this
@@ -236,6 +249,8 @@ def icp(
     if consistency_alpha is not None and not 0 < consistency_alpha < 1:
         raise LabkitError(f"consistency_alpha must lie in (0, 1) or be None, got {consistency_alpha!r}")
     kval = None if reject_sigma is None else positive(reject_sigma, "reject_sigma")
+    if max_std is not None:
+        max_std = positive(max_std, "max_std")
     # 1. shared local origin, initial transformation in the local frame
     origin = local_origin(as_points(target, min_points=3, name="target"))
     R, t = _initial_local(initial, origin)
@@ -251,6 +266,9 @@ def icp(
         origin=origin, dof=dof, metric=metric, robust=robust, k=kval, L=L, rel=rel_threshold,
         min_n=min_correspondences, covariance=covariance, block_size=block_size,
         held_rotation_std=held_rotation_std, alpha=consistency_alpha,
+        max_std=_default_max_std(max_std, matcher.options["max_distance"]),
+        held_shift_std=_held_shift_std(matcher.options["max_distance"]),
+        tilt=_TiltVariance(matcher),
     )  # fmt: skip
     plain = dict(opts, robust=None, k=None)  # warm-up stage without robust measures
     history, converged, adj, step, robust_stage = [], False, None, np.inf, False
@@ -270,6 +288,49 @@ def icp(
             break
     # 4. final report from the last adjustment
     return _result(R, t, origin, adj, history, converged, matcher, opts, time.perf_counter() - t_start)
+
+
+def _default_max_std(max_std, max_distance):
+    """The precision limit of determinability: given, or a quarter of the matching distance."""
+    if max_std is not None:
+        return float(max_std)
+    return 0.25 * max_distance if np.isfinite(max_distance) else 0.25
+
+
+def _held_shift_std(max_distance):
+    """Prior std of a held translation: its true value can lie anywhere within the matching distance."""
+    return float(max_distance) if np.isfinite(max_distance) else 1.0
+
+
+class _TiltVariance:
+    """Covariance of the random tilt of each target point's PCA normal, computed once per point (private).
+
+    A plane fitted to k neighbours with noise sigma_n has, along each tangent eigen-direction e_j of
+    the neighbours' spread lambda_j, a slope error of variance sigma_n^2 / (k lambda_j): the error
+    of a regression slope. The tilt covariance is sum_j e_j e_j^T sigma_n^2 / (k lambda_j), with
+    sigma_n^2 = k lambda_0 / (k - 3) (notebook 04, eq. 5).
+    """
+
+    def __init__(self, matcher):
+        self.points, self.tree, self.k = matcher.target, matcher.tree, matcher.options["k"]
+        self.C = np.full((len(self.points), 3, 3), np.nan)
+
+    def __call__(self, j):
+        todo = np.unique(j[np.isnan(self.C[j, 0, 0])])
+        for start in range(0, todo.size, 50000):  # bounded memory of the (c, k, 3) gathers
+            self.C[todo[start : start + 50000]] = self._compute(todo[start : start + 50000])
+        return self.C[j]
+
+    def _compute(self, index):
+        k = self.k
+        nb = self.tree.query(self.points[index], k=k, workers=-1 if len(index) > 2000 else 1)[1]
+        X = self.points[nb]
+        X = X - X.mean(axis=1, keepdims=True)
+        lam, V = np.linalg.eigh(np.einsum("cki,ckj->cij", X, X) / k)  # ascending
+        s2 = np.clip(lam[:, 0], 0, None) * k / (k - 3)
+        t = np.clip(lam[:, 1:], 1e-300, None)
+        w = np.clip(s2[:, None] / (k * t), 0.0, 1.0)  # tilt variance along e_1, e_2
+        return np.einsum("cj,cij,ckj->cik", w, V[:, :, 1:], V[:, :, 1:])
 
 
 def _cycle(history, atol, longest=10):
@@ -394,7 +455,7 @@ def _block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, opts):
         near = np.abs(u - limit) < h
         psi_limit = limit * (np.median(factor[keep & near]) if (keep & near).any() else 1.0)
         J -= psi_limit / (2 * h) * np.einsum("m,mu,mv->uv", w * near, Ae, Ae)
-    J = J[np.ix_(fixed, fixed)]
+    J = (J - opts["N_eps"])[np.ix_(fixed, fixed)]  # the bread without the tilt noise (eq. 5.12b)
     try:
         c = cho_factor(0.5 * (J + J.T))
     except np.linalg.LinAlgError:
@@ -421,10 +482,13 @@ def _adjust(corr, R, t, opts):
     N = np.einsum("mru,m,mrv->uv", A, P, A)  # N = A^T P A  (eq. 5.7)
     nvec = np.einsum("mru,m,mr->u", A, P, l)  # n = A^T P l
     names = NAMES[opts["dof"]]
+    N_eps = _tilt_information(corr, ok_rows[keep], P, opts)
+    N_sig = N - N_eps  # the information that survives re-matching (eq. 5.12b)
     deg = degeneracy_report(
-        N, names, opts["rel"], slice(len(names) - 3, None), share_threshold=HELD_SHARE, hold_first=names[:-3]
-    )  # rotations are given up before translations
-    dx_s, Q_s = _solve(N, nvec, deg)
+        _sandwich_precision(N, N_sig), names, opts["rel"], slice(len(names) - 3, None), share_threshold=HELD_SHARE,
+        hold_first=names[:-3], sigma0=scale, max_std=opts["max_std"],
+    )  # rotations are given up before translations; precision limit (eq. 5.12a)  # fmt: skip
+    dx_s, Q_s = _solve(N, nvec, deg, N_sig)
     v = np.einsum("mru,u->mr", A, dx_s) - l  # residuals after the step
     vPv = float(np.einsum("mr,m,mr->", v, P, v))
     r = len(P) * A.shape[1] - int(deg.constrained.sum())  # redundancy
@@ -434,18 +498,54 @@ def _adjust(corr, R, t, opts):
     S[: len(names) - 3] = opts["L"]  # rotation columns were divided by L
     dx = dx_s / S
     Qxx = Q_s / np.outer(S, S)
-    held_cov = _held_rotation_covariance(N, deg, opts) / np.outer(S, S)
+    held_cov = _held_rotation_covariance(N_sig, deg, opts) / np.outer(S, S)
     block = None
     if opts["covariance"] == "block":
         xy = corr.source_xyz[ok_rows, :2] - opts["origin"][:2]
         free = np.isinf(np.diag(Q_s))
-        args = (A_all, l_all, w, u, centred, keep, factor, dx_s, free, {**opts, "xy": xy})
+        args = (A_all, l_all, w, u, centred, keep, factor, dx_s, free, {**opts, "xy": xy, "N_eps": N_eps})
         block = lambda: _block_covariance(*args) / np.outer(S, S)  # noqa: E731 - evaluated for the last step only
     return _Adjustment(dx, N, Qxx, block, held_cov, float(sigma0), rms, r, deg, corr, float(scale), int((~keep).sum()))
 
 
-def _solve(N, nvec, deg):
+def _tilt_information(corr, rows, P, opts):
+    """The part of N that the random tilt of the target normals fakes (eq. 5.12b), scaled parameters.
+
+    A point-to-plane row a_i = G_i n_i (G = I, or [[p]x / L; I] for rigid) uses the estimated normal
+    n = n0 + e with a tilt e of covariance C_i (see :class:`_TiltVariance`). E[a a^T] = G (n0 n0^T + C_e) G^T: the
+    second part is information about the shift only while the correspondences stay fixed; after
+    re-matching, a random tilt points elsewhere. On a flat field it is all that N contains, and it
+    would make X and Y look determined to centimetres.
+    """
+    u = 6 if opts["dof"] == "rigid" else 3
+    if opts["metric"] != "point_to_plane" or len(rows) == 0:
+        return np.zeros((u, u))
+    C = opts["tilt"](corr.target_index[rows])  # (m, 3, 3) tilt covariance of each target normal
+    if opts["dof"] == "rigid":
+        p = corr.source_xyz[rows] - opts["origin"]
+        G = np.concatenate([_skew(p) / opts["L"], np.broadcast_to(np.eye(3), (len(p), 3, 3))], axis=1)
+        return np.einsum("m,mai,mij,mbj->ab", P, G, C, G)
+    return np.einsum("m,mij->ij", P, C)
+
+
+def _sandwich_precision(N, N_sig):
+    """(N_sig^-1 N N_sig^-1)^-1 = N_sig N^-1 N_sig with N_sig's negative eigenvalues set to 0 (eq. 5.12b).
+
+    Its eigenvalues give sigma0 / sqrt(lambda) = the standard deviation of the fixed point along each
+    direction; a direction that holds no information beyond the tilt noise gets 0.
+    """
+    lam, V = np.linalg.eigh(0.5 * (N_sig + N_sig.T))
+    S = (V * np.clip(lam, 0, None)) @ V.T
+    Pi = S @ np.linalg.lstsq(N, S, rcond=None)[0]
+    return 0.5 * (Pi + Pi.T)
+
+
+def _solve(N, nvec, deg, N_sig=None):
     """Step and cofactor matrix; the datum is fixed when N is degenerate (eq. 5.12).
+
+    The step solves N (the linearization for the current correspondences); the cofactor
+    matrix is the sandwich N_sig^-1 N N_sig^-1 with the information that survives re-matching
+    (eq. 5.12b) as bread: the fixed point of the iteration moves with N_sig, not with N.
 
     Parameters with a real share in an undetermined eigen-direction are held at
     their current value (their column is removed), the others are solved from the
@@ -453,9 +553,11 @@ def _solve(N, nvec, deg):
     eigen-directions alone would let the undetermined parameters drift: those
     eigenvectors carry small components of every parameter (noise in the normals).
     """
+    N_sig = N if N_sig is None else N_sig
     if deg.well_posed:
         c = cho_factor(N)
-        return cho_solve(c, nvec), cho_solve(c, np.eye(len(N)))
+        Si = np.linalg.inv(0.5 * (N_sig + N_sig.T))
+        return cho_solve(c, nvec), Si @ N @ Si
     free = ~deg.parameter_determined  # a real share in an undetermined direction: held (the report names them)
     fixed = ~free
     dx = np.zeros(len(N))
@@ -463,10 +565,14 @@ def _solve(N, nvec, deg):
     if fixed.any():
         Nr = N[np.ix_(fixed, fixed)]
         lam, V = np.linalg.eigh(0.5 * (Nr + Nr.T))
-        ok = lam >= deg.rel_threshold * max(lam[-1], 1e-300)  # guard: still degenerate after the reduction
+        ok = lam >= 1e-12 * max(lam[-1], 1e-300)  # numerical guard
         V, lam = V[:, ok], lam[ok]
         dx[fixed] = V @ ((V.T @ nvec[fixed]) / lam)
-        Q[np.ix_(fixed, fixed)] = (V / lam) @ V.T
+        Sr = N_sig[np.ix_(fixed, fixed)]
+        lam_s, V_s = np.linalg.eigh(0.5 * (Sr + Sr.T))
+        ok = lam_s > 1e-12 * max(lam_s[-1], 1e-300)
+        Si = (V_s[:, ok] / lam_s[ok]) @ V_s[:, ok].T
+        Q[np.ix_(fixed, fixed)] = Si @ Nr @ Si
     Q[free, free] = np.inf
     return dx, Q
 
@@ -477,18 +583,21 @@ def _held_rotation_covariance(N, deg, opts):
     Holding h at its prior value h0 makes the free parameters conditional on it: their
     solution moves by -B (h - h0) with B = N_ff^-1 N_fh (eq. 5.15), so a prior standard deviation
     sigma_h of the rotation adds B sigma_h^2 B^T to their covariance. The scaled rotation is L omega.
+    A held translation does the same with a prior std of the matching distance (its true value may
+    lie anywhere within reach): on sloped ground a held X moves Z by slope times X (eq. 5.15).
     """
     p = len(N)
     out = np.zeros((p, p))
-    if deg.parameter_determined is None or opts["held_rotation_std"] == 0:
+    if deg.parameter_determined is None:
         return out
     free = deg.parameter_determined.copy()
-    held_rot = ~free & np.array([n.startswith("r") for n in deg.names])
-    if not held_rot.any() or not free.any():
+    is_rot = np.array([n.startswith("r") for n in deg.names])
+    held = ~free
+    if not held.any() or not free.any():
         return out
-    B = np.linalg.lstsq(N[np.ix_(free, free)], N[np.ix_(free, held_rot)], rcond=None)[0]
-    s = opts["held_rotation_std"] * opts["L"]
-    out[np.ix_(free, free)] = s**2 * B @ B.T
+    prior = np.where(is_rot, opts["held_rotation_std"] * opts["L"], opts["held_shift_std"])[held]
+    B = np.linalg.lstsq(N[np.ix_(free, free)], N[np.ix_(free, held)], rcond=None)[0]
+    out[np.ix_(free, free)] = (B * prior**2) @ B.T
     return out
 
 
