@@ -142,7 +142,7 @@ def icp(
     max_iterations : int
     tol : float
         Convergence when the update is smaller than ``tol`` metres (at the cloud's radius for
-        rotations), or when the iteration cycles between a few sets of correspondences with
+        rotations) or than 5 % of every component's standard deviation, or when the iteration cycles between a few sets of correspondences with
         updates below ``100 tol``.
     robust : {None, 'huber', 'tukey'}
         IRLS weights on the standardized residuals (eq. 5.9).
@@ -283,7 +283,8 @@ def icp(
         history.append(_record(it, R, t, adj, step))
         final_stage = robust_stage or (robust is None and kval is None)
         cycle = _cycle(history, 0.1 * tol)
-        if final_stage and (step < tol or (cycle and max(h.step for h in history[-cycle:]) < 100 * tol)):
+        small = step < tol or _within_precision(adj)
+        if final_stage and (small or (cycle and max(h.step for h in history[-cycle:]) < 100 * tol)):
             converged = True
             break
     # 4. final report from the last adjustment
@@ -331,6 +332,19 @@ class _TiltVariance:
         t = np.clip(lam[:, 1:], 1e-300, None)
         w = np.clip(s2[:, None] / (k * t), 0.0, 1.0)  # tilt variance along e_1, e_2
         return np.einsum("cj,cij,ckj->cik", w, V[:, :, 1:], V[:, :, 1:])
+
+
+def _within_precision(adj, share=0.05):
+    """True when every component of the update is below ``share`` of its formal standard deviation.
+
+    In a weak direction the nearest neighbours keep changing and the iteration jitters about its
+    fixed point by a small fraction of that direction's precision; an absolute ``tol`` would wait
+    for it in vain.
+    """
+    with np.errstate(invalid="ignore"):
+        std = adj.sigma0 * np.sqrt(np.diag(adj.Qxx))
+    ok = np.isfinite(std)
+    return bool(ok.any() and np.all(np.abs(adj.dx[ok]) <= share * std[ok]))
 
 
 def _cycle(history, atol, longest=10):
@@ -488,7 +502,7 @@ def _adjust(corr, R, t, opts):
         _sandwich_precision(N, N_sig), names, opts["rel"], slice(len(names) - 3, None), share_threshold=HELD_SHARE,
         hold_first=names[:-3], sigma0=scale, max_std=opts["max_std"],
     )  # rotations are given up before translations; precision limit (eq. 5.12a)  # fmt: skip
-    dx_s, Q_s = _solve(N, nvec, deg, N_sig)
+    dx_s, Q_s, step_s = _solve(N, nvec, deg, N_sig)
     v = np.einsum("mru,u->mr", A, dx_s) - l  # residuals after the step
     vPv = float(np.einsum("mr,m,mr->", v, P, v))
     r = len(P) * A.shape[1] - int(deg.constrained.sum())  # redundancy
@@ -496,7 +510,7 @@ def _adjust(corr, R, t, opts):
     rms = float(np.sqrt(np.einsum("mr,m,mr->", l, P, l) / max(P.sum(), 1e-300)))
     S = np.ones(len(names))
     S[: len(names) - 3] = opts["L"]  # rotation columns were divided by L
-    dx = dx_s / S
+    dx = step_s / S  # the update: Newton on the fixed point, whose slope is N_sig (eq. 5.12b)
     Qxx = Q_s / np.outer(S, S)
     held_cov = _held_rotation_covariance(N_sig, deg, opts) / np.outer(S, S)
     block = None
@@ -541,11 +555,13 @@ def _sandwich_precision(N, N_sig):
 
 
 def _solve(N, nvec, deg, N_sig=None):
-    """Step and cofactor matrix; the datum is fixed when N is degenerate (eq. 5.12).
+    """Least-squares step, cofactor matrix and update; the datum is fixed when N is degenerate (eq. 5.12).
 
     The step solves N (the linearization for the current correspondences); the cofactor
     matrix is the sandwich N_sig^-1 N N_sig^-1 with the information that survives re-matching
-    (eq. 5.12b) as bread: the fixed point of the iteration moves with N_sig, not with N.
+    (eq. 5.12b) as bread: the fixed point of the iteration moves with N_sig, not with N. The
+    update N_sig^-1 A^T P l is Newton's step on that fixed point: a step with N would move a weak
+    direction only by N_sig / N of the way in each iteration (slow on gently sloped terrain).
 
     Parameters with a real share in an undetermined eigen-direction are held at
     their current value (their column is removed), the others are solved from the
@@ -557,10 +573,11 @@ def _solve(N, nvec, deg, N_sig=None):
     if deg.well_posed:
         c = cho_factor(N)
         Si = np.linalg.inv(0.5 * (N_sig + N_sig.T))
-        return cho_solve(c, nvec), Si @ N @ Si
+        return cho_solve(c, nvec), Si @ N @ Si, Si @ nvec
     free = ~deg.parameter_determined  # a real share in an undetermined direction: held (the report names them)
     fixed = ~free
     dx = np.zeros(len(N))
+    step = np.zeros(len(N))
     Q = np.full((len(N), len(N)), np.nan)
     if fixed.any():
         Nr = N[np.ix_(fixed, fixed)]
@@ -573,8 +590,9 @@ def _solve(N, nvec, deg, N_sig=None):
         ok = lam_s > 1e-12 * max(lam_s[-1], 1e-300)
         Si = (V_s[:, ok] / lam_s[ok]) @ V_s[:, ok].T
         Q[np.ix_(fixed, fixed)] = Si @ Nr @ Si
+        step[fixed] = Si @ nvec[fixed]
     Q[free, free] = np.inf
-    return dx, Q
+    return dx, Q, step
 
 
 def _held_rotation_covariance(N, deg, opts):

@@ -31,6 +31,8 @@ REGIONS: tuple[str, ...] = (
     "xyz", "xz", "yz", "xy", "forest", "field", "water", "road",
     "demolished", "new_building", "trees_felled", "trees_planted",
 )
+#: Regions meant for large areas at low density (not in :data:`REGIONS`, whose scenes fit 30-60 m).
+SPARSE_REGIONS: tuple[str, ...] = ("hills",)
 
 CELL = 20.0  # layout cell (m): one building or tree group per cell
 T2014, T2016 = 8.27e7, 1.458e8  # adjusted standard GPS time (s) of the two campaigns
@@ -83,6 +85,11 @@ _INFO = {
     "trees_planted": ((True, True, True),
                       "Village as in 'xyz' (flat terrain) with a group of young trees (4-7 m) planted between 2014 "
                       "and 2016 on open ground. Stable buildings fix the shift; the new crowns pull a plain ICP."),
+    "hills": ((True, True, True),
+              "Bare hilly terrain for sparse ALS (use e.g. size=(200, 200), density=0.5-1): 30-40 m of relief "
+              "from three long waves (wavelengths 120-250 m) on a regional slope, no buildings or trees. "
+              "Every direction is constrained by the slopes, X and Y much more weakly than Z; at 1 pt/m^2 "
+              "the neighbourhoods of the normals span several metres of curved ground."),
 }
 
 
@@ -175,7 +182,8 @@ def als_epochs(region: str = "xyz", *, shift=(0.23, -0.17, 0.11), rotation_deg=N
     Parameters
     ----------
     region : str
-        One of :data:`REGIONS`.
+        One of :data:`REGIONS` or :data:`SPARSE_REGIONS` ('hills': sparse hilly terrain, meant for
+        e.g. ``size=(200, 200), density=0.8``).
     shift : (3,) float
         True translation (m) that maps the source onto the target (about the area centre).
     rotation_deg : (3,) float, optional
@@ -199,7 +207,7 @@ def als_epochs(region: str = "xyz", *, shift=(0.23, -0.17, 0.11), rotation_deg=N
         ``truth`` maps ``source`` onto ``target``: ``apply_transform(pair.truth, pair.source.xyz)``
         lies on the target surface.
     """
-    region = choice(region, REGIONS, "region")
+    region = choice(region, REGIONS + SPARSE_REGIONS, "region")
     size, density, origin, shift, angles = _check_args(size, density, origin, shift, rotation_deg)
     src_density = density if source_density is None and not dim else (
         100.0 if source_density is None else positive(source_density, "source_density"))
@@ -333,6 +341,24 @@ def _hilly(size, rng, amplitude=0.6, slope=(0.04, -0.03)):
     return S.Terrain((size[0] / 2, size[1] / 2), slope, waves)
 
 
+def _hills(size, rng, relief=(30.0, 40.0), wavelength=(120.0, 250.0)):
+    """Long waves on a regional slope, scaled to a relief (max - min over the area) drawn from ``relief``."""
+    th = rng.uniform(0, np.pi, 3)
+    lam = rng.uniform(*wavelength, 3)
+    waves = [(1.0, 2 * np.pi / w * np.cos(a), 2 * np.pi / w * np.sin(a), rng.uniform(0, 2 * np.pi))
+             for w, a in zip(lam, th)]
+    slope = tuple(rng.uniform(-0.05, 0.05, 2))
+    probe = S.Terrain((size[0] / 2, size[1] / 2), slope, tuple(waves))
+    gx, gy = np.meshgrid(np.linspace(0, size[0], 41), np.linspace(0, size[1], 41))
+    f = rng.uniform(*relief) / np.ptp(probe.z(gx, gy))  # scale the whole surface to the drawn relief
+    waves = tuple((f * A, kx, ky, ph) for A, kx, ky, ph in waves)
+    return S.Terrain((size[0] / 2, size[1] / 2), (f * slope[0], f * slope[1]), waves)
+
+
+def _layout_hills(size, rng):
+    return S.Scene(size, _hills(size, rng))
+
+
 def _flat(size):
     return S.Terrain((size[0] / 2, size[1] / 2))
 
@@ -463,4 +489,5 @@ _LAYOUTS = {
     "new_building": _layout_change("new_building"),
     "trees_felled": _layout_change("trees_felled"),
     "trees_planted": _layout_change("trees_planted"),
+    "hills": _layout_hills,
 }
