@@ -29,6 +29,8 @@ HUBER_C, TUKEY_C = 1.345, 4.685  # 95 % efficiency under normal errors
 #: A parameter with this squared share in the undetermined eigen-directions is held fixed (and reported).
 HELD_SHARE = 0.05
 MAD_TO_SIGMA = 1.4826  # 1 / Phi^-1(3/4)
+#: The tilt information of eq. (5.12b) is summed over at most this many correspondences (an even subset).
+TILT_ROWS = 8000
 #: Groups of the consistency test by the classes (ASPRS) of a correspondence's two points, in order of
 #: precedence (vegetation at either end makes it 'vegetation'); the rest is 'other'.
 CLASS_GROUPS = (("vegetation", (3, 4, 5)), ("buildings", (6,)), ("ground/road", (2, 11)))
@@ -534,6 +536,11 @@ def _tilt_information(corr, rows, P, opts):
     u = 6 if opts["dof"] == "rigid" else 3
     if opts["metric"] != "point_to_plane" or len(rows) == 0:
         return np.zeros((u, u))
+    if len(rows) > TILT_ROWS:  # an even subset estimates the sum (the tilts are computed once per point)
+        stride = -(-len(rows) // TILT_ROWS)
+        total = P.sum()
+        rows, P = rows[::stride], P[::stride]
+        P = P * (total / max(P.sum(), 1e-300))
     C = opts["tilt"](corr.target_index[rows])  # (m, 3, 3) tilt covariance of each target normal
     if opts["dof"] == "rigid":
         p = corr.source_xyz[rows] - opts["origin"]

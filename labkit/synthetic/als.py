@@ -176,7 +176,7 @@ def als_scene(region: str = "xyz", *, size=(60.0, 60.0), density=20.0, rng=None,
 
 def als_epochs(region: str = "xyz", *, shift=(0.23, -0.17, 0.11), rotation_deg=None,
                size=(60.0, 60.0), density=20.0, source_density=None, dim=False,
-               rng=None, origin=(600000.0, 5400000.0, 300.0)) -> EpochPair:
+               rng=None, origin=(600000.0, 5400000.0, 300.0), layout_rng=None) -> EpochPair:
     """Two epochs of a named test region with a known transformation (seed 003, steps 1 and 1.5).
 
     Parameters
@@ -200,6 +200,9 @@ def als_epochs(region: str = "xyz", *, shift=(0.23, -0.17, 0.11), rotation_deg=N
     rng : int or numpy.random.Generator, optional
     origin : (3,) float
         South-west corner of the area (UTM-sized by default).
+    layout_rng : int or numpy.random.Generator, optional
+        Seed of the surface model alone (buildings, trees, terrain); ``rng`` then draws only the
+        sampling and noise of the two epochs. Monte Carlo runs over one fixed scene use it.
 
     Returns
     -------
@@ -212,7 +215,8 @@ def als_epochs(region: str = "xyz", *, shift=(0.23, -0.17, 0.11), rotation_deg=N
     src_density = density if source_density is None and not dim else (
         100.0 if source_density is None else positive(source_density, "source_density"))
     seeds = as_rng(rng).integers(0, 2**63 - 1, size=3)
-    layout_rng, target_rng, source_rng = (np.random.default_rng(s) for s in seeds)
+    layout_rng_, target_rng, source_rng = (np.random.default_rng(s) for s in seeds)
+    layout_rng = layout_rng_ if layout_rng is None else as_rng(layout_rng)
     # Build the surface model in the target frame
     scene = _LAYOUTS[region](size, layout_rng)
     # Sample the target on the area, the source over a margin so that it still fills the area when moved
