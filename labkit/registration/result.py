@@ -434,6 +434,8 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
         None when fewer than two groups are large enough.
     """
     u = A.shape[2]
+    if u == 0:  # every parameter held: nothing to test
+        return None
     N_all = np.einsum("mru,m,mrv->uv", A, P, A)
     x0 = np.linalg.lstsq(N_all, np.einsum("mru,m,mr->u", A, P, l), rcond=None)[0]  # the result's own step
     ys, Ws, Vs, used, ns, deltas, offs_std, scores = [], [], [], [], [], [], [], []
