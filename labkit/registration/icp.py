@@ -244,7 +244,7 @@ def icp(
     choice(robust, (None, "huber", "tukey"), "robust")
     choice(covariance, ("formal", "block"), "covariance")
     block_size = positive(block_size, "block_size")
-    max_iterations = int(positive(max_iterations, "max_iterations"))
+    positive(max_iterations, "max_iterations")  # > 0; a whole number: checked below
     tol = positive(tol, "tol")
     robust_start = positive(robust_start, "robust_start")
     held_rotation_std = np.radians(_non_negative(held_rotation_std_deg, "held_rotation_std_deg"))
@@ -253,8 +253,12 @@ def icp(
     kval = None if reject_sigma is None else positive(reject_sigma, "reject_sigma")
     if max_std is not None:
         max_std = positive(max_std, "max_std")
+    k = _whole(k, "k")
+    max_iterations = _whole(max_iterations, "max_iterations")
     # 1. shared local origin, initial transformation in the local frame
     origin = local_origin(as_points(target, min_points=3, name="target"))
+    for cloud, name in ((source, "source"), (target, "target")):
+        _require_surface(as_points(cloud, min_points=3, name=name), name)
     R, t = _initial_local(initial, origin)
     # 2. kd-tree of the target, sampling and exclusions: once
     matcher = prepare(
@@ -291,6 +295,31 @@ def icp(
             break
     # 4. final report from the last adjustment
     return _result(R, t, origin, adj, history, converged, matcher, opts, time.perf_counter() - t_start)
+
+
+def _whole(value, name):
+    """An integer parameter given as an int or an integral float; 20.5 is an error, not 20."""
+    try:
+        ok = float(value) == int(value)
+    except (TypeError, ValueError, OverflowError):
+        ok = False
+    if isinstance(value, (bool, str)) or not ok:
+        raise LabkitError(f"{name} must be a whole number, got {value!r}")
+    return int(value)
+
+
+def _require_surface(points, name):
+    """Identical or collinear points have no surface: no normals, and a shift along the line is free."""
+    sub = points[:: max(1, len(points) // 20000)]
+    centre = sub.mean(axis=0)
+    s = np.linalg.svd(sub - centre, compute_uv=False) / np.sqrt(len(sub))  # rms spread per axis
+    identical = s[0] <= 1e-12 * max(1.0, float(np.abs(centre).max()))  # rounding of large coordinates
+    if identical or s[1] <= 1e-9 * s[0]:
+        what = "identical" if identical else "collinear"
+        raise LabkitError(
+            f"the {name} points are {what}: ICP needs a surface (points spread in two directions) "
+            "to find normals and correspondences"
+        )
 
 
 def _default_max_std(max_std, max_distance):
@@ -471,7 +500,7 @@ def _block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, opts):
         near = np.abs(u - limit) < h
         psi_limit = limit * (np.median(factor[keep & near]) if (keep & near).any() else 1.0)
         J -= psi_limit / (2 * h) * np.einsum("m,mu,mv->uv", w * near, Ae, Ae)
-    J = (J - opts["N_eps"])[np.ix_(fixed, fixed)]  # the bread without the tilt noise (eq. 5.12b)
+    J = (J - opts["N_eps"])[np.ix_(fixed, fixed)]  # the bread: what survives re-matching (eq. 5.12b)
     try:
         c = cho_factor(0.5 * (J + J.T))
     except np.linalg.LinAlgError:
@@ -499,7 +528,7 @@ def _adjust(corr, R, t, opts):
     nvec = np.einsum("mru,m,mr->u", A, P, l)  # n = A^T P l
     names = NAMES[opts["dof"]]
     N_eps = _tilt_information(corr, ok_rows[keep], P, opts)
-    N_sig = N - N_eps  # the information that survives re-matching (eq. 5.12b)
+    N_sig = _normal_information(A, P, corr.target_normal[ok_rows[keep]], N, opts) - N_eps  # (eq. 5.12b)
     deg = degeneracy_report(
         _sandwich_precision(N, N_sig), names, opts["rel"], slice(len(names) - 3, None), share_threshold=HELD_SHARE,
         hold_first=names[:-3], sigma0=scale, max_std=opts["max_std"],
@@ -519,9 +548,24 @@ def _adjust(corr, R, t, opts):
     if opts["covariance"] == "block":
         xy = corr.source_xyz[ok_rows, :2] - opts["origin"][:2]
         free = np.isinf(np.diag(Q_s))
-        args = (A_all, l_all, w, u, centred, keep, factor, dx_s, free, {**opts, "xy": xy, "N_eps": N_eps})
+        args = (A_all, l_all, w, u, centred, keep, factor, dx_s, free, {**opts, "xy": xy, "N_eps": N - N_sig})
         block = lambda: _block_covariance(*args) / np.outer(S, S)  # noqa: E731 - evaluated for the last step only
     return _Adjustment(dx, N, Qxx, block, held_cov, float(sigma0), rms, r, deg, corr, float(scale), int((~keep).sum()))
+
+
+def _normal_information(A, P, n, N, opts):
+    """The part of N along the target normals: what a shift changes after re-matching (eq. 5.12b).
+
+    Point-to-plane rows already are that part (N itself). A point-to-point residual q - p also holds
+    the offset between the two samplings along the surface; a shift along the surface re-matches the
+    points and leaves that offset's mean unchanged, so only the rows' components along the normal,
+    A^T n, carry information. Without this, point-to-point ICP on two samplings of one surface
+    claimed millimetres in X and Y while 10-100 stated sigma off.
+    """
+    if opts["metric"] == "point_to_plane":
+        return N
+    a = np.einsum("mru,mr->mu", A, np.nan_to_num(n))  # A^T n per row
+    return np.einsum("m,mu,mv->uv", P, a, a)
 
 
 def _tilt_information(corr, rows, P, opts):
@@ -534,7 +578,7 @@ def _tilt_information(corr, rows, P, opts):
     would make X and Y look determined to centimetres.
     """
     u = 6 if opts["dof"] == "rigid" else 3
-    if opts["metric"] != "point_to_plane" or len(rows) == 0:
+    if len(rows) == 0:
         return np.zeros((u, u))
     if len(rows) > TILT_ROWS:  # an even subset estimates the sum (the tilts are computed once per point)
         stride = -(-len(rows) // TILT_ROWS)
@@ -578,7 +622,13 @@ def _solve(N, nvec, deg, N_sig=None):
     """
     N_sig = N if N_sig is None else N_sig
     if deg.well_posed:
-        c = cho_factor(N)
+        try:
+            c = cho_factor(N)
+        except np.linalg.LinAlgError:
+            raise LabkitError(
+                "the normal equations of ICP are singular although every direction looked determined; "
+                "check the clouds for degenerate (identical or collinear) neighbourhoods"
+            ) from None
         Si = np.linalg.inv(0.5 * (N_sig + N_sig.T))
         return cho_solve(c, nvec), Si @ N @ Si, Si @ nvec
     free = ~deg.parameter_determined  # a real share in an undetermined direction: held (the report names them)
@@ -704,6 +754,12 @@ def _result(R, t, origin, adj, history, converged, matcher, opts, runtime):
         )
     elif not deg.well_posed:
         msg += "; some directions are weak (see the degeneracy report)"
+    if opts["metric"] == "point_to_point" and (undetermined or not converged):
+        msg += (
+            "; point_to_point: the offsets between the two samplings along the surface carry no "
+            "information about the shift (only the components along the normals do), consider "
+            "metric='point_to_plane'"
+        )
     test = None if opts["alpha"] is None else _consistency(adj, matcher, opts)
     if test is not None and not test.agree:  # the groups' spread enters the stated precision (eq. 5.17)
         free = deg.parameter_determined
