@@ -214,10 +214,19 @@ def icp(
 
     Notes
     -----
-    Undetermined directions (a flat field leaves X and Y free): the parameters that take
-    part in them are held fixed and the others solved from the reduced normal equations;
-    the undetermined components keep their initial value, their standard deviation
-    is reported as inf, and the result's message names them.
+    Undetermined directions (a flat field leaves X and Y free) are those whose standard deviation
+    exceeds ``max_std`` (eq. 5.12a), computed from the information that survives re-matching,
+    N_sig = N minus the part faked by the random tilts of the target normals (eq. 5.12b); weak
+    but precise directions (X and Y on gently sloped ALS terrain) are estimated. The parameters
+    that take part in undetermined directions are held fixed and the others solved from the
+    reduced normal equations; the undetermined components keep their initial value, their
+    standard deviation is reported as inf, and the result's message names them. A held
+    parameter's prior (``held_rotation_std_deg``, the matching distance for a shift) is carried
+    into the covariance of the others (eq. 5.15). The update is N_sig^-1 A^T P l, a Newton step on
+    the fixed point of the iteration, so that shifts up to ``max_distance`` converge on sparse
+    terrain; the covariance is the sandwich with N_sig as bread. For ``metric='point_to_point'``
+    only the components of the rows along the target normals count in N_sig: the offsets between
+    two samplings along the surface carry no information about the shift.
 
     The formal covariance sigma0^2 N^-1 treats the correspondences of the last iteration as
     fixed, independent and correctly weighted. Monte Carlo runs of independent epoch pairs
