@@ -168,9 +168,9 @@ def icp(
         the parameters that take part in it are held and reported with std inf. The eigenvalues
         count only the information that survives the re-matching: the part of N that the noise
         of the target normals fakes (a flat field's random normal tilts) is removed first
-        (eq. 5.12b). Default: a quarter of ``max_distance`` (0.25 m without a distance gate): a
-        component that the data know only to a sizeable fraction of the matching distance is not
-        determined by them. Rotations count in metres at the cloud's radius.
+        (eq. 5.12b). Default: a tenth of ``max_distance`` (0.1 m without a distance gate): a
+        component that the data know only to a sizeable fraction of the matching distance (a
+        3-sigma interval of more than 0.3 of it) is not determined by them. Rotations count in metres at the cloud's radius.
     held_rotation_std_deg : float
         Prior standard deviation (degrees) of a rotation that ICP holds at its initial value
         (``dof='rigid'``, weak direction). The translation is then conditional on that value; this
@@ -285,7 +285,8 @@ def icp(
         held_shift_std=_held_shift_std(matcher.options["max_distance"]),
         tilt=_TiltVariance(matcher),
     )  # fmt: skip
-    plain = dict(opts, robust=None, k=None)  # warm-up stage without robust measures
+    opts["cascade"] = True
+    plain = dict(opts, robust=None, k=None, cascade=False)  # warm-up stage: no robust measures, no cascade
     history, converged, adj, step, robust_stage = [], False, None, np.inf, False
     # 3. iterate: match, clean, adjust, update
     for it in range(1, max_iterations + 1):
@@ -332,10 +333,10 @@ def _require_surface(points, name):
 
 
 def _default_max_std(max_std, max_distance):
-    """The precision limit of determinability: given, or a quarter of the matching distance."""
+    """The precision limit of determinability: given, or a tenth of the matching distance."""
     if max_std is not None:
         return float(max_std)
-    return 0.25 * max_distance if np.isfinite(max_distance) else 0.25
+    return 0.1 * max_distance if np.isfinite(max_distance) else 0.1
 
 
 def _held_shift_std(max_distance):
@@ -543,6 +544,20 @@ def _adjust(corr, R, t, opts):
         hold_first=names[:-3], sigma0=scale, max_std=opts["max_std"],
     )  # rotations are given up before translations; precision limit (eq. 5.12a)  # fmt: skip
     dx_s, Q_s, step_s = _solve(N, nvec, deg, N_sig)
+    shift_prior_only = {**opts, "held_rotation_std": 0.0}
+    for _ in range(len(names) if opts["cascade"] else 0):  # once settled: a parameter left imprecise by
+        # held shifts (prior: max_distance) is held too
+        if deg.parameter_determined[-3:].all():  # no shift held: nothing spreads its prior
+            break
+        held_s = _held_rotation_covariance(N_sig, deg, shift_prior_only)
+        with np.errstate(invalid="ignore"):
+            std_s = np.sqrt(np.clip(scale**2 * np.diag(Q_s) + np.diag(held_s), 0, None))
+        worse = deg.parameter_determined & (std_s > opts["max_std"])
+        if not worse.any():
+            break
+        keep_det = deg.parameter_determined & ~worse
+        deg = replace(deg, parameter_determined=keep_det, axis_determined=keep_det[-3:].copy())
+        dx_s, Q_s, step_s = _solve(N, nvec, deg, N_sig)
     v = np.einsum("mru,u->mr", A, dx_s) - l  # residuals after the step
     vPv = float(np.einsum("mr,m,mr->", v, P, v))
     r = len(P) * A.shape[1] - int(deg.constrained.sum())  # redundancy
@@ -630,7 +645,7 @@ def _solve(N, nvec, deg, N_sig=None):
     eigenvectors carry small components of every parameter (noise in the normals).
     """
     N_sig = N if N_sig is None else N_sig
-    if deg.well_posed:
+    if deg.well_posed and deg.parameter_determined.all():
         try:
             c = cho_factor(N)
         except np.linalg.LinAlgError:
@@ -748,7 +763,8 @@ def _result(R, t, origin, adj, history, converged, matcher, opts, runtime):
     if undetermined:
         msg += (
             f"; UNDETERMINED: {', '.join(undetermined)} - the data do not constrain these components, "
-            "they keep their initial value and their standard deviation is inf"
+            "they are held (at their initial value, or where the iteration was when a held shift's prior "
+            "left them too imprecise) and their standard deviation is inf"
         )
     rotations = [n for n in deg.undetermined_parameters if n.startswith("r")]
     if rotations:
