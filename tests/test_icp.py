@@ -566,6 +566,8 @@ def test_consistency_alpha_is_checked():
 def test_tilt_variance_of_pca_normals_matches_monte_carlo():
     """Eq. (5.12b): the predicted covariance of a PCA normal's random tilt against the spread of the
     normals of many noisy samplings of one plane (independent route: repeated sampling)."""
+    from scipy.spatial import cKDTree
+
     from labkit.registration.icp import _TiltVariance
 
     class _M:  # the two things _TiltVariance reads from a matcher
@@ -579,8 +581,6 @@ def test_tilt_variance_of_pca_normals_matches_monte_carlo():
         pts = np.c_[xy, rng.normal(0, sigma, len(xy))]
         m = _M()
         m.target, m.options = pts, {"k": k}
-        from scipy.spatial import cKDTree
-
         m.tree = cKDTree(pts)
         j = np.array([int(np.argmin((xy**2).sum(axis=1)))])
         predicted.append(_TiltVariance(m)(j)[0])
