@@ -1,87 +1,152 @@
-"""Benchmark: labkit ICP vs Open3D ``registration_icp`` (point-to-plane) on synthetic ALS epochs.
+"""Benchmark: labkit ICP beside Open3D ``registration_icp`` (point-to-plane) on real clouds.
 
-Both run in one process on the same epoch pairs (region 'xyz', true shift
-(0.23, -0.17, 0.11) m) at about 50k and 500k points per epoch. Times include
-each library's own normal estimation: Open3D's ``estimate_normals`` (KNN 20) on
-the target, and labkit's normals and local noise (computed inside ``icp`` only
-where needed). labkit runs translation-only point-to-plane ICP on a
-normal-space sample of the source; Open3D estimates a rigid transformation
-(its point-to-plane estimator has no translation-only mode). The error is the
-difference of the estimated and the true motion of the area centre, in mm.
+Both run in one process on the same pairs. Rows (from ``../shared/realdata/``; a row is skipped
+with a message where its file or the folder is absent):
 
-Run:  python benchmarks/bench_icp.py [--quick]
+- ``tls halves``: two disjoint random halves of ``tls/TLS_scan_vz400i.laz`` (about 520,000 points
+  each), the source moved by a known shift of about 0.41 m;
+- ``als halves``: the same with ``als/las_with_several_extra_byte_bloc.laz`` (about 350,000 each);
+- ``faceraster strips``: the two flight strips (point source 305 vs 306) of
+  ``als/faceraster_numerical_imprecision.laz``: no known shift, the columns show each estimate;
+- ``sample_c strips``: strips 54 vs 56 of ``als/sample_c.las`` (roofs, no CRS);
+- ``autzen epochs``: ``epochs/autzen-bmx-2010.las`` onto ``-2023.las`` (ground, 13 years apart),
+  read with :func:`labkit.read_cloud`. Z is stored in US survey feet; the row says whether
+  ``read_cloud`` converted it to metres (its X/Y are metres).
+
+Random halves, not alternating scan lines, make the honest epochs: disjoint points of one surface
+with independent noise (alternating lines of the ALS file differ systematically, e.g. by mirror
+facet, and blocks of lines leave no overlap). Times include each library's own normal estimation
+(Open3D ``estimate_normals`` KNN 20 on the target; labkit inside ``icp``). labkit estimates a
+translation (its default); Open3D's point-to-plane estimator is rigid. Errors are the difference
+of the estimated and the true motion of the source's centre, in mm. The machine may be loaded by
+other jobs: compare the two libraries within one row, not across runs.
+
+Run:  python benchmarks/bench_icp.py [--quick] [--realdata PATH] [--synthetic]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import time
+from pathlib import Path
 
 import numpy as np
 
+from labkit import read_cloud
 from labkit.registration import icp
-from labkit.synthetic import als_epochs
-from labkit.transforms import apply_transform
+from labkit.transforms import apply_transform, make_transform
 
-SIZES = {"50k": (50.0, 50.0), "500k": (158.0, 158.0)}  # at 20 pts/m^2
-
-
-def error_mm(T, pair):
-    """Error of the motion of the area centre (mm)."""
-    c = pair.centre[None, :]
-    return 1000 * (apply_transform(T, c) - apply_transform(pair.truth, c))[0]
+SHIFT = np.array([0.31, -0.24, 0.12])  # about 0.41 m
+FT_US = 1200.0 / 3937.0
 
 
-def run_labkit(pair, n_sample):
+def _realdata(arg):
+    for c in (arg, os.environ.get("LABKIT_REALDATA"), Path(__file__).resolve().parents[2] / "shared" / "realdata",
+              "/work/shared/realdata"):
+        if c and (Path(c) / "README.md").is_file():
+            return Path(c)
+    return None
+
+
+def _halves(xyz, seed=0, keep=1.0):
+    rng = np.random.default_rng(seed)
+    pick = rng.random(len(xyz)) < keep
+    half = rng.random(len(xyz)) < 0.5
+    return xyz[pick & half], xyz[pick & ~half]
+
+
+def pairs(root, quick):
+    """(name, source, target, truth 4x4 or None, note) for every row whose file exists."""
+    keep = 0.25 if quick else 1.0
+    out = []
+
+    def load(rel):
+        path = root / rel
+        if not path.is_file():
+            print(f"skipped: {rel} not found under {root}")
+            return None
+        return read_cloud(path)
+
+    truth = make_transform(np.eye(3), SHIFT)
+    if (c := load("tls/TLS_scan_vz400i.laz")) is not None:
+        tgt, src = _halves(c.xyz, 0, keep)
+        out.append(("tls halves", src - SHIFT, tgt, truth, ""))
+    if (c := load("als/las_with_several_extra_byte_bloc.laz")) is not None:
+        tgt, src = _halves(c.xyz, 0, keep)
+        out.append(("als halves", src - SHIFT, tgt, truth, ""))
+    if (c := load("als/faceraster_numerical_imprecision.laz")) is not None:
+        ps = c["point_source_id"]
+        out.append(("faceraster strips", c.xyz[ps == 306], c.xyz[ps == 305], None, "306 onto 305"))
+    if (c := load("als/sample_c.las")) is not None:
+        ps = c["point_source_id"]
+        out.append(("sample_c strips", c.xyz[ps == 56], c.xyz[ps == 54], None, "56 onto 54"))
+    a, b = load("epochs/autzen-bmx-2010.las"), load("epochs/autzen-bmx-2023.las")
+    if a is not None and b is not None:
+        feet = np.ptp(b.xyz[:, 2]) > 0 and b.xyz[:, 2].min() > 300  # ground at 129-134 m = 423-439 ftUS
+        note = "Z still in US survey feet (read_cloud does not convert it yet)" if feet else "Z in metres"
+        out.append(("autzen 2010->2023", a.xyz, b.xyz, None, note))
+    return out
+
+
+def run_labkit(src, tgt):
     t = time.perf_counter()
-    res = icp(pair.source, pair.target, sample=("normal_space", n_sample), rng=0)
+    res = icp(src, tgt, rng=0)
     return time.perf_counter() - t, res.matrix, res
 
 
-def run_open3d(pair, o3d):
+def run_open3d(src, tgt, o3d):
+    o = tgt.mean(axis=0)
     t = time.perf_counter()
-    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pair.source.xyz - pair.origin))
-    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pair.target.xyz - pair.origin))
-    tgt.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
+    s = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src - o))
+    g = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(tgt - o))
+    g.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
     reg = o3d.pipelines.registration
     out = reg.registration_icp(
-        src, tgt, 1.0, np.eye(4), reg.TransformationEstimationPointToPlane(),
+        s, g, 1.0, np.eye(4), reg.TransformationEstimationPointToPlane(),
         reg.ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=50),
     )  # fmt: skip
     elapsed = time.perf_counter() - t
-    T_local = np.asarray(out.transformation)  # in the frame reduced by pair.origin
-    o = pair.origin
-    T = T_local.copy()
-    T[:3, 3] = T_local[:3, 3] + o - T_local[:3, :3] @ o  # back to the caller's frame
+    T = np.asarray(out.transformation).copy()
+    T[:3, 3] = T[:3, 3] + o - T[:3, :3] @ o  # back to the caller's frame
     return elapsed, T
+
+
+def shift_mm(T, c):
+    return 1000 * (apply_transform(T, c[None])[0] - c)
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="only the 50k case")
-    ap.add_argument("--sample", type=int, default=6000, help="normal-space sample of the source")
+    ap.add_argument("--quick", action="store_true", help="thin the halves to a quarter")
+    ap.add_argument("--realdata", default=None, help="folder of the real development clouds")
     args = ap.parse_args(argv)
     try:
         import open3d as o3d
     except ImportError:  # pragma: no cover
         o3d = None
-    print(f"{'case':6s} {'points/epoch':>13s} {'method':28s} {'time s':>7s} {'dX mm':>7s} {'dY mm':>7s} {'dZ mm':>7s} {'|err| mm':>8s}")
-    for case, size in SIZES.items():
-        if args.quick and case != "50k":
-            continue
-        pair = als_epochs("xyz", size=size, density=20.0, rng=7)
-        n = (len(pair.source) + len(pair.target)) // 2
-        rows = []
-        t, T, res = run_labkit(pair, args.sample)
-        rows.append((f"labkit icp (t, p2pl, ns {args.sample})", t, error_mm(T, pair)))
+        print("open3d not installed: labkit rows only")
+    root = _realdata(args.realdata)
+    if root is None:
+        print("skipped: real development data not found (set LABKIT_REALDATA or --realdata)")
+        return
+    head = f"{'pair':18s} {'points src/tgt':>16s} {'method':14s} {'time s':>7s} {'dX mm':>8s} {'dY mm':>8s} {'dZ mm':>8s}"
+    print(head + "   (error vs the known shift; for pairs without one: the estimated shift)")
+    for name, src, tgt, truth, note in pairs(root, args.quick):
+        c = src.mean(axis=0)
+        ref = shift_mm(truth, c) if truth is not None else np.zeros(3)
+        n = f"{len(src)}/{len(tgt)}"
+        t, T, res = run_labkit(src, tgt)
+        print(f"{name:18s} {n:>16s} {'labkit icp':14s} {t:7.2f} " + " ".join(f"{v:8.2f}" for v in shift_mm(T, c) - ref))
+        std = 1000 * res.translation_std
+        print(f"{'':18s} {'':16s} {'  stated std':14s} {'':7s} " + " ".join(f"{v:8.2f}" for v in std)
+              + f"   {res.iterations} it., {'converged' if res.converged else 'NOT converged'}"
+              + (f"; undetermined {','.join(res.degeneracy.undetermined_axes)}" if res.degeneracy.undetermined_axes else ""))  # fmt: skip
         if o3d is not None:
-            t, T = run_open3d(pair, o3d)
-            rows.append(("open3d registration_icp p2pl", t, error_mm(T, pair)))
-        for name, t, e in rows:
-            print(f"{case:6s} {n:13d} {name:28s} {t:7.2f} {e[0]:7.2f} {e[1]:7.2f} {e[2]:7.2f} {np.linalg.norm(e):8.2f}")
-        std = res.translation_std * 1000
-        print(f"{'':6s} {'':13s} labkit stated std (mm): {std[0]:.2f} {std[1]:.2f} {std[2]:.2f}; "
-              f"{res.iterations} iterations, {res.n_used} correspondences")  # fmt: skip
+            t, T = run_open3d(src, tgt, o3d)
+            print(f"{'':18s} {'':16s} {'open3d p2pl':14s} {t:7.2f} " + " ".join(f"{v:8.2f}" for v in shift_mm(T, c) - ref))
+        if note:
+            print(f"{'':18s} note: {note}")
 
 
 if __name__ == "__main__":

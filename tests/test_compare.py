@@ -411,3 +411,24 @@ def test_icp_on_stable_classes_resists_grown_vegetation():
     # plain ICP's own model test sees the classes disagree; the table carries that flag
     assert not plain.consistent and stable.consistent
     assert "1 flagged inconsistent" in table.summary() and "consistent" in table.text().splitlines()[0]
+
+
+def test_axes_tested_come_from_the_pair_never_from_the_method():
+    # a method that declares Y undetermined (inf std, shift off by 0.3 m) on a pair without a
+    # 'constrained' entry: every axis is tested and Y counts as missed (the method's own verdict
+    # used to remove Y from the test, so the row passed)
+    truth = make_transform(np.eye(3), [0.2, -0.1, 0.05])
+    bare = _pair("plain", truth)
+    del bare.constrained
+    known = _pair("ridge_y", truth, (True, False, True), seed=1)
+    cov = np.diag([1e-4, np.inf, 1e-6])
+
+    def gives_up_y(src, tgt):
+        p = bare if src is bare.source else known
+        return _result(make_transform(np.eye(3), p.truth[:3, 3] + [0.0, 0.3, 0.0]), cov, method="gives-up-y")
+
+    table = compare.compare_methods({("plain", "a"): bare, ("ridge_y", "b"): known}, {"m": gives_up_y})
+    plain = table.select(region="plain").rows[0]
+    assert plain.constrained == "XYZ" and plain.missed == "Y" and not plain.inside
+    ridge = table.select(region="ridge_y").rows[0]  # the pair's geometry leaves Y free: not tested
+    assert ridge.constrained == "XZ" and ridge.missed == "" and ridge.inside and ridge.dof == 2

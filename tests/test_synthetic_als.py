@@ -282,3 +282,44 @@ def test_changes_pull_a_plain_icp_but_the_truth_is_recoverable(region):
     robust = plain_icp_shift(src, p.target.xyz, reject=0.5)
     assert np.linalg.norm(pulled - p.translation) > 0.05
     assert np.linalg.norm(robust - p.translation) < 0.03
+
+
+# ----------------------------------------------------------------------------- sparse hilly terrain
+
+
+def test_hills_region_is_sparse_hilly_bare_ground():
+    from labkit.synthetic import SPARSE_REGIONS
+
+    assert "hills" in SPARSE_REGIONS and "hills" not in REGIONS
+    p = als_epochs("hills", size=(200.0, 200.0), density=0.8, shift=(0.3, -0.22, 0.12), rng=3)
+    area = 200.0 * 200.0
+    assert 0.7 < len(p.target) / area < 0.9 and 0.7 < len(p.source) / area < 0.9
+    assert 30.0 <= np.ptp(p.target.xyz[:, 2]) <= 40.5  # relief drawn from 30-40 m (sampled: a little less)
+    assert set(np.unique(p.target["classification"])) == {2} and p.constrained == (True, True, True)
+    # the source moved by the truth lies on the target surface within the noise (2.5 cm) plus the
+    # curvature between points about 1 m apart
+    moved = apply_transform(p.truth, p.source.xyz)
+    d, i = cKDTree(p.target.xyz[:, :2]).query(moved[:, :2], k=8)
+    # local plane through the 8 nearest target points in xy, evaluated at the moved point
+    X = p.target.xyz[i] - moved[:, None, :]
+    A = np.c_[X[..., 0].reshape(-1), X[..., 1].reshape(-1), np.ones(X[..., 0].size)].reshape(len(moved), 8, 3)
+    z_fit = np.array([np.linalg.lstsq(A[j], X[j, :, 2], rcond=None)[0][2] for j in range(0, len(moved), 50)])
+    assert np.median(np.abs(z_fit)) < 0.05
+
+
+def test_layout_rng_fixes_the_surface_and_rng_the_sampling():
+    a = als_epochs("hills", size=(100.0, 100.0), density=0.5, rng=1, layout_rng=5)
+    b = als_epochs("hills", size=(100.0, 100.0), density=0.5, rng=2, layout_rng=5)
+    c = als_epochs("hills", size=(100.0, 100.0), density=0.5, rng=2, layout_rng=6)
+    assert len(a.target) != len(b.target) or not np.allclose(a.target.xyz, b.target.xyz)
+
+    def height_at(pair, xy):
+        d, i = cKDTree(pair.target.xyz[:, :2]).query(xy, k=1)
+        return pair.target.xyz[i, 2], d
+
+    xy = b.target.xyz[::7, :2]
+    za, da = height_at(a, xy)
+    zc, _ = height_at(c, xy)
+    near = da < 0.3  # same surface: nearby points of the two samplings agree within slope x distance + noise
+    assert np.median(np.abs(za[near] - b.target.xyz[::7, 2][near])) < 0.2
+    assert np.median(np.abs(zc - b.target.xyz[::7, 2])) > 1.0  # another layout: another surface

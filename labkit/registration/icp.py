@@ -29,6 +29,8 @@ HUBER_C, TUKEY_C = 1.345, 4.685  # 95 % efficiency under normal errors
 #: A parameter with this squared share in the undetermined eigen-directions is held fixed (and reported).
 HELD_SHARE = 0.05
 MAD_TO_SIGMA = 1.4826  # 1 / Phi^-1(3/4)
+#: The tilt information of eq. (5.12b) is summed over at most this many correspondences (an even subset).
+TILT_ROWS = 8000
 #: Groups of the consistency test by the classes (ASPRS) of a correspondence's two points, in order of
 #: precedence (vegetation at either end makes it 'vegetation'); the rest is 'other'.
 CLASS_GROUPS = (("vegetation", (3, 4, 5)), ("buildings", (6,)), ("ground/road", (2, 11)))
@@ -109,6 +111,7 @@ def icp(
     robust_start=0.01,
     initial=None,
     rel_threshold=1e-2,
+    max_std=None,
     held_rotation_std_deg=0.02,
     covariance="block",
     block_size=2.0,
@@ -141,7 +144,7 @@ def icp(
     max_iterations : int
     tol : float
         Convergence when the update is smaller than ``tol`` metres (at the cloud's radius for
-        rotations), or when the iteration cycles between a few sets of correspondences with
+        rotations) or than 5 % of every component's standard deviation, or when the iteration cycles between a few sets of correspondences with
         updates below ``100 tol``.
     robust : {None, 'huber', 'tukey'}
         IRLS weights on the standardized residuals (eq. 5.9).
@@ -155,7 +158,19 @@ def icp(
     initial : ndarray (4, 4), optional
         Initial transformation in the caller's frame.
     rel_threshold : float
-        Eigenvalues of N below ``rel_threshold`` times the largest mark undetermined directions.
+        Numerical floor only: the groups of the consistency test determine the eigen-directions
+        of their normal matrix above ``rel_threshold`` times the largest one. Whether a component
+        of the result is determined is decided by its precision (``max_std``), not by a ratio of
+        eigenvalues.
+    max_std : float, optional
+        Precision limit (m) of determinability (eq. 5.12a): an eigen-direction of the normal
+        matrix whose standard deviation ``sigma0 / sqrt(lambda)`` exceeds it is undetermined, and
+        the parameters that take part in it are held and reported with std inf. The eigenvalues
+        count only the information that survives the re-matching: the part of N that the noise
+        of the target normals fakes (a flat field's random normal tilts) is removed first
+        (eq. 5.12b). Default: a tenth of ``max_distance`` (0.1 m without a distance gate): a
+        component that the data know only to a sizeable fraction of the matching distance (a
+        3-sigma interval of more than 0.3 of it) is not determined by them. Rotations count in metres at the cloud's radius.
     held_rotation_std_deg : float
         Prior standard deviation (degrees) of a rotation that ICP holds at its initial value
         (``dof='rigid'``, weak direction). The translation is then conditional on that value; this
@@ -199,10 +214,19 @@ def icp(
 
     Notes
     -----
-    Undetermined directions (a flat field leaves X and Y free): the parameters that take
-    part in them are held fixed and the others solved from the reduced normal equations;
-    the undetermined components keep their initial value, their standard deviation
-    is reported as inf, and the result's message names them.
+    Undetermined directions (a flat field leaves X and Y free) are those whose standard deviation
+    exceeds ``max_std`` (eq. 5.12a), computed from the information that survives re-matching,
+    N_sig = N minus the part faked by the random tilts of the target normals (eq. 5.12b); weak
+    but precise directions (X and Y on gently sloped ALS terrain) are estimated. The parameters
+    that take part in undetermined directions are held fixed and the others solved from the
+    reduced normal equations; the undetermined components keep their initial value, their
+    standard deviation is reported as inf, and the result's message names them. A held
+    parameter's prior (``held_rotation_std_deg``, the matching distance for a shift) is carried
+    into the covariance of the others (eq. 5.15). The update is N_sig^-1 A^T P l, a Newton step on
+    the fixed point of the iteration, so that shifts up to ``max_distance`` converge on sparse
+    terrain; the covariance is the sandwich with N_sig as bread. For ``metric='point_to_point'``
+    only the components of the rows along the target normals count in N_sig: the offsets between
+    two samplings along the surface carry no information about the shift.
 
     The formal covariance sigma0^2 N^-1 treats the correspondences of the last iteration as
     fixed, independent and correctly weighted. Monte Carlo runs of independent epoch pairs
@@ -229,15 +253,21 @@ def icp(
     choice(robust, (None, "huber", "tukey"), "robust")
     choice(covariance, ("formal", "block"), "covariance")
     block_size = positive(block_size, "block_size")
-    max_iterations = int(positive(max_iterations, "max_iterations"))
+    positive(max_iterations, "max_iterations")  # > 0; a whole number: checked below
     tol = positive(tol, "tol")
     robust_start = positive(robust_start, "robust_start")
     held_rotation_std = np.radians(_non_negative(held_rotation_std_deg, "held_rotation_std_deg"))
     if consistency_alpha is not None and not 0 < consistency_alpha < 1:
         raise LabkitError(f"consistency_alpha must lie in (0, 1) or be None, got {consistency_alpha!r}")
     kval = None if reject_sigma is None else positive(reject_sigma, "reject_sigma")
+    if max_std is not None:
+        max_std = positive(max_std, "max_std")
+    k = _whole(k, "k")
+    max_iterations = _whole(max_iterations, "max_iterations")
     # 1. shared local origin, initial transformation in the local frame
     origin = local_origin(as_points(target, min_points=3, name="target"))
+    for cloud, name in ((source, "source"), (target, "target")):
+        _require_surface(as_points(cloud, min_points=3, name=name), name)
     R, t = _initial_local(initial, origin)
     # 2. kd-tree of the target, sampling and exclusions: once
     matcher = prepare(
@@ -251,8 +281,12 @@ def icp(
         origin=origin, dof=dof, metric=metric, robust=robust, k=kval, L=L, rel=rel_threshold,
         min_n=min_correspondences, covariance=covariance, block_size=block_size,
         held_rotation_std=held_rotation_std, alpha=consistency_alpha,
+        max_std=_default_max_std(max_std, matcher.options["max_distance"]),
+        held_shift_std=_held_shift_std(matcher.options["max_distance"]),
+        tilt=_TiltVariance(matcher),
     )  # fmt: skip
-    plain = dict(opts, robust=None, k=None)  # warm-up stage without robust measures
+    opts["cascade"] = True
+    plain = dict(opts, robust=None, k=None, cascade=False)  # warm-up stage: no robust measures, no cascade
     history, converged, adj, step, robust_stage = [], False, None, np.inf, False
     # 3. iterate: match, clean, adjust, update
     for it in range(1, max_iterations + 1):
@@ -265,11 +299,93 @@ def icp(
         history.append(_record(it, R, t, adj, step))
         final_stage = robust_stage or (robust is None and kval is None)
         cycle = _cycle(history, 0.1 * tol)
-        if final_stage and (step < tol or (cycle and max(h.step for h in history[-cycle:]) < 100 * tol)):
+        small = step < tol or _within_precision(adj)
+        if final_stage and (small or (cycle and max(h.step for h in history[-cycle:]) < 100 * tol)):
             converged = True
             break
     # 4. final report from the last adjustment
     return _result(R, t, origin, adj, history, converged, matcher, opts, time.perf_counter() - t_start)
+
+
+def _whole(value, name):
+    """An integer parameter given as an int or an integral float; 20.5 is an error, not 20."""
+    try:
+        ok = float(value) == int(value)
+    except (TypeError, ValueError, OverflowError):
+        ok = False
+    if isinstance(value, (bool, str)) or not ok:
+        raise LabkitError(f"{name} must be a whole number, got {value!r}")
+    return int(value)
+
+
+def _require_surface(points, name):
+    """Identical or collinear points have no surface: no normals, and a shift along the line is free."""
+    sub = points[:: max(1, len(points) // 20000)]
+    centre = sub.mean(axis=0)
+    s = np.linalg.svd(sub - centre, compute_uv=False) / np.sqrt(len(sub))  # rms spread per axis
+    identical = s[0] <= 1e-12 * max(1.0, float(np.abs(centre).max()))  # rounding of large coordinates
+    if identical or s[1] <= 1e-9 * s[0]:
+        what = "identical" if identical else "collinear"
+        raise LabkitError(
+            f"the {name} points are {what}: ICP needs a surface (points spread in two directions) "
+            "to find normals and correspondences"
+        )
+
+
+def _default_max_std(max_std, max_distance):
+    """The precision limit of determinability: given, or a tenth of the matching distance."""
+    if max_std is not None:
+        return float(max_std)
+    return 0.1 * max_distance if np.isfinite(max_distance) else 0.1
+
+
+def _held_shift_std(max_distance):
+    """Prior std of a held translation: its true value can lie anywhere within the matching distance."""
+    return float(max_distance) if np.isfinite(max_distance) else 1.0
+
+
+class _TiltVariance:
+    """Covariance of the random tilt of each target point's PCA normal, computed once per point (private).
+
+    A plane fitted to k neighbours with noise sigma_n has, along each tangent eigen-direction e_j of
+    the neighbours' spread lambda_j, a slope error of variance sigma_n^2 / (k lambda_j): the error
+    of a regression slope. The tilt covariance is sum_j e_j e_j^T sigma_n^2 / (k lambda_j), with
+    sigma_n^2 = k lambda_0 / (k - 3) (notebook 04, eq. 5).
+    """
+
+    def __init__(self, matcher):
+        self.points, self.tree, self.k = matcher.target, matcher.tree, matcher.options["k"]
+        self.C = np.full((len(self.points), 3, 3), np.nan)
+
+    def __call__(self, j):
+        todo = np.unique(j[np.isnan(self.C[j, 0, 0])])
+        for start in range(0, todo.size, 50000):  # bounded memory of the (c, k, 3) gathers
+            self.C[todo[start : start + 50000]] = self._compute(todo[start : start + 50000])
+        return self.C[j]
+
+    def _compute(self, index):
+        k = self.k
+        nb = self.tree.query(self.points[index], k=k, workers=-1 if len(index) > 2000 else 1)[1]
+        X = self.points[nb]
+        X = X - X.mean(axis=1, keepdims=True)
+        lam, V = np.linalg.eigh(np.einsum("cki,ckj->cij", X, X) / k)  # ascending
+        s2 = np.clip(lam[:, 0], 0, None) * k / (k - 3)
+        t = np.clip(lam[:, 1:], 1e-300, None)
+        w = np.clip(s2[:, None] / (k * t), 0.0, 1.0)  # tilt variance along e_1, e_2
+        return np.einsum("cj,cij,ckj->cik", w, V[:, :, 1:], V[:, :, 1:])
+
+
+def _within_precision(adj, share=0.05):
+    """True when every component of the update is below ``share`` of its formal standard deviation.
+
+    In a weak direction the nearest neighbours keep changing and the iteration jitters about its
+    fixed point by a small fraction of that direction's precision; an absolute ``tol`` would wait
+    for it in vain.
+    """
+    with np.errstate(invalid="ignore"):
+        std = adj.sigma0 * np.sqrt(np.diag(adj.Qxx))
+    ok = np.isfinite(std)
+    return bool(ok.any() and np.all(np.abs(adj.dx[ok]) <= share * std[ok]))
 
 
 def _cycle(history, atol, longest=10):
@@ -394,7 +510,7 @@ def _block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, opts):
         near = np.abs(u - limit) < h
         psi_limit = limit * (np.median(factor[keep & near]) if (keep & near).any() else 1.0)
         J -= psi_limit / (2 * h) * np.einsum("m,mu,mv->uv", w * near, Ae, Ae)
-    J = J[np.ix_(fixed, fixed)]
+    J = (J - opts["N_eps"])[np.ix_(fixed, fixed)]  # the bread: what survives re-matching (eq. 5.12b)
     try:
         c = cho_factor(0.5 * (J + J.T))
     except np.linalg.LinAlgError:
@@ -421,10 +537,27 @@ def _adjust(corr, R, t, opts):
     N = np.einsum("mru,m,mrv->uv", A, P, A)  # N = A^T P A  (eq. 5.7)
     nvec = np.einsum("mru,m,mr->u", A, P, l)  # n = A^T P l
     names = NAMES[opts["dof"]]
+    N_eps = _tilt_information(corr, ok_rows[keep], P, opts)
+    N_sig = _normal_information(A, P, corr.target_normal[ok_rows[keep]], N, opts) - N_eps  # (eq. 5.12b)
     deg = degeneracy_report(
-        N, names, opts["rel"], slice(len(names) - 3, None), share_threshold=HELD_SHARE, hold_first=names[:-3]
-    )  # rotations are given up before translations
-    dx_s, Q_s = _solve(N, nvec, deg)
+        _sandwich_precision(N, N_sig), names, opts["rel"], slice(len(names) - 3, None), share_threshold=HELD_SHARE,
+        hold_first=names[:-3], sigma0=scale, max_std=opts["max_std"],
+    )  # rotations are given up before translations; precision limit (eq. 5.12a)  # fmt: skip
+    dx_s, Q_s, step_s = _solve(N, nvec, deg, N_sig)
+    shift_prior_only = {**opts, "held_rotation_std": 0.0}
+    for _ in range(len(names) if opts["cascade"] else 0):  # once settled: a parameter left imprecise by
+        # held shifts (prior: max_distance) is held too
+        if deg.parameter_determined[-3:].all():  # no shift held: nothing spreads its prior
+            break
+        held_s = _held_rotation_covariance(N_sig, deg, shift_prior_only)
+        with np.errstate(invalid="ignore"):
+            std_s = np.sqrt(np.clip(scale**2 * np.diag(Q_s) + np.diag(held_s), 0, None))
+        worse = deg.parameter_determined & (std_s > opts["max_std"])
+        if not worse.any():
+            break
+        keep_det = deg.parameter_determined & ~worse
+        deg = replace(deg, parameter_determined=keep_det, axis_determined=keep_det[-3:].copy())
+        dx_s, Q_s, step_s = _solve(N, nvec, deg, N_sig)
     v = np.einsum("mru,u->mr", A, dx_s) - l  # residuals after the step
     vPv = float(np.einsum("mr,m,mr->", v, P, v))
     r = len(P) * A.shape[1] - int(deg.constrained.sum())  # redundancy
@@ -432,20 +565,78 @@ def _adjust(corr, R, t, opts):
     rms = float(np.sqrt(np.einsum("mr,m,mr->", l, P, l) / max(P.sum(), 1e-300)))
     S = np.ones(len(names))
     S[: len(names) - 3] = opts["L"]  # rotation columns were divided by L
-    dx = dx_s / S
+    dx = step_s / S  # the update: Newton on the fixed point, whose slope is N_sig (eq. 5.12b)
     Qxx = Q_s / np.outer(S, S)
-    held_cov = _held_rotation_covariance(N, deg, opts) / np.outer(S, S)
+    held_cov = _held_rotation_covariance(N_sig, deg, opts) / np.outer(S, S)
     block = None
     if opts["covariance"] == "block":
         xy = corr.source_xyz[ok_rows, :2] - opts["origin"][:2]
         free = np.isinf(np.diag(Q_s))
-        args = (A_all, l_all, w, u, centred, keep, factor, dx_s, free, {**opts, "xy": xy})
+        args = (A_all, l_all, w, u, centred, keep, factor, dx_s, free, {**opts, "xy": xy, "N_eps": N - N_sig})
         block = lambda: _block_covariance(*args) / np.outer(S, S)  # noqa: E731 - evaluated for the last step only
     return _Adjustment(dx, N, Qxx, block, held_cov, float(sigma0), rms, r, deg, corr, float(scale), int((~keep).sum()))
 
 
-def _solve(N, nvec, deg):
-    """Step and cofactor matrix; the datum is fixed when N is degenerate (eq. 5.12).
+def _normal_information(A, P, n, N, opts):
+    """The part of N along the target normals: what a shift changes after re-matching (eq. 5.12b).
+
+    Point-to-plane rows already are that part (N itself). A point-to-point residual q - p also holds
+    the offset between the two samplings along the surface; a shift along the surface re-matches the
+    points and leaves that offset's mean unchanged, so only the rows' components along the normal,
+    A^T n, carry information. Without this, point-to-point ICP on two samplings of one surface
+    claimed millimetres in X and Y while 10-100 stated sigma off.
+    """
+    if opts["metric"] == "point_to_plane":
+        return N
+    a = np.einsum("mru,mr->mu", A, np.nan_to_num(n))  # A^T n per row
+    return np.einsum("m,mu,mv->uv", P, a, a)
+
+
+def _tilt_information(corr, rows, P, opts):
+    """The part of N that the random tilt of the target normals fakes (eq. 5.12b), scaled parameters.
+
+    A point-to-plane row a_i = G_i n_i (G = I, or [[p]x / L; I] for rigid) uses the estimated normal
+    n = n0 + e with a tilt e of covariance C_i (see :class:`_TiltVariance`). E[a a^T] = G (n0 n0^T + C_e) G^T: the
+    second part is information about the shift only while the correspondences stay fixed; after
+    re-matching, a random tilt points elsewhere. On a flat field it is all that N contains, and it
+    would make X and Y look determined to centimetres.
+    """
+    u = 6 if opts["dof"] == "rigid" else 3
+    if len(rows) == 0:
+        return np.zeros((u, u))
+    if len(rows) > TILT_ROWS:  # an even subset estimates the sum (the tilts are computed once per point)
+        stride = -(-len(rows) // TILT_ROWS)
+        total = P.sum()
+        rows, P = rows[::stride], P[::stride]
+        P = P * (total / max(P.sum(), 1e-300))
+    C = opts["tilt"](corr.target_index[rows])  # (m, 3, 3) tilt covariance of each target normal
+    if opts["dof"] == "rigid":
+        p = corr.source_xyz[rows] - opts["origin"]
+        G = np.concatenate([_skew(p) / opts["L"], np.broadcast_to(np.eye(3), (len(p), 3, 3))], axis=1)
+        return np.einsum("m,mai,mij,mbj->ab", P, G, C, G)
+    return np.einsum("m,mij->ij", P, C)
+
+
+def _sandwich_precision(N, N_sig):
+    """(N_sig^-1 N N_sig^-1)^-1 = N_sig N^-1 N_sig with N_sig's negative eigenvalues set to 0 (eq. 5.12b).
+
+    Its eigenvalues give sigma0 / sqrt(lambda) = the standard deviation of the fixed point along each
+    direction; a direction that holds no information beyond the tilt noise gets 0.
+    """
+    lam, V = np.linalg.eigh(0.5 * (N_sig + N_sig.T))
+    S = (V * np.clip(lam, 0, None)) @ V.T
+    Pi = S @ np.linalg.lstsq(N, S, rcond=None)[0]
+    return 0.5 * (Pi + Pi.T)
+
+
+def _solve(N, nvec, deg, N_sig=None):
+    """Least-squares step, cofactor matrix and update; the datum is fixed when N is degenerate (eq. 5.12).
+
+    The step solves N (the linearization for the current correspondences); the cofactor
+    matrix is the sandwich N_sig^-1 N N_sig^-1 with the information that survives re-matching
+    (eq. 5.12b) as bread: the fixed point of the iteration moves with N_sig, not with N. The
+    update N_sig^-1 A^T P l is Newton's step on that fixed point: a step with N would move a weak
+    direction only by N_sig / N of the way in each iteration (slow on gently sloped terrain).
 
     Parameters with a real share in an undetermined eigen-direction are held at
     their current value (their column is removed), the others are solved from the
@@ -453,22 +644,36 @@ def _solve(N, nvec, deg):
     eigen-directions alone would let the undetermined parameters drift: those
     eigenvectors carry small components of every parameter (noise in the normals).
     """
-    if deg.well_posed:
-        c = cho_factor(N)
-        return cho_solve(c, nvec), cho_solve(c, np.eye(len(N)))
+    N_sig = N if N_sig is None else N_sig
+    if deg.well_posed and deg.parameter_determined.all():
+        try:
+            c = cho_factor(N)
+        except np.linalg.LinAlgError:
+            raise LabkitError(
+                "the normal equations of ICP are singular although every direction looked determined; "
+                "check the clouds for degenerate (identical or collinear) neighbourhoods"
+            ) from None
+        Si = np.linalg.inv(0.5 * (N_sig + N_sig.T))
+        return cho_solve(c, nvec), Si @ N @ Si, Si @ nvec
     free = ~deg.parameter_determined  # a real share in an undetermined direction: held (the report names them)
     fixed = ~free
     dx = np.zeros(len(N))
+    step = np.zeros(len(N))
     Q = np.full((len(N), len(N)), np.nan)
     if fixed.any():
         Nr = N[np.ix_(fixed, fixed)]
         lam, V = np.linalg.eigh(0.5 * (Nr + Nr.T))
-        ok = lam >= deg.rel_threshold * max(lam[-1], 1e-300)  # guard: still degenerate after the reduction
+        ok = lam >= 1e-12 * max(lam[-1], 1e-300)  # numerical guard
         V, lam = V[:, ok], lam[ok]
         dx[fixed] = V @ ((V.T @ nvec[fixed]) / lam)
-        Q[np.ix_(fixed, fixed)] = (V / lam) @ V.T
+        Sr = N_sig[np.ix_(fixed, fixed)]
+        lam_s, V_s = np.linalg.eigh(0.5 * (Sr + Sr.T))
+        ok = lam_s > 1e-12 * max(lam_s[-1], 1e-300)
+        Si = (V_s[:, ok] / lam_s[ok]) @ V_s[:, ok].T
+        Q[np.ix_(fixed, fixed)] = Si @ Nr @ Si
+        step[fixed] = Si @ nvec[fixed]
     Q[free, free] = np.inf
-    return dx, Q
+    return dx, Q, step
 
 
 def _held_rotation_covariance(N, deg, opts):
@@ -477,18 +682,21 @@ def _held_rotation_covariance(N, deg, opts):
     Holding h at its prior value h0 makes the free parameters conditional on it: their
     solution moves by -B (h - h0) with B = N_ff^-1 N_fh (eq. 5.15), so a prior standard deviation
     sigma_h of the rotation adds B sigma_h^2 B^T to their covariance. The scaled rotation is L omega.
+    A held translation does the same with a prior std of the matching distance (its true value may
+    lie anywhere within reach): on sloped ground a held X moves Z by slope times X (eq. 5.15).
     """
     p = len(N)
     out = np.zeros((p, p))
-    if deg.parameter_determined is None or opts["held_rotation_std"] == 0:
+    if deg.parameter_determined is None:
         return out
     free = deg.parameter_determined.copy()
-    held_rot = ~free & np.array([n.startswith("r") for n in deg.names])
-    if not held_rot.any() or not free.any():
+    is_rot = np.array([n.startswith("r") for n in deg.names])
+    held = ~free
+    if not held.any() or not free.any():
         return out
-    B = np.linalg.lstsq(N[np.ix_(free, free)], N[np.ix_(free, held_rot)], rcond=None)[0]
-    s = opts["held_rotation_std"] * opts["L"]
-    out[np.ix_(free, free)] = s**2 * B @ B.T
+    prior = np.where(is_rot, opts["held_rotation_std"] * opts["L"], opts["held_shift_std"])[held]
+    B = np.linalg.lstsq(N[np.ix_(free, free)], N[np.ix_(free, held)], rcond=None)[0]
+    out[np.ix_(free, free)] = (B * prior**2) @ B.T
     return out
 
 
@@ -555,7 +763,8 @@ def _result(R, t, origin, adj, history, converged, matcher, opts, runtime):
     if undetermined:
         msg += (
             f"; UNDETERMINED: {', '.join(undetermined)} - the data do not constrain these components, "
-            "they keep their initial value and their standard deviation is inf"
+            "they are held (at their initial value, or where the iteration was when a held shift's prior "
+            "left them too imprecise) and their standard deviation is inf"
         )
     rotations = [n for n in deg.undetermined_parameters if n.startswith("r")]
     if rotations:
@@ -570,6 +779,12 @@ def _result(R, t, origin, adj, history, converged, matcher, opts, runtime):
         )
     elif not deg.well_posed:
         msg += "; some directions are weak (see the degeneracy report)"
+    if opts["metric"] == "point_to_point" and (undetermined or not converged):
+        msg += (
+            "; point_to_point: the offsets between the two samplings along the surface carry no "
+            "information about the shift (only the components along the normals do), consider "
+            "metric='point_to_plane'"
+        )
     test = None if opts["alpha"] is None else _consistency(adj, matcher, opts)
     if test is not None and not test.agree:  # the groups' spread enters the stated precision (eq. 5.17)
         free = deg.parameter_determined

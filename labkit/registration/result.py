@@ -28,7 +28,9 @@ class Degeneracy(ReportMixin):
     eigenvectors : ndarray (p, p)
         Matching unit eigenvectors in the columns.
     constrained : ndarray of bool (p,)
-        Per eigen-direction: eigenvalue / largest eigenvalue >= ``rel_threshold``.
+        Per eigen-direction: determined. With ``max_std`` (ICP): the standard deviation along the
+        direction, ``sigma0 / sqrt(eigenvalue)``, is at most ``max_std``; otherwise: eigenvalue /
+        largest eigenvalue >= ``rel_threshold``.
     axis_determined : ndarray of bool (3,)
         Per translation axis X, Y, Z: the entry of ``parameter_determined`` for tx, ty, tz.
     rel_threshold : float
@@ -42,6 +44,11 @@ class Degeneracy(ReportMixin):
         fixed and reports their standard deviation as inf).
     share_threshold : float
         The share used for ``parameter_determined``.
+    direction_std : ndarray (p,) or None
+        Standard deviation along each eigen-direction, ``sigma0 / sqrt(eigenvalue)`` (m; rotations
+        scaled to metres at the cloud's radius); inf where the eigenvalue is not positive.
+    max_std : float or None
+        The precision limit: a direction whose standard deviation exceeds it is undetermined.
     """
 
     eigenvalues: np.ndarray
@@ -52,6 +59,8 @@ class Degeneracy(ReportMixin):
     names: tuple
     parameter_determined: np.ndarray | None = None
     share_threshold: float = 0.5
+    direction_std: np.ndarray | None = None
+    max_std: float | None = None
 
     @property
     def well_posed(self) -> bool:
@@ -72,9 +81,13 @@ class Degeneracy(ReportMixin):
 
     def _report(self):
         rows = []
-        for lam, ok, vec in zip(self.eigenvalues, self.constrained, self.eigenvectors.T):
+        stds = [None] * len(self.eigenvalues) if self.direction_std is None else self.direction_std
+        if self.max_std is not None:
+            rows.append(("precision limit", f"a direction with std > {self.max_std:.4g} m is undetermined"))
+        for lam, ok, vec, sd in zip(self.eigenvalues, self.constrained, self.eigenvectors.T, stds):
             direction = ", ".join(f"{n}:{c:+.2f}" for n, c in zip(self.names, vec) if abs(c) > 0.05)
-            rows.append((f"lambda = {lam:.4g}", f"{'constrained' if ok else 'UNDETERMINED'} along {direction}"))
+            std = "" if sd is None else f" (std {sd:.3g} m)"
+            rows.append((f"lambda = {lam:.4g}", f"{'constrained' if ok else 'UNDETERMINED'} along {direction}{std}"))
         rows.append(("undetermined axes", ", ".join(self.undetermined_axes) or "none"))
         rotations = [n for n in self.undetermined_parameters if n.startswith("r")]
         if rotations:
@@ -89,6 +102,9 @@ def degeneracy_report(
     translation_slice=slice(None),
     share_threshold: float = 0.5,
     hold_first=(),
+    *,
+    sigma0: float | None = None,
+    max_std: float | None = None,
 ) -> Degeneracy:
     """Eigen-analysis of a normal matrix N (p x p, symmetric).
 
@@ -118,18 +134,30 @@ def degeneracy_report(
         that are still weak in it are held as well. A weak direction mixing rz with X and Y
         then costs rz, not the two translations: the rotation's initial value (none, or the
         given one) is the plausible prior for epochs, a shift of zero is not.
+    sigma0, max_std : float, optional
+        Determinability from precision (eq. 5.12a): with both given, a direction is undetermined
+        when its standard deviation ``sigma0 / sqrt(eigenvalue)`` exceeds ``max_std``, whatever
+        its eigenvalue relative to the largest (on sloped terrain X and Y are often 5-50 times
+        weaker than Z and still determined to centimetres). ``rel_threshold`` is then not used.
     """
     N = np.asarray(N, dtype=np.float64)
     lam, vecs = np.linalg.eigh(0.5 * (N + N.T))
     top = lam[-1] if lam[-1] > 0 else 1.0
-    constrained = lam >= rel_threshold * top
+    level = rel_threshold * top
+    std = None
+    if max_std is not None and sigma0 is not None:
+        level = (float(sigma0) / float(max_std)) ** 2  # sigma0 / sqrt(lambda) <= max_std  (eq. 5.12a)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            std = np.where(lam > 0, float(sigma0) / np.sqrt(np.clip(lam, 1e-300, None)), np.inf)
+    constrained = lam >= max(level, 1e-300)
     determined = _weak_share(vecs, constrained) < share_threshold
     if hold_first and not constrained.all():
-        determined = _hold_in_order(N, names, rel_threshold * top, share_threshold, hold_first)
+        determined = _hold_in_order(N, names, max(level, 1e-300), share_threshold, hold_first)
     axis_determined = determined[translation_slice].copy()
     return Degeneracy(
-        lam, vecs, constrained, axis_determined, float(rel_threshold), tuple(names), determined, float(share_threshold)
-    )
+        lam, vecs, constrained, axis_determined, float(rel_threshold), tuple(names), determined,
+        float(share_threshold), std, None if max_std is None or sigma0 is None else float(max_std),
+    )  # fmt: skip
 
 
 @dataclass(frozen=True, eq=False, repr=False)
@@ -406,6 +434,8 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
         None when fewer than two groups are large enough.
     """
     u = A.shape[2]
+    if u == 0:  # every parameter held: nothing to test
+        return None
     N_all = np.einsum("mru,m,mrv->uv", A, P, A)
     x0 = np.linalg.lstsq(N_all, np.einsum("mru,m,mr->u", A, P, l), rcond=None)[0]  # the result's own step
     ys, Ws, Vs, used, ns, deltas, offs_std, scores = [], [], [], [], [], [], [], []

@@ -20,6 +20,7 @@ _EXPORTS = {
     "als_epochs": "labkit.synthetic.als",
     "EpochPair": "labkit.synthetic.als",
     "REGIONS": "labkit.synthetic.als",
+    "SPARSE_REGIONS": "labkit.synthetic.als",
 }
 
 __all__ = sorted(_EXPORTS)

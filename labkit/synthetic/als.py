@@ -31,6 +31,8 @@ REGIONS: tuple[str, ...] = (
     "xyz", "xz", "yz", "xy", "forest", "field", "water", "road",
     "demolished", "new_building", "trees_felled", "trees_planted",
 )
+#: Regions meant for large areas at low density (not in :data:`REGIONS`, whose scenes fit 30-60 m).
+SPARSE_REGIONS: tuple[str, ...] = ("hills",)
 
 CELL = 20.0  # layout cell (m): one building or tree group per cell
 T2014, T2016 = 8.27e7, 1.458e8  # adjusted standard GPS time (s) of the two campaigns
@@ -83,6 +85,11 @@ _INFO = {
     "trees_planted": ((True, True, True),
                       "Village as in 'xyz' (flat terrain) with a group of young trees (4-7 m) planted between 2014 "
                       "and 2016 on open ground. Stable buildings fix the shift; the new crowns pull a plain ICP."),
+    "hills": ((True, True, True),
+              "Bare hilly terrain for sparse ALS (use e.g. size=(200, 200), density=0.5-1): 30-40 m of relief "
+              "from three long waves (wavelengths 120-250 m) on a regional slope, no buildings or trees. "
+              "Every direction is constrained by the slopes, X and Y much more weakly than Z; at 1 pt/m^2 "
+              "the neighbourhoods of the normals span several metres of curved ground."),
 }
 
 
@@ -169,13 +176,14 @@ def als_scene(region: str = "xyz", *, size=(60.0, 60.0), density=20.0, rng=None,
 
 def als_epochs(region: str = "xyz", *, shift=(0.23, -0.17, 0.11), rotation_deg=None,
                size=(60.0, 60.0), density=20.0, source_density=None, dim=False,
-               rng=None, origin=(600000.0, 5400000.0, 300.0)) -> EpochPair:
+               rng=None, origin=(600000.0, 5400000.0, 300.0), layout_rng=None) -> EpochPair:
     """Two epochs of a named test region with a known transformation (seed 003, steps 1 and 1.5).
 
     Parameters
     ----------
     region : str
-        One of :data:`REGIONS`.
+        One of :data:`REGIONS` or :data:`SPARSE_REGIONS` ('hills': sparse hilly terrain, meant for
+        e.g. ``size=(200, 200), density=0.8``).
     shift : (3,) float
         True translation (m) that maps the source onto the target (about the area centre).
     rotation_deg : (3,) float, optional
@@ -192,6 +200,9 @@ def als_epochs(region: str = "xyz", *, shift=(0.23, -0.17, 0.11), rotation_deg=N
     rng : int or numpy.random.Generator, optional
     origin : (3,) float
         South-west corner of the area (UTM-sized by default).
+    layout_rng : int or numpy.random.Generator, optional
+        Seed of the surface model alone (buildings, trees, terrain); ``rng`` then draws only the
+        sampling and noise of the two epochs. Monte Carlo runs over one fixed scene use it.
 
     Returns
     -------
@@ -199,12 +210,13 @@ def als_epochs(region: str = "xyz", *, shift=(0.23, -0.17, 0.11), rotation_deg=N
         ``truth`` maps ``source`` onto ``target``: ``apply_transform(pair.truth, pair.source.xyz)``
         lies on the target surface.
     """
-    region = choice(region, REGIONS, "region")
+    region = choice(region, REGIONS + SPARSE_REGIONS, "region")
     size, density, origin, shift, angles = _check_args(size, density, origin, shift, rotation_deg)
     src_density = density if source_density is None and not dim else (
         100.0 if source_density is None else positive(source_density, "source_density"))
     seeds = as_rng(rng).integers(0, 2**63 - 1, size=3)
-    layout_rng, target_rng, source_rng = (np.random.default_rng(s) for s in seeds)
+    layout_rng_, target_rng, source_rng = (np.random.default_rng(s) for s in seeds)
+    layout_rng = layout_rng_ if layout_rng is None else as_rng(layout_rng)
     # Build the surface model in the target frame
     scene = _LAYOUTS[region](size, layout_rng)
     # Sample the target on the area, the source over a margin so that it still fills the area when moved
@@ -331,6 +343,24 @@ def _hilly(size, rng, amplitude=0.6, slope=(0.04, -0.03)):
                    2 * np.pi / rng.uniform(40, 80) * np.sin(th), rng.uniform(0, 2 * np.pi))
                   for th in rng.uniform(0, np.pi, 2))
     return S.Terrain((size[0] / 2, size[1] / 2), slope, waves)
+
+
+def _hills(size, rng, relief=(30.0, 40.0), wavelength=(120.0, 250.0)):
+    """Long waves on a regional slope, scaled to a relief (max - min over the area) drawn from ``relief``."""
+    th = rng.uniform(0, np.pi, 3)
+    lam = rng.uniform(*wavelength, 3)
+    waves = [(1.0, 2 * np.pi / w * np.cos(a), 2 * np.pi / w * np.sin(a), rng.uniform(0, 2 * np.pi))
+             for w, a in zip(lam, th)]
+    slope = tuple(rng.uniform(-0.05, 0.05, 2))
+    probe = S.Terrain((size[0] / 2, size[1] / 2), slope, tuple(waves))
+    gx, gy = np.meshgrid(np.linspace(0, size[0], 41), np.linspace(0, size[1], 41))
+    f = rng.uniform(*relief) / np.ptp(probe.z(gx, gy))  # scale the whole surface to the drawn relief
+    waves = tuple((f * A, kx, ky, ph) for A, kx, ky, ph in waves)
+    return S.Terrain((size[0] / 2, size[1] / 2), (f * slope[0], f * slope[1]), waves)
+
+
+def _layout_hills(size, rng):
+    return S.Scene(size, _hills(size, rng))
 
 
 def _flat(size):
@@ -463,4 +493,5 @@ _LAYOUTS = {
     "new_building": _layout_change("new_building"),
     "trees_felled": _layout_change("trees_felled"),
     "trees_planted": _layout_change("trees_planted"),
+    "hills": _layout_hills,
 }
