@@ -18,17 +18,18 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .._checks import as_points, as_rng, choice, positive
-from .._eigh3 import eigh3
+from .._eigh3 import HAVE_NUMBA, eigh3
+from .._kdtree import KDTree
 from ..features import _covariances  # shared kNN covariance kernel (compiled)
 from .._frame import local_origin, reduce
 from .._report import ReportMixin, fmt
 from ..errors import LabkitError
 
-#: Row labels, in the order the rules are applied; code 0 is an accepted correspondence.
-RULES = ("accepted", "class", "noise", "distance", "normal_angle", "duplicate", "outlier")
+#: Row labels; code 0 is an accepted correspondence. 'degenerate': the source or target point has
+#: no normal (its neighbourhood is a point or a line, issue 16); it is applied with the normal angle.
+RULES = ("accepted", "class", "noise", "distance", "normal_angle", "duplicate", "outlier", "degenerate")
 _CODE = {name: code for code, name in enumerate(RULES)}
 #: Floor for a point's standard deviation in the weights (m), keeps weights finite.
 MIN_SIGMA = 0.005
@@ -169,27 +170,40 @@ def _replace(corr: Correspondences, **changes) -> Correspondences:
 # --------------------------------------------------------------------- geometry
 
 
-def _local_geometry(points, tree, index, k, rank, cols=None):
-    """Normals and local noise of ``points[index]`` from their k neighbours in ``points``.
+def _local_geometry(tree, cols, index, k):
+    """Normals, local noise and change of curvature of the input points ``index`` from k neighbours.
 
-    The same PCA as :func:`labkit.features.local_pca` (notebook 04, eqs. 1-5), but
-    evaluated only at the query points ``index`` (the features API works on whole
-    clouds). Noise is sigma_n = sqrt(k lambda_min / (k - 3)). Queries run in the
-    tree's leaf order (``rank``), which keeps the visited leaves in cache.
+    The same PCA as :func:`labkit.features.local_pca` (notebook 04, eqs. 1-5) on the
+    tree's distinct points (exact duplicates merged), evaluated only at the query points.
+    Noise is sigma_n = sqrt(k lambda_min / (k - 3)). Queries run in the tree's leaf
+    order, which keeps the visited leaves in cache. Where the neighbourhood is a point
+    or a line the normal and the noise are NaN (issue 16).
     """
-    order = np.argsort(rank[index], kind="stable")
-    nb = np.empty((len(index), k), dtype=np.intp)
-    workers = -1 if len(index) > 2000 else 1  # threads cost more than they save on small queries
-    nb[order] = tree.query(points[index[order]], k=k, workers=workers)[1]
-    cols = np.ascontiguousarray(points.T) if cols is None else cols
-    _, cov = _covariances(points, None, nb, cols)  # the local PCA's kernel (notebook 04, eqs. 1-2)
-    cov *= k / (k - 3)  # redundancy k - 3 of the plane (eq. 5): lambda_min is then sigma_n^2
-    lam, vecs = eigh3(cov, workers=workers)  # as np.linalg.eigh, ascending: normal = eigenvector of lambda_min
+    pos = tree.representative[index]  # leaf position of each point's kept copy
+    order = np.argsort(pos, kind="stable")
+    out = _leaf_geometry(tree, cols, pos[order], k)
+    back = np.empty_like(order)
+    back[order] = np.arange(len(order))
+    return tuple(a[back] for a in out)
+
+
+def _leaf_geometry(tree, cols, pos, k):
+    """:func:`_local_geometry` at the tree's own (distinct) points, given by sorted leaf positions."""
+    k = min(k, tree.n)
+    threads = -1 if len(pos) > 2000 else 1  # threads cost more than they save on small queries
+    nb = tree.query_leaf_positions(pos, k, workers=threads)
+    _, cov = _covariances(tree.data, None, nb, cols)  # the local PCA's kernel (notebook 04, eqs. 1-2)
+    cov *= k / (k - 3) if k > 3 else np.nan  # redundancy k - 3 of the plane (eq. 5): lambda_min is sigma_n^2
+    lam, vecs = eigh3(cov, workers=threads)  # as np.linalg.eigh, ascending: normal = eigenvector of lambda_min
+    lam = np.clip(lam, 0, None)
+    with np.errstate(invalid="ignore"):
+        ok = lam[:, 1] > 1e-12 * lam[:, 2]  # not a point, not a line (features._determined)
     n = vecs[:, :, 0]
     n = np.where(n[:, 2:3] < 0, -n, n)
-    lam = np.clip(lam, 0, None)
+    n[~ok] = np.nan
+    noise = np.where(ok, np.sqrt(lam[:, 0]), np.nan)
     variation = lam[:, 0] / np.maximum(lam.sum(axis=1), 1e-300)  # change of curvature l3 / sum(l)
-    return n, np.sqrt(lam[:, 0]), variation
+    return n, noise, np.where(ok, variation, np.nan)
 
 
 class _Geometry:
@@ -197,32 +211,37 @@ class _Geometry:
 
     ICP with a thinned source needs the target normals only at the few target
     points that are ever matched; computing them lazily saves most of the work.
+    The cache holds one entry per distinct point (leaf position of the kd-tree, exact
+    duplicates merged) for the whole ICP call: the target does not move, so no point
+    is computed twice, and finding the missing ones needs no sort.
     """
 
-    def __init__(self, points, tree, k, normals=None):
-        self.points, self.tree, self.k = points, tree, k
-        self.rank = np.empty(tree.n, dtype=np.intp)
-        self.rank[tree.indices] = np.arange(tree.n)  # leaf order of every point
-        self.cols = np.ascontiguousarray(points.T)  # coordinate columns for contiguous gathers
-        n = len(points)
-        self.normals = np.full((n, 3), np.nan) if normals is None else normals
-        self.noise = np.full(n, np.nan)
-        self._given = normals is not None
+    def __init__(self, points, k, normals=None, tree=None):
+        self.tree = KDTree(points, merge_duplicates=True) if tree is None else tree
+        self.k = k
+        self.cols = np.ascontiguousarray(self.tree.data.T)  # coordinate columns for contiguous gathers
+        m = self.tree.n
+        self.given = normals  # per input point, or None
+        self.normals = np.full((m, 3), np.nan)
+        self.noise = np.full(m, np.nan)
+        self.done = np.zeros(m, dtype=bool)  # computed (NaN results of degenerate points included)
 
     def at(self, index, need_noise=False):
-        missing = np.isnan(self.noise[index]) if need_noise or not self._given else None
-        if missing is not None:
-            todo = np.unique(index[missing])
-            if todo.size:
-                n, s, _ = self.compute(todo, self.k)
-                self.noise[todo] = s
-                if not self._given:
-                    self.normals[todo] = n
-        return self.normals[index], self.noise[index]
+        pos = self.tree.representative[index]
+        if need_noise or self.given is None:
+            todo = ~self.done[pos]
+            if todo.any():
+                mark = np.zeros(self.tree.n, dtype=bool)
+                mark[pos[todo]] = True
+                new = np.flatnonzero(mark)  # sorted leaf positions: coherent queries, no sort
+                self.normals[new], self.noise[new], _ = _leaf_geometry(self.tree, self.cols, new, self.k)
+                self.done[new] = True
+        normals = self.normals[pos] if self.given is None else self.given[index]
+        return normals, self.noise[pos]
 
     def compute(self, index, k):
         """Normals, noise and change of curvature at ``index`` with k neighbours (no caching)."""
-        return _local_geometry(self.points, self.tree, index, k, self.rank, self.cols)
+        return _local_geometry(self.tree, self.cols, index, k)
 
 
 # --------------------------------------------------------------------- sampling
@@ -246,6 +265,11 @@ def _sample(points, geometry, spec, rng):
         return np.sort(rng.choice(n, m, replace=False))
     pool = np.sort(rng.choice(n, min(n, 6 * m), replace=False))  # candidates for the normals
     coarse, _, variation = geometry.compute(pool, min(10, geometry.k))  # coarse normals suffice for the bins
+    has = np.isfinite(coarse[:, 0])  # no bin for points without a normal (a point or a line, issue 16)
+    if has.sum() >= m:
+        pool, coarse, variation = pool[has], coarse[has], variation[has]
+    else:
+        coarse = np.where(has[:, None], coarse, [0.0, 0.0, 1.0])
     # rare normals are often artefacts of neighbourhoods across an edge: keep planar candidates only
     planar = variation < MAX_VARIATION
     if planar.sum() >= m:
@@ -325,13 +349,14 @@ class _Matcher:
     source_sigma: np.ndarray  # per sampled source point, from class and noise
     source_rule: np.ndarray  # pre-assignment exclusions (class, noise)
     target: np.ndarray
-    tree: cKDTree
+    tree: KDTree
     geometry: _Geometry
     target_class: np.ndarray | None
     options: dict
     origin: np.ndarray
     n_source: int
     source_class: np.ndarray | None = None  # class of each sampled source point (None: no classification)
+    query_order: np.ndarray | None = None  # sampled source points in spatial (leaf) order: coherent queries
 
     def __call__(self, R=None, t=None) -> Correspondences:
         """Correspondences of the source moved by p' = R p + t (local frame)."""
@@ -340,7 +365,7 @@ class _Matcher:
         t = np.zeros(3) if t is None else t
         p = self.source @ R.T + t
         rule = self.source_rule.copy()
-        live = np.flatnonzero(rule == 0)
+        live = self.query_order[rule[self.query_order] == 0]  # in leaf order: neighbouring queries in cache
         m = len(p)
         tidx = np.full(m, -1)
         d = np.full((m, 3), np.nan)
@@ -355,6 +380,8 @@ class _Matcher:
         tidx[live] = j
         d[live] = self.target[j] - p[live]
         nt[live], noise_t[live] = self.geometry.at(j, need_noise=opt["need_noise"])
+        # a target point whose neighbourhood is a point or a line has no normal (issue 16)
+        rule[live[np.isnan(nt[live, 0]) & (rule[live] == 0)]] = _CODE["degenerate"]
         # (4) gates on the target point: class, noise, normal angle
         if opt["classes"] is not None:  # prepare() made sure the target has classes
             bad = ~np.isin(self.target_class[j], opt["classes"])
@@ -364,6 +391,7 @@ class _Matcher:
             rule[live[bad & (rule[live] == 0)]] = _CODE["noise"]
         angle = np.full(m, np.nan)
         if self.source_normals is not None:
+            rule[live[np.isnan(self.source_normals[live, 0]) & (rule[live] == 0)]] = _CODE["degenerate"]
             ns = self.source_normals[live] @ R.T
             cosang = np.abs(np.einsum("ij,ij->i", ns, nt[live]))
             angle[live] = np.degrees(np.arccos(np.clip(cosang, 0, 1)))
@@ -371,7 +399,7 @@ class _Matcher:
                 bad = angle[live] > opt["max_angle_deg"]
                 rule[live[bad & (rule[live] == 0)]] = _CODE["normal_angle"]
         if opt["unique"]:
-            _reject_duplicates(rule, tidx, d)
+            _reject_duplicates(rule, tidx, d, len(self.target))
         # (5) weights p = 1 / (sigma_s^2 + sigma_t^2)  (eq. 5.6)
         weight = np.zeros(m)
         weight[live] = 1.0 / (self.source_sigma[live] ** 2 + self._target_sigma(j, noise_t[live]) ** 2)
@@ -395,18 +423,47 @@ class _Matcher:
         return np.sqrt(np.maximum(var, MIN_SIGMA**2))
 
 
-def _reject_duplicates(rule, tidx, d):
+def _reject_duplicates(rule, tidx, d, n_target):
     """One source point per target point: keep the closest, mark the others 'duplicate' (in place).
 
     A target point used twice would put its own noise into two residuals; the
-    residuals would be correlated and sigma0^2 N^-1 too optimistic.
+    residuals would be correlated and sigma0^2 N^-1 too optimistic. One pass over the
+    accepted rows with a per-target-point record of the closest row so far (O(m), no
+    sort); equal distances keep the lower row, as a stable sort would.
     """
     live = np.flatnonzero(rule == 0)
     if live.size < 2:
         return
-    order = live[np.lexsort(((d[live] ** 2).sum(axis=1), tidx[live]))]
-    first = np.r_[True, tidx[order[1:]] != tidx[order[:-1]]]
-    rule[order[~first]] = _CODE["duplicate"]
+    dist2 = np.einsum("ij,ij->i", d[live], d[live])
+    loser = _closest_per_target(live, tidx[live], dist2, n_target)
+    rule[loser] = _CODE["duplicate"]
+
+
+def _closest_per_target_numpy(live, j, dist2, n_target):  # pragma: no cover - without numba
+    order = np.lexsort((dist2, j))
+    first = np.r_[True, j[order[1:]] != j[order[:-1]]]
+    return live[order[~first]]
+
+
+if HAVE_NUMBA:
+    import numba
+
+    @numba.njit(cache=True, nogil=True)
+    def _closest_per_target(live, j, dist2, n_target):  # pragma: no cover - compiled
+        best = np.full(n_target, -1, np.int64)  # position in ``live`` of the closest row so far
+        lose = np.zeros(len(live), np.bool_)
+        for r in range(len(live)):
+            b = best[j[r]]
+            if b < 0:
+                best[j[r]] = r
+            elif dist2[r] < dist2[b]:
+                lose[b] = True
+                best[j[r]] = r
+            else:
+                lose[r] = True
+        return live[lose]
+else:  # pragma: no cover - depends on the environment
+    _closest_per_target = _closest_per_target_numpy
 
 
 def prepare(
@@ -442,22 +499,29 @@ def prepare(
     rng = as_rng(rng)
     origin = local_origin(tgt) if origin is None else np.asarray(origin, dtype=np.float64)
     src_l, tgt_l = reduce(src, origin), reduce(tgt, origin)
-    tree = cKDTree(tgt_l) if tree is None else tree
-    if tree.n != len(tgt_l):
-        raise LabkitError(f"the given tree holds {tree.n} points, the target has {len(tgt_l)}")
-    tgt_geo = _Geometry(tgt_l, tree, int(k), _given_normals(target_normals, len(tgt_l), "target_normals"))
+    if tree is not None and getattr(tree, "n", None) != len(tgt_l):
+        raise LabkitError(f"the given tree holds {getattr(tree, 'n', '?')} points, the target has {len(tgt_l)}")
+    # the target's compiled kd-tree (exact duplicates merged) and its geometry cache: once per call
+    tree = KDTree(tgt_l, merge_duplicates=True)
+    tgt_geo = _Geometry(tgt_l, int(k), _given_normals(target_normals, len(tgt_l), "target_normals"), tree)
     need_src_geo = (
         max_angle_deg is not None or noise_weighting or max_noise is not None
         or (isinstance(sample, (tuple, list)) and sample[0] == "normal_space")
     )  # fmt: skip
     src_geo = None
     if need_src_geo:
-        src_tree = cKDTree(src_l) if len(src_l) >= k else None
-        if src_tree is None:
+        if len(src_l) < k:
             raise LabkitError(f"the source needs at least k = {k} points for its normals, got {len(src_l)}")
-        src_geo = _Geometry(src_l, src_tree, int(k), _given_normals(source_normals, len(src_l), "source_normals"))
+        src_geo = _Geometry(src_l, int(k), _given_normals(source_normals, len(src_l), "source_normals"))
     # (1) sampling
     idx = _sample(src_l, src_geo, sample, rng)
+    # query order: the sampled source points in the leaf order of a kd-tree over them
+    src_tree = src_geo.tree if src_geo is not None else KDTree(src_l[idx])
+    if src_geo is not None:
+        order = np.argsort(src_tree.representative[idx], kind="stable")
+    else:
+        order = np.empty(len(idx), dtype=np.intp)
+        order[:] = src_tree.indices
     options = dict(
         max_distance=np.inf if max_distance is None else positive(max_distance, "max_distance"),
         max_angle_deg=None if max_angle_deg is None else positive(max_angle_deg, "max_angle_deg"),
@@ -480,7 +544,7 @@ def prepare(
     rule, sigma = _source_rules(src_cls, idx, src_noise, options)
     return _Matcher(
         src_l[idx], idx, src_normals, sigma, rule, tgt_l, tree, tgt_geo, tgt_cls, options, origin, len(src),
-        None if src_cls is None else src_cls[idx],
+        None if src_cls is None else src_cls[idx], order,
     )  # fmt: skip
 
 
@@ -572,8 +636,9 @@ def match(
         Neighbours for normals and local noise.
     rng : int or Generator, optional
         For the sampling.
-    tree : scipy.spatial.cKDTree, optional
-        A kd-tree of the target reduced to ``local_origin(target)`` (to reuse).
+    tree : optional
+        Kept for compatibility: labkit builds its own compiled kd-tree of the target
+        (exact duplicates merged) once per call; a given tree is only checked for its size.
 
     Returns
     -------
