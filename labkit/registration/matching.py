@@ -22,6 +22,9 @@ import numpy as np
 from .._checks import as_points, as_rng, choice, positive
 from .._eigh3 import HAVE_NUMBA, eigh3
 from .._kdtree import KDTree
+
+if HAVE_NUMBA:
+    import numba
 from ..features import _covariances  # shared kNN covariance kernel (compiled)
 from .._frame import local_origin, reduce
 from .._report import ReportMixin, fmt
@@ -33,6 +36,8 @@ RULES = ("accepted", "class", "noise", "distance", "normal_angle", "duplicate", 
 _CODE = {name: code for code, name in enumerate(RULES)}
 #: Floor for a point's standard deviation in the weights (m), keeps weights finite.
 MIN_SIGMA = 0.005
+#: Local surface models of :func:`match`: the PCA plane (default) or a quadric (curved, sparse surfaces).
+SURFACES = ("plane", "quadric")
 #: Normal-space sampling draws only from planar neighbourhoods: l3 / (l1 + l2 + l3) below this.
 MAX_VARIATION = 0.02
 
@@ -187,8 +192,13 @@ def _local_geometry(tree, cols, index, k):
     return tuple(a[back] for a in out)
 
 
-def _leaf_geometry(tree, cols, pos, k):
-    """:func:`_local_geometry` at the tree's own (distinct) points, given by sorted leaf positions."""
+def _leaf_geometry(tree, cols, pos, k, quadric=False):
+    """:func:`_local_geometry` at the tree's own (distinct) points, given by sorted leaf positions.
+
+    With ``quadric`` also the local quadric's coefficients and frame (the frame's normal
+    oriented up), and its noise replaces the plane's: on a curved surface the plane's
+    l3 holds the curvature too, and would down-weight and reject curved ground.
+    """
     k = min(k, tree.n)
     threads = -1 if len(pos) > 2000 else 1  # threads cost more than they save on small queries
     nb = tree.query_leaf_positions(pos, k, workers=threads)
@@ -203,7 +213,132 @@ def _leaf_geometry(tree, cols, pos, k):
     n[~ok] = np.nan
     noise = np.where(ok, np.sqrt(lam[:, 0]), np.nan)
     variation = lam[:, 0] / np.maximum(lam.sum(axis=1), 1e-300)  # change of curvature l3 / sum(l)
+    if quadric:
+        vecs[~ok] = np.nan
+        flip = vecs[:, 2, 0] < 0  # orient the frame's normal up; h and its coefficients flip with it
+        vecs[flip, :, 0] *= -1
+        coef, sig = np.empty((len(pos), 6)), np.empty(len(pos))
+        _quadric(tree.data, nb, pos, vecs, coef, sig)
+        fit = np.isfinite(sig)  # else (k < 7, degenerate fit) the plane stays
+        _, n_q = _on_quadric(coef[fit], vecs[fit], np.zeros((int(fit.sum()), 3)))
+        n[fit] = n_q  # the surface normal at the point itself
+        return n, np.where(fit, sig, noise), np.where(ok, variation, np.nan), coef, vecs
     return n, noise, np.where(ok, variation, np.nan)
+
+
+def _quadric_kernel(X, nb, qpos, V, coef, sig):  # pragma: no cover - compiled
+    """Local quadric h = a u^2 + b uv + c v^2 + d u + e v + f per neighbourhood, in the PCA frame at q.
+
+    (u, v) are the coordinates along the two largest eigenvectors, h along the normal
+    (V's columns: eigenvalues ascending), all relative to the query point q itself and
+    scaled by the neighbourhood's extent for conditioning. Least squares by the 6x6
+    normal equations (Gaussian elimination with partial pivoting);
+    sig = sqrt(RSS / (m - 6)), the noise about the curved surface.
+    """
+    m, k = nb.shape
+    N = np.empty((6, 6))
+    g = np.empty(6)
+    r = np.empty(6)
+    for i in range(m):
+        q = qpos[i]
+        nx, ny, nz = V[i, 0, 0], V[i, 1, 0], V[i, 2, 0]
+        ax, ay, az = V[i, 0, 2], V[i, 1, 2], V[i, 2, 2]
+        bx, by, bz = V[i, 0, 1], V[i, 1, 1], V[i, 2, 1]
+        if not (np.isfinite(nx) and np.isfinite(ax) and np.isfinite(bx)) or k < 7:
+            coef[i, :] = np.nan
+            sig[i] = np.nan
+            continue
+        s2 = 0.0
+        for j in range(k):
+            p = nb[i, j]
+            wx, wy, wz = X[p, 0] - X[q, 0], X[p, 1] - X[q, 1], X[p, 2] - X[q, 2]
+            s2 += wx * wx + wy * wy + wz * wz
+        s = np.sqrt(s2 / k)
+        if s == 0.0:
+            coef[i, :] = np.nan
+            sig[i] = np.nan
+            continue
+        N[:, :] = 0.0
+        g[:] = 0.0
+        hh = 0.0
+        for j in range(k):
+            p = nb[i, j]
+            wx, wy, wz = X[p, 0] - X[q, 0], X[p, 1] - X[q, 1], X[p, 2] - X[q, 2]
+            u = (wx * ax + wy * ay + wz * az) / s
+            v = (wx * bx + wy * by + wz * bz) / s
+            h = wx * nx + wy * ny + wz * nz
+            r[0], r[1], r[2], r[3], r[4], r[5] = u * u, u * v, v * v, u, v, 1.0
+            for a in range(6):
+                g[a] += r[a] * h
+                for b in range(a, 6):
+                    N[a, b] += r[a] * r[b]
+            hh += h * h
+        for a in range(6):
+            for b in range(a):
+                N[a, b] = N[b, a]
+        A = N.copy()
+        c = g.copy()
+        ok = True
+        for col in range(6):  # elimination with partial pivoting
+            piv = col
+            for row in range(col + 1, 6):
+                if abs(A[row, col]) > abs(A[piv, col]):
+                    piv = row
+            if abs(A[piv, col]) <= 1e-12 * abs(N[col, col]) + 1e-300:
+                ok = False
+                break
+            if piv != col:
+                for b in range(6):
+                    A[col, b], A[piv, b] = A[piv, b], A[col, b]
+                c[col], c[piv] = c[piv], c[col]
+            for row in range(col + 1, 6):
+                f = A[row, col] / A[col, col]
+                for b in range(col, 6):
+                    A[row, b] -= f * A[col, b]
+                c[row] -= f * c[col]
+        if not ok:
+            coef[i, :] = np.nan
+            sig[i] = np.nan
+            continue
+        for col in range(5, -1, -1):
+            t = c[col]
+            for b in range(col + 1, 6):
+                t -= A[col, b] * c[b]
+            c[col] = t / A[col, col]
+        rss = hh
+        for a in range(6):
+            rss -= c[a] * g[a]
+        sig[i] = np.sqrt(max(rss, 0.0) / (k - 6))
+        # back to metres: u_scaled = u / s
+        coef[i, 0], coef[i, 1], coef[i, 2] = c[0] / (s * s), c[1] / (s * s), c[2] / (s * s)
+        coef[i, 3], coef[i, 4], coef[i, 5] = c[3] / s, c[4] / s, c[5]
+
+
+if HAVE_NUMBA:
+    _quadric = numba.njit(cache=True, nogil=True)(_quadric_kernel)
+else:  # pragma: no cover - depends on the environment
+    _quadric = _quadric_kernel
+
+
+def _on_quadric(coef, frame, w):
+    """Offset from points to the local quadric along its frame normal, and the surface normal there.
+
+    In the frame at q (columns of ``frame``: normal n, minor tangent t2, major tangent t1):
+    (u, v, h) = w . (t1, t2, n) for w = p - q; the surface height is
+    h_s(u, v) = a u^2 + b uv + c v^2 + d u + e v + f; the foot point is
+    q' = p + (h_s - h) n, and the surface normal there n - dh_s/du t1 - dh_s/dv t2 (normalised).
+    """
+    n, t2, t1 = frame[:, :, 0], frame[:, :, 1], frame[:, :, 2]
+    u = np.einsum("ij,ij->i", w, t1)
+    v = np.einsum("ij,ij->i", w, t2)
+    h = np.einsum("ij,ij->i", w, n)
+    a, b, c, d, e, f = coef.T
+    hs = a * u * u + b * u * v + c * v * v + d * u + e * v + f
+    gu, gv = 2 * a * u + b * v + d, b * u + 2 * c * v + e
+    normal = n - gu[:, None] * t1 - gv[:, None] * t2
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    normal = np.where(normal[:, 2:3] < 0, -normal, normal)
+    return (hs - h)[:, None] * n, normal
 
 
 class _Geometry:
@@ -216,15 +351,17 @@ class _Geometry:
     is computed twice, and finding the missing ones needs no sort.
     """
 
-    def __init__(self, points, k, normals=None, tree=None):
+    def __init__(self, points, k, normals=None, tree=None, quadric=False):
         self.tree = KDTree(points, merge_duplicates=True) if tree is None else tree
-        self.k = k
+        self.k, self.quadric = k, quadric
         self.cols = np.ascontiguousarray(self.tree.data.T)  # coordinate columns for contiguous gathers
         m = self.tree.n
         self.given = normals  # per input point, or None
         self.normals = np.full((m, 3), np.nan)
         self.noise = np.full(m, np.nan)
         self.done = np.zeros(m, dtype=bool)  # computed (NaN results of degenerate points included)
+        if quadric:
+            self.coef, self.frame = np.full((m, 6), np.nan), np.full((m, 3, 3), np.nan)
 
     def at(self, index, need_noise=False):
         pos = self.tree.representative[index]
@@ -234,10 +371,19 @@ class _Geometry:
                 mark = np.zeros(self.tree.n, dtype=bool)
                 mark[pos[todo]] = True
                 new = np.flatnonzero(mark)  # sorted leaf positions: coherent queries, no sort
-                self.normals[new], self.noise[new], _ = _leaf_geometry(self.tree, self.cols, new, self.k)
+                out = _leaf_geometry(self.tree, self.cols, new, self.k, self.quadric)
+                self.normals[new], self.noise[new] = out[0], out[1]
+                if self.quadric:
+                    self.coef[new], self.frame[new] = out[3], out[4]
                 self.done[new] = True
         normals = self.normals[pos] if self.given is None else self.given[index]
         return normals, self.noise[pos]
+
+    def foot(self, index, w):
+        """Offsets (m, 3) from the points ``q + w`` to the local quadric of ``q`` = point ``index``, and
+        the surface normals there (requires :meth:`at` first); rows without a quadric get NaN offsets."""
+        pos = self.tree.representative[index]
+        return _on_quadric(self.coef[pos], self.frame[pos], w)
 
     def compute(self, index, k):
         """Normals, noise and change of curvature at ``index`` with k neighbours (no caching)."""
@@ -380,6 +526,11 @@ class _Matcher:
         tidx[live] = j
         d[live] = self.target[j] - p[live]
         nt[live], noise_t[live] = self.geometry.at(j, need_noise=opt["need_noise"])
+        if opt["surface"] == "quadric" and len(live):
+            # the foot point on the target's local quadric replaces q_j: no curvature bias (sagitta)
+            off, n_s = self.geometry.foot(j, -d[live])
+            fit = np.isfinite(off[:, 0])
+            d[live[fit]], nt[live[fit]] = off[fit], n_s[fit]
         # a target point whose neighbourhood is a point or a line has no normal (issue 16)
         rule[live[np.isnan(nt[live, 0]) & (rule[live] == 0)]] = _CODE["degenerate"]
         # (4) gates on the target point: class, noise, normal angle
@@ -417,7 +568,9 @@ class _Matcher:
             s = _class_sigma(self.target_class[j], opt["class_sigma"])
             var += np.where(np.isnan(s), opt["default_sigma"], s) ** 2
         if opt["noise_weighting"]:
-            var += noise**2
+            # the plane's q_j is one measured point; the quadric's foot point is a fitted value, whose
+            # variance is on average sigma^2 u / k (mean leverage of u = 6 parameters over k points)
+            var += noise**2 * (6.0 / opt["k"] if opt["surface"] == "quadric" else 1.0)
         if not opt["class_sigma"] and not opt["noise_weighting"]:
             return np.full(len(j), np.sqrt(0.5))  # unit weights: p = 1
         return np.sqrt(np.maximum(var, MIN_SIGMA**2))
@@ -446,7 +599,6 @@ def _closest_per_target_numpy(live, j, dist2, n_target):  # pragma: no cover - w
 
 
 if HAVE_NUMBA:
-    import numba
 
     @numba.njit(cache=True, nogil=True)
     def _closest_per_target(live, j, dist2, n_target):  # pragma: no cover - compiled
@@ -485,6 +637,7 @@ def prepare(
     rng=None,
     tree=None,
     origin=None,
+    surface="plane",
 ) -> _Matcher:
     """Build the fixed part of the matching once (kd-tree, sampling, exclusions).
 
@@ -503,7 +656,10 @@ def prepare(
         raise LabkitError(f"the given tree holds {getattr(tree, 'n', '?')} points, the target has {len(tgt_l)}")
     # the target's compiled kd-tree (exact duplicates merged) and its geometry cache: once per call
     tree = KDTree(tgt_l, merge_duplicates=True)
-    tgt_geo = _Geometry(tgt_l, int(k), _given_normals(target_normals, len(tgt_l), "target_normals"), tree)
+    quadric = choice(surface, SURFACES, "surface") == "quadric"
+    if quadric and int(k) < 10:
+        raise LabkitError(f"surface='quadric' fits 6 parameters: k must be at least 10, got {k}")
+    tgt_geo = _Geometry(tgt_l, int(k), _given_normals(target_normals, len(tgt_l), "target_normals"), tree, quadric)
     need_src_geo = (
         max_angle_deg is not None or noise_weighting or max_noise is not None
         or (isinstance(sample, (tuple, list)) and sample[0] == "normal_space")
@@ -512,7 +668,9 @@ def prepare(
     if need_src_geo:
         if len(src_l) < k:
             raise LabkitError(f"the source needs at least k = {k} points for its normals, got {len(src_l)}")
-        src_geo = _Geometry(src_l, int(k), _given_normals(source_normals, len(src_l), "source_normals"))
+        src_geo = _Geometry(
+            src_l, int(k), _given_normals(source_normals, len(src_l), "source_normals"), quadric=quadric
+        )
     # (1) sampling
     idx = _sample(src_l, src_geo, sample, rng)
     # query order: the sampled source points in the leaf order of a kd-tree over them
@@ -534,6 +692,7 @@ def prepare(
         sample=sample,
         unique=bool(unique),
         k=int(k),
+        surface=surface,
     )
     # (2) exclusions on the source side and a priori sigma per source point
     src_cls, tgt_cls = _classes_of(source, len(src)), _classes_of(target, len(tgt))
@@ -602,6 +761,7 @@ def match(
     k=20,
     rng=None,
     tree=None,
+    surface="plane",
 ) -> Correspondences:
     """Find, gate and weight correspondences from ``source`` to ``target`` (seed: ``Matching``).
 
@@ -636,6 +796,16 @@ def match(
         Neighbours for normals and local noise.
     rng : int or Generator, optional
         For the sampling.
+    surface : {'plane', 'quadric'}
+        Local surface model of both clouds from their k neighbours. 'plane' (default): the
+        PCA plane (notebook 04), right for dense data. 'quadric': a quadric
+        h = a u^2 + b uv + c v^2 + d u + e v + f fitted in the PCA frame at each target
+        point; for sparse curved ground (ALS at 0.5-1 pts/m^2 on hills) the plane's l3
+        holds the curvature, so its noise (and weight, and ``max_noise``) is wrong by
+        that much, and the point-to-plane residual carries the sagitta between p_i and
+        q_j. With 'quadric' the noise is the spread about the quadric (redundancy
+        k - 6), ``d`` runs from p_i to its foot point on the target's quadric and
+        ``target_normal`` is the quadric's normal there. Needs k >= 10.
     tree : optional
         Kept for compatibility: labkit builds its own compiled kd-tree of the target
         (exact duplicates merged) once per call; a given tree is only checked for its size.
@@ -656,6 +826,6 @@ def match(
         source, target, target_normals=target_normals, source_normals=source_normals,
         max_distance=max_distance, max_angle_deg=max_angle_deg, classes=classes,
         class_sigma=class_sigma, default_sigma=default_sigma, noise_weighting=noise_weighting,
-        max_noise=max_noise, sample=sample, unique=unique, k=k, rng=rng, tree=tree,
+        max_noise=max_noise, sample=sample, unique=unique, k=k, rng=rng, tree=tree, surface=surface,
     )  # fmt: skip
     return matcher()
