@@ -20,8 +20,15 @@ keeps its bounding box; a query visits the nearer child first and skips every
 node whose box is farther than the current k-th distance (Friedman, Bentley,
 Finkel 1977, ACM TOMS 3(3): 209-226).
 
-Distances are Euclidean in float64 on the caller's (reduced) coordinates; the
-neighbours come sorted by distance. Without numba the tree falls back to cKDTree.
+Distances are Euclidean in float64 on the caller's (reduced) coordinates (float32
+was considered and left out: it would make neighbour sets differ from the exact ones
+at near-ties); the neighbours come sorted by distance, ties in any order. numba is a
+core dependency; without it the queries fall back to cKDTree (the build stays slow).
+
+Measured on the real TLS scan (523,422 points, k = 20, one thread, CPU seconds on a
+loaded 2-core machine): this tree's self-kNN 0.9-1.1 s against cKDTree's 1.5-1.8 s in
+leaf order; a warm start from the previous query's neighbours, a per-leaf candidate
+list and a branch-free two-pass leaf scan were tried and gave no further gain.
 """
 
 from __future__ import annotations

@@ -520,9 +520,12 @@ class _Matcher:
         # (3) nearest neighbour in the target kd-tree, within max_distance
         workers = -1 if len(live) > 20000 else 1  # thread start-up dominates small queries
         dist, j = self.tree.query(p[live], k=1, distance_upper_bound=opt["max_distance"], workers=workers)
-        found = np.isfinite(dist)
-        rule[live[~found]] = _CODE["distance"]
-        live, j = live[found], j[found]
+        # back to ascending rows (one scatter), so that the steps below read and write in order
+        nearest = np.full(m, -1)
+        nearest[live] = np.where(np.isfinite(dist), j, -1)
+        rule[live[~np.isfinite(dist)]] = _CODE["distance"]
+        live = np.flatnonzero(nearest >= 0)
+        j = nearest[live]
         tidx[live] = j
         d[live] = self.target[j] - p[live]
         nt[live], noise_t[live] = self.geometry.at(j, need_noise=opt["need_noise"])
