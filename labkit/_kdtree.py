@@ -290,6 +290,39 @@ def _knn(X, nodes, box, depth, Q, k, bound2, idx, dist2):  # pragma: no cover - 
             dist2[q, j] = bd[j]
 
 
+def _build_two(P, leafsize):
+    """:func:`_build`, with the root split here and its two halves built in two threads (the kernel
+    releases the GIL); the same tree as one call, up to the numbering of the nodes."""
+    n = len(P)
+    if n < 100_000 or _threads(-1) < 2 or not HAVE_NUMBA:
+        return _build(P, leafsize)
+    lo, hi = P.min(axis=0), P.max(axis=0)
+    d = int(np.argmax(hi - lo))
+    keys = P[:, d]
+    v = np.partition(keys, n // 2)[n // 2]
+    left = keys < v
+    if not left.any():  # v is the minimum: split after all points equal to it (ties stay together)
+        left = keys <= v
+        if left.all():
+            return _build(P, leafsize)
+        v = keys[~left].min()
+    iL, iR = np.flatnonzero(left), np.flatnonzero(~left)
+    with ThreadPoolExecutor(2) as pool:
+        jobs = [pool.submit(_build, np.ascontiguousarray(P[i]), leafsize) for i in (iL, iR)]
+        (pL, nL, bL, dL), (pR, nR, bR, dR) = (job.result() for job in jobs)
+    mL = len(nL)
+    nodes = np.empty((1 + mL + len(nR), 4), np.int64)
+    nodes[0] = (0, n, 1, 1 + mL)
+    nodes[1 : 1 + mL] = nL
+    nodes[1 : 1 + mL, 2:] += np.where(nL[:, 2:] >= 0, 1, 0)
+    nodes[1 + mL :] = nR
+    nodes[1 + mL :, :2] += len(iL)
+    nodes[1 + mL :, 2:] += np.where(nR[:, 2:] >= 0, 1 + mL, 0)
+    root = np.concatenate([lo, hi, [v, d]])
+    box = np.vstack([root[None, :], bL, bR])
+    return np.concatenate([iL[pL], iR[pR]]), nodes, box, max(dL, dR) + 1
+
+
 def _threads(workers):
     if workers == -1:
         return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
@@ -315,7 +348,7 @@ class KDTree:
 
     def __init__(self, points, leafsize: int = LEAFSIZE, merge_duplicates: bool = False):
         P = np.ascontiguousarray(points, dtype=np.float64)
-        perm, nodes, box, depth = _build(P, int(leafsize))
+        perm, nodes, box, depth = _build_two(P, int(leafsize))
         X = P[perm]
         self.representative, self.n_duplicates = None, 0
         if merge_duplicates:

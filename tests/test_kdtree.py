@@ -57,3 +57,18 @@ def test_identical_points_make_one_leaf():
     assert tree.n == 1 and tree.n_duplicates == 99
     d, i = tree.query(np.zeros((1, 3)), k=1)
     assert np.isclose(d[0], np.sqrt(3.0)) and i[0] == 0
+
+
+def test_two_thread_build_gives_the_same_neighbours():
+    """Above 10^5 points the root is split here and the halves built in two threads."""
+    rng = np.random.default_rng(3)
+    P = np.round(rng.normal(size=(150_000, 3)) * np.exp(rng.uniform(-3, 0, (150_000, 1))), 3)
+    tree = KDTree(P, merge_duplicates=True)
+    assert np.array_equal(tree.data[tree.representative], P)
+    assert tree.n_duplicates == len(P) - len(np.unique(P, axis=0))
+    Q = P[::50] + 0.001
+    d, _ = tree.query(Q, k=8, workers=2)
+    dc, _ = cKDTree(np.unique(P, axis=0)).query(Q, k=8)  # merged: the k nearest distinct points
+    assert np.allclose(d, dc, atol=1e-12)
+    d, _ = KDTree(P).query(Q, k=8, workers=2)
+    assert np.allclose(d, cKDTree(P).query(Q, k=8)[0], atol=1e-12)
