@@ -74,7 +74,8 @@ def realdata_dir() -> Path | None:
     """The real development data folder, or None (then the real rows are skipped)."""
     env = os.environ.get("LABKIT_REALDATA")
     here = Path(__file__).resolve().parents[1]
-    for cand in ([Path(env)] if env else []) + [here.parent / "shared" / "realdata", here.parents[1] / "shared" / "realdata"]:
+    candidates = ([Path(env)] if env else []) + [here.parent / "shared" / "realdata", here.parents[1] / "shared" / "realdata"]
+    for cand in candidates:
         if (cand / "tls" / "TLS_scan_vz400i.laz").exists():
             return cand
     return None

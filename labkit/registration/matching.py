@@ -11,6 +11,13 @@ One call of :func:`match` runs the steps of notebook 05, section 2:
 
 Every sampled source point gets one row; ``rule`` says which rule (if any)
 rejected it, so a plot can colour the points by rule and the report can count them.
+
+Speed (issue 11): the target's compiled kd-tree (``labkit._kdtree``, exact
+duplicates merged) and its local geometry are built once per call and cached per
+distinct target point (the target does not move); the source is queried in its own
+leaf order; the one-source-per-target rule is one O(m) pass, not a sort of all pairs.
+Points whose neighbourhood is a point or a line have no normal and are rejected
+by the rule 'degenerate' (issue 16).
 """
 
 from __future__ import annotations
@@ -22,13 +29,13 @@ import numpy as np
 from .._checks import as_points, as_rng, choice, positive
 from .._eigh3 import HAVE_NUMBA, eigh3
 from .._kdtree import KDTree
-
-if HAVE_NUMBA:
-    import numba
 from ..features import _covariances  # shared kNN covariance kernel (compiled)
 from .._frame import local_origin, reduce
 from .._report import ReportMixin, fmt
 from ..errors import LabkitError
+
+if HAVE_NUMBA:
+    import numba
 
 #: Row labels; code 0 is an accepted correspondence. 'degenerate': the source or target point has
 #: no normal (its neighbourhood is a point or a line, issue 16); it is applied with the normal angle.
