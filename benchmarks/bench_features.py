@@ -158,7 +158,7 @@ def main() -> None:
     parser.add_argument("--real", action="store_true", help="only the real TLS rows")
     args = parser.parse_args()
     sizes = () if args.real else (10_000, 100_000) if args.quick else (100_000, 1_000_000)
-    print(f"normals, k = {K}; {os.cpu_count()} CPU(s); times are wall clock of one run (shared machine)")
+    print(f"normals, k = {K}; {os.cpu_count()} CPU(s); times are the best of {REPEATS} wall-clock runs (shared machine)")
     print("angles: labkit vs Open3D up to sign, both on the UTM input; 'local': vs Open3D on reduced coordinates")
     header = f"{'n':>9} {'method':>7} " + " ".join(COLUMNS)
     print(header)

@@ -54,9 +54,15 @@ _PER_THREAD = 4000  # queries per thread at least; below, one thread is faster t
 
 @_njit
 def _build(P, leafsize):  # pragma: no cover - compiled
-    """Median kd-tree: permutation (leaf order), node ranges, children, boxes and the depth."""
+    """Median kd-tree: permutation (leaf order), node ranges, children, boxes, depth, leaf-order points.
+
+    The coordinates are moved along with the permutation (W), so every pass over a
+    node reads its points sequentially instead of gathering them through ``perm``.
+    """
     n = P.shape[0]
     perm = np.arange(n)
+    W = P.copy()
+    wbuf = np.empty((n, 3))
     cap = max(16, 4 * (n // max(1, leafsize // 2)) + 16)
     start = np.empty(cap, np.int64)
     end = np.empty(cap, np.int64)
@@ -81,9 +87,8 @@ def _build(P, leafsize):  # pragma: no cover - compiled
             lo[node, d] = np.inf
             hi[node, d] = -np.inf
         for i in range(a, b):
-            p = perm[i]
             for d in range(3):
-                v = P[p, d]
+                v = W[i, d]
                 if v < lo[node, d]:
                     lo[node, d] = v
                 if v > hi[node, d]:
@@ -100,7 +105,7 @@ def _build(P, leafsize):  # pragma: no cover - compiled
                 break
             m = b - a
             for i in range(m):
-                keys[i] = P[perm[a + i], d]
+                keys[i] = W[a + i, d]
             v = np.partition(keys[:m], m // 2)[m // 2]
             below = 0
             for i in range(m):
@@ -119,15 +124,16 @@ def _build(P, leafsize):  # pragma: no cover - compiled
             # stable partition of perm[a:b] into keys < v and keys >= v
             j0, j1 = 0, below
             for i in range(m):
-                p = perm[a + i]
+                j = j0 if keys[i] < v else j1
+                buf[j] = perm[a + i]
+                wbuf[j, 0], wbuf[j, 1], wbuf[j, 2] = W[a + i, 0], W[a + i, 1], W[a + i, 2]
                 if keys[i] < v:
-                    buf[j0] = p
                     j0 += 1
                 else:
-                    buf[j1] = p
                     j1 += 1
             for i in range(m):
                 perm[a + i] = buf[i]
+                W[a + i, 0], W[a + i, 1], W[a + i, 2] = wbuf[i, 0], wbuf[i, 1], wbuf[i, 2]
             split = a + below
             sval[node], sdim[node] = v, d
             break
@@ -159,7 +165,7 @@ def _build(P, leafsize):  # pragma: no cover - compiled
     nodes = np.empty((count, 4), np.int64)
     nodes[:, 0], nodes[:, 1] = start[:count], end[:count]
     nodes[:, 2], nodes[:, 3] = left[:count], right[:count]
-    return perm, nodes, box, depth_max
+    return perm, nodes, box, depth_max, W
 
 
 @_njit
@@ -309,7 +315,7 @@ def _build_two(P, leafsize):
     iL, iR = np.flatnonzero(left), np.flatnonzero(~left)
     with ThreadPoolExecutor(2) as pool:
         jobs = [pool.submit(_build, np.ascontiguousarray(P[i]), leafsize) for i in (iL, iR)]
-        (pL, nL, bL, dL), (pR, nR, bR, dR) = (job.result() for job in jobs)
+        (pL, nL, bL, dL, wL), (pR, nR, bR, dR, wR) = (job.result() for job in jobs)
     mL = len(nL)
     nodes = np.empty((1 + mL + len(nR), 4), np.int64)
     nodes[0] = (0, n, 1, 1 + mL)
@@ -320,7 +326,7 @@ def _build_two(P, leafsize):
     nodes[1 + mL :, 2:] += np.where(nR[:, 2:] >= 0, 1 + mL, 0)
     root = np.concatenate([lo, hi, [v, d]])
     box = np.vstack([root[None, :], bL, bR])
-    return np.concatenate([iL[pL], iR[pR]]), nodes, box, max(dL, dR) + 1
+    return np.concatenate([iL[pL], iR[pR]]), nodes, box, max(dL, dR) + 1, np.vstack([wL, wR])
 
 
 def _threads(workers):
@@ -348,8 +354,7 @@ class KDTree:
 
     def __init__(self, points, leafsize: int = LEAFSIZE, merge_duplicates: bool = False):
         P = np.ascontiguousarray(points, dtype=np.float64)
-        perm, nodes, box, depth = _build_two(P, int(leafsize))
-        X = P[perm]
+        perm, nodes, box, depth, X = _build_two(P, int(leafsize))
         self.representative, self.n_duplicates = None, 0
         if merge_duplicates:
             keep, first = _duplicates(X, nodes)
