@@ -729,6 +729,8 @@ def _check_at(at, n):
     if at is None:
         return None
     idx = np.asarray(at)
+    if idx.ndim == 1 and len(idx) == 0:
+        raise LabkitError("at is empty: give at least one point index")
     if idx.ndim != 1 or not np.issubdtype(idx.dtype, np.integer):
         raise LabkitError(f"at must be a 1-D array of point indices, got shape {idx.shape} and dtype {idx.dtype}")
     if len(idx) == 0:

@@ -208,3 +208,52 @@ def test_real_multibeam_plane_with_duplicates(realdata):
     assert (a_k > 25).sum() > 2000  # the finding (3,773 of 28,185 at their settings)
     assert np.median(a_m) < 5.0 and (a_m > 25).mean() < 0.005
     assert np.median(a_m) < 0.5 * np.median(a_k)
+
+
+# ----------------------------------------------------------------------------- argument catalogue
+
+_PTS = np.random.default_rng(9).normal(size=(60, 3))
+
+
+@pytest.mark.parametrize(
+    "call, message",
+    [
+        (lambda: F.local_pca(_PTS, k=20.5), "k must be an integer"),
+        (lambda: F.local_pca(_PTS, k=True), "k must be an integer"),
+        (lambda: F.local_pca(_PTS, k=2), "k must be between 3"),
+        (lambda: F.local_pca(_PTS, k=61), "k must be between 3"),
+        (lambda: F.local_pca(_PTS, k=None, radius=None), "give k"),
+        (lambda: F.local_pca(_PTS, radius=-1.0), "radius"),
+        (lambda: F.local_pca(_PTS, radius=float("nan")), "radius"),
+        (lambda: F.local_pca(_PTS, radius=float("inf")), "radius"),
+        (lambda: F.local_pca(_PTS, k=5, chunk_size=0), "chunk_size"),
+        (lambda: F.local_pca(_PTS, k=5, at=[60]), "at contains indices"),
+        (lambda: F.local_pca(_PTS, k=5, at=[]), "at is empty"),
+        (lambda: F.local_pca(_PTS, k=5, at=[0.5]), "at must be a 1-D array"),
+        (lambda: F.local_pca(_PTS, k=5, orient="down"), "orient must be one of"),
+        (lambda: F.local_pca(_PTS, k=5, orient="viewpoint"), "needs viewpoint"),
+        (lambda: F.local_pca(_PTS, k=5, orient="viewpoint", viewpoint=[0, np.nan, 0]), "viewpoint must be finite"),
+        (lambda: F.local_pca(np.vstack([_PTS, [np.nan, 0, 0]]), k=5), "NaN|finite"),
+        (lambda: F.local_pca(_PTS[:, :2], k=5), r"\(n, 3\)|shape"),
+        (lambda: F.normals(_PTS, k=5, duplicates="drop"), "duplicates must be one of"),
+        (lambda: F.multiscale_features(_PTS, scales=(), by="k"), "at least one"),
+        (lambda: F.robust_normals(_PTS, k=5, iterations=0), "iterations"),
+        (lambda: match(_PTS, _PTS, k=100), "k must lie between 3"),
+        (lambda: match(_PTS, _PTS, surface="cubic"), "surface must be one of"),
+        (lambda: match(_PTS, _PTS, surface="quadric", k=8), "k must be at least 10"),
+        (lambda: match(_PTS, _PTS, max_distance=-1.0), "max_distance"),
+        (lambda: match(_PTS, _PTS, target_normals=np.zeros((60, 3))), "zero-length normals"),
+    ],
+    ids=lambda v: v if isinstance(v, str) else "",
+)
+def test_bad_arguments_give_one_clear_error(call, message):
+    with pytest.raises(LabkitError, match=message):
+        call()
+
+
+def test_input_not_modified_by_merging():
+    xyz = np.repeat(plane(np.random.default_rng(10))[0][:100], 2, axis=0)
+    before = xyz.copy()
+    F.local_pca(xyz, k=8)
+    match(xyz, xyz, max_angle_deg=None)
+    assert np.array_equal(xyz, before)
