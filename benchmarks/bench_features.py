@@ -10,10 +10,17 @@ numpy peak seen by ``tracemalloc`` is printed as well. Normals are compared up
 to sign (Open3D does not orient them). Targets (issue 4): median angle < 1 deg,
 labkit time <= 1.5 x Open3D time, memory < 2 GB at 10^6 points.
 
+Real rows (issue 11): the real TLS scan ``tls/TLS_scan_vz400i.laz`` from the development
+data (``../shared/realdata`` or ``LABKIT_REALDATA``; skipped with a message where absent):
+every second point (523,422, scanner-centred, density falling with range squared) and the
+whole scan (1,046,843). Target: labkit no slower than Open3D (ratio <= 1). On a shared,
+loaded machine wall-clock times swing by 2x between runs; compare the ratio within a run.
+
 Usage::
 
-    python benchmarks/bench_features.py            # 10^5 and 10^6
-    python benchmarks/bench_features.py --quick    # 10^4 and 10^5
+    python benchmarks/bench_features.py            # 10^5 and 10^6, then the real TLS rows
+    python benchmarks/bench_features.py --quick    # 10^4 and 10^5, then the real TLS rows
+    python benchmarks/bench_features.py --real     # only the real TLS rows
 """
 
 from __future__ import annotations
@@ -31,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 K = 20
+REPEATS = 3  # each method's time is the best of this many runs, labkit and Open3D alternating (shared machine)
 COLUMNS = ("time s", "ratio", "median deg", "p95 deg", "median deg, local", "peak RSS MB", "numpy peak MB")
 WIDTHS = [len(c) for c in COLUMNS]
 
@@ -62,6 +70,29 @@ def _fallback_scene(n, rng):
     return np.column_stack([xy, z]) + [600000.0, 5400000.0, 300.0]
 
 
+def realdata_dir() -> Path | None:
+    """The real development data folder, or None (then the real rows are skipped)."""
+    env = os.environ.get("LABKIT_REALDATA")
+    here = Path(__file__).resolve().parents[1]
+    candidates = ([Path(env)] if env else []) + [here.parent / "shared" / "realdata", here.parents[1] / "shared" / "realdata"]
+    for cand in candidates:
+        if (cand / "tls" / "TLS_scan_vz400i.laz").exists():
+            return cand
+    return None
+
+
+def real_scenes() -> list[tuple[str, np.ndarray]]:
+    """(label, xyz) of the real TLS rows; empty with a message where the data are absent."""
+    root = realdata_dir()
+    if root is None:
+        print("real TLS rows skipped: tls/TLS_scan_vz400i.laz not found (set LABKIT_REALDATA)")
+        return []
+    from labkit.io import read_cloud
+
+    xyz = read_cloud(root / "tls" / "TLS_scan_vz400i.laz").xyz
+    return [("TLS/2", xyz[::2].copy()), ("TLS", xyz)]
+
+
 def run_worker(method: str, path: str, out: str) -> None:
     """Compute normals with one method; write time, memory and normals."""
     xyz = np.load(path)
@@ -72,9 +103,9 @@ def run_worker(method: str, path: str, out: str) -> None:
 
         normals(xyz[:1000], k=K)  # warm up imports
         tracemalloc.start()
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         N = normals(xyz, k=K, orient="none")
-        seconds = time.perf_counter() - t0
+        seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
         traced = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
     else:
@@ -82,11 +113,11 @@ def run_worker(method: str, path: str, out: str) -> None:
 
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz[:1000]))
         pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(K))  # warm up
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))  # Open3D needs its own copy
         pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(K))
         N = np.asarray(pcd.normals)
-        seconds = time.perf_counter() - t0
+        seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
         traced = float("nan")
         # untimed: the same on coordinates reduced to a local origin (Open3D sums x x^T in one pass)
         local = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz - np.round(xyz.mean(axis=0))))
@@ -94,13 +125,28 @@ def run_worker(method: str, path: str, out: str) -> None:
         np.save(out + "_local.npy", np.asarray(local.normals))
     np.save(out + ".npy", N)
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # kB on Linux
-    Path(out + ".json").write_text(json.dumps({"seconds": seconds, "rss": rss, "traced": traced}))
+    Path(out + ".json").write_text(json.dumps({"seconds": seconds, "cpu": cpu, "rss": rss, "traced": traced}))
 
 
 def run_method(method: str, path: str, tmp: str) -> tuple[dict, np.ndarray]:
     out = os.path.join(tmp, method)
     subprocess.run([sys.executable, __file__, "--worker", method, path, out], check=True)
     return json.loads(Path(out + ".json").read_text()), np.load(out + ".npy")
+
+
+def run_pair(path: str, tmp: str):
+    """labkit and Open3D alternately, REPEATS times each; per method the best wall and CPU time."""
+    best = {}
+    for _ in range(REPEATS):
+        for method in ("labkit", "open3d"):
+            r, N = run_method(method, path, tmp)
+            if method not in best:
+                best[method] = (r, N)
+            else:
+                b = best[method][0]
+                b["seconds"], b["cpu"] = min(b["seconds"], r["seconds"]), min(b["cpu"], r["cpu"])
+                b["rss"] = max(b["rss"], r["rss"])
+    return best["labkit"], best["open3d"]
 
 
 def _row(n, name, r, ratio, ang=None, ang_local=None):
@@ -120,28 +166,36 @@ def angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="10^4 and 10^5 points")
+    parser.add_argument("--real", action="store_true", help="only the real TLS rows")
     args = parser.parse_args()
-    sizes = (10_000, 100_000) if args.quick else (100_000, 1_000_000)
-    print(f"normals, k = {K}; {os.cpu_count()} CPU(s); times are wall clock of one run (shared machine)")
+    sizes = () if args.real else (10_000, 100_000) if args.quick else (100_000, 1_000_000)
+    print(f"normals, k = {K}; {os.cpu_count()} CPU(s); times are the best of {REPEATS} alternating wall-clock runs (shared machine)")
     print("angles: labkit vs Open3D up to sign, both on the UTM input; 'local': vs Open3D on reduced coordinates")
     header = f"{'n':>9} {'method':>7} " + " ".join(COLUMNS)
     print(header)
     print("-" * len(header))
     ok = True
+    real_ok = True
     with tempfile.TemporaryDirectory() as tmp:
-        for n in sizes:
-            path = os.path.join(tmp, f"scene_{n}.npy")
-            np.save(path, make_scene(n))
-            lab, N_lab = run_method("labkit", path, tmp)
-            o3d, N_o3d = run_method("open3d", path, tmp)
-            ang = angles_deg(N_lab, N_o3d)
-            ang_local = angles_deg(N_lab, np.load(os.path.join(tmp, "open3d_local.npy")))
+        scenes = [(str(n), make_scene(n)) for n in sizes] + real_scenes()
+        for label, xyz in scenes:
+            path = os.path.join(tmp, "scene.npy")
+            np.save(path, xyz)
+            (lab, N_lab), (o3d, N_o3d) = run_pair(path, tmp)
+            valid = np.isfinite(N_lab[:, 0])  # labkit: NaN where the neighbourhood is degenerate
+            ang = angles_deg(N_lab[valid], N_o3d[valid])
+            ang_local = angles_deg(N_lab[valid], np.load(os.path.join(tmp, "open3d_local.npy"))[valid])
             ratio = lab["seconds"] / o3d["seconds"]
-            print(_row(n, "open3d", o3d, 1.0))
-            print(_row(n, "labkit", lab, ratio, ang, ang_local))
-            if n >= 100_000:  # the issue's sizes; 10^4 (--quick) only shows the fixed overhead
+            print(_row(label, "open3d", o3d, 1.0))
+            print(_row(label, "labkit", lab, ratio, ang, ang_local))
+            print(f"{'':>9} {'':>7} CPU s: labkit {lab['cpu']:.2f}, Open3D {o3d['cpu']:.2f}, ratio {lab['cpu'] / o3d['cpu']:.2f}")
+            if label.startswith("TLS"):
+                real_ok &= ratio <= 1.0
+            elif len(xyz) >= 100_000:  # the issue's sizes; 10^4 (--quick) only shows the fixed overhead
                 ok &= np.median(ang) < 1.0 and ratio <= 1.5 and lab["rss"] < 2 * 2**30
-    print("targets at n >= 10^5 (median < 1 deg, time <= 1.5 x Open3D, RSS < 2 GB):", "met" if ok else "NOT met")
+    if sizes:
+        print("targets at n >= 10^5 (median < 1 deg, time <= 1.5 x Open3D, RSS < 2 GB):", "met" if ok else "NOT met")
+    print("real TLS target (time <= Open3D):", "met" if real_ok else "NOT met")
 
 
 if __name__ == "__main__":

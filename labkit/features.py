@@ -21,17 +21,19 @@ uses an eigh (symmetric matrices: real, ascending; ``labkit._eigh3.eigh3``, the
 same decomposition as ``np.linalg.eigh`` compiled for stacks of 3x3 matrices) and
 reverses the order once, in :func:`_sorted_eigh`.
 
-Choice of the kd-tree, by measurement (scipy 1.17, numpy 2.4, 2 shared cores,
-10^6 points of an undulating terrain at 20 pts/m^2, k = 20, ``workers=-1``):
-``cKDTree`` build 0.1-0.3 s for leafsize 16 or 32 with the default (median)
-split; ``balanced_tree=True`` / ``compact_nodes=True`` cost 2-3x more build time
-and did not make queries faster; leafsize 64 made queries 1.5-3x slower;
-``KDTree`` is the same engine as ``cKDTree``. What mattered was the ORDER of
-the queries: asking for the neighbours in the tree's own leaf order
-(``tree.indices``) cut the query time from 5.4-6.2 s to 1.7-2.6 s, because
-consecutive queries then visit the same leaves while they are in cache. Every
-search here therefore walks the points in leaf order, chunk by chunk, and
-scatters the results back.
+The kd-tree (``labkit._kdtree``, compiled): on the real TLS scan (523,000
+points, clustered density) scipy's ``cKDTree`` query was 85-90 % of the time of
+:func:`normals`. The compiled tree merges exact duplicates while it is built
+(issue 16: a copy is not a second observation of the surface; they share a leaf,
+so finding them costs O(leafsize^2) per leaf) and answers the self-queries of the
+local PCA directly on its leaf-ordered points. What mattered most, with either
+tree, was the ORDER of the queries: asking in the tree's own leaf order (earlier
+measurement with cKDTree: 5.4-6.2 s down to 1.7-2.6 s at 10^6 points) keeps the
+visited leaves in cache. Every search here walks the points in leaf order, chunk
+by chunk, and each chunk writes its own output rows.
+
+Degenerate neighbourhoods (fewer than 3 distinct points, or all on one line) do
+not determine a plane: their normal is NaN and ``LocalPCA.valid`` is False.
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ from scipy.spatial import cKDTree
 
 from ._checks import as_points, as_rng, choice, positive, probability
 from ._eigh3 import HAVE_NUMBA, eigh3
+from ._kdtree import KDTree
 
 if HAVE_NUMBA:
     import numba
@@ -61,7 +64,8 @@ from .errors import LabkitError
 
 CHUNK_SIZE = 20_000  # points per chunk (measured: 25 % less CPU than 100k, whose 50 MB temporaries
 #                      always come from fresh mmap pages; about 10 MB of temporaries per chunk at k = 20)
-LEAFSIZE = 16  # measured, see the module docstring
+LEAFSIZE = 16  # cKDTree of the radius searches
+DUPLICATES = ("merge", "keep")
 ORIENTATIONS = ("up", "viewpoint", "none")
 
 
@@ -127,12 +131,14 @@ def neighbourhoods(points, k: int | None = None, radius: float | None = None, *,
     local, _ = _reduced(points)
     k, radius = _check_scale(k, radius, len(local))
     found = []  # (rows, counts, flat) per chunk, in any order
+    plan = _Plan(local, merge=False)  # indices of the input points, duplicates included
+    to_input = plan.tree.indices  # leaf position -> input row
 
     def work(rows, per_scale, _):
         counts, flat = per_scale[0]
-        found.append((rows, counts, flat.reshape(-1)))
+        found.append((rows, counts, to_input[flat.reshape(-1)]))
 
-    _run_chunks(local, [(k, radius)], _check_chunk(chunk_size), work)
+    _run_chunks(plan, [(k, radius)], _check_chunk(chunk_size), work)
     rows, counts_leaf, flat = (np.concatenate(parts) for parts in zip(*found))
     # move every point's block from leaf order to input order
     counts = np.empty_like(counts_leaf)
@@ -164,8 +170,11 @@ class LocalPCA(ReportMixin):
     centroids : ndarray (n, 3)
         Neighbourhood centroids (eq. 1) in the input frame.
     counts : ndarray (n,)
-        Number of neighbours m (including the point).
+        Number of neighbours m (including the point), distinct points when duplicates are merged.
     k, radius : search used.
+    n_duplicates : int
+        Input points that were exact copies of another point and were merged into it
+        before the PCA (``duplicates='merge'``); they get the result of their kept copy.
     """
 
     eigenvalues: np.ndarray
@@ -175,14 +184,15 @@ class LocalPCA(ReportMixin):
     counts: np.ndarray
     k: int | None
     radius: float | None
+    n_duplicates: int = 0
 
     def __repr__(self) -> str:
         return f"LocalPCA({len(self.counts)} points, {_scale_text(self.k, self.radius)})"
 
     @property
     def noise(self) -> np.ndarray:
-        """Local noise sigma_n (eq. 5), metres; NaN where m <= 3."""
-        return _noise(self.eigenvalues[:, 2], self.counts)
+        """Local noise sigma_n (eq. 5), metres; NaN where m <= 3 or the normal is undetermined."""
+        return np.where(self.valid, _noise(self.eigenvalues[:, 2], self.counts), np.nan)
 
     @property
     def features(self) -> "EigenFeatures":
@@ -191,9 +201,11 @@ class LocalPCA(ReportMixin):
 
     @property
     def valid(self) -> np.ndarray:
-        """True where the normal is determined: m >= 3 and the neighbourhood is not a line or a point."""
-        l1, l2 = self.eigenvalues[:, 0], self.eigenvalues[:, 1]
-        return (self.counts >= 3) & (l2 > 1e-12 * l1) & np.isfinite(l1)
+        """True where the normal is determined: m >= 3 and the neighbourhood is not a line or a point.
+
+        Where False the normal (and eigenvector column 2) is NaN.
+        """
+        return _determined(self.eigenvalues, self.counts)
 
     @property
     def verticality(self) -> np.ndarray:
@@ -207,6 +219,7 @@ class LocalPCA(ReportMixin):
             ("search", _scale_text(self.k, self.radius)),
             ("neighbours median", f"{np.median(self.counts):.0f}"),
             ("normal undetermined", str(int((~self.valid).sum()))),
+            ("exact duplicates merged", str(self.n_duplicates)),
             ("local noise median", fmt(np.nanmedian(noise) if np.isfinite(noise).any() else np.nan, 4, "m")),
         ]
         rows += [(f"{name} median", fmt(np.nanmedian(v), 3)) for name, v in f.items() if np.isfinite(v).any()]
@@ -221,6 +234,7 @@ def local_pca(
     orient: str = "up",
     viewpoint=None,
     at=None,
+    duplicates: str = "merge",
     chunk_size: int = CHUNK_SIZE,
 ) -> LocalPCA:
     """PCA of the neighbourhood of every point (eq. 1-4), vectorized and chunked.
@@ -239,12 +253,19 @@ def local_pca(
     at : array_like of int, optional
         Compute only at these points (neighbours still come from the whole cloud); the
         results then have ``len(at)`` rows and a per-point viewpoint has shape (len(at), 3).
+    duplicates : {'merge', 'keep'}
+        'merge' (default): exact duplicates (identical coordinates) count once, so that
+        k means k distinct points; a duplicate is a second copy, not a second observation
+        of the surface, and copies bias the plane toward themselves (issue 16). The
+        number merged is ``n_duplicates``. 'keep': every row counts.
     chunk_size : int
         Points per chunk; memory grows with chunk_size * k, not with n * k.
 
     Returns
     -------
     LocalPCA
+        Where the neighbourhood is degenerate (fewer than 3 distinct points, all on one
+        line) the normal is NaN and ``valid`` is False.
 
     Raises
     ------
@@ -257,27 +278,36 @@ def local_pca(
     at = _check_at(at, len(local))
     here = local if at is None else local[at]  # the points that get a PCA
     view = _check_orientation(orient, viewpoint, len(here))
+    merge = _check_duplicates(duplicates)
+    # Exact duplicates merged into one point (issue 16), kd-tree, output rows
+    plan = _Plan(local, at, merge)
     # Per chunk (in leaf order): neighbours, centroid, covariance, sorted eigh
-    n = len(here)
+    n = plan.n_out
     lam, vec = np.empty((n, 3)), np.empty((n, 3, 3))
     cen, counts = np.empty((n, 3)), np.empty(n, dtype=np.intp)
-
-    cols = local.T.copy()  # coordinate columns: contiguous gathers (see _covariances)
+    pts = plan.points
+    cols = pts.T.copy()  # coordinate columns: contiguous gathers (see _covariances)
 
     def work(rows, per_scale, _):
         seg_counts, flat = per_scale[0]
-        c, C = _covariances(local, seg_counts, flat, cols)
+        c, C = _covariances(pts, seg_counts, flat, cols)
         lam[rows], vec[rows] = _sorted_eigh(C)
         cen[rows], counts[rows] = c, seg_counts
 
-    _run_chunks(local, [(k, radius)], _check_chunk(chunk_size), work, at=at)
+    _run_chunks(plan, [(k, radius)], _check_chunk(chunk_size), work)
+    lam, vec, cen, counts = plan.out(lam), plan.out(vec), plan.out(cen), plan.out(counts)
+    # Degenerate neighbourhoods (a point, a line) have no normal: NaN, valid=False
+    _undetermined(lam, vec, counts)
     # Orient the normals; results in the input frame
     normals = _orient(vec[:, :, 2], here, orient, view, origin)
     vec[:, :, 2] = normals
-    return LocalPCA(lam, vec, normals, cen + origin, counts, k, radius)
+    return LocalPCA(lam, vec, normals, cen + origin, counts, k, radius, plan.n_duplicates)
 
 
-def normals(points, k: int = 20, orient: str = "up", viewpoint=None, *, radius=None, at=None, chunk_size=CHUNK_SIZE):
+def normals(
+    points, k: int = 20, orient: str = "up", viewpoint=None, *, radius=None, at=None, duplicates="merge",
+    chunk_size=CHUNK_SIZE,
+):
     """Unit normals (n, 3): eigenvector of the smallest eigenvalue of each neighbourhood (eq. 4).
 
     Parameters
@@ -294,12 +324,21 @@ def normals(points, k: int = 20, orient: str = "up", viewpoint=None, *, radius=N
         Radius neighbourhood instead of kNN.
     at : array_like of int, optional
         Only at these points (neighbours from the whole cloud); shape (len(at), 3).
+    duplicates : {'merge', 'keep'}
+        Exact duplicates count once (default), see :func:`local_pca`.
+
+    Returns
+    -------
+    ndarray (n, 3)
+        NaN rows where the neighbourhood is degenerate (a point or a line).
 
     See Also
     --------
     local_pca : eigenvalues, centroids and counts as well.
     """
-    return local_pca(points, k, radius, orient=orient, viewpoint=viewpoint, at=at, chunk_size=chunk_size).normals
+    pca = local_pca(points, k, radius, orient=orient, viewpoint=viewpoint, at=at, duplicates=duplicates,
+                    chunk_size=chunk_size)
+    return pca.normals
 
 
 def local_noise(points, k: int = 20, radius: float | None = None, *, chunk_size: int = CHUNK_SIZE) -> np.ndarray:
@@ -437,7 +476,8 @@ class MultiScaleFeatures(ReportMixin):
 
 
 def multiscale_features(
-    points, scales=(10, 20, 40), *, by: str = "k", orient: str = "up", viewpoint=None, chunk_size: int = CHUNK_SIZE
+    points, scales=(10, 20, 40), *, by: str = "k", orient: str = "up", viewpoint=None, duplicates: str = "merge",
+    chunk_size: int = CHUNK_SIZE,
 ) -> MultiScaleFeatures:
     """Local PCA at several neighbourhood sizes; per point keep the scale of least eigenentropy.
 
@@ -450,6 +490,8 @@ def multiscale_features(
     ----------
     scales : sequence of int (by='k') or float (by='radius')
     by : {'k', 'radius'}
+    duplicates : {'merge', 'keep'}
+        Exact duplicates count once (default), see :func:`local_pca`.
     """
     local, origin = _reduced(points)
     choice(by, ("k", "radius"), "by")
@@ -458,15 +500,17 @@ def multiscale_features(
         raise LabkitError("scales must contain at least one k or radius")
     checked = [_check_scale(s, None, len(local)) if by == "k" else _check_scale(None, s, len(local)) for s in scales]
     view = _check_orientation(orient, viewpoint, len(local))
-    n, s = len(local), len(scales)
+    plan = _Plan(local, None, _check_duplicates(duplicates))  # exact duplicates merged (issue 16)
+    n, s = plan.n_out, len(scales)
     lam_all = np.empty((n, s, 3))
     vec, cen, counts = np.empty((n, 3, 3)), np.empty((n, 3)), np.empty(n, dtype=np.intp)
     best = np.empty(n, dtype=np.intp)
-    cols = local.T.copy()
+    pts = plan.points
+    cols = pts.T.copy()
 
     def work(rows, per_scale, _):
         # per scale: eigenvalues; keep the eigenvectors of the least-entropy scale
-        results = [(_covariances(local, c, f, cols), c) for c, f in per_scale]
+        results = [(_covariances(pts, c, f, cols), c) for c, f in per_scale]
         eig = [_sorted_eigh(C) for (_, C), _ in results]
         lam_all[rows] = np.stack([lam for lam, _ in eig], axis=1)
         h = eigen_features(lam_all[rows]).eigenentropy
@@ -477,10 +521,13 @@ def multiscale_features(
         cen[rows] = np.stack([c for (c, _), _ in results], axis=1)[pick, b]
         counts[rows] = np.stack([m for _, m in results], axis=1)[pick, b]
 
-    _run_chunks(local, checked, _check_chunk(chunk_size), work)
+    _run_chunks(plan, checked, _check_chunk(chunk_size), work)
+    lam_all, best, vec, cen, counts = (plan.out(a) for a in (lam_all, best, vec, cen, counts))
+    lam = lam_all[np.arange(len(local)), best]
+    _undetermined(lam, vec, counts)
     normals = _orient(vec[:, :, 2], local, orient, view, origin)
     vec[:, :, 2] = normals
-    pca = LocalPCA(lam_all[np.arange(n), best], vec, normals, cen + origin, counts, None, None)
+    pca = LocalPCA(lam, vec, normals, cen + origin, counts, None, None, plan.n_duplicates)
     return MultiScaleFeatures(scales, by, lam_all, best, pca)
 
 
@@ -511,6 +558,7 @@ class RobustNormals(ReportMixin):
     k: int
     iterations: int
     threshold: float | None
+    n_duplicates: int = 0
 
     def __repr__(self) -> str:
         return f"RobustNormals({len(self.inliers)} points, k = {self.k}, {self.iterations} hypotheses)"
@@ -537,6 +585,7 @@ def robust_normals(
     orient: str = "up",
     viewpoint=None,
     at=None,
+    duplicates: str = "merge",
     chunk_size: int = 5_000,
     rng=None,
 ) -> RobustNormals:
@@ -560,6 +609,8 @@ def robust_normals(
         log(1 - confidence) / log(1 - (1 - outlier_ratio)^3).
     at : array_like of int, optional
         Only at these points (neighbours from the whole cloud).
+    duplicates : {'merge', 'keep'}
+        Exact duplicates count once (default), see :func:`local_pca`.
     rng : int or numpy.random.Generator, optional
 
     References
@@ -576,11 +627,15 @@ def robust_normals(
     here = local if at is None else local[at]
     view = _check_orientation(orient, viewpoint, len(here))
     rng = as_rng(rng)
-    n = len(here)
+    plan = _Plan(local, at, _check_duplicates(duplicates))
+    if plan.tree.n < k:
+        raise LabkitError(f"robust_normals needs k = {k} distinct points, the cloud has {plan.tree.n}")
+    n = plan.n_out
     nrm, inl, noise = np.empty((n, 3)), np.empty(n, dtype=np.intp), np.empty(n)
+    pts = plan.points
 
     def work(rows, per_scale, chunk_rng):
-        X = local[per_scale[0][1]]
+        X = pts[per_scale[0][1]]
         X = X - X[:, :1]  # (c, k, 3) relative to the point itself, for well-conditioned residuals
         w = _best_plane_inliers(X, T, threshold, chunk_rng)  # (c, k) bool
         _, C = _weighted_covariances(X, w)
@@ -588,9 +643,10 @@ def robust_normals(
         m = w.sum(axis=1)
         nrm[rows], inl[rows], noise[rows] = vec[:, :, 2], m, _noise(lam[:, 2], m)
 
-    _run_chunks(local, [(k, None)], _check_chunk(chunk_size), work, rng=rng, at=at)
+    _run_chunks(plan, [(k, None)], _check_chunk(chunk_size), work, rng=rng)
+    nrm, inl, noise = plan.out(nrm), plan.out(inl), plan.out(noise)
     normals = _orient(nrm, here, orient, view, origin)
-    return RobustNormals(normals, inl, noise, k, T, threshold)
+    return RobustNormals(normals, inl, noise, k, T, threshold, plan.n_duplicates)
 
 
 def _iterations(iterations, outlier_ratio, confidence) -> int:
@@ -673,6 +729,8 @@ def _check_at(at, n):
     if at is None:
         return None
     idx = np.asarray(at)
+    if idx.ndim == 1 and len(idx) == 0:
+        raise LabkitError("at is empty: give at least one point index")
     if idx.ndim != 1 or not np.issubdtype(idx.dtype, np.integer):
         raise LabkitError(f"at must be a 1-D array of point indices, got shape {idx.shape} and dtype {idx.dtype}")
     if len(idx) == 0:
@@ -680,6 +738,28 @@ def _check_at(at, n):
     if idx.min() < -n or idx.max() >= n:
         raise LabkitError(f"at contains indices outside 0..{n - 1}")
     return np.where(idx < 0, idx + n, idx).astype(np.intp)
+
+
+def _check_duplicates(duplicates) -> bool:
+    return choice(duplicates, DUPLICATES, "duplicates") == "merge"
+
+
+def _determined(lam, counts) -> np.ndarray:
+    """True where a plane is determined: m >= 3 and l2 > 1e-12 l1 (not a point, not a line).
+
+    ``lam`` descending (n, 3). A line has l2 = 0 up to rounding, which is about
+    eps^2 of l1 on reduced coordinates; 1e-12 means a width below 1e-6 of the length.
+    """
+    l1, l2 = lam[:, 0], lam[:, 1]
+    with np.errstate(invalid="ignore"):
+        return (counts >= 3) & (l2 > 1e-12 * l1) & np.isfinite(l1)
+
+
+def _undetermined(lam, vec, counts) -> None:
+    """NaN normals (eigenvector column 2) where :func:`_determined` is False (in place)."""
+    bad = ~_determined(lam, counts)
+    if bad.any():
+        vec[bad, :, 2] = np.nan
 
 
 def _check_chunk(chunk_size) -> int:
@@ -702,43 +782,82 @@ def _check_orientation(orient, viewpoint, n):
     return v
 
 
-def _build_tree(local) -> cKDTree:
-    return cKDTree(local, leafsize=LEAFSIZE, balanced_tree=False, compact_nodes=False)
+class _Plan:
+    """Where the PCA runs: the kd-tree (exact duplicates merged or not) and the output rows (private).
 
-
-def _run_chunks(local, scales, chunk_size, work, rng=None, at=None) -> None:
-    """Call ``work(rows, per_scale, chunk_rng)`` for chunks of points taken in the tree's leaf order.
-
-    ``rows`` index the output: all points, or positions in ``at`` (query only those points).
-
-    ``per_scale`` holds ``(counts, neighbours)`` for every (k, radius) in ``scales``:
-    an (c, k) index array for kNN (one search with the largest k serves all k,
-    since kNN neighbourhoods are nested), a flat index array for a radius. Chunks
-    run in one thread per core; the tree query, gathers, matmul and eigh release
-    the GIL, so the numpy steps run in parallel too. Every chunk writes only its
-    own rows. With ``rng``, each chunk gets its own child generator (reproducible
-    for a given chunk_size, independent of thread timing).
+    Without ``at`` the queries are the tree's (distinct) points in leaf order and every
+    chunk writes the input rows of its points (``tree.indices``); :meth:`out` then copies
+    the result of each kept point to the duplicates merged into it. With ``at`` the
+    queries are the requested points in leaf order and the output rows their positions
+    in ``at``.
     """
-    tree = _build_tree(local)
-    order = tree.indices  # leaf order: consecutive queries share cached leaves (module docstring)
-    if at is not None:
-        rank = np.empty(len(local), dtype=np.intp)
-        rank[order] = np.arange(len(local))
-        order = np.argsort(rank[at], kind="stable")  # positions in ``at``, in leaf order
-    queries = local if at is None else local[at]
+
+    def __init__(self, local, at=None, merge=True):
+        self.tree = KDTree(local, merge_duplicates=merge)
+        self.points = self.tree.data  # neighbour indices refer to these (leaf order)
+        self.copies = None
+        rep = self.tree.representative  # leaf position of the kept copy of every input point
+        if at is None:
+            self.n_out, self.n_query = len(local), self.tree.n
+            self.query_pos, self.order = None, None
+            if self.tree.n_duplicates:
+                kept = self.tree.indices[rep]
+                dup = np.flatnonzero(kept != np.arange(len(local)))
+                self.copies = (dup, kept[dup])
+        else:
+            if rep is None:
+                rep = np.empty(len(local), dtype=np.intp)
+                rep[self.tree.indices] = np.arange(len(local))
+            self.n_out = self.n_query = len(at)
+            self.query_pos = rep[at]  # leaf position of every requested point
+            self.order = np.argsort(self.query_pos, kind="stable")  # positions in ``at``, in leaf order
+
+    @property
+    def n_duplicates(self) -> int:
+        return self.tree.n_duplicates
+
+    def out(self, values):
+        """Per input point (or per ``at`` entry): merged copies get the result of their kept point."""
+        if self.copies is not None:
+            dup, kept = self.copies
+            values[dup] = values[kept]
+        return values
+
+
+def _run_chunks(plan, scales, chunk_size, work, rng=None) -> None:
+    """Call ``work(rows, per_scale, chunk_rng)`` for chunks of query points in the tree's leaf order.
+
+    ``rows`` index the output (see :class:`_Plan`); the neighbour indices refer to
+    ``plan.points``. ``per_scale`` holds ``(counts, neighbours)`` for every (k, radius)
+    in ``scales``: an (c, k) index array for kNN (one search with the largest k serves
+    all k, since kNN neighbourhoods are nested), a flat index array for a radius. Chunks
+    run in one thread per core; the kNN kernel, gathers, matmul and eigh release the
+    GIL. Every chunk writes only its own rows. With ``rng``, each chunk gets its own
+    child generator (reproducible for a given chunk_size, independent of thread timing).
+    """
+    tree = plan.tree
+    n_q = plan.n_query
     threads = max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
     # chunks of at most chunk_size, their number a multiple of the threads so that all threads get
     # the same share (5 chunks on 2 threads would leave one thread idle for a fifth of the time)
-    n_chunks = -(-len(queries) // max(1, chunk_size))
-    n_chunks = max(1, -(-n_chunks // threads) * threads) if len(queries) >= threads else 1
-    size = max(1, -(-len(queries) // n_chunks))
-    starts = range(0, len(queries), size)
+    n_chunks = -(-n_q // max(1, chunk_size))
+    n_chunks = max(1, -(-n_chunks // threads) * threads) if n_q >= threads else 1
+    size = max(1, -(-n_q // n_chunks))
+    starts = range(0, n_q, size)
     rngs = as_rng(rng).spawn(len(starts)) if rng is not None else [None] * len(starts)
-    workers = -1 if len(starts) == 1 else 1
+    ball = [None]
+    if any(r is not None for _, r in scales):
+        ball[0] = cKDTree(plan.points, leafsize=LEAFSIZE, balanced_tree=False, compact_nodes=False)
 
     def job(i):
-        rows = order[starts[i] : starts[i] + size]
-        work(rows, _query(tree, queries[rows], scales, workers), rngs[i])
+        a, b = starts[i], min(starts[i] + size, n_q)
+        if plan.order is None:
+            rows = tree.indices[a:b]
+            q = plan.points[a:b]
+        else:
+            rows = plan.order[a:b]
+            q = plan.points[plan.query_pos[rows]]
+        work(rows, _query(tree, ball[0], q, scales), rngs[i])
 
     if len(starts) == 1:
         job(0)
@@ -747,16 +866,18 @@ def _run_chunks(local, scales, chunk_size, work, rng=None, at=None) -> None:
         list(pool.map(job, range(len(starts))))  # list(): re-raise a failure of any chunk
 
 
-def _query(tree, q, scales, workers):
-    """(counts, neighbours) of the query points q for every (k, radius) in ``scales``."""
+def _query(tree, ball, q, scales):
+    """(counts, neighbours) of the query points q for every (k, radius) in ``scales`` (leaf positions)."""
     ks = [k for k, r in scales if r is None]
-    idx = tree.query(q, k=max(ks), workers=workers)[1] if ks else None
+    k_max = min(max(ks), tree.n) if ks else 0  # merged duplicates may leave fewer points than k
+    idx = tree._run(q, k_max, np.inf, 1)[1] if ks else None
     out = []
     for k, r in scales:
         if r is None:
+            k = min(k, tree.n)
             out.append((np.full(len(q), k, dtype=np.intp), idx[:, :k]))
             continue
-        lists = tree.query_ball_point(q, r, workers=workers, return_sorted=False)
+        lists = ball.query_ball_point(q, r, return_sorted=False)
         counts = np.fromiter(map(len, lists), dtype=np.intp, count=len(lists))
         out.append((counts, np.fromiter(itertools.chain.from_iterable(lists), dtype=np.intp, count=int(counts.sum()))))
     return out

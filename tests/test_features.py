@@ -347,3 +347,25 @@ def test_compiled_and_numpy_knn_covariances_agree(monkeypatch):
     for C in (C_c, C_n):
         assert np.allclose(C, C_ref, rtol=1e-12, atol=1e-12 * np.abs(C_ref).max())
     assert np.allclose(cen_c, cen_n, rtol=0, atol=1e-12) and np.allclose(cen_c, X.mean(axis=1), atol=1e-12)
+
+
+def test_real_tls_pca_matches_brute_force(realdata):
+    """Real TLS scan (clustered density, 1 mm grid: many ties): the compiled kNN + PCA against
+    an independent route (all distances, np.cov, eigh) at 300 random points of a 60,000-point crop."""
+    from labkit.io import read_cloud
+
+    xyz = read_cloud(realdata / "tls" / "TLS_scan_vz400i.laz").xyz[:60000]
+    distinct = np.unique(xyz, axis=0)  # the PCA merges exact duplicates
+    pca = F.local_pca(xyz, k=20, orient="none")
+    assert pca.n_duplicates == len(xyz) - len(distinct)
+    rng = np.random.default_rng(0)
+    for i in rng.choice(len(xyz), 300, replace=False):
+        d = np.linalg.norm(distinct - xyz[i], axis=1)
+        kth = np.sort(d)[19]
+        if np.sum(np.isclose(d, kth, rtol=0, atol=1e-12)) > 1:
+            continue  # a tie at the 20th distance: either neighbour is right
+        nb = distinct[np.argsort(d, kind="stable")[:20]]
+        lam, V = np.linalg.eigh(np.cov(nb.T, bias=True))
+        assert np.allclose(pca.eigenvalues[i], lam[::-1], rtol=1e-7, atol=1e-13)
+        if lam[1] > 1e-6 * lam[2]:
+            assert abs(abs(pca.normals[i] @ V[:, 0]) - 1.0) < 1e-8

@@ -200,3 +200,68 @@ def test_bad_points():
         match(src, tgt)
     with pytest.raises(LabkitError, match=r"\(n, 3\)"):
         match(tgt[:, :2], tgt)
+
+
+# ----------------------------------------------------------------------------- local surface model
+
+
+def _sparse_hills(rng, side=160.0, density=0.75, amplitude=20.0, length=15.0, sigma=0.03):
+    """Sparse ALS-like ground (0.75 pts/m^2, 40 m relief) on z = A sin(x/L) cos(y/L); points and curvature."""
+    n = int(side * side * density)
+    xy = rng.uniform(0, side, (n, 2))
+    z = amplitude * np.sin(xy[:, 0] / length) * np.cos(xy[:, 1] / length)
+    laplacian = -2.0 / length**2 * z  # z_xx + z_yy of the analytic surface
+    return np.column_stack([xy, z + rng.normal(0, sigma, n)]), laplacian
+
+
+def test_quadric_surface_removes_curvature_bias_and_inflated_noise_on_sparse_hills():
+    """Independent route: the analytic surface. Two samplings of it, no shift between them.
+
+    The plane's residuals n . (q - p) carry the sagitta between p and q (positive on
+    hilltops, negative in hollows) and its noise sigma_n holds the curvature; the
+    quadric's residuals are centred on both and its noise is the measurement noise
+    (projected on the normal: at most 0.03 m, as the slopes reach 53 deg).
+    """
+    sigma = 0.03
+    target, _ = _sparse_hills(np.random.default_rng(11), sigma=sigma)
+    source, lap = _sparse_hills(np.random.default_rng(12), sigma=sigma)
+    out = {}
+    for surface in ("plane", "quadric"):
+        c = match(source, target, max_distance=5.0, max_angle_deg=None, surface=surface)
+        ok = c.accepted
+        r = np.einsum("ij,ij->i", c.target_normal[ok], c.d[ok])
+        curv = lap[c.source_index[ok]]
+        top, hollow = curv < -0.05, curv > 0.05
+        noise_t = 1.0 / np.sqrt(c.weight[ok])  # sqrt(sigma_s^2 + sigma_t^2)
+        s0 = np.mean(r**2 * c.weight[ok])  # variance factor: 1 when the stated sigmas match the residuals
+        out[surface] = (r[top].mean(), r[hollow].mean(), np.median(noise_t), np.sqrt(np.mean(r**2)), s0)
+    top_p, hollow_p, noise_p, rms_p, s0_p = out["plane"]
+    top_q, hollow_q, noise_q, rms_q, s0_q = out["quadric"]
+    assert top_p > 0.004 and hollow_p < -0.004  # the plane's sagitta bias
+    assert abs(top_q) < 0.0015 and abs(hollow_q) < 0.0015
+    assert rms_q < rms_p
+    assert noise_p > 2.5 * sigma and s0_p < 0.3  # curvature taken for noise: weights 3x too pessimistic
+    assert 0.5 < s0_q < 1.25  # stated sigmas within 1.0-1.4x of the actual residual spread
+
+
+def test_quadric_surface_equals_plane_on_a_plane():
+    rng = np.random.default_rng(13)
+    xy = rng.uniform(0, 30, (6000, 2))
+    z = 0.2 * xy[:, 0] - 0.1 * xy[:, 1]
+    target = np.column_stack([xy, z + rng.normal(0, 0.005, len(z))])
+    source = target[::3] + [0.0, 0.0, 0.02]
+    n_true = np.array([-0.2, 0.1, 1.0]) / np.linalg.norm([-0.2, 0.1, 1.0])
+    for surface in ("plane", "quadric"):
+        c = match(source, target, max_distance=1.0, surface=surface)
+        ok = c.accepted
+        r = np.einsum("ij,ij->i", c.target_normal[ok], c.d[ok])
+        assert abs(np.median(r) - (-0.02 * n_true[2])) < 0.002  # the 2 cm lift, seen along the normal
+        assert np.degrees(np.arccos(np.median(c.target_normal[ok] @ n_true))) < 1.5
+
+
+def test_quadric_needs_enough_neighbours():
+    pts = np.random.default_rng(0).normal(size=(200, 3))
+    with pytest.raises(LabkitError, match="k must be at least 10"):
+        match(pts, pts, surface="quadric", k=8)
+    with pytest.raises(LabkitError, match="surface must be one of"):
+        match(pts, pts, surface="cubic")

@@ -18,6 +18,7 @@ RULE_COLORS = {
     "normal_angle": "#e6ab02",
     "duplicate": "#a6cee3",
     "outlier": COLORS["outlier"],
+    "degenerate": "#999999",  # no normal: the neighbourhood is a point or a line (issue 16)
 }
 _AXES = {"xy": (0, 1), "xz": (0, 2), "yz": (1, 2)}
 

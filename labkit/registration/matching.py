@@ -11,6 +11,13 @@ One call of :func:`match` runs the steps of notebook 05, section 2:
 
 Every sampled source point gets one row; ``rule`` says which rule (if any)
 rejected it, so a plot can colour the points by rule and the report can count them.
+
+Speed (issue 11): the target's compiled kd-tree (``labkit._kdtree``, exact
+duplicates merged) and its local geometry are built once per call and cached per
+distinct target point (the target does not move); the source is queried in its own
+leaf order; the one-source-per-target rule is one O(m) pass, not a sort of all pairs.
+Points whose neighbourhood is a point or a line have no normal and are rejected
+by the rule 'degenerate' (issue 16).
 """
 
 from __future__ import annotations
@@ -18,20 +25,26 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .._checks import as_points, as_rng, choice, positive
-from .._eigh3 import eigh3
+from .._eigh3 import HAVE_NUMBA, eigh3
+from .._kdtree import KDTree
 from ..features import _covariances  # shared kNN covariance kernel (compiled)
 from .._frame import local_origin, reduce
 from .._report import ReportMixin, fmt
 from ..errors import LabkitError
 
-#: Row labels, in the order the rules are applied; code 0 is an accepted correspondence.
-RULES = ("accepted", "class", "noise", "distance", "normal_angle", "duplicate", "outlier")
+if HAVE_NUMBA:
+    import numba
+
+#: Row labels; code 0 is an accepted correspondence. 'degenerate': the source or target point has
+#: no normal (its neighbourhood is a point or a line, issue 16); it is applied with the normal angle.
+RULES = ("accepted", "class", "noise", "distance", "normal_angle", "duplicate", "outlier", "degenerate")
 _CODE = {name: code for code, name in enumerate(RULES)}
 #: Floor for a point's standard deviation in the weights (m), keeps weights finite.
 MIN_SIGMA = 0.005
+#: Local surface models of :func:`match`: the PCA plane (default) or a quadric (curved, sparse surfaces).
+SURFACES = ("plane", "quadric")
 #: Normal-space sampling draws only from planar neighbourhoods: l3 / (l1 + l2 + l3) below this.
 MAX_VARIATION = 0.02
 
@@ -169,27 +182,170 @@ def _replace(corr: Correspondences, **changes) -> Correspondences:
 # --------------------------------------------------------------------- geometry
 
 
-def _local_geometry(points, tree, index, k, rank, cols=None):
-    """Normals and local noise of ``points[index]`` from their k neighbours in ``points``.
+def _local_geometry(tree, cols, index, k):
+    """Normals, local noise and change of curvature of the input points ``index`` from k neighbours.
 
-    The same PCA as :func:`labkit.features.local_pca` (notebook 04, eqs. 1-5), but
-    evaluated only at the query points ``index`` (the features API works on whole
-    clouds). Noise is sigma_n = sqrt(k lambda_min / (k - 3)). Queries run in the
-    tree's leaf order (``rank``), which keeps the visited leaves in cache.
+    The same PCA as :func:`labkit.features.local_pca` (notebook 04, eqs. 1-5) on the
+    tree's distinct points (exact duplicates merged), evaluated only at the query points.
+    Noise is sigma_n = sqrt(k lambda_min / (k - 3)). Queries run in the tree's leaf
+    order, which keeps the visited leaves in cache. Where the neighbourhood is a point
+    or a line the normal and the noise are NaN (issue 16).
     """
-    order = np.argsort(rank[index], kind="stable")
-    nb = np.empty((len(index), k), dtype=np.intp)
-    workers = -1 if len(index) > 2000 else 1  # threads cost more than they save on small queries
-    nb[order] = tree.query(points[index[order]], k=k, workers=workers)[1]
-    cols = np.ascontiguousarray(points.T) if cols is None else cols
-    _, cov = _covariances(points, None, nb, cols)  # the local PCA's kernel (notebook 04, eqs. 1-2)
-    cov *= k / (k - 3)  # redundancy k - 3 of the plane (eq. 5): lambda_min is then sigma_n^2
-    lam, vecs = eigh3(cov, workers=workers)  # as np.linalg.eigh, ascending: normal = eigenvector of lambda_min
+    pos = tree.representative[index]  # leaf position of each point's kept copy
+    order = np.argsort(pos, kind="stable")
+    out = _leaf_geometry(tree, cols, pos[order], k)
+    back = np.empty_like(order)
+    back[order] = np.arange(len(order))
+    return tuple(a[back] for a in out)
+
+
+def _leaf_geometry(tree, cols, pos, k, quadric=False):
+    """:func:`_local_geometry` at the tree's own (distinct) points, given by sorted leaf positions.
+
+    With ``quadric`` also the local quadric's coefficients and frame (the frame's normal
+    oriented up), and its noise replaces the plane's: on a curved surface the plane's
+    l3 holds the curvature too, and would down-weight and reject curved ground.
+    """
+    k = min(k, tree.n)
+    threads = -1 if len(pos) > 2000 else 1  # threads cost more than they save on small queries
+    nb = tree.query_leaf_positions(pos, k, workers=threads)
+    _, cov = _covariances(tree.data, None, nb, cols)  # the local PCA's kernel (notebook 04, eqs. 1-2)
+    cov *= k / (k - 3) if k > 3 else np.nan  # redundancy k - 3 of the plane (eq. 5): lambda_min is sigma_n^2
+    lam, vecs = eigh3(cov, workers=threads)  # as np.linalg.eigh, ascending: normal = eigenvector of lambda_min
+    lam = np.clip(lam, 0, None)
+    with np.errstate(invalid="ignore"):
+        ok = lam[:, 1] > 1e-12 * lam[:, 2]  # not a point, not a line (features._determined)
     n = vecs[:, :, 0]
     n = np.where(n[:, 2:3] < 0, -n, n)
-    lam = np.clip(lam, 0, None)
+    n[~ok] = np.nan
+    noise = np.where(ok, np.sqrt(lam[:, 0]), np.nan)
     variation = lam[:, 0] / np.maximum(lam.sum(axis=1), 1e-300)  # change of curvature l3 / sum(l)
-    return n, np.sqrt(lam[:, 0]), variation
+    if quadric:
+        vecs[~ok] = np.nan
+        flip = vecs[:, 2, 0] < 0  # orient the frame's normal up; h and its coefficients flip with it
+        vecs[flip, :, 0] *= -1
+        coef, sig = np.empty((len(pos), 6)), np.empty(len(pos))
+        _quadric(tree.data, nb, pos, vecs, coef, sig)
+        fit = np.isfinite(sig)  # else (k < 7, degenerate fit) the plane stays
+        _, n_q = _on_quadric(coef[fit], vecs[fit], np.zeros((int(fit.sum()), 3)))
+        n[fit] = n_q  # the surface normal at the point itself
+        return n, np.where(fit, sig, noise), np.where(ok, variation, np.nan), coef, vecs
+    return n, noise, np.where(ok, variation, np.nan)
+
+
+def _quadric_kernel(X, nb, qpos, V, coef, sig):  # pragma: no cover - compiled
+    """Local quadric h = a u^2 + b uv + c v^2 + d u + e v + f per neighbourhood, in the PCA frame at q.
+
+    (u, v) are the coordinates along the two largest eigenvectors, h along the normal
+    (V's columns: eigenvalues ascending), all relative to the query point q itself and
+    scaled by the neighbourhood's extent for conditioning. Least squares by the 6x6
+    normal equations (Gaussian elimination with partial pivoting);
+    sig = sqrt(RSS / (m - 6)), the noise about the curved surface.
+    """
+    m, k = nb.shape
+    N = np.empty((6, 6))
+    g = np.empty(6)
+    r = np.empty(6)
+    for i in range(m):
+        q = qpos[i]
+        nx, ny, nz = V[i, 0, 0], V[i, 1, 0], V[i, 2, 0]
+        ax, ay, az = V[i, 0, 2], V[i, 1, 2], V[i, 2, 2]
+        bx, by, bz = V[i, 0, 1], V[i, 1, 1], V[i, 2, 1]
+        if not (np.isfinite(nx) and np.isfinite(ax) and np.isfinite(bx)) or k < 7:
+            coef[i, :] = np.nan
+            sig[i] = np.nan
+            continue
+        s2 = 0.0
+        for j in range(k):
+            p = nb[i, j]
+            wx, wy, wz = X[p, 0] - X[q, 0], X[p, 1] - X[q, 1], X[p, 2] - X[q, 2]
+            s2 += wx * wx + wy * wy + wz * wz
+        s = np.sqrt(s2 / k)
+        if s == 0.0:
+            coef[i, :] = np.nan
+            sig[i] = np.nan
+            continue
+        N[:, :] = 0.0
+        g[:] = 0.0
+        hh = 0.0
+        for j in range(k):
+            p = nb[i, j]
+            wx, wy, wz = X[p, 0] - X[q, 0], X[p, 1] - X[q, 1], X[p, 2] - X[q, 2]
+            u = (wx * ax + wy * ay + wz * az) / s
+            v = (wx * bx + wy * by + wz * bz) / s
+            h = wx * nx + wy * ny + wz * nz
+            r[0], r[1], r[2], r[3], r[4], r[5] = u * u, u * v, v * v, u, v, 1.0
+            for a in range(6):
+                g[a] += r[a] * h
+                for b in range(a, 6):
+                    N[a, b] += r[a] * r[b]
+            hh += h * h
+        for a in range(6):
+            for b in range(a):
+                N[a, b] = N[b, a]
+        A = N.copy()
+        c = g.copy()
+        ok = True
+        for col in range(6):  # elimination with partial pivoting
+            piv = col
+            for row in range(col + 1, 6):
+                if abs(A[row, col]) > abs(A[piv, col]):
+                    piv = row
+            if abs(A[piv, col]) <= 1e-12 * abs(N[col, col]) + 1e-300:
+                ok = False
+                break
+            if piv != col:
+                for b in range(6):
+                    A[col, b], A[piv, b] = A[piv, b], A[col, b]
+                c[col], c[piv] = c[piv], c[col]
+            for row in range(col + 1, 6):
+                f = A[row, col] / A[col, col]
+                for b in range(col, 6):
+                    A[row, b] -= f * A[col, b]
+                c[row] -= f * c[col]
+        if not ok:
+            coef[i, :] = np.nan
+            sig[i] = np.nan
+            continue
+        for col in range(5, -1, -1):
+            t = c[col]
+            for b in range(col + 1, 6):
+                t -= A[col, b] * c[b]
+            c[col] = t / A[col, col]
+        rss = hh
+        for a in range(6):
+            rss -= c[a] * g[a]
+        sig[i] = np.sqrt(max(rss, 0.0) / (k - 6))
+        # back to metres: u_scaled = u / s
+        coef[i, 0], coef[i, 1], coef[i, 2] = c[0] / (s * s), c[1] / (s * s), c[2] / (s * s)
+        coef[i, 3], coef[i, 4], coef[i, 5] = c[3] / s, c[4] / s, c[5]
+
+
+if HAVE_NUMBA:
+    _quadric = numba.njit(cache=True, nogil=True)(_quadric_kernel)
+else:  # pragma: no cover - depends on the environment
+    _quadric = _quadric_kernel
+
+
+def _on_quadric(coef, frame, w):
+    """Offset from points to the local quadric along its frame normal, and the surface normal there.
+
+    In the frame at q (columns of ``frame``: normal n, minor tangent t2, major tangent t1):
+    (u, v, h) = w . (t1, t2, n) for w = p - q; the surface height is
+    h_s(u, v) = a u^2 + b uv + c v^2 + d u + e v + f; the foot point is
+    q' = p + (h_s - h) n, and the surface normal there n - dh_s/du t1 - dh_s/dv t2 (normalised).
+    """
+    n, t2, t1 = frame[:, :, 0], frame[:, :, 1], frame[:, :, 2]
+    u = np.einsum("ij,ij->i", w, t1)
+    v = np.einsum("ij,ij->i", w, t2)
+    h = np.einsum("ij,ij->i", w, n)
+    a, b, c, d, e, f = coef.T
+    hs = a * u * u + b * u * v + c * v * v + d * u + e * v + f
+    gu, gv = 2 * a * u + b * v + d, b * u + 2 * c * v + e
+    normal = n - gu[:, None] * t1 - gv[:, None] * t2
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    normal = np.where(normal[:, 2:3] < 0, -normal, normal)
+    return (hs - h)[:, None] * n, normal
 
 
 class _Geometry:
@@ -197,32 +353,48 @@ class _Geometry:
 
     ICP with a thinned source needs the target normals only at the few target
     points that are ever matched; computing them lazily saves most of the work.
+    The cache holds one entry per distinct point (leaf position of the kd-tree, exact
+    duplicates merged) for the whole ICP call: the target does not move, so no point
+    is computed twice, and finding the missing ones needs no sort.
     """
 
-    def __init__(self, points, tree, k, normals=None):
-        self.points, self.tree, self.k = points, tree, k
-        self.rank = np.empty(tree.n, dtype=np.intp)
-        self.rank[tree.indices] = np.arange(tree.n)  # leaf order of every point
-        self.cols = np.ascontiguousarray(points.T)  # coordinate columns for contiguous gathers
-        n = len(points)
-        self.normals = np.full((n, 3), np.nan) if normals is None else normals
-        self.noise = np.full(n, np.nan)
-        self._given = normals is not None
+    def __init__(self, points, k, normals=None, tree=None, quadric=False):
+        self.tree = KDTree(points, merge_duplicates=True) if tree is None else tree
+        self.k, self.quadric = k, quadric
+        self.cols = np.ascontiguousarray(self.tree.data.T)  # coordinate columns for contiguous gathers
+        m = self.tree.n
+        self.given = normals  # per input point, or None
+        self.normals = np.full((m, 3), np.nan)
+        self.noise = np.full(m, np.nan)
+        self.done = np.zeros(m, dtype=bool)  # computed (NaN results of degenerate points included)
+        if quadric:
+            self.coef, self.frame = np.full((m, 6), np.nan), np.full((m, 3, 3), np.nan)
 
     def at(self, index, need_noise=False):
-        missing = np.isnan(self.noise[index]) if need_noise or not self._given else None
-        if missing is not None:
-            todo = np.unique(index[missing])
-            if todo.size:
-                n, s, _ = self.compute(todo, self.k)
-                self.noise[todo] = s
-                if not self._given:
-                    self.normals[todo] = n
-        return self.normals[index], self.noise[index]
+        pos = self.tree.representative[index]
+        if need_noise or self.given is None:
+            todo = ~self.done[pos]
+            if todo.any():
+                mark = np.zeros(self.tree.n, dtype=bool)
+                mark[pos[todo]] = True
+                new = np.flatnonzero(mark)  # sorted leaf positions: coherent queries, no sort
+                out = _leaf_geometry(self.tree, self.cols, new, self.k, self.quadric)
+                self.normals[new], self.noise[new] = out[0], out[1]
+                if self.quadric:
+                    self.coef[new], self.frame[new] = out[3], out[4]
+                self.done[new] = True
+        normals = self.normals[pos] if self.given is None else self.given[index]
+        return normals, self.noise[pos]
+
+    def foot(self, index, w):
+        """Offsets (m, 3) from the points ``q + w`` to the local quadric of ``q`` = point ``index``, and
+        the surface normals there (requires :meth:`at` first); rows without a quadric get NaN offsets."""
+        pos = self.tree.representative[index]
+        return _on_quadric(self.coef[pos], self.frame[pos], w)
 
     def compute(self, index, k):
         """Normals, noise and change of curvature at ``index`` with k neighbours (no caching)."""
-        return _local_geometry(self.points, self.tree, index, k, self.rank, self.cols)
+        return _local_geometry(self.tree, self.cols, index, k)
 
 
 # --------------------------------------------------------------------- sampling
@@ -246,6 +418,11 @@ def _sample(points, geometry, spec, rng):
         return np.sort(rng.choice(n, m, replace=False))
     pool = np.sort(rng.choice(n, min(n, 6 * m), replace=False))  # candidates for the normals
     coarse, _, variation = geometry.compute(pool, min(10, geometry.k))  # coarse normals suffice for the bins
+    has = np.isfinite(coarse[:, 0])  # no bin for points without a normal (a point or a line, issue 16)
+    if has.sum() >= m:
+        pool, coarse, variation = pool[has], coarse[has], variation[has]
+    else:
+        coarse = np.where(has[:, None], coarse, [0.0, 0.0, 1.0])
     # rare normals are often artefacts of neighbourhoods across an edge: keep planar candidates only
     planar = variation < MAX_VARIATION
     if planar.sum() >= m:
@@ -325,13 +502,14 @@ class _Matcher:
     source_sigma: np.ndarray  # per sampled source point, from class and noise
     source_rule: np.ndarray  # pre-assignment exclusions (class, noise)
     target: np.ndarray
-    tree: cKDTree
+    tree: KDTree
     geometry: _Geometry
     target_class: np.ndarray | None
     options: dict
     origin: np.ndarray
     n_source: int
     source_class: np.ndarray | None = None  # class of each sampled source point (None: no classification)
+    query_order: np.ndarray | None = None  # sampled source points in spatial (leaf) order: coherent queries
 
     def __call__(self, R=None, t=None) -> Correspondences:
         """Correspondences of the source moved by p' = R p + t (local frame)."""
@@ -340,7 +518,7 @@ class _Matcher:
         t = np.zeros(3) if t is None else t
         p = self.source @ R.T + t
         rule = self.source_rule.copy()
-        live = np.flatnonzero(rule == 0)
+        live = self.query_order[rule[self.query_order] == 0]  # in leaf order: neighbouring queries in cache
         m = len(p)
         tidx = np.full(m, -1)
         d = np.full((m, 3), np.nan)
@@ -349,12 +527,22 @@ class _Matcher:
         # (3) nearest neighbour in the target kd-tree, within max_distance
         workers = -1 if len(live) > 20000 else 1  # thread start-up dominates small queries
         dist, j = self.tree.query(p[live], k=1, distance_upper_bound=opt["max_distance"], workers=workers)
-        found = np.isfinite(dist)
-        rule[live[~found]] = _CODE["distance"]
-        live, j = live[found], j[found]
+        # back to ascending rows (one scatter), so that the steps below read and write in order
+        nearest = np.full(m, -1)
+        nearest[live] = np.where(np.isfinite(dist), j, -1)
+        rule[live[~np.isfinite(dist)]] = _CODE["distance"]
+        live = np.flatnonzero(nearest >= 0)
+        j = nearest[live]
         tidx[live] = j
         d[live] = self.target[j] - p[live]
         nt[live], noise_t[live] = self.geometry.at(j, need_noise=opt["need_noise"])
+        if opt["surface"] == "quadric" and len(live):
+            # the foot point on the target's local quadric replaces q_j: no curvature bias (sagitta)
+            off, n_s = self.geometry.foot(j, -d[live])
+            fit = np.isfinite(off[:, 0])
+            d[live[fit]], nt[live[fit]] = off[fit], n_s[fit]
+        # a target point whose neighbourhood is a point or a line has no normal (issue 16)
+        rule[live[np.isnan(nt[live, 0]) & (rule[live] == 0)]] = _CODE["degenerate"]
         # (4) gates on the target point: class, noise, normal angle
         if opt["classes"] is not None:  # prepare() made sure the target has classes
             bad = ~np.isin(self.target_class[j], opt["classes"])
@@ -364,6 +552,7 @@ class _Matcher:
             rule[live[bad & (rule[live] == 0)]] = _CODE["noise"]
         angle = np.full(m, np.nan)
         if self.source_normals is not None:
+            rule[live[np.isnan(self.source_normals[live, 0]) & (rule[live] == 0)]] = _CODE["degenerate"]
             ns = self.source_normals[live] @ R.T
             cosang = np.abs(np.einsum("ij,ij->i", ns, nt[live]))
             angle[live] = np.degrees(np.arccos(np.clip(cosang, 0, 1)))
@@ -371,7 +560,7 @@ class _Matcher:
                 bad = angle[live] > opt["max_angle_deg"]
                 rule[live[bad & (rule[live] == 0)]] = _CODE["normal_angle"]
         if opt["unique"]:
-            _reject_duplicates(rule, tidx, d)
+            _reject_duplicates(rule, tidx, d, len(self.target))
         # (5) weights p = 1 / (sigma_s^2 + sigma_t^2)  (eq. 5.6)
         weight = np.zeros(m)
         weight[live] = 1.0 / (self.source_sigma[live] ** 2 + self._target_sigma(j, noise_t[live]) ** 2)
@@ -389,24 +578,54 @@ class _Matcher:
             s = _class_sigma(self.target_class[j], opt["class_sigma"])
             var += np.where(np.isnan(s), opt["default_sigma"], s) ** 2
         if opt["noise_weighting"]:
-            var += noise**2
+            # the plane's q_j is one measured point; the quadric's foot point is a fitted value, whose
+            # variance is on average sigma^2 u / k (mean leverage of u = 6 parameters over k points)
+            var += noise**2 * (6.0 / opt["k"] if opt["surface"] == "quadric" else 1.0)
         if not opt["class_sigma"] and not opt["noise_weighting"]:
             return np.full(len(j), np.sqrt(0.5))  # unit weights: p = 1
         return np.sqrt(np.maximum(var, MIN_SIGMA**2))
 
 
-def _reject_duplicates(rule, tidx, d):
+def _reject_duplicates(rule, tidx, d, n_target):
     """One source point per target point: keep the closest, mark the others 'duplicate' (in place).
 
     A target point used twice would put its own noise into two residuals; the
-    residuals would be correlated and sigma0^2 N^-1 too optimistic.
+    residuals would be correlated and sigma0^2 N^-1 too optimistic. One pass over the
+    accepted rows with a per-target-point record of the closest row so far (O(m), no
+    sort); equal distances keep the lower row, as a stable sort would.
     """
     live = np.flatnonzero(rule == 0)
     if live.size < 2:
         return
-    order = live[np.lexsort(((d[live] ** 2).sum(axis=1), tidx[live]))]
-    first = np.r_[True, tidx[order[1:]] != tidx[order[:-1]]]
-    rule[order[~first]] = _CODE["duplicate"]
+    dist2 = np.einsum("ij,ij->i", d[live], d[live])
+    loser = _closest_per_target(live, tidx[live], dist2, n_target)
+    rule[loser] = _CODE["duplicate"]
+
+
+def _closest_per_target_numpy(live, j, dist2, n_target):  # pragma: no cover - without numba
+    order = np.lexsort((dist2, j))
+    first = np.r_[True, j[order[1:]] != j[order[:-1]]]
+    return live[order[~first]]
+
+
+if HAVE_NUMBA:
+
+    @numba.njit(cache=True, nogil=True)
+    def _closest_per_target(live, j, dist2, n_target):  # pragma: no cover - compiled
+        best = np.full(n_target, -1, np.int64)  # position in ``live`` of the closest row so far
+        lose = np.zeros(len(live), np.bool_)
+        for r in range(len(live)):
+            b = best[j[r]]
+            if b < 0:
+                best[j[r]] = r
+            elif dist2[r] < dist2[b]:
+                lose[b] = True
+                best[j[r]] = r
+            else:
+                lose[r] = True
+        return live[lose]
+else:  # pragma: no cover - depends on the environment
+    _closest_per_target = _closest_per_target_numpy
 
 
 def prepare(
@@ -428,6 +647,7 @@ def prepare(
     rng=None,
     tree=None,
     origin=None,
+    surface="plane",
 ) -> _Matcher:
     """Build the fixed part of the matching once (kd-tree, sampling, exclusions).
 
@@ -442,22 +662,34 @@ def prepare(
     rng = as_rng(rng)
     origin = local_origin(tgt) if origin is None else np.asarray(origin, dtype=np.float64)
     src_l, tgt_l = reduce(src, origin), reduce(tgt, origin)
-    tree = cKDTree(tgt_l) if tree is None else tree
-    if tree.n != len(tgt_l):
-        raise LabkitError(f"the given tree holds {tree.n} points, the target has {len(tgt_l)}")
-    tgt_geo = _Geometry(tgt_l, tree, int(k), _given_normals(target_normals, len(tgt_l), "target_normals"))
+    if tree is not None and getattr(tree, "n", None) != len(tgt_l):
+        raise LabkitError(f"the given tree holds {getattr(tree, 'n', '?')} points, the target has {len(tgt_l)}")
+    # the target's compiled kd-tree (exact duplicates merged) and its geometry cache: once per call
+    tree = KDTree(tgt_l, merge_duplicates=True)
+    quadric = choice(surface, SURFACES, "surface") == "quadric"
+    if quadric and int(k) < 10:
+        raise LabkitError(f"surface='quadric' fits 6 parameters: k must be at least 10, got {k}")
+    tgt_geo = _Geometry(tgt_l, int(k), _given_normals(target_normals, len(tgt_l), "target_normals"), tree, quadric)
     need_src_geo = (
         max_angle_deg is not None or noise_weighting or max_noise is not None
         or (isinstance(sample, (tuple, list)) and sample[0] == "normal_space")
     )  # fmt: skip
     src_geo = None
     if need_src_geo:
-        src_tree = cKDTree(src_l) if len(src_l) >= k else None
-        if src_tree is None:
+        if len(src_l) < k:
             raise LabkitError(f"the source needs at least k = {k} points for its normals, got {len(src_l)}")
-        src_geo = _Geometry(src_l, src_tree, int(k), _given_normals(source_normals, len(src_l), "source_normals"))
+        src_geo = _Geometry(
+            src_l, int(k), _given_normals(source_normals, len(src_l), "source_normals"), quadric=quadric
+        )
     # (1) sampling
     idx = _sample(src_l, src_geo, sample, rng)
+    # query order: the sampled source points in the leaf order of a kd-tree over them
+    src_tree = src_geo.tree if src_geo is not None else KDTree(src_l[idx])
+    if src_geo is not None:
+        order = np.argsort(src_tree.representative[idx], kind="stable")
+    else:
+        order = np.empty(len(idx), dtype=np.intp)
+        order[:] = src_tree.indices
     options = dict(
         max_distance=np.inf if max_distance is None else positive(max_distance, "max_distance"),
         max_angle_deg=None if max_angle_deg is None else positive(max_angle_deg, "max_angle_deg"),
@@ -470,6 +702,7 @@ def prepare(
         sample=sample,
         unique=bool(unique),
         k=int(k),
+        surface=surface,
     )
     # (2) exclusions on the source side and a priori sigma per source point
     src_cls, tgt_cls = _classes_of(source, len(src)), _classes_of(target, len(tgt))
@@ -480,7 +713,7 @@ def prepare(
     rule, sigma = _source_rules(src_cls, idx, src_noise, options)
     return _Matcher(
         src_l[idx], idx, src_normals, sigma, rule, tgt_l, tree, tgt_geo, tgt_cls, options, origin, len(src),
-        None if src_cls is None else src_cls[idx],
+        None if src_cls is None else src_cls[idx], order,
     )  # fmt: skip
 
 
@@ -538,6 +771,7 @@ def match(
     k=20,
     rng=None,
     tree=None,
+    surface="plane",
 ) -> Correspondences:
     """Find, gate and weight correspondences from ``source`` to ``target`` (seed: ``Matching``).
 
@@ -572,8 +806,19 @@ def match(
         Neighbours for normals and local noise.
     rng : int or Generator, optional
         For the sampling.
-    tree : scipy.spatial.cKDTree, optional
-        A kd-tree of the target reduced to ``local_origin(target)`` (to reuse).
+    surface : {'plane', 'quadric'}
+        Local surface model of both clouds from their k neighbours. 'plane' (default): the
+        PCA plane (notebook 04), right for dense data. 'quadric': a quadric
+        h = a u^2 + b uv + c v^2 + d u + e v + f fitted in the PCA frame at each target
+        point; for sparse curved ground (ALS at 0.5-1 pts/m^2 on hills) the plane's l3
+        holds the curvature, so its noise (and weight, and ``max_noise``) is wrong by
+        that much, and the point-to-plane residual carries the sagitta between p_i and
+        q_j. With 'quadric' the noise is the spread about the quadric (redundancy
+        k - 6), ``d`` runs from p_i to its foot point on the target's quadric and
+        ``target_normal`` is the quadric's normal there. Needs k >= 10.
+    tree : optional
+        Kept for compatibility: labkit builds its own compiled kd-tree of the target
+        (exact duplicates merged) once per call; a given tree is only checked for its size.
 
     Returns
     -------
@@ -591,6 +836,6 @@ def match(
         source, target, target_normals=target_normals, source_normals=source_normals,
         max_distance=max_distance, max_angle_deg=max_angle_deg, classes=classes,
         class_sigma=class_sigma, default_sigma=default_sigma, noise_weighting=noise_weighting,
-        max_noise=max_noise, sample=sample, unique=unique, k=k, rng=rng, tree=tree,
+        max_noise=max_noise, sample=sample, unique=unique, k=k, rng=rng, tree=tree, surface=surface,
     )  # fmt: skip
     return matcher()

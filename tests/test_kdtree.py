@@ -1,0 +1,74 @@
+"""Tests of labkit._kdtree: the compiled kNN against scipy's cKDTree and brute force."""
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from labkit._kdtree import KDTree
+
+
+def clouds():
+    rng = np.random.default_rng(0)
+    uniform = rng.uniform(0, 10, (3000, 3))
+    ties = np.round(rng.normal(size=(3000, 3)), 1)  # many equal coordinates and duplicates
+    surface = np.column_stack([rng.uniform(0, 5, (3000, 2)), np.zeros(3000)])  # flat: zero extent in z
+    clustered = rng.normal(size=(3000, 3)) * np.exp(rng.uniform(-6, 0, (3000, 1)))  # densities over 10^2.6
+    return {"uniform": uniform, "ties": ties, "surface": surface, "clustered": clustered}
+
+
+@pytest.mark.parametrize("name", list(clouds()))
+@pytest.mark.parametrize("k", [1, 7, 20])
+def test_knn_distances_equal_ckdtree(name, k):
+    P = clouds()[name]
+    Q = P[::7] + np.random.default_rng(1).normal(0, 0.05, (len(P[::7]), 3))
+    d, i = KDTree(P, leafsize=8).query(Q, k=k, workers=2)
+    dc, ic = cKDTree(P).query(Q, k=k)
+    assert np.allclose(d, dc, rtol=0, atol=1e-12)
+    # the indices may differ only among equal distances
+    assert np.allclose(np.linalg.norm(P[i] - (Q[:, None] if k > 1 else Q), axis=-1), dc, atol=1e-12)
+
+
+@pytest.mark.parametrize("bound", [0.01, 0.03])
+def test_distance_upper_bound_like_ckdtree(bound):
+    P = clouds()["clustered"]
+    Q = P[::5] + 0.05
+    d, i = KDTree(P).query(Q, k=1, distance_upper_bound=bound)
+    dc, ic = cKDTree(P).query(Q, k=1, distance_upper_bound=bound)
+    assert np.array_equal(np.isinf(d), np.isinf(dc)) and np.isinf(d).any() and np.isfinite(d).any()
+    assert np.allclose(d[np.isfinite(d)], dc[np.isfinite(dc)], atol=1e-12)
+    assert (i[np.isinf(d)] == len(P)).all()
+
+
+def test_merged_duplicates_are_counted_and_mapped():
+    P = clouds()["ties"]
+    tree = KDTree(P, merge_duplicates=True)
+    distinct = np.unique(P, axis=0)
+    assert tree.n == len(distinct) and tree.n_duplicates == len(P) - len(distinct)
+    assert np.array_equal(tree.data[tree.representative], P)  # every point maps to an equal kept point
+    assert np.array_equal(np.unique(tree.data, axis=0), distinct)
+    # self-kNN on the distinct points equals cKDTree on np.unique
+    d2, _ = tree._run(tree.data, 5, np.inf, 1)
+    dc, _ = cKDTree(distinct).query(tree.data, k=5)
+    assert np.allclose(np.sqrt(d2), dc, atol=1e-12)
+
+
+def test_identical_points_make_one_leaf():
+    tree = KDTree(np.ones((100, 3)), merge_duplicates=True)
+    assert tree.n == 1 and tree.n_duplicates == 99
+    d, i = tree.query(np.zeros((1, 3)), k=1)
+    assert np.isclose(d[0], np.sqrt(3.0)) and i[0] == 0
+
+
+def test_two_thread_build_gives_the_same_neighbours():
+    """Above 10^5 points the root is split here and the halves built in two threads."""
+    rng = np.random.default_rng(3)
+    P = np.round(rng.normal(size=(150_000, 3)) * np.exp(rng.uniform(-3, 0, (150_000, 1))), 3)
+    tree = KDTree(P, merge_duplicates=True)
+    assert np.array_equal(tree.data[tree.representative], P)
+    assert tree.n_duplicates == len(P) - len(np.unique(P, axis=0))
+    Q = P[::50] + 0.001
+    d, _ = tree.query(Q, k=8, workers=2)
+    dc, _ = cKDTree(np.unique(P, axis=0)).query(Q, k=8)  # merged: the k nearest distinct points
+    assert np.allclose(d, dc, atol=1e-12)
+    d, _ = KDTree(P).query(Q, k=8, workers=2)
+    assert np.allclose(d, cKDTree(P).query(Q, k=8)[0], atol=1e-12)
