@@ -11,6 +11,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import cho_factor, cho_solve
 from scipy.spatial import cKDTree
 
 from .._report import ReportMixin, fmt
@@ -85,14 +86,16 @@ class AdjustmentRecord(ReportMixin):
 
 
 def branch_and_bound(ptr, src_of, D, nrm, pb, center, ext, tol, max_boxes, init_step=0.05, gap_tol=0.0,
-                     use_numba=None) -> BnBOutcome:
+                     use_numba=None, *, max_time=None) -> BnBOutcome:
     """Best-first branch and bound over the box ``center +- ext`` (eq. 6.7, 6.8).
 
     Upper bound of a box with centre c and half diagonal h: the consensus at c
     with radius + h and eps + h; lower bound: the exact consensus at c. The
     first level (boxes of about ``init_step``) is bounded all at once by two
     rasterized cubes; a box is then split into octants, each tested only on
-    the pairs that passed its parent's enlarged test.
+    the pairs that passed its parent's enlarged test. The search stops early when
+    ``max_boxes`` splits or ``max_time`` seconds are spent; the bound of every box
+    still open then enters the certified upper bound.
     """
     t0 = time.perf_counter()
     R, E, w = pb.radius, pb.eps, pb.w
@@ -113,7 +116,7 @@ def branch_and_bound(ptr, src_of, D, nrm, pb, center, ext, tol, max_boxes, init_
     heap = [(-ub0[i], -1, n, a0 + s * np.array(i), half0, None, 0.0)
             for n, i in enumerate(zip(*np.nonzero(ub0 > best + gap_tol)))]
     heapq.heapify(heap)
-    tree = cKDTree(D)
+    every = np.arange(len(D), dtype=np.int64)
 
     def evaluate(act, centres, h):
         return K.children(act, src_of, D, nrm, centres, R, E, h, w, use_numba=use_numba)
@@ -127,14 +130,18 @@ def branch_and_bound(ptr, src_of, D, nrm, pb, center, ext, tol, max_boxes, init_
             dropped = max(dropped, -neg_ub)
             break
         if splits >= max_boxes:
-            reason = f"budget exhausted ({splits} splits)"
+            reason = f"box budget exhausted ({splits} splits)"
+            break
+        if max_time is not None and time.perf_counter() - t0 > max_time:
+            reason = f"time budget of {max_time:g} s spent ({splits} splits)"
             break
         heapq.heappop(heap)
         if 2 * half.max() < tol:  # too small to split: stays open, counts for the gap
             small_ub, n_small = max(small_ub, -neg_ub), n_small + 1
             continue
-        if act is None:  # pairs that can be consistent somewhere in this first-level box
-            act = np.sort(np.asarray(tree.query_ball_point(c, R + float(np.linalg.norm(half))), dtype=np.int64))
+        if act is None:  # pairs that can be consistent somewhere in this first-level box (ball and slab)
+            acts, _, _, sure = evaluate(every, c[None, :], float(np.linalg.norm(half)))
+            act, base = acts[0], float(sure[0])
         # Split into octants and bound each
         hh = half / 2
         centres = c + OCTANTS * hh
@@ -234,29 +241,66 @@ def _fit_with_deletion(A, l, p, t, t_ref, box_var, k_del, max_rounds=30):
     return x, sigma0, cov, deg, keep
 
 
-def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: int = 20, k: int = 12):
-    """Least squares on the consensus set with weights and iterative deletion (eq. 6.10-6.13).
+def _sandwich(A, l, p, x, deg, cells, box_var):
+    """Cluster-robust covariance J^-1 M J^-1 of the adjusted translation (eq. 6.14).
+
+    J = A^T P A over the kept observations; M = sum over blocks b of g_b g_b^T with
+    the scores g_b = sum_(i in b) a_i p_i v_i. Unlike sigma0^2 N^-1 it holds when the
+    weights are wrong (vegetation rougher than its plane says), when the errors differ
+    from point to point and when neighbouring residuals share a cause (the same local
+    plane, a patch of changed surface): those errors add up within a block. Only the
+    constrained directions of N get it; undetermined ones keep the box variance.
+    Returns None with fewer than 8 occupied blocks (the caller keeps sigma0^2 N^-1).
+    """
+    _, block = np.unique(cells, axis=0, return_inverse=True)
+    block = block.ravel()
+    n_blocks = int(block.max()) + 1 if block.size else 0
+    Vc = deg.eigenvectors[:, deg.constrained]
+    u = Vc.shape[1]
+    if n_blocks < max(8, 2 * u) or u == 0:
+        return None
+    v = A @ x - l
+    g = (A @ Vc) * (p * v)[:, None]  # score of every observation in the constrained basis
+    G = np.zeros((n_blocks, u))
+    np.add.at(G, block, g)
+    m = len(l)
+    M = G.T @ G * n_blocks / (n_blocks - 1) * m / max(m - u, 1)  # small-sample factors
+    J = Vc.T @ (A.T @ (p[:, None] * A)) @ Vc
+    try:
+        Ji = cho_solve(cho_factor(0.5 * (J + J.T)), np.eye(u))
+    except np.linalg.LinAlgError:
+        return None
+    Vu = deg.eigenvectors[:, ~deg.constrained]
+    return Vc @ (Ji @ M @ Ji) @ Vc.T + box_var * (Vu @ Vu.T)
+
+
+def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: int = 20, k: int = 12,
+           block_size: float = 2.0):
+    """Least squares on the consensus set with weights and iterative deletion (eq. 6.10-6.14).
 
     The consensus set of the branch-and-bound optimum names the source points that
     agree (the inliers of maximum consensus). Each of them is then related to the
-    plane of its ``k`` nearest target points at the current translation, weighted by
-    the local noise of that plane, and the translation is adjusted with iterative
-    deletion; association and adjustment alternate until the translation settles.
+    plane of its ``k`` nearest target points (of the whole target) at the current
+    translation, weighted by the local noise of that plane, and the translation is
+    adjusted with iterative deletion; association and adjustment alternate until the
+    translation settles. The covariance is the cluster-robust sandwich over cubic blocks
+    of edge ``block_size`` (:func:`_sandwich`), sigma0^2 N^-1 where the blocks are too few.
     The pairs of the consensus test itself are not used as observations: of all
     target points within the search radius they are the one whose plane fits best
     at the branch-and-bound translation, and residuals truncated at eps both pull the
     estimate towards that translation and make sigma0 far too small (notebook 06).
     """
     R, E = pb.radius, pb.eps
+    tgt = pb.tgt if pb.tgt_full is None else pb.tgt_full
     box_var = float((2 * ext.max()) ** 2 / 12)  # undetermined directions: uniform over the search box
     members = np.unique(src_of[_consensus_set(bb.translation, src_of, D, nrm, R, E)])
-    tree = cKDTree(pb.tgt)
-    k = int(min(k, len(pb.tgt)))
+    tree = cKDTree(tgt)
+    k = int(min(k, len(tgt)))
     t, records, it, ls_ok = bb.translation.copy(), [], 0, False
-    sigma0, cov, deg, n_used = float("nan"), np.full((3, 3), np.nan), None, 0
+    sigma0, cov, deg, n_used, kind = float("nan"), np.full((3, 3), np.nan), None, 0, "none"
     for _ in range(max_outer if members.size >= 3 else 0):
         # Associate every member with its local target plane at t, then adjust
-        A, l, p = _design(members, pb.src[members] + t, pb.tgt, tree, k, pb.w, pb.src)
+        A, l, p = _design(members, pb.src[members] + t, tgt, tree, k, pb.w, pb.src)
         fit = _fit_with_deletion(A, l, p, t, bb.translation, box_var, deletion_k)
         if fit is None:
             deg = None
@@ -270,14 +314,22 @@ def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: i
         if moved < 1e-6:
             ls_ok = True
             break
+    if deg is not None:
+        cells = np.floor(pb.src[members[keep]] / block_size).astype(np.int64)
+        robust = _sandwich(A[keep], l[keep], p[keep], t, deg, cells, box_var)
+        cov, kind = (cov, "sigma0^2 N^-1 (too few blocks for the sandwich)") if robust is None else (
+            robust, f"cluster-robust sandwich over {block_size:.3g} m blocks")
     undetermined = deg.undetermined_axes if deg is not None else NAMES
     msg = (f"branch and bound: consensus {bb.lower:.6g}, certified upper bound {bb.upper:.6g} "
-           f"(gap {bb.gap:.6g}) after {bb.splits} splits, {bb.reason}")
+           f"(gap {bb.gap:.6g}) after {bb.splits} splits, {bb.reason}; eps {E * 1000:.1f} mm, "
+           f"{len(pb.src)} of {pb.n_source or len(pb.src)} source points vote")
     if deg is None:
         msg += "; too few consistent points for the least-squares refinement"
     elif not deg.well_posed:
         msg += (f"; undetermined along {', '.join(undetermined)}: kept the branch-and-bound value there, "
                 f"variance = uniform over the search box")
+    if deg is not None:
+        msg += f"; covariance: {kind}"
     if not ls_ok:
         msg += "; refinement did not settle"
     return RegistrationResult(
