@@ -11,7 +11,6 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve
 from scipy.spatial import cKDTree
 
 from .._report import ReportMixin, fmt
@@ -228,13 +227,16 @@ def _fit_with_deletion(A, l, p, t, t_ref, box_var, k_del, max_rounds=30):
     Start from a robust scale (MAD of the weighted residuals at t), then alternate the
     adjustment and the test on all observations until the kept set no longer changes.
     """
+    used = p > 0
+    if used.sum() < 3:
+        return None
     z = (A @ t - l) * np.sqrt(p)
-    keep = np.abs(z) <= k_del * max(1.4826 * float(np.median(np.abs(z))), 1e-12)
+    keep = used & (np.abs(z) <= k_del * max(1.4826 * float(np.median(np.abs(z[used]))), 1e-12))
     for _ in range(max_rounds):
         if keep.sum() < 3:
             return None
         x, v, sigma0, cov, deg = _adjust(A[keep], l[keep], p[keep], t_ref, box_var)
-        new = np.abs(A @ x - l) * np.sqrt(p) <= k_del * sigma0 if sigma0 > 0 else keep
+        new = used & (np.abs(A @ x - l) * np.sqrt(p) <= k_del * sigma0) if sigma0 > 0 else keep
         if (new == keep).all():
             break
         keep = new
@@ -242,15 +244,19 @@ def _fit_with_deletion(A, l, p, t, t_ref, box_var, k_del, max_rounds=30):
 
 
 def _sandwich(A, l, p, x, deg, cells, box_var):
-    """Cluster-robust covariance J^-1 M J^-1 of the adjusted translation (eq. 6.14).
+    """Cluster-robust covariance of the adjusted translation: the delete-a-block jackknife (eq. 6.14).
 
-    J = A^T P A over the kept observations; M = sum over blocks b of g_b g_b^T with
-    the scores g_b = sum_(i in b) a_i p_i v_i. Unlike sigma0^2 N^-1 it holds when the
+    J = A^T P A over the kept observations, J_b its part from block b and g_b = sum over
+    the block of a_i p_i v_i (the score). Leaving block b out moves the estimate by
+    d_b = (J - J_b)^-1 g_b, and Sigma = (B - 1) / B sum_b d_b d_b^T. This is the sandwich
+    J^-1 (sum g_b g_b^T) J^-1 with every score scaled by its block's leverage (CR3), which
+    matters when a few blocks carry a direction (the ends of a few hip roofs fix Y in a
+    village): the plain sandwich is then too small. Unlike sigma0^2 N^-1 it holds when the
     weights are wrong (vegetation rougher than its plane says), when the errors differ
     from point to point and when neighbouring residuals share a cause (the same local
-    plane, a patch of changed surface): those errors add up within a block. Only the
-    constrained directions of N get it; undetermined ones keep the box variance.
-    Returns None with fewer than 8 occupied blocks (the caller keeps sigma0^2 N^-1).
+    plane, a patch of changed surface). Only the constrained directions of N get it;
+    undetermined ones keep the box variance. Returns None with fewer than 8 occupied
+    blocks (the caller keeps sigma0^2 N^-1).
     """
     _, block = np.unique(cells, axis=0, return_inverse=True)
     block = block.ravel()
@@ -259,23 +265,25 @@ def _sandwich(A, l, p, x, deg, cells, box_var):
     u = Vc.shape[1]
     if n_blocks < max(8, 2 * u) or u == 0:
         return None
+    Ac = A @ Vc  # design in the constrained basis
     v = A @ x - l
-    g = (A @ Vc) * (p * v)[:, None]  # score of every observation in the constrained basis
     G = np.zeros((n_blocks, u))
-    np.add.at(G, block, g)
-    m = len(l)
-    M = G.T @ G * n_blocks / (n_blocks - 1) * m / max(m - u, 1)  # small-sample factors
-    J = Vc.T @ (A.T @ (p[:, None] * A)) @ Vc
-    try:
-        Ji = cho_solve(cho_factor(0.5 * (J + J.T)), np.eye(u))
-    except np.linalg.LinAlgError:
-        return None
+    np.add.at(G, block, Ac * (p * v)[:, None])  # score per block
+    Jb = np.zeros((n_blocks, u, u))
+    np.add.at(Jb, block, np.einsum("i,ij,ik->ijk", p, Ac, Ac))
+    J = Jb.sum(axis=0)
+    rest = J[None] - Jb
+    ok = np.linalg.eigvalsh(0.5 * (rest + rest.transpose(0, 2, 1)))[:, 0] > 1e-9 * np.trace(J)
+    if not ok.all():  # a block that alone determines a direction: its deletion is not defined
+        rest[~ok] = J
+    d = np.linalg.solve(rest, G[:, :, None])[:, :, 0]
+    cov_c = d.T @ d * (n_blocks - 1) / n_blocks
     Vu = deg.eigenvectors[:, ~deg.constrained]
-    return Vc @ (Ji @ M @ Ji) @ Vc.T + box_var * (Vu @ Vu.T)
+    return Vc @ cov_c @ Vc.T + box_var * (Vu @ Vu.T)
 
 
 def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: int = 20, k: int = 12,
-           block_size: float = 2.0):
+           block_size: float | None = None):
     """Least squares on the consensus set with weights and iterative deletion (eq. 6.10-6.14).
 
     The consensus set of the branch-and-bound optimum names the source points that
@@ -296,6 +304,9 @@ def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: i
     members = np.unique(src_of[_consensus_set(bb.translation, src_of, D, nrm, R, E)])
     tree = cKDTree(tgt)
     k = int(min(k, len(tgt)))
+    if block_size is None:  # radius of the k-neighbourhoods: residuals closer than that share target points
+        d, _ = tree.query(tgt[:: max(1, len(tgt) // 5000)], k=k, workers=-1)
+        block_size = max(float(np.median(d[:, -1])), 1e-3)
     t, records, it, ls_ok = bb.translation.copy(), [], 0, False
     sigma0, cov, deg, n_used, kind = float("nan"), np.full((3, 3), np.nan), None, 0, "none"
     for _ in range(max_outer if members.size >= 3 else 0):
@@ -315,10 +326,10 @@ def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: i
             ls_ok = True
             break
     if deg is not None:
-        cells = np.floor(pb.src[members[keep]] / block_size).astype(np.int64)
+        cells = np.floor(pb.src[members[keep]][:, :2] / block_size).astype(np.int64)
         robust = _sandwich(A[keep], l[keep], p[keep], t, deg, cells, box_var)
-        cov, kind = (cov, "sigma0^2 N^-1 (too few blocks for the sandwich)") if robust is None else (
-            robust, f"cluster-robust sandwich over {block_size:.3g} m blocks")
+        cov, kind = (cov, "sigma0^2 N^-1 (too few blocks for the jackknife)") if robust is None else (
+            robust, f"delete-a-block jackknife over {block_size:.3g} m blocks")
     undetermined = deg.undetermined_axes if deg is not None else NAMES
     msg = (f"branch and bound: consensus {bb.lower:.6g}, certified upper bound {bb.upper:.6g} "
            f"(gap {bb.gap:.6g}) after {bb.splits} splits, {bb.reason}; eps {E * 1000:.1f} mm, "

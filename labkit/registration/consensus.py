@@ -699,8 +699,9 @@ def max_consensus(
     deletion_k : float
         Deletion threshold (> 0) for standardized residuals in the refinement.
     block_size : float, optional
-        Edge (m) of the cubic blocks of the sandwich covariance; default: four times the
-        spacing of the voting points, at least 2 m.
+        Edge (m) of the square (XY) blocks of the jackknife covariance; default: the radius
+        of the target's k-neighbourhoods (median distance to the k-th neighbour), the
+        distance within which the residuals of two voting points share target points.
 
     Returns
     -------
@@ -733,9 +734,8 @@ def max_consensus(
     bb = branch_and_bound(ptr, src_of, D, nrm, pb, c, ext, tol, opts["max_boxes"], step0, opts["gap_tol"],
                           use_numba, max_time=opts["max_time"])
     # Least squares with weights and iterative deletion on the consensus set; sandwich covariance
-    block = opts["block_size"] or max(2.0, 4.0 * pb.spacing if np.isfinite(pb.spacing) else 2.0)
     return refine(bb, src_of, D, nrm, pb, opts["deletion_k"], ext, time.perf_counter() - t0, t0,
-                  k=max(4, int(normal_k)), block_size=block)
+                  k=max(4, int(normal_k)), block_size=opts["block_size"])
 
 
 def _search_options(max_points, max_time, max_boxes, gap_tol, init_step, deletion_k, block_size) -> dict:
