@@ -426,11 +426,16 @@ def _default_radius(tgt) -> float:
 def _box(extent, center):
     try:
         ext = np.broadcast_to(np.asarray(extent, dtype=np.float64), (3,)).copy()
+    except (TypeError, ValueError):
+        raise LabkitError(f"extent must be one or three numbers > 0 (m), got {extent!r}") from None
+    if not np.isfinite(ext).all() or (ext <= 0).any():
+        raise LabkitError(f"extent must be one or three finite numbers > 0 (m), got {extent!r}")
+    try:
         c = np.zeros(3) if center is None else np.asarray(center, dtype=np.float64).reshape(3)
     except (TypeError, ValueError):
-        raise LabkitError("extent must be one or three numbers > 0 (m) and center three numbers") from None
-    if not np.isfinite(ext).all() or (ext <= 0).any() or not np.isfinite(c).all():
-        raise LabkitError(f"extent must be one or three finite numbers > 0 (m), got {extent!r}")
+        raise LabkitError(f"center must be three numbers (m), got {center!r}") from None
+    if not np.isfinite(c).all():
+        raise LabkitError(f"center must be three finite numbers (m), got {center!r}")
     return ext, c
 
 
