@@ -189,7 +189,10 @@ def _local_planes(tgt, tree, x, k):
     c = P.mean(axis=1)
     Y = P - c[:, None, :]
     lam, V = np.linalg.eigh(np.einsum("nki,nkj->nij", Y, Y) / k)
-    return V[:, :, 0], c, lam[:, 0] * k / (k - 3)
+    s2 = lam[:, 0] * k / (k - 3)
+    # covariance of the normal's tilt from the noise alone: s^2 / (k l_j) along the in-plane axes e_j
+    tilt = np.einsum("nj,nij,nkj->nik", s2[:, None] / (k * np.maximum(lam[:, 1:], 1e-300)), V[:, :, 1:], V[:, :, 1:])
+    return V[:, :, 0], c, s2, tilt
 
 
 def _design(members, x, tgt, tree, k, w, src):
@@ -198,30 +201,49 @@ def _design(members, x, tgt, tree, k, w, src):
     Weight p = w / var with var = s^2 (1 + 1/k) + s^2: the noise of the plane's centroid plus
     that of the source point, which lies on a surface as rough as the target's neighbourhood.
     """
-    n, c, s2 = _local_planes(tgt, tree, x, k)
+    n, c, s2, tilt = _local_planes(tgt, tree, x, k)
     var = np.maximum(s2, 1e-6) * (2.0 + 1.0 / k)  # at least (1 mm)^2 per epoch
     var = var / np.median(var)  # sigma0 in metres: that of an observation of median noise
-    return n, np.einsum("ij,ij->i", n, c - src[members]), w[members] / var
+    return n, np.einsum("ij,ij->i", n, c - src[members]), w[members] / var, tilt
 
 
-def _adjust(A, l, p, t_ref, box_var):
-    """Weighted LS in the constrained subspace of N; undetermined directions keep t_ref."""
+def _adjust(A, l, p, tilt, t_ref, box_var, max_std):
+    """Weighted LS in the determined subspace of N; undetermined directions keep t_ref.
+
+    Determinability from precision (eq. 6.12): an eigen-direction of N with eigenvalue
+    lam is determined when its standard deviation sigma0 / sqrt(lam) is at most ``max_std``
+    (metres), not when lam exceeds a fixed share of the largest one: on open terrain X and
+    Y are 5-50 times weaker than Z and still known to millimetres. A direction must
+    also carry at least four times the information that the noise of the normals alone
+    puts into it (N_noise = sum p_i T_i, T_i the tilt covariance of normal i): on a flat
+    field the tilted normals of noisy planes feign X and Y information (eq. 6.12).
+    """
     N = A.T @ (p[:, None] * A)
-    deg = degeneracy_report(N, NAMES)
-    lam, V = deg.eigenvalues, deg.eigenvectors
-    Vc, lc = V[:, deg.constrained], lam[deg.constrained]
-    n_vec = A.T @ (p * (l - A @ t_ref))
-    x = t_ref + Vc @ ((Vc.T @ n_vec) / lc)  # x = t_ref + N^+ A^T P (l - A t_ref)
-    v = A @ x - l
-    dof = max(len(l) - int(deg.constrained.sum()), 1)
-    sigma0 = float(np.sqrt(v @ (p * v) / dof))
+    N_noise = np.einsum("i,ijk->jk", p, tilt)
+    rel = 1e-9  # numerically determined directions first, for sigma0
+    for _ in range(2):
+        deg = degeneracy_report(N, NAMES, rel_threshold=rel)
+        lam, V = deg.eigenvalues, deg.eigenvectors
+        Vc, lc = V[:, deg.constrained], lam[deg.constrained]
+        n_vec = A.T @ (p * (l - A @ t_ref))
+        x = t_ref + Vc @ ((Vc.T @ n_vec) / lc)  # x = t_ref + N^+ A^T P (l - A t_ref)
+        v = A @ x - l
+        dof = max(len(l) - int(deg.constrained.sum()), 1)
+        sigma0 = float(np.sqrt(v @ (p * v) / dof))
+        # std of direction i: sigma0 / sqrt(lam_i) <= max_std  <=>  lam_i >= sigma0^2 / max_std^2
+        noise_info = np.einsum("ji,jk,ki->i", V, N_noise, V)
+        fail = (lam < sigma0**2 / max_std**2) | (lam < 4.0 * noise_info)
+        new_rel = max(float(lam[fail].max(initial=0.0)) / max(float(lam.max()), 1e-300) * (1 + 1e-9), 1e-9)
+        if new_rel <= rel:
+            break
+        rel = new_rel
     Qc = (Vc / lc) @ Vc.T
     Vu = V[:, ~deg.constrained]
     cov = sigma0**2 * Qc + box_var * (Vu @ Vu.T)
     return x, v, sigma0, cov, deg
 
 
-def _fit_with_deletion(A, l, p, t, t_ref, box_var, k_del, max_rounds=30):
+def _fit_with_deletion(A, l, p, tilt, t, t_ref, box_var, k_del, max_std, max_rounds=30):
     """Adjustment with iterative deletion of |v| sqrt(p) > k_del sigma0 (eq. 6.13).
 
     Start from a robust scale (MAD of the weighted residuals at t), then alternate the
@@ -235,7 +257,7 @@ def _fit_with_deletion(A, l, p, t, t_ref, box_var, k_del, max_rounds=30):
     for _ in range(max_rounds):
         if keep.sum() < 3:
             return None
-        x, v, sigma0, cov, deg = _adjust(A[keep], l[keep], p[keep], t_ref, box_var)
+        x, v, sigma0, cov, deg = _adjust(A[keep], l[keep], p[keep], tilt[keep], t_ref, box_var, max_std)
         new = used & (np.abs(A @ x - l) * np.sqrt(p) <= k_del * sigma0) if sigma0 > 0 else keep
         if (new == keep).all():
             break
@@ -282,8 +304,8 @@ def _sandwich(A, l, p, x, deg, cells, box_var):
     return Vc @ cov_c @ Vc.T + box_var * (Vu @ Vu.T)
 
 
-def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: int = 20, k: int = 12,
-           block_size: float | None = None):
+def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: int = 50, k: int = 12,
+           block_size: float | None = None, max_std: float | None = None):
     """Least squares on the consensus set with weights and iterative deletion (eq. 6.10-6.14).
 
     The consensus set of the branch-and-bound optimum names the source points that
@@ -293,6 +315,8 @@ def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: i
     adjusted with iterative deletion; association and adjustment alternate until the
     translation settles. The covariance is the cluster-robust sandwich over cubic blocks
     of edge ``block_size`` (:func:`_sandwich`), sigma0^2 N^-1 where the blocks are too few.
+    A direction is determined when its standard deviation is at most ``max_std`` (default
+    eps / 2: known to better than the consensus tolerance itself).
     The pairs of the consensus test itself are not used as observations: of all
     target points within the search radius they are the one whose plane fits best
     at the branch-and-bound translation, and residuals truncated at eps both pull the
@@ -311,8 +335,8 @@ def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: i
     sigma0, cov, deg, n_used, kind = float("nan"), np.full((3, 3), np.nan), None, 0, "none"
     for _ in range(max_outer if members.size >= 3 else 0):
         # Associate every member with its local target plane at t, then adjust
-        A, l, p = _design(members, pb.src[members] + t, tgt, tree, k, pb.w, pb.src)
-        fit = _fit_with_deletion(A, l, p, t, bb.translation, box_var, deletion_k)
+        A, l, p, tilt = _design(members, pb.src[members] + t, tgt, tree, k, pb.w, pb.src)
+        fit = _fit_with_deletion(A, l, p, tilt, t, bb.translation, box_var, deletion_k, max_std or E / 2)
         if fit is None:
             deg = None
             break
@@ -322,7 +346,7 @@ def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: i
         records.append(AdjustmentRecord(it, x.copy(), sigma0, n_used, int(members.size - n_used)))
         moved = np.linalg.norm(x - t)
         t = x
-        if moved < 1e-6:
+        if moved < max(1e-6, 0.05 * sigma0 / np.sqrt(deg.eigenvalues.max())):  # a small part of the best std
             ls_ok = True
             break
     if deg is not None:

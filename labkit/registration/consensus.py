@@ -655,6 +655,7 @@ def max_consensus(
     init_step: float | None = None,
     deletion_k: float = 3.0,
     block_size: float | None = None,
+    max_std: float | None = None,
     use_numba: bool | None = None,
 ):
     """Globally best translation by branch and bound, then least squares on the consensus set.
@@ -707,6 +708,11 @@ def max_consensus(
         Edge (m) of the square (XY) blocks of the jackknife covariance; default: the radius
         of the target's k-neighbourhoods (median distance to the k-th neighbour), the
         distance within which the residuals of two voting points share target points.
+    max_std : float, optional
+        A direction of the translation is determined when its standard deviation is at
+        most ``max_std`` (m); default eps / 2. Weaker directions keep the branch-and-bound
+        value, are named undetermined and get the variance of a uniform distribution over
+        the box.
 
     Returns
     -------
@@ -729,7 +735,7 @@ def max_consensus(
     # Parameters of the search and of the adjustment
     tol = positive(tol, "tol")
     ext, c = _box(extent, center)
-    opts = _search_options(max_points, max_time, max_boxes, gap_tol, init_step, deletion_k, block_size)
+    opts = _search_options(max_points, max_time, max_boxes, gap_tol, init_step, deletion_k, block_size, max_std)
     # Reduced coordinates: even subset of the source, search target, normals, tolerances
     pb = _prepare(source, target, criterion, eps, radius, max_angle, weights, normals, normal_k,
                   max_points=opts["max_points"], pair_window=float((ext + np.abs(c)).max()))
@@ -740,10 +746,10 @@ def max_consensus(
                           use_numba, max_time=opts["max_time"])
     # Least squares with weights and iterative deletion on the consensus set; sandwich covariance
     return refine(bb, src_of, D, nrm, pb, opts["deletion_k"], ext, time.perf_counter() - t0, t0,
-                  k=max(4, int(normal_k)), block_size=opts["block_size"])
+                  k=max(4, int(normal_k)), block_size=opts["block_size"], max_std=opts["max_std"])
 
 
-def _search_options(max_points, max_time, max_boxes, gap_tol, init_step, deletion_k, block_size) -> dict:
+def _search_options(max_points, max_time, max_boxes, gap_tol, init_step, deletion_k, block_size, max_std) -> dict:
     """Checked budget and adjustment options of :func:`max_consensus`."""
     return {
         "max_points": None if max_points is None else _count(max_points, "max_points", 3),
@@ -753,4 +759,5 @@ def _search_options(max_points, max_time, max_boxes, gap_tol, init_step, deletio
         "init_step": None if init_step is None else positive(init_step, "init_step"),
         "deletion_k": positive(deletion_k, "deletion_k"),
         "block_size": None if block_size is None else positive(block_size, "block_size"),
+        "max_std": None if max_std is None else positive(max_std, "max_std"),
     }
