@@ -304,6 +304,33 @@ def _sandwich(A, l, p, x, deg, cells, box_var):
     return Vc @ cov_c @ Vc.T + box_var * (Vu @ Vu.T)
 
 
+def _held_effect(t, deg, box_var, members, pb, tgt, tree, k, deletion_k, max_std):
+    """Covariance that the held (undetermined) directions pass on to the determined ones.
+
+    A held component keeps the branch-and-bound value, anywhere within the search box. On
+    undulating ground the local planes at a wrong horizontal position lie at another height,
+    so the determined components depend on the held ones through the association (not
+    through N, whose eigen-directions are uncoupled). The dependence is measured by moving
+    t one box standard deviation along each held direction and adjusting again; the
+    secant S gives S box_var S^T.
+    """
+    Vu = deg.eigenvectors[:, ~deg.constrained]
+    Vc = deg.eigenvectors[:, deg.constrained]
+    extra = np.zeros((3, 3))
+    if Vu.shape[1] == 0 or Vc.shape[1] == 0:
+        return extra
+    step = np.sqrt(box_var)
+    for j in range(Vu.shape[1]):
+        tj = t + step * Vu[:, j]
+        A, l, p, tilt = _design(members, pb.src[members] + tj, tgt, tree, k, pb.w, pb.src)
+        fit = _fit_with_deletion(A, l, p, tilt, tj, tj, box_var, deletion_k, max_std)
+        if fit is None:
+            continue
+        s_j = Vc @ (Vc.T @ (fit[0] - t)) / step  # change of the determined part per metre of the held one
+        extra += box_var * np.outer(s_j, s_j)
+    return extra
+
+
 def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: int = 50, k: int = 12,
            block_size: float | None = None, max_std: float | None = None):
     """Least squares on the consensus set with weights and iterative deletion (eq. 6.10-6.14).
@@ -354,6 +381,7 @@ def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: i
         robust = _sandwich(A[keep], l[keep], p[keep], t, deg, cells, box_var)
         cov, kind = (cov, "sigma0^2 N^-1 (too few blocks for the jackknife)") if robust is None else (
             robust, f"delete-a-block jackknife over {block_size:.3g} m blocks")
+        cov = cov + _held_effect(t, deg, box_var, members, pb, tgt, tree, k, deletion_k, max_std or E / 2)
     undetermined = deg.undetermined_axes if deg is not None else NAMES
     msg = (f"branch and bound: consensus {bb.lower:.6g}, certified upper bound {bb.upper:.6g} "
            f"(gap {bb.gap:.6g}) after {bb.splits} splits, {bb.reason}; eps {E * 1000:.1f} mm, "

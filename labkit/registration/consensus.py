@@ -7,7 +7,9 @@ For a translation t the consensus is (eq. 6.1, 6.2)
 with "consistent" meaning |p + t - q| < eps (point-to-point) or
 |n_q . (p + t - q)| < eps and |p + t - q| < radius (point-to-plane, eq. 6.3,
 6.4), optionally with the angle between the normals of p and q below
-``max_angle``. Each source point counts at most once per t.
+``max_angle`` (eq. 6.4a). Each source point counts at most once per t. Normals
+that the local PCA cannot determine (identical or collinear neighbours) are
+dropped, never used.
 
 Only the difference vectors d = q - p with d inside the search window (grown
 by the search radius) can ever be consistent, so both the cube and the branch
@@ -486,7 +488,7 @@ def consensus_cube(
     extent=1.0,
     step: float = 0.01,
     criterion: str = "point_to_plane",
-    eps: float = 0.05,
+    eps: float | None = 0.05,
     max_angle: float | None = None,
     weights=None,
     *,
@@ -510,10 +512,11 @@ def consensus_cube(
         Grid step (m); at most 1e8 cells are allowed.
     criterion : {'point_to_plane', 'point_to_point'}
         Consistency test of a pair (eq. 6.3 or 6.4).
-    eps : float
-        Distance tolerance (m), > 0.
+    eps : float or None
+        Distance tolerance (m), > 0; None: from the local noise as in :func:`max_consensus`.
     max_angle : float, optional
-        Largest angle (deg) between source and target normals for a consistent pair.
+        Largest angle (deg) between source and target normals for a consistent pair (eq. 6.4a):
+        removes pairs between differently oriented surfaces before counting.
     weights : array_like (n,) or dict, optional
         Weight per source point, or per class code (needs ``source['classification']``).
     radius : float, optional
@@ -684,7 +687,7 @@ def max_consensus(
         As in :func:`consensus_cube`.
     eps : float, optional
         Distance tolerance (m). Default: 3 sqrt(2) times the median local noise of the
-        target (the spread of its k-neighbourhoods along their normals, eq. 6.6), kept
+        target (the spread of its k-neighbourhoods along their normals, eq. 6.11), kept
         within 5 mm and 10 cm.
     tol : float
         Boxes with an edge below ``tol`` (m) are not split further.
