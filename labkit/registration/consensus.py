@@ -717,6 +717,17 @@ def max_consensus(
         value, are named undetermined and get the variance of a uniform distribution over
         the box.
 
+    Notes
+    -----
+    Measured on halves of real clouds shifted by 0.4 m (benchmarks/bench_consensus.py): TLS
+    (100,000 and 520,000 points per half) within 1.5 mm and 2 stated std; ALS
+    (las_with_several_extra_byte_bloc.laz, nearly flat open ground, X and Y fixed only by
+    gentle relief and vegetation) within 12 mm and 1 std at 100,000 points, but 4.5-5.5 cm
+    off in X or Y at 2.6-3.8 std at 30,000 and at 350,000 points: there the adjustment
+    converges to a fixed point whose horizontal offset the residuals do not show.
+    Monte Carlo on synthetic pairs: spread / stated std 1.10, 0.83, 1.03 on smooth hills;
+    1.08, 1.72, 1.59 on the village, whose ridges and eaves bias the local planes.
+
     Returns
     -------
     RegistrationResult
