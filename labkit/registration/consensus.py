@@ -724,7 +724,10 @@ def max_consensus(
     (las_with_several_extra_byte_bloc.laz, nearly flat open ground, X and Y fixed only by
     gentle relief and vegetation) within 12 mm and 1 std at 100,000 points, but 4.5-5.5 cm
     off in X or Y at 2.6-3.8 std at 30,000 and at 350,000 points: there the adjustment
-    converges to a fixed point whose horizontal offset the residuals do not show.
+    converges to a fixed point whose horizontal offset the residuals do not show. The
+    vegetation votes cause it: the same pair with ``weights={2: 1, 6: 1}`` (ground and
+    buildings only, a PointCloud with classes) comes within 19 mm and 1.7 std, and ground
+    points alone within 13 mm and 1.5 std. On ALS with vegetation, weight by class.
     Monte Carlo on synthetic pairs: spread / stated std 1.10, 0.83, 1.03 on smooth hills;
     1.08, 1.72, 1.59 on the village, whose ridges and eaves bias the local planes.
 
