@@ -13,17 +13,24 @@ Rows:
   the peak), the counts compared with the cube's, and its time extrapolated to
   the whole grid;
 - peers for context (no library computes a consensus cube): labkit ICP and,
-  if installed, Open3D point-to-plane ICP on the same clouds.
+  if installed, Open3D point-to-plane ICP on the same clouds;
+- real development data (``../shared/realdata``; skipped with a message where absent): two disjoint
+  random halves of ``als/las_with_several_extra_byte_bloc.laz`` and of ``tls/TLS_scan_vz400i.laz``,
+  100,000 points each, one moved by (0.25, -0.30, 0.08) m: ``max_consensus`` with its defaults,
+  ``consensus+icp`` (as ``labkit register --method consensus+icp``), labkit ICP from zero and Open3D
+  point-to-plane ICP from zero, time and error side by side in one run.
 
-Run:  python benchmarks/bench_consensus.py [--quick]
+Run:  python benchmarks/bench_consensus.py [--quick] [--real-only]
 The machine is shared: wall times under load are pessimistic; CPU time is given beside them.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from itertools import chain
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -89,7 +96,7 @@ def main(quick=False):
                      f"highest cell err {np.round(err_mm(cube.argmax_translation, pair)).astype(int)} mm"))
     # Maximum consensus by branch and bound
     for crit in ("point_to_plane", "point_to_point"):
-        res, wall, cpu = timed(max_consensus, src, tgt, extent=1.0, criterion=crit, tol=0.001)
+        res, wall, cpu = timed(max_consensus, src, tgt, extent=1.0, criterion=crit, tol=0.001, eps=0.05)
         bb = res.history[0]
         rows.append((f"max_consensus {crit}", wall, cpu,
                      f"C = {bb.lower:.0f}, bound {bb.upper:.0f} (gap {bb.gap:.0f}), {bb.splits} splits, "
@@ -140,7 +147,82 @@ def main(quick=False):
     print("\nTargets (idle 2-core machine): full 1 cm cube <= 30 s, max_consensus <= 5 s.")
 
 
+REAL_SHIFT = np.array([0.25, -0.30, 0.08])
+REAL_FILES = ("als/las_with_several_extra_byte_bloc.laz", "tls/TLS_scan_vz400i.laz")
+
+
+def realdata_dir():
+    """The folder of real development clouds (LABKIT_REALDATA or ../shared/realdata), or None."""
+    here = Path(__file__).resolve().parents[1]
+    for c in (os.environ.get("LABKIT_REALDATA"), here.parent / "shared" / "realdata", "/work/shared/realdata"):
+        if c and (Path(c) / "README.md").is_file():
+            return Path(c)
+    return None
+
+
+def real_halves(path, n=100_000, seed=0):
+    from labkit.io import read_cloud
+
+    xyz = read_cloud(path).xyz
+    idx = np.random.default_rng(seed).choice(len(xyz), min(2 * n, len(xyz)), replace=False)
+    half = len(idx) // 2
+    return xyz[idx[:half]] + REAL_SHIFT, xyz[idx[half:]]
+
+
+def open3d_icp(src, tgt, max_distance=1.0):
+    import open3d as o3d
+
+    o = tgt.mean(axis=0).round()
+    s, t = o3d.geometry.PointCloud(), o3d.geometry.PointCloud()
+    s.points, t.points = o3d.utility.Vector3dVector(src - o), o3d.utility.Vector3dVector(tgt - o)
+    t.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
+    est = o3d.pipelines.registration.TransformationEstimationPointToPlane()
+    return o3d.pipelines.registration.registration_icp(s, t, max_distance, np.eye(4), est).transformation[:3, 3]
+
+
+def real_rows(n):
+    """max_consensus, consensus+icp, ICP and Open3D ICP on halves of real clouds, one table."""
+    from labkit.compare import standard_methods
+
+    root = realdata_dir()
+    if root is None:
+        print("real development data not found (set LABKIT_REALDATA): real rows skipped")
+        return
+    methods = standard_methods(["consensus", "consensus+icp", "icp"])
+    print(f"\nReal halves, {n:,} vs {n:,} points, true shift {-REAL_SHIFT} m "
+          "(machine shared by several jobs: wall times are pessimistic, compare within a file)")
+    print(f"{'data':5s} {'method':16s} {'wall s':>7s} {'CPU s':>7s}  {'error X, Y, Z (mm)':>24s}  "
+          f"{'stated std (mm)':>24s}  |err|/std  note")
+    for name in REAL_FILES:
+        path = root / name
+        if not path.is_file():
+            print(f"{name}: not found, skipped")
+            continue
+        src, tgt = real_halves(path, n)
+        kind = name.split("/")[0].upper()
+        runs = [(m, lambda m=m: methods[m](src, tgt)) for m in methods]
+        try:
+            import open3d  # noqa: F401
+
+            runs.append(("open3d icp", lambda: open3d_icp(src, tgt)))
+        except ImportError:
+            print("open3d not installed: its row is skipped")
+        for label, fn in runs:
+            out, wall, cpu = timed(fn)
+            t = out if isinstance(out, np.ndarray) else out.translation
+            std = np.full(3, np.nan) if isinstance(out, np.ndarray) else out.translation_std
+            err = 1000 * (t + REAL_SHIFT)
+            z = np.abs(err) / (1000 * std)
+            note = "" if isinstance(out, np.ndarray) else out.message.split(";")[0][:60]
+            print(f"{kind:5s} {label:16s} {wall:7.1f} {cpu:7.1f}  {np.array2string(np.round(err, 1)):>24s}  "
+                  f"{np.array2string(np.round(1000 * std, 1)):>24s}  {np.array2string(np.round(z, 1))}  {note}")
+
+
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="smaller clouds and a 2 cm grid")
-    main(**vars(parser.parse_args()))
+    parser.add_argument("--real-only", action="store_true", help="only the rows on real development data")
+    args = parser.parse_args()
+    if not args.real_only:
+        main(quick=args.quick)
+    real_rows(30_000 if args.quick else 100_000)

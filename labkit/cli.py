@@ -493,7 +493,9 @@ def _add_method_options(p) -> None:
     p.add_argument("--extent", type=_positive_float, default=1.0,
                    help="consensus: search a translation within +-EXTENT m (default: %(default)s)")
     p.add_argument("--max-points", type=_count, default=5000,
-                   help="consensus: use at most this many random source points (default: %(default)s)")
+                   help="consensus: at most this many source points vote, spread evenly in space; the "
+                        "search stops after a time budget with the best translation and its certified gap "
+                        "(default: %(default)s)")
     p.add_argument("--seed", type=_seed, default=0, help="random seed (default: %(default)s)")
 
 
@@ -539,8 +541,10 @@ def build_parser() -> argparse.ArgumentParser:
     reg.add_argument("source", help="point cloud to move (e.g. the later epoch)")
     reg.add_argument("target", help="reference point cloud")
     reg.add_argument("--method", choices=METHODS, default="icp",
-                     help="registration method; icp is point to plane, consensus a translation by maximum "
-                          "consensus (default: %(default)s)")
+                     help="registration method; icp is point to plane (converges from shifts within its "
+                          "matching distance), consensus a translation by maximum consensus searched globally "
+                          "within +-EXTENT, consensus+icp that search followed by ICP: the route for large "
+                          "shifts (default: %(default)s)")
     _add_method_options(reg)
     reg.add_argument("--out", default=".", help="output folder (default: the current folder)")
     reg.set_defaults(func=_cmd_register)

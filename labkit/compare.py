@@ -266,8 +266,9 @@ def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "tra
     the stable classes :data:`STABLE_CLASSES` of both epochs only - ground, roofs,
     roads - so that grown vegetation and crowns cannot pull it; seed step 4,
     "Nutzen nur von best. Klassen"); ``consensus`` (maximum consensus,
-    a translation within +-``extent`` m, on at most ``max_points`` random source
-    points); ``consensus+icp`` (consensus, then a Tukey ICP with ``dof`` from there).
+    a translation within +-``extent`` m, on at most ``max_points`` source points spread
+    evenly); ``consensus+icp`` (consensus, then a Tukey ICP with ``dof`` from there: the
+    route for shifts larger than ICP's matching distance).
     The callables are picklable (for Dask workers in other processes).
     """
     from ._checks import choice
@@ -289,8 +290,7 @@ def _standard(source, target, *, name, dof, extent, max_points, rng):
         classes = STABLE_CLASSES if kind == "classes" else None
         return icp(source, target, dof=dof, metric=metric, robust=kind if kind in ("huber", "tukey") else None,
                    classes=classes, rng=rng)
-    src = _random_subset(source, max_points, rng)
-    result = max_consensus(src, target, extent=extent)
+    result = max_consensus(source, target, extent=extent, max_points=max_points)  # an even subset votes
     if name == "consensus":
         return result
     refined = icp(source, target, dof=dof, robust="tukey", initial=result.matrix, rng=rng)

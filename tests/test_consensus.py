@@ -148,7 +148,8 @@ def test_max_consensus_optimum_and_refinement():
     pair = als_epochs("xyz", size=(30.0, 30.0), density=10, rng=11)
     src, tgt = pair.source.xyz[::3], pair.target.xyz
     cube = consensus_cube(src, tgt, extent=EXTENT, step=STEP)
-    res = max_consensus(src, tgt, extent=EXTENT, tol=0.002)
+    # the cube's tolerance and all source points, no time budget: the optimum is comparable
+    res = max_consensus(src, tgt, extent=EXTENT, tol=0.002, eps=0.05, max_points=None, max_time=None)
     bb = res.history[0]
     assert res.method == "max_consensus" and res.degeneracy.well_posed
     assert bb.lower >= cube.best_count  # continuous optimum at least the grid optimum
@@ -220,21 +221,80 @@ def test_bnb_kernels_agree():
         np.testing.assert_array_equal(x, y)
 
 
-def test_refined_translation_agrees_with_its_stated_std():
-    """Monte Carlo over scenes: errors of the refinement against its own standard deviations.
+def _hills(rng, n, size=40.0, noise=0.02):
+    """Smooth hilly terrain (about 6 m relief) with isotropic noise: no edges, no change."""
+    xy = rng.uniform(0, size, (n, 2))
+    z = (3.0 * np.sin(xy[:, 0] / 6.0) * np.cos(xy[:, 1] / 5.0) + 0.08 * xy[:, 0]
+         + 1.5 * np.sin((xy[:, 0] + xy[:, 1]) / 3.0))
+    return np.column_stack([xy, z]) + rng.normal(0, noise, (n, 3))
 
-    The former refinement adjusted the pairs of the consensus test (the best-fitting plane
-    within the search radius, residuals truncated at eps) and stated standard deviations
-    3-5 times smaller than its errors (mean z^2 about 14 here); honest ones give about 1.
+
+def test_stated_std_matches_monte_carlo_spread():
+    """Monte Carlo over independent epoch pairs: spread of the error / stated std per axis.
+
+    With sigma0^2 N^-1 of the consensus set the ratio on this terrain is 1.45, 1.14, 1.52
+    (the weights from the local noise miss the curvature of the k-neighbourhoods and the
+    neighbouring residuals share target points); the delete-a-block jackknife states
+    1.10, 0.83, 1.03 (30 pairs). With 30 pairs the ratio is known to about 13 %, so a
+    covariance 25 % too optimistic fails this test most of the time.
     """
+    truth = np.array([0.12, -0.08, 0.05])
+    err, std = [], []
+    for seed in range(30):
+        rng = np.random.default_rng(seed)
+        tgt, src = _hills(rng, 6000), _hills(rng, 3000) - truth
+        res = max_consensus(src, tgt, extent=0.3, tol=0.01)
+        assert res.degeneracy.well_posed and "jackknife" in res.message
+        err.append(res.translation - truth)
+        std.append(res.translation_std)
+    err, std = np.array(err), np.array(std)
+    ratio = err.std(axis=0, ddof=1) / std.mean(axis=0)
+    assert ((ratio > 0.8) & (ratio < 1.25)).all(), ratio
+    rms_z = np.sqrt(np.mean((err / std) ** 2))  # with the mean error (bias) included
+    assert 0.8 < rms_z < 1.25, rms_z
+
+
+def test_refined_translation_on_the_village():
+    """The synthetic village (roofs, trees): every component within a few stated std."""
     z = []
-    for seed in range(5):
+    for seed in range(4):
         pair = als_epochs("xyz", size=(30.0, 30.0), density=8, rng=40 + seed)
-        src = pair.source.xyz[np.random.default_rng(seed).choice(len(pair.source), 1500, replace=False)]
-        res = max_consensus(src, pair.target, extent=0.3, tol=0.002)
+        res = max_consensus(pair.source, pair.target, extent=0.3, tol=0.005)
         assert res.degeneracy.well_posed
         z.append((res.translation - pair.translation) / res.translation_std)
-    z2 = np.square(z)
-    # measured: 2.4 (the std is still somewhat optimistic on a 30 m region); the old refinement: 14
-    assert z2.mean() < 5.0, z2
-    assert np.abs(np.mean(z, axis=0)).max() < 2.0  # no axis off by two of its std on average
+    # measured over 16 villages: spread / std 1.08, 1.72, 1.59 - the k-neighbourhood planes of
+    # ridges and eaves lie below the roof (convex edges), a bias per scene the residuals of one
+    # registration cannot show (ICP shares it); the old refinement gave a mean z^2 of 14
+    assert np.square(z).mean() < 5.0, z
+
+
+# --------------------------------------------------------------------------- real development data
+REAL_SHIFT = np.array([0.25, -0.30, 0.08])  # about 0.4 m
+
+
+def _real_halves(path, n=100_000, seed=0):
+    """Two disjoint random halves of a real cloud (n points each); the first moved by REAL_SHIFT."""
+    from labkit.io import read_cloud
+
+    xyz = read_cloud(path).xyz
+    idx = np.random.default_rng(seed).choice(len(xyz), min(2 * n, len(xyz)), replace=False)
+    half = len(idx) // 2
+    return xyz[idx[:half]] + REAL_SHIFT, xyz[idx[half:]]
+
+
+@pytest.mark.parametrize("name", ["als/las_with_several_extra_byte_bloc.laz", "tls/TLS_scan_vz400i.laz"])
+def test_max_consensus_defaults_on_real_halves(realdata, name):
+    """Defaults on 100,000 vs 100,000 real points: the shift within 2 cm and 3 stated std per axis.
+
+    The budget keeps the search to seconds (the run time itself is printed by the benchmark,
+    tests do not time); the result states why the search stopped and its certified gap.
+    """
+    src, tgt = _real_halves(realdata / name)
+    res = max_consensus(src, tgt)
+    bb = res.history[0]
+    assert bb.upper >= bb.lower and ("gap" in res.message) and bb.reason in res.message
+    assert len(bb.reason) > 0 and res.n_used <= 5000
+    err = res.translation + REAL_SHIFT
+    assert res.degeneracy.well_posed, res.message
+    assert (np.abs(err) < 0.02).all(), err
+    assert (np.abs(err) <= 3 * res.translation_std).all(), (err, res.translation_std)

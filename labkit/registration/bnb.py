@@ -85,14 +85,16 @@ class AdjustmentRecord(ReportMixin):
 
 
 def branch_and_bound(ptr, src_of, D, nrm, pb, center, ext, tol, max_boxes, init_step=0.05, gap_tol=0.0,
-                     use_numba=None) -> BnBOutcome:
+                     use_numba=None, *, max_time=None) -> BnBOutcome:
     """Best-first branch and bound over the box ``center +- ext`` (eq. 6.7, 6.8).
 
     Upper bound of a box with centre c and half diagonal h: the consensus at c
     with radius + h and eps + h; lower bound: the exact consensus at c. The
     first level (boxes of about ``init_step``) is bounded all at once by two
     rasterized cubes; a box is then split into octants, each tested only on
-    the pairs that passed its parent's enlarged test.
+    the pairs that passed its parent's enlarged test. The search stops early when
+    ``max_boxes`` splits or ``max_time`` seconds are spent; the bound of every box
+    still open then enters the certified upper bound.
     """
     t0 = time.perf_counter()
     R, E, w = pb.radius, pb.eps, pb.w
@@ -113,7 +115,7 @@ def branch_and_bound(ptr, src_of, D, nrm, pb, center, ext, tol, max_boxes, init_
     heap = [(-ub0[i], -1, n, a0 + s * np.array(i), half0, None, 0.0)
             for n, i in enumerate(zip(*np.nonzero(ub0 > best + gap_tol)))]
     heapq.heapify(heap)
-    tree = cKDTree(D)
+    every = np.arange(len(D), dtype=np.int64)
 
     def evaluate(act, centres, h):
         return K.children(act, src_of, D, nrm, centres, R, E, h, w, use_numba=use_numba)
@@ -127,14 +129,18 @@ def branch_and_bound(ptr, src_of, D, nrm, pb, center, ext, tol, max_boxes, init_
             dropped = max(dropped, -neg_ub)
             break
         if splits >= max_boxes:
-            reason = f"budget exhausted ({splits} splits)"
+            reason = f"box budget exhausted ({splits} splits)"
+            break
+        if max_time is not None and time.perf_counter() - t0 > max_time:
+            reason = f"time budget of {max_time:g} s spent ({splits} splits)"
             break
         heapq.heappop(heap)
         if 2 * half.max() < tol:  # too small to split: stays open, counts for the gap
             small_ub, n_small = max(small_ub, -neg_ub), n_small + 1
             continue
-        if act is None:  # pairs that can be consistent somewhere in this first-level box
-            act = np.sort(np.asarray(tree.query_ball_point(c, R + float(np.linalg.norm(half))), dtype=np.int64))
+        if act is None:  # pairs that can be consistent somewhere in this first-level box (ball and slab)
+            acts, _, _, sure = evaluate(every, c[None, :], float(np.linalg.norm(half)))
+            act, base = acts[0], float(sure[0])
         # Split into octants and bound each
         hh = half / 2
         centres = c + OCTANTS * hh
@@ -183,7 +189,10 @@ def _local_planes(tgt, tree, x, k):
     c = P.mean(axis=1)
     Y = P - c[:, None, :]
     lam, V = np.linalg.eigh(np.einsum("nki,nkj->nij", Y, Y) / k)
-    return V[:, :, 0], c, lam[:, 0] * k / (k - 3)
+    s2 = lam[:, 0] * k / (k - 3)
+    # covariance of the normal's tilt from the noise alone: s^2 / (k l_j) along the in-plane axes e_j
+    tilt = np.einsum("nj,nij,nkj->nik", s2[:, None] / (k * np.maximum(lam[:, 1:], 1e-300)), V[:, :, 1:], V[:, :, 1:])
+    return V[:, :, 0], c, s2, tilt
 
 
 def _design(members, x, tgt, tree, k, w, src):
@@ -192,72 +201,169 @@ def _design(members, x, tgt, tree, k, w, src):
     Weight p = w / var with var = s^2 (1 + 1/k) + s^2: the noise of the plane's centroid plus
     that of the source point, which lies on a surface as rough as the target's neighbourhood.
     """
-    n, c, s2 = _local_planes(tgt, tree, x, k)
+    n, c, s2, tilt = _local_planes(tgt, tree, x, k)
     var = np.maximum(s2, 1e-6) * (2.0 + 1.0 / k)  # at least (1 mm)^2 per epoch
     var = var / np.median(var)  # sigma0 in metres: that of an observation of median noise
-    return n, np.einsum("ij,ij->i", n, c - src[members]), w[members] / var
+    return n, np.einsum("ij,ij->i", n, c - src[members]), w[members] / var, tilt
 
 
-def _adjust(A, l, p, t_ref, box_var):
-    """Weighted LS in the constrained subspace of N; undetermined directions keep t_ref."""
+def _adjust(A, l, p, tilt, t_ref, box_var, max_std):
+    """Weighted LS in the determined subspace of N; undetermined directions keep t_ref.
+
+    Determinability from precision (eq. 6.12): an eigen-direction of N with eigenvalue
+    lam is determined when its standard deviation sigma0 / sqrt(lam) is at most ``max_std``
+    (metres), not when lam exceeds a fixed share of the largest one: on open terrain X and
+    Y are 5-50 times weaker than Z and still known to millimetres. A direction must
+    also carry at least four times the information that the noise of the normals alone
+    puts into it (N_noise = sum p_i T_i, T_i the tilt covariance of normal i): on a flat
+    field the tilted normals of noisy planes feign X and Y information (eq. 6.12).
+    """
     N = A.T @ (p[:, None] * A)
-    deg = degeneracy_report(N, NAMES)
-    lam, V = deg.eigenvalues, deg.eigenvectors
-    Vc, lc = V[:, deg.constrained], lam[deg.constrained]
-    n_vec = A.T @ (p * (l - A @ t_ref))
-    x = t_ref + Vc @ ((Vc.T @ n_vec) / lc)  # x = t_ref + N^+ A^T P (l - A t_ref)
-    v = A @ x - l
-    dof = max(len(l) - int(deg.constrained.sum()), 1)
-    sigma0 = float(np.sqrt(v @ (p * v) / dof))
+    N_noise = np.einsum("i,ijk->jk", p, tilt)
+    rel = 1e-9  # numerically determined directions first, for sigma0
+    for _ in range(2):
+        deg = degeneracy_report(N, NAMES, rel_threshold=rel)
+        lam, V = deg.eigenvalues, deg.eigenvectors
+        Vc, lc = V[:, deg.constrained], lam[deg.constrained]
+        n_vec = A.T @ (p * (l - A @ t_ref))
+        x = t_ref + Vc @ ((Vc.T @ n_vec) / lc)  # x = t_ref + N^+ A^T P (l - A t_ref)
+        v = A @ x - l
+        dof = max(len(l) - int(deg.constrained.sum()), 1)
+        sigma0 = float(np.sqrt(v @ (p * v) / dof))
+        # std of direction i: sigma0 / sqrt(lam_i) <= max_std  <=>  lam_i >= sigma0^2 / max_std^2
+        noise_info = np.einsum("ji,jk,ki->i", V, N_noise, V)
+        fail = (lam < sigma0**2 / max_std**2) | (lam < 4.0 * noise_info)
+        new_rel = max(float(lam[fail].max(initial=0.0)) / max(float(lam.max()), 1e-300) * (1 + 1e-9), 1e-9)
+        if new_rel <= rel:
+            break
+        rel = new_rel
     Qc = (Vc / lc) @ Vc.T
     Vu = V[:, ~deg.constrained]
     cov = sigma0**2 * Qc + box_var * (Vu @ Vu.T)
     return x, v, sigma0, cov, deg
 
 
-def _fit_with_deletion(A, l, p, t, t_ref, box_var, k_del, max_rounds=30):
+def _fit_with_deletion(A, l, p, tilt, t, t_ref, box_var, k_del, max_std, max_rounds=30):
     """Adjustment with iterative deletion of |v| sqrt(p) > k_del sigma0 (eq. 6.13).
 
     Start from a robust scale (MAD of the weighted residuals at t), then alternate the
     adjustment and the test on all observations until the kept set no longer changes.
     """
+    used = p > 0
+    if used.sum() < 3:
+        return None
     z = (A @ t - l) * np.sqrt(p)
-    keep = np.abs(z) <= k_del * max(1.4826 * float(np.median(np.abs(z))), 1e-12)
+    keep = used & (np.abs(z) <= k_del * max(1.4826 * float(np.median(np.abs(z[used]))), 1e-12))
     for _ in range(max_rounds):
         if keep.sum() < 3:
             return None
-        x, v, sigma0, cov, deg = _adjust(A[keep], l[keep], p[keep], t_ref, box_var)
-        new = np.abs(A @ x - l) * np.sqrt(p) <= k_del * sigma0 if sigma0 > 0 else keep
+        x, v, sigma0, cov, deg = _adjust(A[keep], l[keep], p[keep], tilt[keep], t_ref, box_var, max_std)
+        new = used & (np.abs(A @ x - l) * np.sqrt(p) <= k_del * sigma0) if sigma0 > 0 else keep
         if (new == keep).all():
             break
         keep = new
     return x, sigma0, cov, deg, keep
 
 
-def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: int = 20, k: int = 12):
-    """Least squares on the consensus set with weights and iterative deletion (eq. 6.10-6.13).
+def _sandwich(A, l, p, x, deg, cells, box_var):
+    """Cluster-robust covariance of the adjusted translation: the delete-a-block jackknife (eq. 6.14).
+
+    J = A^T P A over the kept observations, J_b its part from block b and g_b = sum over
+    the block of a_i p_i v_i (the score). Leaving block b out moves the estimate by
+    d_b = (J - J_b)^-1 g_b, and Sigma = (B - 1) / B sum_b d_b d_b^T. This is the sandwich
+    J^-1 (sum g_b g_b^T) J^-1 with every score scaled by its block's leverage (CR3), which
+    matters when a few blocks carry a direction (the ends of a few hip roofs fix Y in a
+    village): the plain sandwich is then too small. Unlike sigma0^2 N^-1 it holds when the
+    weights are wrong (vegetation rougher than its plane says), when the errors differ
+    from point to point and when neighbouring residuals share a cause (the same local
+    plane, a patch of changed surface). Only the constrained directions of N get it;
+    undetermined ones keep the box variance. Returns None with fewer than 8 occupied
+    blocks (the caller keeps sigma0^2 N^-1).
+    """
+    _, block = np.unique(cells, axis=0, return_inverse=True)
+    block = block.ravel()
+    n_blocks = int(block.max()) + 1 if block.size else 0
+    Vc = deg.eigenvectors[:, deg.constrained]
+    u = Vc.shape[1]
+    if n_blocks < max(8, 2 * u) or u == 0:
+        return None
+    Ac = A @ Vc  # design in the constrained basis
+    v = A @ x - l
+    G = np.zeros((n_blocks, u))
+    np.add.at(G, block, Ac * (p * v)[:, None])  # score per block
+    Jb = np.zeros((n_blocks, u, u))
+    np.add.at(Jb, block, np.einsum("i,ij,ik->ijk", p, Ac, Ac))
+    J = Jb.sum(axis=0)
+    rest = J[None] - Jb
+    ok = np.linalg.eigvalsh(0.5 * (rest + rest.transpose(0, 2, 1)))[:, 0] > 1e-9 * np.trace(J)
+    if not ok.all():  # a block that alone determines a direction: its deletion is not defined
+        rest[~ok] = J
+    d = np.linalg.solve(rest, G[:, :, None])[:, :, 0]
+    cov_c = d.T @ d * (n_blocks - 1) / n_blocks
+    Vu = deg.eigenvectors[:, ~deg.constrained]
+    return Vc @ cov_c @ Vc.T + box_var * (Vu @ Vu.T)
+
+
+def _held_effect(t, deg, box_var, members, pb, tgt, tree, k, deletion_k, max_std):
+    """Covariance that the held (undetermined) directions pass on to the determined ones.
+
+    A held component keeps the branch-and-bound value, anywhere within the search box. On
+    undulating ground the local planes at a wrong horizontal position lie at another height,
+    so the determined components depend on the held ones through the association (not
+    through N, whose eigen-directions are uncoupled). The dependence is measured by moving
+    t one box standard deviation along each held direction and adjusting again; the
+    secant S gives S box_var S^T.
+    """
+    Vu = deg.eigenvectors[:, ~deg.constrained]
+    Vc = deg.eigenvectors[:, deg.constrained]
+    extra = np.zeros((3, 3))
+    if Vu.shape[1] == 0 or Vc.shape[1] == 0:
+        return extra
+    step = np.sqrt(box_var)
+    for j in range(Vu.shape[1]):
+        tj = t + step * Vu[:, j]
+        A, l, p, tilt = _design(members, pb.src[members] + tj, tgt, tree, k, pb.w, pb.src)
+        fit = _fit_with_deletion(A, l, p, tilt, tj, tj, box_var, deletion_k, max_std)
+        if fit is None:
+            continue
+        s_j = Vc @ (Vc.T @ (fit[0] - t)) / step  # change of the determined part per metre of the held one
+        extra += box_var * np.outer(s_j, s_j)
+    return extra
+
+
+def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: int = 50, k: int = 12,
+           block_size: float | None = None, max_std: float | None = None):
+    """Least squares on the consensus set with weights and iterative deletion (eq. 6.10-6.14).
 
     The consensus set of the branch-and-bound optimum names the source points that
     agree (the inliers of maximum consensus). Each of them is then related to the
-    plane of its ``k`` nearest target points at the current translation, weighted by
-    the local noise of that plane, and the translation is adjusted with iterative
-    deletion; association and adjustment alternate until the translation settles.
+    plane of its ``k`` nearest target points (of the whole target) at the current
+    translation, weighted by the local noise of that plane, and the translation is
+    adjusted with iterative deletion; association and adjustment alternate until the
+    translation settles. The covariance is the cluster-robust sandwich over cubic blocks
+    of edge ``block_size`` (:func:`_sandwich`), sigma0^2 N^-1 where the blocks are too few.
+    A direction is determined when its standard deviation is at most ``max_std`` (default
+    eps / 2: known to better than the consensus tolerance itself).
     The pairs of the consensus test itself are not used as observations: of all
     target points within the search radius they are the one whose plane fits best
     at the branch-and-bound translation, and residuals truncated at eps both pull the
     estimate towards that translation and make sigma0 far too small (notebook 06).
     """
     R, E = pb.radius, pb.eps
+    tgt = pb.tgt if pb.tgt_full is None else pb.tgt_full
     box_var = float((2 * ext.max()) ** 2 / 12)  # undetermined directions: uniform over the search box
     members = np.unique(src_of[_consensus_set(bb.translation, src_of, D, nrm, R, E)])
-    tree = cKDTree(pb.tgt)
-    k = int(min(k, len(pb.tgt)))
+    tree = cKDTree(tgt)
+    k = int(min(k, len(tgt)))
+    if block_size is None:  # radius of the k-neighbourhoods: residuals closer than that share target points
+        d, _ = tree.query(tgt[:: max(1, len(tgt) // 5000)], k=k, workers=-1)
+        block_size = max(float(np.median(d[:, -1])), 1e-3)
     t, records, it, ls_ok = bb.translation.copy(), [], 0, False
-    sigma0, cov, deg, n_used = float("nan"), np.full((3, 3), np.nan), None, 0
+    sigma0, cov, deg, n_used, kind = float("nan"), np.full((3, 3), np.nan), None, 0, "none"
     for _ in range(max_outer if members.size >= 3 else 0):
         # Associate every member with its local target plane at t, then adjust
-        A, l, p = _design(members, pb.src[members] + t, pb.tgt, tree, k, pb.w, pb.src)
-        fit = _fit_with_deletion(A, l, p, t, bb.translation, box_var, deletion_k)
+        A, l, p, tilt = _design(members, pb.src[members] + t, tgt, tree, k, pb.w, pb.src)
+        fit = _fit_with_deletion(A, l, p, tilt, t, bb.translation, box_var, deletion_k, max_std or E / 2)
         if fit is None:
             deg = None
             break
@@ -267,17 +373,26 @@ def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: i
         records.append(AdjustmentRecord(it, x.copy(), sigma0, n_used, int(members.size - n_used)))
         moved = np.linalg.norm(x - t)
         t = x
-        if moved < 1e-6:
+        if moved < max(1e-6, 0.05 * sigma0 / np.sqrt(deg.eigenvalues.max())):  # a small part of the best std
             ls_ok = True
             break
+    if deg is not None:
+        cells = np.floor(pb.src[members[keep]][:, :2] / block_size).astype(np.int64)
+        robust = _sandwich(A[keep], l[keep], p[keep], t, deg, cells, box_var)
+        cov, kind = (cov, "sigma0^2 N^-1 (too few blocks for the jackknife)") if robust is None else (
+            robust, f"delete-a-block jackknife over {block_size:.3g} m blocks")
+        cov = cov + _held_effect(t, deg, box_var, members, pb, tgt, tree, k, deletion_k, max_std or E / 2)
     undetermined = deg.undetermined_axes if deg is not None else NAMES
     msg = (f"branch and bound: consensus {bb.lower:.6g}, certified upper bound {bb.upper:.6g} "
-           f"(gap {bb.gap:.6g}) after {bb.splits} splits, {bb.reason}")
+           f"(gap {bb.gap:.6g}) after {bb.splits} splits, {bb.reason}; eps {E * 1000:.1f} mm, "
+           f"{len(pb.src)} of {pb.n_source or len(pb.src)} source points vote")
     if deg is None:
         msg += "; too few consistent points for the least-squares refinement"
     elif not deg.well_posed:
         msg += (f"; undetermined along {', '.join(undetermined)}: kept the branch-and-bound value there, "
                 f"variance = uniform over the search box")
+    if deg is not None:
+        msg += f"; covariance: {kind}"
     if not ls_ok:
         msg += "; refinement did not settle"
     return RegistrationResult(
