@@ -158,3 +158,94 @@ def consensus_slices_widget(cube, truth=None):
     set_range()
     update()
     return box
+
+
+def sphere_cap_points(n=500, cap_deg=60.0, noise=0.001, radius=0.0725, rng=0):
+    """Points on a spherical cap seen from +x, with isotropic Gaussian noise (notebook 01).
+
+    The cap holds every surface point whose normal lies within ``cap_deg`` of
+    the direction to the station (+x); its area is sampled uniformly. The
+    centre is the origin. Returns the (n, 3) points.
+    """
+    from ._checks import as_rng
+
+    gen = as_rng(rng)
+    # uniform on the cap: cos(angle from +x) uniform in [cos(cap), 1]
+    c = gen.uniform(np.cos(np.radians(cap_deg)), 1.0, n)
+    phi = gen.uniform(0.0, 2 * np.pi, n)
+    s = np.sqrt(1.0 - c**2)
+    unit = np.column_stack([c, s * np.cos(phi), s * np.sin(phi)])
+    return radius * unit + gen.normal(0.0, noise, (n, 3))
+
+
+def sphere_cap_explorer(noise=0.001, cap_deg=60.0, n=500, radius=0.0725, rng=0):
+    """Sliders for the noise and the visible cap of a scanned sphere (notebook 01).
+
+    Each change simulates ``n`` points on the cap (same seed), adjusts them in
+    the Gauss-Helmert model with the true noise as a priori sigma, and shows
+    the standard deviations, the centre's 95 % ellipsoid, and a section of the
+    cap. A small cap leaves the centre poorly determined along the line of
+    sight (x), where centre and radius are correlated.
+
+    Returns
+    -------
+    ipywidgets.VBox
+        With attributes ``noise_slider`` (mm), ``cap_slider`` (deg), ``report``
+        (HTML), ``figure`` (Image), ``last_fit`` and ``update()``.
+    """
+    import ipywidgets as widgets
+
+    from .adjustment import gauss_helmert_model
+
+    noise_slider = widgets.FloatSlider(value=noise * 1e3, min=0.1, max=5.0, step=0.1, description="noise (mm)",
+                                       continuous_update=False)
+    cap_slider = widgets.FloatSlider(value=cap_deg, min=10.0, max=90.0, step=5.0, description="cap (deg)",
+                                     continuous_update=False)
+    report = widgets.HTML()
+    figure = widgets.Image(format="png")
+    box = widgets.VBox([widgets.HBox([noise_slider, cap_slider]), report, figure])
+
+    def update(*_):
+        sigma = noise_slider.value * 1e-3
+        pts = sphere_cap_points(n, cap_slider.value, sigma, radius, rng)
+        fit = gauss_helmert_model(pts, sigma=sigma)
+        box.last_fit = fit
+        report.value = _cap_html(fit, cap_slider.value)
+        figure.value = _png(_cap_figure(pts, fit, radius))
+
+    noise_slider.observe(update, names="value")
+    cap_slider.observe(update, names="value")
+    box.noise_slider, box.cap_slider, box.report, box.figure, box.update = (noise_slider, cap_slider, report,
+                                                                           figure, update)
+    update()
+    return box
+
+
+def _cap_html(fit, cap_deg):
+    std = fit.std * 1e3
+    axes = fit.confidence_ellipsoid(0.95).semi_axes * 1e3
+    return (f"<p><b>cap {cap_deg:.0f} deg, {fit.n} points:</b> std x<sub>c</sub>, y<sub>c</sub>, z<sub>c</sub>, r = "
+            + ", ".join(f"{s:.3f}" for s in std) + " mm; 95 % ellipsoid semi-axes "
+            + ", ".join(f"{a:.3f}" for a in axes) + f" mm; correlation r-x<sub>c</sub> "
+            f"{fit.Sigma_xx[0, 3] / (fit.std[0] * fit.std[3]):+.2f}</p>")
+
+
+def _cap_figure(pts, fit, radius):
+    from matplotlib.figure import Figure
+
+    from .plotting.sphere import plot_confidence_ellipsoid
+
+    fig = Figure(figsize=(12, 3.6), layout="constrained")
+    ax0, *axes = fig.subplots(1, 4)
+    near = np.abs(pts[:, 2]) < 0.2 * radius
+    t = np.linspace(0, 2 * np.pi, 200)
+    ax0.plot(radius * np.cos(t) * 1e3, radius * np.sin(t) * 1e3, color="0.6", lw=1, label="true sphere")
+    ax0.plot(pts[near, 0] * 1e3, pts[near, 1] * 1e3, ".", ms=3, label="points |z| < 0.2 r")
+    ax0.plot(80, 0, ">", color="k", ms=8, label="to the station")
+    ax0.set_aspect("equal")
+    ax0.set_xlabel("x [mm]")
+    ax0.set_ylabel("y [mm]")
+    ax0.legend(fontsize=7, loc="lower left")
+    ax0.set_title("section z = 0")
+    plot_confidence_ellipsoid(fit, level=0.95, truth=np.zeros(3), axes=axes)
+    return fig
