@@ -249,3 +249,114 @@ def _cap_figure(pts, fit, radius):
     ax0.set_title("section z = 0")
     plot_confidence_ellipsoid(fit, level=0.95, truth=np.zeros(3), axes=axes)
     return fig
+
+
+def normals_k_explorer(points, true_normals=None, k=20, k_max=80):
+    """A slider for the neighbourhood size k of the PCA normals and local noise (notebook 04).
+
+    Each change recomputes :func:`labkit.local_pca` with the new k and shows
+    the local noise (eq. 5) and, when ``true_normals`` are given, the angle
+    error of the normals. Small k: noisy normals; large k: smoothed across
+    edges and curvature.
+
+    Returns
+    -------
+    ipywidgets.VBox
+        With attributes ``k_slider``, ``report`` (HTML), ``figure`` (Image),
+        ``last_pca`` and ``update()``.
+    """
+    import ipywidgets as widgets
+
+    from .features import local_pca
+
+    pts = np.asarray(points, dtype=np.float64)
+    truth = None if true_normals is None else np.asarray(true_normals, dtype=np.float64)
+    k_slider = widgets.IntSlider(value=k, min=4, max=k_max, step=1, description="k", continuous_update=False)
+    report = widgets.HTML()
+    figure = widgets.Image(format="png")
+    box = widgets.VBox([k_slider, report, figure])
+
+    def update(*_):
+        pca = local_pca(pts, k=k_slider.value)
+        box.last_pca = pca
+        err = None if truth is None else np.degrees(np.arccos(np.clip(np.abs(np.sum(pca.normals * truth, axis=1)), 0, 1)))
+        report.value = (f"<p><b>k = {k_slider.value}:</b> median local noise {np.median(pca.noise) * 1e3:.2f} mm"
+                        + ("" if err is None else f"; normal error median {np.median(err):.2f} deg, "
+                           f"95 % {np.percentile(err, 95):.2f} deg") + "</p>")
+        figure.value = _png(_k_figure(pca, err, k_slider.value))
+
+    k_slider.observe(update, names="value")
+    box.k_slider, box.report, box.figure, box.update = k_slider, report, figure, update
+    update()
+    return box
+
+
+def _k_figure(pca, err, k):
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(10, 3.4), layout="constrained")
+    axes = fig.subplots(1, 2 if err is not None else 1, squeeze=False)[0]
+    axes[0].hist(pca.noise * 1e3, bins=60, color="#1b9e77")
+    axes[0].set_xlabel("local noise along the normal (mm)")
+    axes[0].set_ylabel("points")
+    axes[0].set_title(f"local noise, k = {k}")
+    if err is not None:
+        axes[1].hist(err, bins=np.linspace(0, max(5.0, np.percentile(err, 99)), 60), color="#7570b3")
+        axes[1].set_xlabel("angle error of the normal (deg)")
+        axes[1].set_title(f"normal error, k = {k}")
+    return fig
+
+
+_ALPHA_OPTIONS = (0.001, 0.01, 0.05, 0.1, 0.2)
+
+
+def neighbour_test_explorer(field, alpha=0.05, extra_std=0.0, max_extra_mm=20.0):
+    """Sliders for the significance level and the extra standard deviation of the neighbour test (notebook 08).
+
+    Each change reruns :func:`labkit.neighbour_test` on ``field`` and redraws
+    the shift field with the disagreeing borders and the coherent areas. A
+    smaller alpha or a larger extra standard deviation accepts more pairs.
+
+    Returns
+    -------
+    ipywidgets.VBox
+        With attributes ``alpha_slider``, ``extra_slider`` (mm), ``report``
+        (HTML), ``figure`` (Image), ``last_test`` and ``update()``.
+    """
+    import ipywidgets as widgets
+
+    from .tiles import neighbour_test
+
+    a0 = min(_ALPHA_OPTIONS, key=lambda v: abs(np.log(v) - np.log(alpha)))
+    alpha_slider = widgets.SelectionSlider(options=_ALPHA_OPTIONS, value=a0, description="alpha",
+                                           continuous_update=False)
+    extra_slider = widgets.FloatSlider(value=extra_std * 1e3, min=0.0, max=max_extra_mm, step=0.5,
+                                       description="s_e (mm)", continuous_update=False)
+    report = widgets.HTML()
+    figure = widgets.Image(format="png")
+    box = widgets.VBox([widgets.HBox([alpha_slider, extra_slider]), report, figure])
+
+    def update(*_):
+        test = neighbour_test(field, alpha_slider.value, extra_std=extra_slider.value * 1e-3)
+        box.last_test = test
+        report.value = (f"<p><b>alpha = {alpha_slider.value:g}, s<sub>e</sub> = {extra_slider.value:.1f} mm:</b> "
+                        f"{int((~test.agree).sum())} of {len(test.agree)} neighbour pairs disagree; "
+                        f"{test.n_areas} coherent area(s)</p>")
+        figure.value = _png(_field_figure(field, test))
+
+    alpha_slider.observe(update, names="value")
+    extra_slider.observe(update, names="value")
+    box.alpha_slider, box.extra_slider, box.report, box.figure, box.update = (alpha_slider, extra_slider, report,
+                                                                             figure, update)
+    update()
+    return box
+
+
+def _field_figure(field, test):
+    from matplotlib.figure import Figure
+
+    from .plotting.compare import plot_shift_field
+
+    fig = Figure(figsize=(7, 5.5), layout="constrained")
+    plot_shift_field(field, test=test, ax=fig.subplots())
+    return fig
