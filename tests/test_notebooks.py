@@ -24,15 +24,17 @@ MIN_FIGURES = {
     "01": 4,
     "03": 9,
     "04": 7,
+    "07": 10,
+    "08": 3,
     "10": 8,
 }
 DEFAULT_MIN_FIGURES = 1
 
 # Notebooks whose exercises are checked here: one 'solution'-tagged cell per numbered exercise.
-SOLVED = ("01", "03", "04", "10")
+SOLVED = ("01", "03", "04", "07", "08", "10")
 
 # Notebooks with one cell, tagged 'own-file', where the analyst puts their own LAS/LAZ file.
-OWN_FILE = ("01", "03", "04", "10")
+OWN_FILE = ("01", "03", "04", "07", "08", "10")
 
 INLINE = "module://matplotlib_inline.backend_inline"
 
