@@ -67,6 +67,7 @@ def ransac_explorer(points, threshold=0.003, p=0.99, truth=None, rng=0, **ransac
     report = widgets.HTML()
     figure = widgets.Image(format="png")
     box = widgets.VBox([widgets.HBox([t_slider, p_slider]), report, figure])
+    box.add_class("labkit-ransac-explorer")  # a handle for the browser test and for styling
 
     def update(*_):
         result = ransac_sphere(pts, t_slider.value * 1e-3, p=p_slider.value, rng=rng, **ransac_kwargs)
@@ -138,6 +139,7 @@ def consensus_slices_widget(cube, truth=None):
     label = widgets.HTML()
     figure = widgets.Image(format="png")
     box = widgets.VBox([widgets.HBox([plane, slider, label]), figure])
+    box.add_class("labkit-consensus-slices")
 
     def set_range(*_):
         c = PLANES[plane.value][2]
@@ -204,6 +206,7 @@ def sphere_cap_explorer(noise=0.001, cap_deg=60.0, n=500, radius=0.0725, rng=0):
     report = widgets.HTML()
     figure = widgets.Image(format="png")
     box = widgets.VBox([widgets.HBox([noise_slider, cap_slider]), report, figure])
+    box.add_class("labkit-cap-explorer")
 
     def update(*_):
         sigma = noise_slider.value * 1e-3
@@ -275,6 +278,7 @@ def normals_k_explorer(points, true_normals=None, k=20, k_max=80):
     report = widgets.HTML()
     figure = widgets.Image(format="png")
     box = widgets.VBox([k_slider, report, figure])
+    box.add_class("labkit-k-explorer")
 
     def update(*_):
         pca = local_pca(pts, k=k_slider.value)
@@ -335,6 +339,7 @@ def neighbour_test_explorer(field, alpha=0.05, extra_std=0.0, max_extra_mm=20.0)
     report = widgets.HTML()
     figure = widgets.Image(format="png")
     box = widgets.VBox([widgets.HBox([alpha_slider, extra_slider]), report, figure])
+    box.add_class("labkit-neighbour-explorer")
 
     def update(*_):
         test = neighbour_test(field, alpha_slider.value, extra_std=extra_slider.value * 1e-3)
