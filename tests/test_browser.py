@@ -122,9 +122,9 @@ def _state(page, cls):
             const box = document.querySelector('.' + cls);
             if (!box) return null;
             const img = box.querySelector('img');
-            const html = [...box.querySelectorAll('.widget-html-content')].map(e => e.innerText).join('|');
+            const html = [...box.querySelectorAll('.widget-html-content')].map(e => e.textContent).join('|');
             return {html: html, img: img ? img.src : '', readouts: [...box.querySelectorAll('.widget-readout')]
-                    .map(e => e.innerText)};
+                    .map(e => e.textContent)};
         }""",
         cls,
     )
