@@ -10,7 +10,8 @@ def setup_headless() -> None:
 
     Sets VTK's EGL window (no X server needed with the PyPI vtk wheel),
     pyvista's off-screen mode and static Jupyter backend, and matplotlib's Agg
-    backend when no display is present.
+    backend when no display is present. In a Jupyter kernel matplotlib's inline
+    backend is kept, so figures reach the page (and the notebook tests count them).
     """
     os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
     os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")

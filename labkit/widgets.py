@@ -67,6 +67,7 @@ def ransac_explorer(points, threshold=0.003, p=0.99, truth=None, rng=0, **ransac
     report = widgets.HTML()
     figure = widgets.Image(format="png")
     box = widgets.VBox([widgets.HBox([t_slider, p_slider]), report, figure])
+    box.add_class("labkit-ransac-explorer")  # a handle for the browser test and for styling
 
     def update(*_):
         result = ransac_sphere(pts, t_slider.value * 1e-3, p=p_slider.value, rng=rng, **ransac_kwargs)
@@ -138,6 +139,7 @@ def consensus_slices_widget(cube, truth=None):
     label = widgets.HTML()
     figure = widgets.Image(format="png")
     box = widgets.VBox([widgets.HBox([plane, slider, label]), figure])
+    box.add_class("labkit-consensus-slices")
 
     def set_range(*_):
         c = PLANES[plane.value][2]
@@ -158,3 +160,208 @@ def consensus_slices_widget(cube, truth=None):
     set_range()
     update()
     return box
+
+
+def sphere_cap_points(n=500, cap_deg=60.0, noise=0.001, radius=0.0725, rng=0):
+    """Points on a spherical cap seen from +x, with isotropic Gaussian noise (notebook 01).
+
+    The cap holds every surface point whose normal lies within ``cap_deg`` of
+    the direction to the station (+x); its area is sampled uniformly. The
+    centre is the origin. Returns the (n, 3) points.
+    """
+    from ._checks import as_rng
+
+    gen = as_rng(rng)
+    # uniform on the cap: cos(angle from +x) uniform in [cos(cap), 1]
+    c = gen.uniform(np.cos(np.radians(cap_deg)), 1.0, n)
+    phi = gen.uniform(0.0, 2 * np.pi, n)
+    s = np.sqrt(1.0 - c**2)
+    unit = np.column_stack([c, s * np.cos(phi), s * np.sin(phi)])
+    return radius * unit + gen.normal(0.0, noise, (n, 3))
+
+
+def sphere_cap_explorer(noise=0.001, cap_deg=60.0, n=500, radius=0.0725, rng=0):
+    """Sliders for the noise and the visible cap of a scanned sphere (notebook 01).
+
+    Each change simulates ``n`` points on the cap (same seed), adjusts them in
+    the Gauss-Helmert model with the true noise as a priori sigma, and shows
+    the standard deviations, the centre's 95 % ellipsoid, and a section of the
+    cap. A small cap leaves the centre poorly determined along the line of
+    sight (x), where centre and radius are correlated.
+
+    Returns
+    -------
+    ipywidgets.VBox
+        With attributes ``noise_slider`` (mm), ``cap_slider`` (deg), ``report``
+        (HTML), ``figure`` (Image), ``last_fit`` and ``update()``.
+    """
+    import ipywidgets as widgets
+
+    from .adjustment import gauss_helmert_model
+
+    noise_slider = widgets.FloatSlider(value=noise * 1e3, min=0.1, max=5.0, step=0.1, description="noise (mm)",
+                                       continuous_update=False)
+    cap_slider = widgets.FloatSlider(value=cap_deg, min=10.0, max=90.0, step=5.0, description="cap (deg)",
+                                     continuous_update=False)
+    report = widgets.HTML()
+    figure = widgets.Image(format="png")
+    box = widgets.VBox([widgets.HBox([noise_slider, cap_slider]), report, figure])
+    box.add_class("labkit-cap-explorer")
+
+    def update(*_):
+        sigma = noise_slider.value * 1e-3
+        pts = sphere_cap_points(n, cap_slider.value, sigma, radius, rng)
+        fit = gauss_helmert_model(pts, sigma=sigma)
+        box.last_fit = fit
+        report.value = _cap_html(fit, cap_slider.value)
+        figure.value = _png(_cap_figure(pts, fit, radius))
+
+    noise_slider.observe(update, names="value")
+    cap_slider.observe(update, names="value")
+    box.noise_slider, box.cap_slider, box.report, box.figure, box.update = (noise_slider, cap_slider, report,
+                                                                           figure, update)
+    update()
+    return box
+
+
+def _cap_html(fit, cap_deg):
+    std = fit.std * 1e3
+    axes = fit.confidence_ellipsoid(0.95).semi_axes * 1e3
+    return (f"<p><b>cap {cap_deg:.0f} deg, {fit.n} points:</b> std x<sub>c</sub>, y<sub>c</sub>, z<sub>c</sub>, r = "
+            + ", ".join(f"{s:.3f}" for s in std) + " mm; 95 % ellipsoid semi-axes "
+            + ", ".join(f"{a:.3f}" for a in axes) + f" mm; correlation r-x<sub>c</sub> "
+            f"{fit.Sigma_xx[0, 3] / (fit.std[0] * fit.std[3]):+.2f}</p>")
+
+
+def _cap_figure(pts, fit, radius):
+    from matplotlib.figure import Figure
+
+    from .plotting.sphere import plot_confidence_ellipsoid
+
+    fig = Figure(figsize=(12, 3.6), layout="constrained")
+    ax0, *axes = fig.subplots(1, 4)
+    near = np.abs(pts[:, 2]) < 0.2 * radius
+    t = np.linspace(0, 2 * np.pi, 200)
+    ax0.plot(radius * np.cos(t) * 1e3, radius * np.sin(t) * 1e3, color="0.6", lw=1, label="true sphere")
+    ax0.plot(pts[near, 0] * 1e3, pts[near, 1] * 1e3, ".", ms=3, label="points |z| < 0.2 r")
+    ax0.plot(80, 0, ">", color="k", ms=8, label="to the station")
+    ax0.set_aspect("equal")
+    ax0.set_xlabel("x [mm]")
+    ax0.set_ylabel("y [mm]")
+    ax0.legend(fontsize=7, loc="lower left")
+    ax0.set_title("section z = 0")
+    plot_confidence_ellipsoid(fit, level=0.95, truth=np.zeros(3), axes=axes)
+    return fig
+
+
+def normals_k_explorer(points, true_normals=None, k=20, k_max=80):
+    """A slider for the neighbourhood size k of the PCA normals and local noise (notebook 04).
+
+    Each change recomputes :func:`labkit.local_pca` with the new k and shows
+    the local noise (eq. 5) and, when ``true_normals`` are given, the angle
+    error of the normals. Small k: noisy normals; large k: smoothed across
+    edges and curvature.
+
+    Returns
+    -------
+    ipywidgets.VBox
+        With attributes ``k_slider``, ``report`` (HTML), ``figure`` (Image),
+        ``last_pca`` and ``update()``.
+    """
+    import ipywidgets as widgets
+
+    from .features import local_pca
+
+    pts = np.asarray(points, dtype=np.float64)
+    truth = None if true_normals is None else np.asarray(true_normals, dtype=np.float64)
+    k_slider = widgets.IntSlider(value=k, min=4, max=k_max, step=1, description="k", continuous_update=False)
+    report = widgets.HTML()
+    figure = widgets.Image(format="png")
+    box = widgets.VBox([k_slider, report, figure])
+    box.add_class("labkit-k-explorer")
+
+    def update(*_):
+        pca = local_pca(pts, k=k_slider.value)
+        box.last_pca = pca
+        err = None if truth is None else np.degrees(np.arccos(np.clip(np.abs(np.sum(pca.normals * truth, axis=1)), 0, 1)))
+        report.value = (f"<p><b>k = {k_slider.value}:</b> median local noise {np.median(pca.noise) * 1e3:.2f} mm"
+                        + ("" if err is None else f"; normal error median {np.median(err):.2f} deg, "
+                           f"95 % {np.percentile(err, 95):.2f} deg") + "</p>")
+        figure.value = _png(_k_figure(pca, err, k_slider.value))
+
+    k_slider.observe(update, names="value")
+    box.k_slider, box.report, box.figure, box.update = k_slider, report, figure, update
+    update()
+    return box
+
+
+def _k_figure(pca, err, k):
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(10, 3.4), layout="constrained")
+    axes = fig.subplots(1, 2 if err is not None else 1, squeeze=False)[0]
+    axes[0].hist(pca.noise * 1e3, bins=60, color="#1b9e77")
+    axes[0].set_xlabel("local noise along the normal (mm)")
+    axes[0].set_ylabel("points")
+    axes[0].set_title(f"local noise, k = {k}")
+    if err is not None:
+        axes[1].hist(err, bins=np.linspace(0, max(5.0, np.percentile(err, 99)), 60), color="#7570b3")
+        axes[1].set_xlabel("angle error of the normal (deg)")
+        axes[1].set_title(f"normal error, k = {k}")
+    return fig
+
+
+_ALPHA_OPTIONS = (0.001, 0.01, 0.05, 0.1, 0.2)
+
+
+def neighbour_test_explorer(field, alpha=0.05, extra_std=0.0, max_extra_mm=20.0):
+    """Sliders for the significance level and the extra standard deviation of the neighbour test (notebook 08).
+
+    Each change reruns :func:`labkit.neighbour_test` on ``field`` and redraws
+    the shift field with the disagreeing borders and the coherent areas. A
+    smaller alpha or a larger extra standard deviation accepts more pairs.
+
+    Returns
+    -------
+    ipywidgets.VBox
+        With attributes ``alpha_slider``, ``extra_slider`` (mm), ``report``
+        (HTML), ``figure`` (Image), ``last_test`` and ``update()``.
+    """
+    import ipywidgets as widgets
+
+    from .tiles import neighbour_test
+
+    a0 = min(_ALPHA_OPTIONS, key=lambda v: abs(np.log(v) - np.log(alpha)))
+    alpha_slider = widgets.SelectionSlider(options=_ALPHA_OPTIONS, value=a0, description="alpha",
+                                           continuous_update=False)
+    extra_slider = widgets.FloatSlider(value=extra_std * 1e3, min=0.0, max=max_extra_mm, step=0.5,
+                                       description="s_e (mm)", continuous_update=False)
+    report = widgets.HTML()
+    figure = widgets.Image(format="png")
+    box = widgets.VBox([widgets.HBox([alpha_slider, extra_slider]), report, figure])
+    box.add_class("labkit-neighbour-explorer")
+
+    def update(*_):
+        test = neighbour_test(field, alpha_slider.value, extra_std=extra_slider.value * 1e-3)
+        box.last_test = test
+        report.value = (f"<p><b>alpha = {alpha_slider.value:g}, s<sub>e</sub> = {extra_slider.value:.1f} mm:</b> "
+                        f"{int((~test.agree).sum())} of {len(test.agree)} neighbour pairs disagree; "
+                        f"{test.n_areas} coherent area(s)</p>")
+        figure.value = _png(_field_figure(field, test))
+
+    alpha_slider.observe(update, names="value")
+    extra_slider.observe(update, names="value")
+    box.alpha_slider, box.extra_slider, box.report, box.figure, box.update = (alpha_slider, extra_slider, report,
+                                                                             figure, update)
+    update()
+    return box
+
+
+def _field_figure(field, test):
+    from matplotlib.figure import Figure
+
+    from .plotting.compare import plot_shift_field
+
+    fig = Figure(figsize=(7, 5.5), layout="constrained")
+    plot_shift_field(field, test=test, ax=fig.subplots())
+    return fig

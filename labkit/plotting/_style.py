@@ -20,6 +20,8 @@ WINDOW_SIZE = (900, 650)
 def scalar_bar(title: str, **extra) -> dict:
     """pyvista ``scalar_bar_args``: a vertical bar at the right edge, so the title never
     overlaps the tick labels (as it does on the default horizontal bar)."""
+    # a second (empty) title line keeps the title clear of the top tick label of a vertical bar
+    title = title if "\n" in title else title + "\n"
     args = {"title": title, "vertical": True, "position_x": 0.86, "position_y": 0.12, "width": 0.06,
             "height": 0.76, "title_font_size": 14, "label_font_size": 12}
     args.update(extra)

@@ -28,7 +28,8 @@ def plot_consensus_slice(cube, plane="XY", index=None, *, truth=None, ax=None, v
     index : int, optional
         Cell index along the third axis; default: through the highest cell.
     truth : (3,) float, optional
-        Known translation, marked with a cross.
+        Known translation: a cross where the slice passes through it; where it does
+        not, a hollow circle at its projection, labelled with the distance off the slice.
     ax : matplotlib Axes, optional
     vmax : float, optional
         Colour scale maximum (default: the cube's maximum, so slices compare).
@@ -46,7 +47,12 @@ def plot_consensus_slice(cube, plane="XY", index=None, *, truth=None, ax=None, v
     peak = cube.argmax_translation
     ax.plot(peak[a], peak[b], "o", mfc="none", mec="white", ms=10, label="highest cell")
     if truth is not None:
-        ax.plot(truth[a], truth[b], "x", color=COLORS["outlier"], ms=10, mew=2, label="truth")
+        off = float(truth[c]) - cube.axes[c][k]
+        if abs(off) <= half:
+            ax.plot(truth[a], truth[b], "x", color=COLORS["outlier"], ms=10, mew=2, label="truth")
+        else:  # the truth lies off this slice: mark its projection, hollow, and say how far off
+            ax.plot(truth[a], truth[b], "o", mfc="none", mec=COLORS["outlier"], ms=9, mew=1.5,
+                    label=f"truth, projected ({off * 100:+.1f} cm in t{'xyz'[c]})")
     ax.set_xlabel(f"t{plane[0].lower()} (m)")
     ax.set_ylabel(f"t{plane[1].lower()} (m)")
     ax.set_title(f"{plane} at t{'xyz'[c]} = {cube.axes[c][k]:+.3f} m")
@@ -67,7 +73,7 @@ def plot_consensus_slices(cube, *, truth=None, axes=None, title=None):
         _, axes = plt.subplots(1, 3, figsize=(14, 4.2), layout="constrained")
     for ax, plane in zip(axes, PLANES):
         plot_consensus_slice(cube, plane, truth=truth, ax=ax, colorbar=plane == "YZ")
-    axes[0].legend(loc="lower left", fontsize=8)
+        ax.legend(loc="lower left", fontsize=7)
     if title:
         axes[0].figure.suptitle(title)
     return axes
@@ -110,11 +116,22 @@ def plot_consensus_top_cells(cube, quantile=0.999, *, truth=None, ax=None, max_c
     if truth is not None:
         ax.scatter(*np.asarray(truth)[:, None], marker="x", color=COLORS["outlier"], s=80, label="truth")
         ax.legend(fontsize=8)
-    ax.set_xlabel("tx (m)")
-    ax.set_ylabel("ty (m)")
-    ax.set_zlabel("tz (m)")
-    ax.set_title(f"cells >= {100 * quantile:g} % quantile ({len(idx)} cells): {cube.peak.kind}")
-    ax.figure.colorbar(sc, ax=ax, shrink=0.6, label="consensus")
+    from matplotlib.ticker import MaxNLocator
+
+    for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
+        axis.set_major_locator(MaxNLocator(4))
+    ax.set_xlabel("tx (m)", labelpad=8)
+    ax.set_ylabel("ty (m)", labelpad=8)
+    ax.set_zlabel("tz (m)", labelpad=8)
+    ax.set_title(f"cells >= {100 * quantile:g} % quantile ({len(idx)} cells)\n{describe_peak(cube.peak)}",
+                 fontsize=10)
+    # the colour bar in its own axes at the left edge: beside the 3D box it would cover the tz label
+    fig = ax.figure
+    box = ax.get_position()
+    cax = fig.add_axes([max(box.x0 - 0.06, 0.01), box.y0 + 0.2 * box.height, 0.02, 0.6 * box.height])
+    fig.colorbar(sc, cax=cax, label="consensus (points)", ticks=MaxNLocator(5, integer=True))
+    cax.yaxis.set_label_position("left")
+    cax.yaxis.set_ticks_position("left")
     return ax
 
 
@@ -128,13 +145,58 @@ def plot_consensus_volume(cube, quantile=0.999, *, truth=None, plotter=None):
     grid.cell_data["consensus"] = cube.counts.ravel(order="F").astype(float)
     top = grid.threshold(float(np.quantile(cube.counts, quantile)), scalars="consensus")
     plotter.add_mesh(top, scalars="consensus", cmap=CMAP_SEQUENTIAL, show_edges=False,
-                     scalar_bar_args=scalar_bar("consensus"))
+                     scalar_bar_args=scalar_bar("consensus\n(points)", fmt="%.0f", n_labels=5,
+                                                title_font_size=16, label_font_size=14, color="black"))
     plotter.add_mesh(grid.outline(), color=COLORS["reference"])
     if truth is not None:
-        plotter.add_mesh(pv.Sphere(radius=cube.step, center=truth), color=COLORS["outlier"])
-    plotter.show_axes()
-    plotter.add_text(f"consensus cube: cells above the {100 * quantile:g} % quantile", font_size=10)
+        plotter.add_mesh(pv.Sphere(radius=max(cube.step, 0.01 * _span(cube)), center=truth), color=COLORS["outlier"],
+                         label="truth")
+    # labelled axes on the bounds of the whole cube, in metres of translation
+    plotter.show_bounds(mesh=grid.outline(), xtitle="tx (m)", ytitle="ty (m)", ztitle="tz (m)", fmt="%.2f",
+                        font_size=12, color="black", grid=False, location="outer", n_xlabels=3, n_ylabels=3,
+                        n_zlabels=3)
+    plotter.add_axes(xlabel="tx", ylabel="ty", zlabel="tz")
+    plotter.add_text(f"consensus cube: cells above the {100 * quantile:g} % quantile\n{describe_peak(cube.peak)}",
+                     font_size=10, color="black")
+    plotter.set_background("white")
     return plotter
+
+
+def _span(cube) -> float:
+    return float(max(a[-1] - a[0] for a in cube.axes))
+
+
+def describe_peak(peak) -> str:
+    """The shape of a consensus peak in words: which translation directions it leaves free.
+
+    A free direction within 10 degrees of a coordinate axis is named by that axis ("free along ty");
+    otherwise by its azimuth and elevation. A plane of free directions is named by its normal. Used in
+    titles instead of raw eigenvector components.
+    """
+    kind = peak.kind
+    if kind == "flat":
+        return "flat: no peak, the translation is undetermined"
+    free = [np.asarray(peak.directions)[:, i] for i in np.flatnonzero(peak.free)]
+    if not free:
+        return f"{kind}: all three directions determined"
+    if len(free) == 1:
+        return f"{kind}: free along {_direction_words(free[0])}"
+    if len(free) == 2:
+        normal = np.cross(free[0], free[1])
+        return f"{kind}: free in the plane normal to {_direction_words(normal)}"
+    return f"{kind}: free in all directions"
+
+
+def _direction_words(v) -> str:
+    v = np.asarray(v, dtype=np.float64) / np.linalg.norm(v)
+    a = int(np.argmax(np.abs(v)))
+    angle = float(np.degrees(np.arccos(min(1.0, abs(v[a])))))
+    if angle <= 10.0:
+        return f"t{'xyz'[a]}" + (f" (within {angle:.0f} deg)" if angle >= 1.0 else "")
+    v = v if v[2] >= 0 else -v
+    azimuth = float(np.degrees(np.arctan2(v[1], v[0])))
+    elevation = float(np.degrees(np.arcsin(np.clip(v[2], -1.0, 1.0))))
+    return f"a direction at azimuth {azimuth:.0f} deg, elevation {elevation:.0f} deg"
 
 
 def plot_bnb_summary(results, labels, *, ax=None):
