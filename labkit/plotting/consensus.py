@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..registration.consensus import PeakShape
 from ._style import CMAP_SEQUENTIAL, COLORS, new_plotter, scalar_bar
 
 PLANES = {"XY": (0, 1, 2), "XZ": (0, 2, 1), "YZ": (1, 2, 0)}
@@ -167,36 +168,13 @@ def _span(cube) -> float:
 
 
 def describe_peak(peak) -> str:
-    """The shape of a consensus peak in words: which translation directions it leaves free.
+    """The shape of a consensus peak in words (see :meth:`labkit.registration.consensus.PeakShape.describe`).
 
-    A free direction within 10 degrees of a coordinate axis is named by that axis ("free along ty");
-    otherwise by its azimuth and elevation. A plane of free directions is named by its normal. Used in
-    titles instead of raw eigenvector components.
+    Works on anything with ``kind``, ``directions`` and ``free``; used in titles instead of raw eigenvector
+    components.
     """
-    kind = peak.kind
-    if kind == "flat":
-        return "flat: no peak, the translation is undetermined"
-    free = [np.asarray(peak.directions)[:, i] for i in np.flatnonzero(peak.free)]
-    if not free:
-        return f"{kind}: all three directions determined"
-    if len(free) == 1:
-        return f"{kind}: free along {_direction_words(free[0])}"
-    if len(free) == 2:
-        normal = np.cross(free[0], free[1])
-        return f"{kind}: free in the plane normal to {_direction_words(normal)}"
-    return f"{kind}: free in all directions"
+    return PeakShape.describe(peak)
 
-
-def _direction_words(v) -> str:
-    v = np.asarray(v, dtype=np.float64) / np.linalg.norm(v)
-    a = int(np.argmax(np.abs(v)))
-    angle = float(np.degrees(np.arccos(min(1.0, abs(v[a])))))
-    if angle <= 10.0:
-        return f"t{'xyz'[a]}" + (f" (within {angle:.0f} deg)" if angle >= 1.0 else "")
-    v = v if v[2] >= 0 else -v
-    azimuth = float(np.degrees(np.arctan2(v[1], v[0])))
-    elevation = float(np.degrees(np.arcsin(np.clip(v[2], -1.0, 1.0))))
-    return f"a direction at azimuth {azimuth:.0f} deg, elevation {elevation:.0f} deg"
 
 
 def plot_bnb_summary(results, labels, *, ax=None):

@@ -96,12 +96,21 @@ class PeakShape(ReportMixin):
         return tuple(a for a, ok in zip(AXES, self.axis_constrained) if ok)
 
     def describe(self) -> str:
-        """One line: the shape and the free direction(s)."""
+        """One line in words: the shape and the translation direction(s) it leaves free.
+
+        A free direction within 10 degrees of a coordinate axis is named by that axis ("free along ty"),
+        otherwise by its azimuth and elevation; a plane of free directions by its normal.
+        """
         if self.kind == "flat":
             return "flat: no peak, the translation is undetermined"
-        free = [self.directions[:, i] for i in np.flatnonzero(self.free)]
-        along = "; ".join(", ".join(f"{a}:{c:+.2f}" for a, c in zip(AXES, v) if abs(c) > 0.1) for v in free)
-        return self.kind + (f" (free along {along})" if free else " (all directions determined)")
+        free = [np.asarray(self.directions)[:, i] for i in np.flatnonzero(self.free)]
+        if not free:
+            return f"{self.kind}: all three directions determined"
+        if len(free) == 1:
+            return f"{self.kind}: free along {_direction_words(free[0])}"
+        if len(free) == 2:
+            return f"{self.kind}: free in the plane normal to {_direction_words(np.cross(free[0], free[1]))}"
+        return f"{self.kind}: free in all directions"
 
     def _report(self):
         rows = [
@@ -112,6 +121,19 @@ class PeakShape(ReportMixin):
             ("cells in the top region / summit", f"{self.n_top} / {self.n_summit}"),
         ]
         return "Consensus peak", [("", rows)]
+
+
+def _direction_words(v) -> str:
+    """A unit direction in words: the axis it is within 10 degrees of, else azimuth and elevation."""
+    v = np.asarray(v, dtype=np.float64) / np.linalg.norm(v)
+    a = int(np.argmax(np.abs(v)))
+    angle = float(np.degrees(np.arccos(min(1.0, abs(v[a])))))
+    if angle <= 10.0:
+        return f"t{'xyz'[a]}" + (f" (within {angle:.0f} deg)" if angle >= 1.0 else "")
+    v = v if v[2] >= 0 else -v
+    azimuth = float(np.degrees(np.arctan2(v[1], v[0])))
+    elevation = float(np.degrees(np.arcsin(np.clip(v[2], -1.0, 1.0))))
+    return f"a direction at azimuth {azimuth:.0f} deg, elevation {elevation:.0f} deg"
 
 
 @dataclass(frozen=True, eq=False)
