@@ -1342,6 +1342,10 @@ def _check_fits(name: str, values: np.ndarray, dim, fmt_id: int) -> None:
         lo, hi = int(info.min), int(info.max)
     else:
         return
+    if values.dtype.kind in "biu":
+        info = np.iinfo(values.dtype) if values.dtype.kind != "b" else None
+        if info is None or (info.min >= lo and info.max <= hi):
+            return  # the dtype cannot hold a value outside the field: no pass over the data
     if values.dtype.kind == "f" and not np.isfinite(values).all():
         raise LabkitError(f"attribute {name!r} holds NaN or infinite values; the LAS field takes integers {lo}..{hi}")
     vmin, vmax = values.min(), values.max()
@@ -1388,13 +1392,10 @@ def _check_int32_range(xyz: np.ndarray, offsets, scales) -> None:
 
 
 def _quantize(xyz: np.ndarray, offsets, scales) -> np.ndarray:
-    """LAS integers ``round((x - offset) / scale)``; raise if they leave the int32 range."""
-    q = np.rint((xyz - np.asarray(offsets)) / np.asarray(scales))
-    if q.size and np.abs(q).max() > _INT32_MAX:
-        raise LabkitError(
-            f"the coordinates span {np.ptp(xyz, axis=0).max():.1f} m, too much for LAS integers at "
-            f"scale {np.asarray(scales).tolist()}; choose a coarser scale"
-        )
+    """LAS integers ``round((x - offset) / scale)`` of a chunk (range checked by :func:`_check_int32_range`)."""
+    q = xyz - np.asarray(offsets)
+    q /= np.asarray(scales)
+    np.rint(q, out=q)
     return q.astype(np.int32)
 
 
