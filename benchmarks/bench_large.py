@@ -23,6 +23,20 @@ side by side in one run:
 The machine's load matters: run the peers in one run and compare ratios.
 
 Run:  python benchmarks/bench_large.py [--points 2e6] [--skip-register] [--keep DIR]
+
+Measured 2026-12-01 on 2 shared cores at load 6-7 (noisy; compare within a run):
+
+    points/epoch   step                     labkit   peer              peak RSS MB (labkit / peer)
+    2 M            write LAZ                1.26 s   laspy 1.52 s      243 / 157
+    2 M            read LAZ                 2.01 s   laspy.read 1.52 s 232 / 210
+    2 M            normals k=20             20.9 s   Open3D 51.2 s     725 / 433
+    2 M            labkit register          173 s (read 2.9, icp 126.5, distances 33.2, write 1.9), 1757 MB,
+                                            shift error (-0.16, -0.42, -0.03) mm
+    10 M           write LAZ                12.2 s   laspy 10.4 s      639 / 466
+    10 M           read LAZ                 12.2 s   laspy.read 12.7 s 597 / 804
+    10 M           normals k=20             101.7 s  Open3D 304.0 s    2648 / 1671
+
+(baseline process 54 MB; lazrs on all cores gave no gain on the loaded machine.)
 """
 
 from __future__ import annotations
