@@ -191,6 +191,24 @@ class PointCloud:
             raise LabkitError(f"units must be a labkit.cloud.Units, got {type(units).__name__}")
         object.__setattr__(self, "units", units)
 
+    @classmethod
+    def _adopt(cls, xyz: np.ndarray, attributes: dict, **fields) -> "PointCloud":
+        """A cloud that takes over freshly made arrays without copying them (readers only).
+
+        The caller gives the arrays up: they are made read-only here and must not
+        be used elsewhere. Saves one copy of the whole cloud when reading.
+        """
+        if not (isinstance(xyz, np.ndarray) and xyz.dtype == np.float64 and xyz.ndim == 2 and xyz.shape[1] == 3
+                and all(isinstance(v, np.ndarray) and v.shape[:1] == xyz.shape[:1] for v in attributes.values())):
+            return cls(xyz, attributes, **fields)
+        cloud = cls(np.empty((0, 3)), {}, **fields)
+        xyz.flags.writeable = False
+        for v in attributes.values():
+            v.flags.writeable = False
+        object.__setattr__(cloud, "xyz", xyz)
+        object.__setattr__(cloud, "attributes", dict(attributes))
+        return cloud
+
     def __len__(self) -> int:
         return self.xyz.shape[0]
 

@@ -34,10 +34,22 @@ coordinates were converted, and any conflict between WKT and GeoKeys. Writing
 a converted cloud to LAS/LAZ/NPZ stores it in its file's units again (the CRS
 is written with it), so a file never holds metres under a CRS in feet.
 
-Large files are read in chunks; a box, polygon or class filter is applied to
-each chunk, so only the kept points are ever held in memory. Files are written
-atomically: into a temporary file in the destination folder, renamed over the
-destination only when complete.
+Large files
+-----------
+Files are read in chunks; a box, polygon or class filter is applied to each
+chunk, so only the kept points are ever held in memory. LAZ is decompressed
+(and compressed) on all cores by lazrs (``parallel=True``); with a selection of
+``attributes`` from a LAS 1.4 file (point formats 6-10) only the layers of
+those attributes are decompressed. Without a filter, each chunk's coordinates
+``X * scale + offset`` are computed straight into the one preallocated array
+the cloud then keeps (no concatenation, no second copy): reading needs the
+memory of the cloud plus one chunk. :func:`read_clouds` reads the part of many
+files (a folder, a glob) that an area needs: the LAS headers are read first and
+files whose extent misses the area are skipped without decompressing a point.
+Writing quantizes and writes one chunk at a time. ``progress=True`` reports the
+chunks (see :mod:`labkit.progress`). Files are written atomically: into a
+temporary file in the destination folder, renamed over the destination only
+when complete.
 """
 
 from __future__ import annotations
@@ -48,7 +60,6 @@ import os
 import re
 import struct
 import sys
-import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -60,8 +71,10 @@ from .cloud import PointCloud, Units, UnitsError
 from ._atomic import atomic_path
 from ._checks import choice
 from .errors import CloudFileError, EmptyRegionError, LabkitError
+from .progress import progress_steps
 
-__all__ = ["read_cloud", "write_cloud", "cloud_info", "CloudInfo", "LAS_SUFFIXES", "ASCII_SUFFIXES"]
+__all__ = ["read_cloud", "read_clouds", "write_cloud", "cloud_info", "CloudInfo", "cloud_files", "files_in_box",
+           "LAS_SUFFIXES", "ASCII_SUFFIXES"]
 
 LAS_SUFFIXES = (".las", ".laz")
 ASCII_SUFFIXES = (".xyz", ".txt", ".csv", ".asc")
@@ -178,74 +191,64 @@ class _Filter:
         return keep
 
 
-# ============================================================================ progress
-class _Progress:
-    """A text progress bar on stderr (or tqdm when it is installed)."""
-
-    def __init__(self, total: int, label: str, enabled: bool, unit: str = "pts"):
-        self.total, self.label, self.unit, self.done = max(int(total), 1), label, unit, 0
-        self.enabled, self._bar, self._last, self._shown = enabled, None, 0.0, -1
-        if enabled:
-            try:
-                from tqdm.auto import tqdm
-
-                self._bar = tqdm(total=self.total, desc=label, unit=unit, unit_scale=True, file=sys.stderr)
-            except ImportError:
-                self._draw(force=True)
-
-    def update(self, n: int) -> None:
-        self.done += int(n)
-        if self._bar is not None:
-            self._bar.update(int(n))
-        elif self.enabled:
-            self._draw()
-
-    def _draw(self, force: bool = False) -> None:
-        now = time.monotonic()
-        if not force and now - self._last < 0.25 and self.done < self.total:
-            return
-        self._last, self._shown = now, self.done
-        frac = min(self.done / self.total, 1.0)
-        bar = "#" * int(30 * frac) + "." * (30 - int(30 * frac))
-        sys.stderr.write(f"\r{self.label} [{bar}] {100 * frac:5.1f}% ({self.done:,} of {self.total:,} {self.unit})")
-        sys.stderr.flush()
-
-    def close(self) -> None:
-        if self._bar is not None:
-            self._bar.close()
-        elif self.enabled:
-            if self._shown != self.done:
-                self._draw(force=True)
-            sys.stderr.write("\n")
-
-
 # ============================================================================ gathering chunks
 class _Gather:
-    """Collects the kept part of each chunk; preallocates when the final size is known."""
+    """Collects the kept part of each chunk; preallocates when the final size is known.
+
+    With a known capacity the chunks are written into one array (the memory of
+    the cloud plus one chunk, no concatenation); :meth:`slot` hands out the rows
+    a chunk of known size fills, so coordinates can be computed straight into them.
+    """
 
     def __init__(self, capacity: int | None):
         self.capacity, self.n = capacity, 0
         self.xyz_parts, self.attr_parts = [], {}
         self.xyz, self.attrs = None, None
 
+    def _allocate(self, attrs: dict) -> None:
+        if self.xyz is None:
+            self.xyz = np.empty((self.capacity, 3))
+        if self.attrs is None:
+            self.attrs = {k: np.empty(self.capacity, dtype=v.dtype) for k, v in attrs.items()}
+
+    def slot(self, m: int) -> np.ndarray | None:
+        """Rows ``n .. n+m`` of the preallocated coordinates (None without a capacity)."""
+        if self.capacity is None or self.n + m > self.capacity:
+            return None
+        if self.xyz is None:
+            self.xyz = np.empty((self.capacity, 3))
+        return self.xyz[self.n : self.n + m]
+
     def add(self, xyz: np.ndarray, attrs: dict) -> None:
         m = len(xyz)
-        if self.capacity is not None:
-            if self.xyz is None:
-                self.xyz = np.empty((self.capacity, 3))
-                self.attrs = {k: np.empty(self.capacity, dtype=v.dtype) for k, v in attrs.items()}
-            self.xyz[self.n : self.n + m] = xyz
+        if self.capacity is not None and self.n + m <= self.capacity:
+            self._allocate(attrs)
+            dest = self.xyz[self.n : self.n + m]
+            if not np.shares_memory(dest, xyz):
+                dest[:] = xyz
             for k, v in attrs.items():
                 self.attrs[k][self.n : self.n + m] = v
         else:
+            if self.capacity is not None:  # more points than announced: fall back to gathering parts
+                self._spill()
             self.xyz_parts.append(xyz)
             for k, v in attrs.items():
                 self.attr_parts.setdefault(k, []).append(v)
         self.n += m
 
+    def _spill(self) -> None:
+        if self.xyz is not None:
+            self.xyz_parts.append(self.xyz[: self.n])
+            for k, v in (self.attrs or {}).items():
+                self.attr_parts.setdefault(k, []).append(v[: self.n])
+        self.capacity, self.xyz, self.attrs = None, None, None
+
     def result(self) -> tuple[np.ndarray, dict]:
         if self.capacity is not None and self.xyz is not None:
-            return self.xyz[: self.n], {k: v[: self.n] for k, v in self.attrs.items()}
+            xyz, attrs = self.xyz[: self.n], {k: v[: self.n] for k, v in (self.attrs or {}).items()}
+            if self.n < 0.9 * self.capacity:  # much was filtered out: give the unused rows back
+                xyz, attrs = xyz.copy(), {k: v.copy() for k, v in attrs.items()}
+            return xyz, attrs
         xyz = np.concatenate(self.xyz_parts) if self.xyz_parts else np.empty((0, 3))
         self.xyz_parts = []
         attrs = {}
@@ -263,8 +266,9 @@ def read_cloud(
     classes=None,
     attributes=None,
     chunk_size: int = DEFAULT_CHUNK,
-    progress: bool = False,
+    progress=False,
     units: str = "m",
+    parallel: bool = True,
 ) -> PointCloud:
     """Read a LAS/LAZ, ASCII, NumPy or PLY point-cloud file into a :class:`PointCloud`.
 
@@ -286,14 +290,17 @@ def read_cloud(
     chunk_size : int
         Points (or text lines) per chunk. The filters act on each chunk, so the
         memory needed is one chunk plus the kept points.
-    progress : bool
-        Show a progress bar on stderr (tqdm if installed, else plain text).
+    progress : bool, "bar", "lines" or callable
+        Report the chunks read (see :mod:`labkit.progress`): ``True`` shows a
+        bar (terminal, notebook) or plain lines on stderr; default silent.
     units : {"m", "native"}
         ``"m"`` (default): coordinates whose CRS states feet are converted to
         metres (per axis: X/Y and Z may differ), and a file in longitude/latitude
         degrees raises :class:`labkit.cloud.UnitsError`. ``"native"``: keep the
         stored values; the cloud records its units and metric steps refuse it.
         Files without a stated unit (no CRS, text, NumPy, PLY) are read as they are.
+    parallel : bool
+        Decompress LAZ on all cores (lazrs); ``False`` uses one core.
 
     Returns
     -------
@@ -319,7 +326,7 @@ def read_cloud(
     suffix = path.suffix.lower()
     try:
         if suffix in LAS_SUFFIXES:
-            xyz, attrs, crs, found = _read_las(path, flt, keep, chunk_size, progress, units)
+            xyz, attrs, crs, found = _read_las(path, flt, keep, chunk_size, progress, units, parallel)
         elif suffix in ASCII_SUFFIXES:
             xyz, attrs, crs = _read_ascii(path, flt, keep, chunk_size, progress)
             found = Units()
@@ -346,7 +353,7 @@ def read_cloud(
         missing = set()  # a text scan-angle column, read under the name its values need
     if missing:
         raise LabkitError(f"{path} has no attribute {', '.join(sorted(missing))}")
-    return PointCloud(xyz, attrs, crs=crs, name=path.stem, units=found)
+    return PointCloud._adopt(xyz, attrs, crs=crs, name=path.stem, units=found)  # no copy of the fresh arrays
 
 
 def _positive_int(value, name: str) -> int:
@@ -433,11 +440,12 @@ def _check_las_header(path: Path) -> None:
         raise CloudFileError(f"{path} has a corrupt or unsupported LAS header: " + "; ".join(problems))
 
 
-def _read_las(path: Path, flt: _Filter, keep, chunk_size: int, progress: bool, units: str):
+def _read_las(path: Path, flt: _Filter, keep, chunk_size: int, progress, units: str, parallel: bool = True):
     import laspy
 
     _check_las_header(path)
-    with laspy.open(str(path)) as reader:
+    with laspy.open(str(path), laz_backend=laz_backend(parallel),
+                    decompression_selection=_decompression_selection(keep, flt)) as reader:
         header = reader.header
         total = int(header.point_count)
         found, crs = las_units(header)
@@ -446,26 +454,88 @@ def _read_las(path: Path, flt: _Filter, keep, chunk_size: int, progress: bool, u
         names = [d for d in names if keep is None or d in keep]
         _needs_class(flt, header.point_format.dimension_names, path)
         _check_overlap(flt, header, path, factors)
-        gather = _Gather(None if flt.active else _plausible_count(header, path))
-        bar = _Progress(total, f"reading {path.name}", progress)
+        every = not flt.active  # no filter: each point is kept, coordinates go straight into the cloud
+        gather = _Gather(_plausible_count(header, path) if every or _holds_header(flt, header, factors) else None)
+        scales, offsets = np.asarray(header.scales, dtype=np.float64), np.asarray(header.offsets, dtype=np.float64)
         seen = 0
-        try:
+        with progress_steps(progress, total, f"reading {path.name}", "pts") as step:
             for points in reader.chunk_iterator(chunk_size):
-                seen += len(points)
-                xyz = np.column_stack([np.asarray(points.x), np.asarray(points.y), np.asarray(points.z)])
-                if factors is not None:
-                    xyz *= factors  # file units -> metres, per axis
+                m = len(points)
+                seen += m
+                xyz = gather.slot(m) if every else None
+                xyz = _las_xyz(points, scales, offsets, factors, np.empty((m, 3)) if xyz is None else xyz)
                 cls = np.asarray(points["classification"]) if flt.classes is not None else None
                 mask = flt.mask(xyz, cls)
                 sel = slice(None) if mask is None else mask
-                gather.add(xyz[sel], {d: np.asarray(points[d])[sel] for d in names})
-                bar.update(len(points))
-        finally:
-            bar.close()
+                gather.add(xyz if mask is None else xyz[sel], {d: np.asarray(points[d])[sel] for d in names})
+                step(m)
         if seen != total:
             raise CloudFileError(f"{path} is truncated: the header announces {total} points, the file holds {seen}")
         xyz, attrs = gather.result()
         return xyz, attrs, crs, found
+
+
+def laz_backend(parallel: bool = True):
+    """laspy's LAZ backends to try: lazrs on all cores first when ``parallel``, else lazrs on one."""
+    from laspy import LazBackend
+
+    if parallel:
+        return (LazBackend.LazrsParallel, LazBackend.Lazrs, LazBackend.Laszip)
+    return (LazBackend.Lazrs, LazBackend.Laszip, LazBackend.LazrsParallel)
+
+
+def _las_xyz(points, scales, offsets, factors, out: np.ndarray) -> np.ndarray:
+    """``X * scale + offset`` (then the unit factors) computed into ``out``, one column at a time.
+
+    The same float64 operations as laspy's ``points.x``, without its temporary
+    arrays and without stacking three columns into a new array.
+    """
+    for j, dim in enumerate("XYZ"):
+        col = out[:, j]
+        np.multiply(np.asarray(points[dim]), scales[j], out=col)
+        col += offsets[j]
+    if factors is not None:
+        out *= factors  # file units -> metres, per axis
+    return out
+
+
+# Layers of a LAZ 1.4 file (point formats 6-10) that hold each dimension; a
+# read that keeps few attributes decompresses only their layers.
+_LAYERS = {
+    "return_number": "XY_RETURNS_CHANNEL", "number_of_returns": "XY_RETURNS_CHANNEL",
+    "scanner_channel": "XY_RETURNS_CHANNEL", "classification": "CLASSIFICATION",
+    "synthetic": "FLAGS", "key_point": "FLAGS", "withheld": "FLAGS", "overlap": "FLAGS",
+    "scan_direction_flag": "FLAGS", "edge_of_flight_line": "FLAGS", "classification_flags": "FLAGS",
+    "intensity": "INTENSITY", "scan_angle": "SCAN_ANGLE", "scan_angle_rank": "SCAN_ANGLE",
+    "user_data": "USER_DATA", "point_source_id": "POINT_SOURCE_ID", "gps_time": "GPS_TIME",
+    "red": "RGB", "green": "RGB", "blue": "RGB", "nir": "NIR",
+}
+
+
+def _decompression_selection(keep, flt: _Filter):
+    """The LAZ layers a read needs: all of them unless ``attributes`` names a few standard ones."""
+    from laspy import DecompressionSelection
+
+    if keep is None:
+        return DecompressionSelection.all()
+    wanted = set(keep) | ({"classification"} if flt.classes is not None else set())
+    if not wanted <= set(_LAYERS):  # extra bytes, wave packets, unknown names: decompress everything
+        return DecompressionSelection.all()
+    sel = DecompressionSelection.XY_RETURNS_CHANNEL | DecompressionSelection.Z
+    for name in wanted:
+        sel |= DecompressionSelection[_LAYERS[name]]
+    return sel
+
+
+def _holds_header(flt: _Filter, header, factors) -> bool:
+    """The box filter holds the file's whole header extent (so most points will be kept)."""
+    if flt.box is None or flt.rings is not None or header.point_count == 0:
+        return False
+    f = np.ones(3) if factors is None else factors
+    lo, hi = np.asarray(header.mins) * f, np.asarray(header.maxs) * f
+    box = np.asarray(flt.box)
+    d = box.shape[1]
+    return bool((box[0] <= lo[:d]).all() and (box[1] >= hi[:d]).all())
 
 
 def _to_metres(found: Units, units: str, path: Path):
@@ -599,9 +669,9 @@ def _read_ascii(path: Path, flt: _Filter, keep, chunk_size: int, progress: bool)
         extra = [(i, c) for i, c in enumerate(columns) if c not in ("x", "y", "z") and _wanted(c, keep)]
         _needs_class(flt, columns, path)
         lines = f if header else itertools.chain([first], f)
-        gather, bar, row = _Gather(None), _Progress(size, f"reading {path.name}", progress, unit="B"), skipped
-        bar.update(len(first.encode()) + 1 if header else 0)
-        try:
+        gather, row = _Gather(None), skipped
+        with progress_steps(progress, size, f"reading {path.name}", "B") as step:
+            step(len(first.encode()) + 1 if header else 0)
             while True:
                 block = list(itertools.islice(lines, chunk_size))
                 if not block:
@@ -613,9 +683,7 @@ def _read_ascii(path: Path, flt: _Filter, keep, chunk_size: int, progress: bool)
                 mask = flt.mask(xyz, cls)
                 sel = slice(None) if mask is None else mask
                 gather.add(xyz[sel], {c: data[sel, i] for i, c in extra})
-                bar.update(sum(len(s) for s in block))
-        finally:
-            bar.close()
+                step(sum(len(s) for s in block))
     xyz, attrs = gather.result()
     return xyz, _text_columns(attrs, path), None
 
@@ -821,6 +889,160 @@ def _split_npz(z, path: Path):
     return xyz, attrs, crs
 
 
+# ============================================================================ many files
+def cloud_files(paths) -> list[Path]:
+    """The point-cloud files named by ``paths``: a file, a folder (its LAS/LAZ files), a glob, or a list of these.
+
+    Sorted by name within each entry, without duplicates. Raises
+    :class:`CloudFileError` when an entry names no file.
+    """
+    entries = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
+    if not entries:
+        raise CloudFileError("no point-cloud files given")
+    out, seen = [], set()
+    for entry in entries:
+        if not isinstance(entry, (str, os.PathLike)):
+            raise CloudFileError(f"a file, folder or glob pattern (str or Path) is needed, got {type(entry).__name__}")
+        found = _expand(Path(entry))
+        if not found:
+            raise CloudFileError(f"no point-cloud file matches {entry}")
+        for f in found:
+            if f.resolve() not in seen:
+                seen.add(f.resolve())
+                out.append(f)
+    return out
+
+
+def _expand(entry: Path) -> list[Path]:
+    if entry.is_dir():
+        return sorted(p for p in entry.iterdir() if p.is_file() and p.suffix.lower() in LAS_SUFFIXES)
+    if any(ch in str(entry) for ch in "*?["):
+        anchor = Path(entry.anchor) if entry.is_absolute() else Path(".")
+        pattern = str(entry.relative_to(anchor)) if entry.is_absolute() else str(entry)
+        return sorted(p for p in anchor.glob(pattern) if p.is_file())
+    return [_existing(entry)]
+
+
+def files_in_box(paths, bbox) -> list[Path]:
+    """The LAS/LAZ files whose header extent meets ``bbox`` (no point is read).
+
+    Parameters
+    ----------
+    paths : file, folder, glob or list of these
+        See :func:`cloud_files`.
+    bbox : sequence
+        ``(xmin, ymin, xmax, ymax)`` or ``(xmin, ymin, zmin, xmax, ymax, zmax)`` in
+        the files' stored units (a box in metres against files in feet would miss).
+
+    Returns
+    -------
+    list of Path
+        In the order of :func:`cloud_files`; other formats (no header bounds) are always kept.
+    """
+    box = regions.as_bbox(bbox)
+    return [p for p in cloud_files(paths) if _header_meets(p, box, None)]
+
+
+def _header_meets(path: Path, box: np.ndarray | None, factors_for) -> bool:
+    """True unless a LAS/LAZ header proves that the file lies outside the box."""
+    if box is None or path.suffix.lower() not in LAS_SUFFIXES:
+        return True
+    info = cloud_info(path)
+    if info.point_count == 0:
+        return False
+    f = np.ones(3)
+    if factors_for is not None:
+        f = factors_for(info)
+    lo, hi = info.mins * f, info.maxs * f
+    d = box.shape[1]
+    return bool((box[0] <= hi[:d]).all() and (box[1] >= lo[:d]).all())
+
+
+def read_clouds(paths, *, bbox=None, polygon=None, classes=None, attributes=None,
+                chunk_size: int = DEFAULT_CHUNK, progress=False, units: str = "m",
+                parallel: bool = True, name: str | None = None) -> PointCloud:
+    """Read the part of many files that a box or polygon needs, as one cloud (e.g. a tile and its buffer).
+
+    The LAS/LAZ headers are read first: files whose extent misses the area are
+    skipped without reading a point; the others are read chunk by chunk with the
+    filter applied to every chunk (see :func:`read_cloud`), so only the kept
+    points are held.
+
+    Parameters
+    ----------
+    paths : file, folder, glob or list of these
+        See :func:`cloud_files`.
+    bbox, polygon, classes, attributes, chunk_size, progress, units, parallel
+        As in :func:`read_cloud`; ``bbox`` and ``polygon`` in the cloud's units (metres by default).
+    name : str, optional
+        Name of the merged cloud (default: the single file's stem, else ``"<first>+<k> files"``).
+
+    Returns
+    -------
+    PointCloud
+        The kept points of all files; attributes are those every read file has
+        (or exactly ``attributes``).
+
+    Raises
+    ------
+    CloudFileError
+        No file, a bad file, or files whose CRS or units differ.
+    EmptyRegionError
+        No file meets the area, or the filters keep no point.
+    """
+    files = cloud_files(paths)
+    flt = _Filter.build(bbox, polygon, classes)
+    area = flt.xy_bounds()
+    box = None if area is None else area
+    if flt.box is not None and flt.box.shape[1] == 3 and flt.rings is None:
+        box = flt.box  # the z range can rule out a file too
+    factors = (lambda info: _header_factors(info, units)) if units == "m" else None
+    hits = [p for p in files if _header_meets(p, box, factors)]
+    if not hits:
+        raise EmptyRegionError(f"{flt.describe()} meets none of the {len(files)} file(s) (by their header extents)")
+    clouds = []
+    for path in hits:
+        try:
+            clouds.append(read_cloud(path, bbox=bbox, polygon=polygon, classes=classes, attributes=attributes,
+                                     chunk_size=chunk_size, progress=progress, units=units, parallel=parallel))
+        except EmptyRegionError:
+            if not flt.active:
+                raise
+    if not clouds:
+        raise EmptyRegionError(f"{flt.describe()} keeps no point of the {len(hits)} file(s) whose extent it meets")
+    label = name or (clouds[0].name if len(clouds) == 1 else f"{clouds[0].name}+{len(clouds) - 1} files")
+    return _merge(clouds, label)
+
+
+def _header_factors(info: "CloudInfo", units: str) -> np.ndarray:
+    """Metres per stored unit of a header (ones when nothing is converted)."""
+    try:
+        _, factors = _to_metres(info.units, units, info.path)
+    except UnitsError:
+        return np.ones(3)  # read_cloud raises the proper error when the file is read
+    return np.ones(3) if factors is None else factors
+
+
+def _merge(clouds: list, name: str) -> PointCloud:
+    """One cloud from several with the same CRS and units; the attributes all of them have."""
+    first = clouds[0]
+    for c in clouds[1:]:
+        if c.crs != first.crs:
+            raise CloudFileError(f"files {first.name!r} and {c.name!r} have different CRS ({first.crs!r} vs {c.crs!r})")
+        if c.units.coordinates != first.units.coordinates:
+            raise CloudFileError(f"files {first.name!r} and {c.name!r} hold coordinates in different units "
+                                 f"({first.units.label()} vs {c.units.label()})")
+    if len(clouds) == 1:
+        return PointCloud._adopt(first.xyz, dict(first.attributes), crs=first.crs, name=name, units=first.units)
+    common = [k for k in first.attributes if all(k in c.attributes for c in clouds[1:])]
+    xyz = np.concatenate([c.xyz for c in clouds])
+    attrs = {}
+    for k in common:
+        dtype = np.result_type(*(c.attributes[k].dtype for c in clouds))
+        attrs[k] = np.concatenate([c.attributes[k].astype(dtype, copy=False) for c in clouds])
+    return PointCloud._adopt(xyz, attrs, crs=first.crs, name=name, units=first.units)
+
+
 # ============================================================================ header summary
 @dataclass(frozen=True, eq=False, repr=False)
 class CloudInfo(ReportMixin):
@@ -910,7 +1132,8 @@ DEFAULT_SCALE = 0.001  # metres (or the file's linear unit)
 ANGULAR_SCALE = 1e-7  # degrees: about 1 cm on the ground
 
 
-def write_cloud(cloud: PointCloud, path, *, scale=DEFAULT_SCALE, point_format: int | None = None, chunk_size: int = DEFAULT_CHUNK) -> Path:
+def write_cloud(cloud: PointCloud, path, *, scale=DEFAULT_SCALE, point_format: int | None = None,
+                chunk_size: int = DEFAULT_CHUNK, progress=False, parallel: bool = True) -> Path:
     """Write a cloud to LAS/LAZ, ASCII (CSV/TXT/XYZ) or ``.npz``, atomically.
 
     Parameters
@@ -931,7 +1154,12 @@ def write_cloud(cloud: PointCloud, path, *, scale=DEFAULT_SCALE, point_format: i
         the attributes, or 6-8 (LAS 1.4) when values need it (classes > 31,
         more than 7 returns, nir, scan_angle, overlap, scanner_channel).
     chunk_size : int
-        Points written per chunk.
+        Points written per chunk (LAS/LAZ and text); only one chunk of LAS
+        integers is held at a time.
+    progress : bool, "bar", "lines" or callable
+        Report the chunks written (see :mod:`labkit.progress`); default silent.
+    parallel : bool
+        Compress LAZ on all cores (lazrs); ``False`` uses one core.
 
     Returns
     -------
@@ -968,11 +1196,11 @@ def write_cloud(cloud: PointCloud, path, *, scale=DEFAULT_SCALE, point_format: i
     scales = _choose_scale(cloud.xyz, scale)
     with _atomic(path) as tmp:
         if suffix in LAS_SUFFIXES:
-            _write_las(cloud, tmp, suffix == ".laz", scales, point_format, chunk_size)
+            _write_las(cloud, tmp, suffix == ".laz", scales, point_format, chunk_size, progress, parallel, path.name)
         elif suffix == ".npz":
             _write_npz(cloud, tmp)
         else:
-            _write_ascii(cloud, tmp, "," if suffix == ".csv" else " ", scales, chunk_size)
+            _write_ascii(cloud, tmp, "," if suffix == ".csv" else " ", scales, chunk_size, progress, path.name)
     return path
 
 
@@ -1046,7 +1274,8 @@ def _auto_format(attrs: dict) -> int:
     return {(False, False): 0, (True, False): 1, (False, True): 2, (True, True): 3}[("gps_time" in attrs, "red" in attrs)]
 
 
-def _write_las(cloud, tmp: Path, compress: bool, scales, point_format, chunk_size: int) -> None:
+def _write_las(cloud, tmp: Path, compress: bool, scales, point_format, chunk_size: int, progress=False,
+               parallel: bool = True, label: str = "") -> None:
     import laspy
 
     attrs = _las_attributes(cloud.attributes, point_format)
@@ -1065,15 +1294,19 @@ def _write_las(cloud, tmp: Path, compress: bool, scales, point_format, chunk_siz
         else:
             header.add_extra_dim(laspy.ExtraBytesParams(name=name[:32], type=_extra_dtype(name, values)))
     _add_crs(header, cloud.crs, cloud.units)
-    ints = _quantize(cloud.xyz, header.offsets, header.scales)
-    with laspy.open(str(tmp), mode="w", header=header, do_compress=compress) as writer:
+    _check_int32_range(cloud.xyz, header.offsets, header.scales)
+    backend = laz_backend(parallel) if compress else None
+    with laspy.open(str(tmp), mode="w", header=header, do_compress=compress, laz_backend=backend) as writer, \
+            progress_steps(progress, len(cloud), f"writing {label or tmp.name}", "pts") as step:
         for start in range(0, max(len(cloud), 1), chunk_size):
             sl = slice(start, start + chunk_size)
-            rec = laspy.ScaleAwarePointRecord.zeros(len(ints[sl]), header=header)
-            rec.X, rec.Y, rec.Z = ints[sl, 0], ints[sl, 1], ints[sl, 2]
+            ints = _quantize(cloud.xyz[sl], header.offsets, header.scales)  # one chunk at a time
+            rec = laspy.ScaleAwarePointRecord.zeros(len(ints), header=header)
+            rec.X, rec.Y, rec.Z = ints[:, 0], ints[:, 1], ints[:, 2]
             for name, values in attrs.items():
                 _assign(rec, name[:32], values[sl], name in standard)
             writer.write_points(rec)
+            step(len(ints))
 
 
 def _las_attributes(attrs: dict, point_format) -> dict:
@@ -1112,6 +1345,10 @@ def _check_fits(name: str, values: np.ndarray, dim, fmt_id: int) -> None:
         lo, hi = int(info.min), int(info.max)
     else:
         return
+    if values.dtype.kind in "biu":
+        info = np.iinfo(values.dtype) if values.dtype.kind != "b" else None
+        if info is None or (info.min >= lo and info.max <= hi):
+            return  # the dtype cannot hold a value outside the field: no pass over the data
     if values.dtype.kind == "f" and not np.isfinite(values).all():
         raise LabkitError(f"attribute {name!r} holds NaN or infinite values; the LAS field takes integers {lo}..{hi}")
     vmin, vmax = values.min(), values.max()
@@ -1144,14 +1381,24 @@ def _assign(rec, name: str, values: np.ndarray, standard: bool) -> None:
         raise LabkitError(f"attribute {name!r} does not fit the chosen LAS point format: {exc}") from None
 
 
-def _quantize(xyz: np.ndarray, offsets, scales) -> np.ndarray:
-    """LAS integers ``round((x - offset) / scale)``; raise if they leave the int32 range."""
-    q = np.rint((xyz - np.asarray(offsets)) / np.asarray(scales))
-    if q.size and np.abs(q).max() > _INT32_MAX:
+def _check_int32_range(xyz: np.ndarray, offsets, scales) -> None:
+    """Raise if the LAS integers ``round((x - offset) / scale)`` would leave the int32 range."""
+    if len(xyz) == 0:
+        return
+    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    q = np.rint((np.vstack([lo, hi]) - np.asarray(offsets)) / np.asarray(scales))
+    if np.abs(q).max() > _INT32_MAX:
         raise LabkitError(
-            f"the coordinates span {np.ptp(xyz, axis=0).max():.1f} m, too much for LAS integers at "
+            f"the coordinates span {np.max(hi - lo):.1f} m, too much for LAS integers at "
             f"scale {np.asarray(scales).tolist()}; choose a coarser scale"
         )
+
+
+def _quantize(xyz: np.ndarray, offsets, scales) -> np.ndarray:
+    """LAS integers ``round((x - offset) / scale)`` of a chunk (range checked by :func:`_check_int32_range`)."""
+    q = xyz - np.asarray(offsets)
+    q /= np.asarray(scales)
+    np.rint(q, out=q)
     return q.astype(np.int32)
 
 
@@ -1212,7 +1459,8 @@ def _write_npz(cloud: PointCloud, tmp: Path) -> None:
         np.savez_compressed(f, **arrays)
 
 
-def _write_ascii(cloud: PointCloud, tmp: Path, delimiter: str, scales: np.ndarray, chunk_size: int) -> None:
+def _write_ascii(cloud: PointCloud, tmp: Path, delimiter: str, scales: np.ndarray, chunk_size: int,
+                 progress=False, label: str = "") -> None:
     names = list(cloud.attributes)
     decimals = [max(0, int(np.ceil(-np.log10(s) - 1e-9))) for s in scales]
     fmts = [f"%.{d}f" for d in decimals]
@@ -1221,7 +1469,8 @@ def _write_ascii(cloud: PointCloud, tmp: Path, delimiter: str, scales: np.ndarra
         if kind not in "biuf" or cloud[name].ndim != 1:
             raise LabkitError(f"attribute {name!r} ({cloud[name].dtype}) cannot be written as a text column")
         fmts.append("%d" if kind in "biu" else "%.15g")
-    with open(tmp, "w", encoding="utf-8", newline="\n") as f:
+    with open(tmp, "w", encoding="utf-8", newline="\n") as f, \
+            progress_steps(progress, len(cloud), f"writing {label or tmp.name}", "pts") as step:
         f.write(delimiter.join(["x", "y", "z"] + names) + "\n")
         for start in range(0, len(cloud), chunk_size):
             sl = slice(start, start + chunk_size)
@@ -1230,3 +1479,4 @@ def _write_ascii(cloud: PointCloud, tmp: Path, delimiter: str, scales: np.ndarra
             for j, col in enumerate(cols):
                 table[:, j] = col
             np.savetxt(f, table, fmt=fmts, delimiter=delimiter)
+            step(len(table))

@@ -1,0 +1,251 @@
+"""Progress of long work: one small mechanism for reading, normals, ICP, distances, tiles, writing.
+
+The library is silent unless asked. Every long-running public function takes a
+``progress`` argument and hands it to :func:`progress_steps`:
+
+``False`` or ``None`` (the library default)
+    Nothing is shown; the reporter is a no-op (one attribute test per step).
+``True``
+    A tqdm bar on stderr when stderr is a terminal, a notebook widget in Jupyter
+    (``tqdm.auto``); plain lines on stderr otherwise (logs, pipes, CI, or when
+    tqdm is not installed), at most one every ``interval`` seconds plus the last.
+``"bar"`` / ``"lines"``
+    Force the tqdm bar or the plain lines.
+a callable
+    Called with a :class:`ProgressEvent` after every step (for GUIs, logging,
+    tests); nothing is printed.
+
+How a step reports (the stable API the other modules call)::
+
+    from labkit.progress import progress_steps
+
+    with progress_steps(progress, total=len(cloud), desc="reading a.laz", unit="pts") as step:
+        for chunk in chunks:
+            ...
+            step(len(chunk))                       # advance by a number of points
+
+    with progress_steps(progress, total=max_iter, desc="ICP", unit="it") as step:
+        for k in range(max_iter):
+            ...
+            step(1, info=f"shift {t[0]:+.4f} {t[1]:+.4f} {t[2]:+.4f} m, {n_pairs:,} pairs")
+
+``total=None`` when the number of steps is not known in advance (a bar then
+counts without a percentage). The ICP loop may stop early: leaving the ``with``
+block closes the bar wherever it stands. The command line maps ``--quiet`` to
+``progress=False`` (see :func:`from_cli`); a caller that holds a ``quiet`` flag
+writes ``progress=not quiet``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+import time
+from dataclasses import dataclass
+
+from .errors import LabkitError
+
+__all__ = ["progress_steps", "ProgressEvent", "Reporter", "from_cli"]
+
+MODES = ("bar", "lines")
+INTERVAL = 1.0  # seconds between two plain lines
+
+
+@dataclass(frozen=True)
+class ProgressEvent:
+    """One step of a long task, as handed to a progress callback.
+
+    ``desc`` names the task, ``done`` counts what is finished (points,
+    iterations, tiles; ``unit`` says which), ``total`` is the expected count or
+    None, ``n`` the size of this step, ``info`` an optional text (e.g. the
+    current shift and number of pairs), ``finished`` is True on the last event
+    (sent when the task ends, with ``n == 0``).
+    """
+
+    desc: str
+    done: int
+    total: int | None
+    n: int
+    unit: str = "it"
+    info: str = ""
+    finished: bool = False
+
+    @property
+    def fraction(self) -> float | None:
+        """``done / total`` in [0, 1], or None without a total."""
+        if not self.total:
+            return None
+        return min(self.done / self.total, 1.0)
+
+
+class Reporter:
+    """Counts the steps of one task and passes them to a sink (bar, lines, callback or nothing).
+
+    Made by :func:`progress_steps`; call it as ``step(n, info="...")``.
+    """
+
+    def __init__(self, sink, desc: str, total: int | None, unit: str):
+        self.desc, self.total, self.unit, self.done, self.info = desc, total, unit, 0, ""
+        self._sink = sink
+        self.enabled = sink is not None
+
+    def __call__(self, n: int = 1, info: str = "") -> None:
+        if self._sink is None:
+            return
+        n = int(n)
+        self.done += n
+        self.info = str(info) if info else self.info
+        self._sink.step(self, n, str(info) if info else "")
+
+    def close(self) -> None:
+        if self._sink is not None:
+            self._sink.close(self)
+            self._sink = None
+
+
+@contextlib.contextmanager
+def progress_steps(progress, total: int | None = None, desc: str = "", unit: str = "it", *,
+                   interval: float = INTERVAL):
+    """Report the steps of a long task; a context manager that yields a :class:`Reporter`.
+
+    Parameters
+    ----------
+    progress : bool, None, "bar", "lines" or callable
+        What to do with the steps (see the module notes); ``False``/``None`` is silent.
+    total : int, optional
+        Number of units expected (points, iterations, tiles); None when unknown.
+    desc : str
+        Name of the task (``"reading a.laz"``, ``"normals"``, ``"ICP"``).
+    unit : str
+        Unit of the counts (``"pts"``, ``"it"``, ``"tiles"``).
+    interval : float
+        Least number of seconds between two plain lines.
+
+    Yields
+    ------
+    Reporter
+        ``step(n=1, info="")`` advances by ``n`` units with an optional text.
+
+    Raises
+    ------
+    LabkitError
+        ``progress`` is none of the accepted values.
+    """
+    total = None if total is None else max(int(total), 0)
+    reporter = Reporter(_sink(progress, interval), desc, total, unit)
+    try:
+        yield reporter
+    finally:
+        reporter.close()
+
+
+def from_cli(quiet: bool) -> bool:
+    """``progress`` for the command line: shown unless ``--quiet``."""
+    return not quiet
+
+
+# ---------------------------------------------------------------------------- sinks
+def _sink(progress, interval: float):
+    if progress is None or progress is False:
+        return None
+    if progress is True:
+        return _TqdmSink() if _tqdm_wanted() else _LineSink(interval)
+    if isinstance(progress, str) and progress in MODES:
+        if progress == "bar":
+            if _tqdm() is None:
+                raise LabkitError("progress='bar' needs tqdm (pip install tqdm); use progress=True or 'lines'")
+            return _TqdmSink()
+        return _LineSink(interval)
+    if callable(progress) and not isinstance(progress, (bool, str)):
+        return _CallbackSink(progress)
+    raise LabkitError(f"progress must be True, False, 'bar', 'lines' or a callable, got {progress!r}")
+
+
+def _tqdm():
+    try:
+        from tqdm.auto import tqdm
+    except ImportError:
+        return None
+    return tqdm
+
+
+def _in_notebook() -> bool:
+    shell = sys.modules.get("IPython")
+    if shell is None:
+        return False
+    try:
+        ip = shell.get_ipython()
+    except AttributeError:
+        return False
+    return ip is not None and type(ip).__name__ == "ZMQInteractiveShell"
+
+
+def _tqdm_wanted() -> bool:
+    """A bar where someone watches it (a terminal or a notebook) and tqdm is there."""
+    if _tqdm() is None:
+        return False
+    isatty = getattr(sys.stderr, "isatty", None)
+    return _in_notebook() or bool(isatty and isatty())
+
+
+class _TqdmSink:
+    def __init__(self):
+        self._bars = {}
+
+    def step(self, rep: Reporter, n: int, info: str) -> None:
+        bar = self._bars.get(id(rep))
+        if bar is None:
+            bar = self._bars[id(rep)] = _tqdm()(total=rep.total, desc=rep.desc, unit=rep.unit,
+                                                unit_scale=rep.unit != "it", file=sys.stderr, leave=True)
+        if info:
+            bar.set_postfix_str(info, refresh=False)
+        bar.update(n)
+
+    def close(self, rep: Reporter) -> None:
+        bar = self._bars.pop(id(rep), None)
+        if bar is not None:
+            bar.close()
+
+
+class _LineSink:
+    """Plain lines on stderr: ``desc [####......]  40.0% (400 of 1,000 pts) info``."""
+
+    def __init__(self, interval: float):
+        self.interval, self._last, self._shown = float(interval), -float("inf"), -1
+
+    def step(self, rep: Reporter, n: int, info: str) -> None:
+        now = time.monotonic()
+        if now - self._last >= self.interval or (rep.total and rep.done >= rep.total):
+            self._write(rep)
+            self._last = now
+
+    def close(self, rep: Reporter) -> None:
+        if self._shown != rep.done:
+            self._write(rep)
+
+    def _write(self, rep: Reporter) -> None:
+        self._shown = rep.done
+        sys.stderr.write(format_line(rep.desc, rep.done, rep.total, rep.unit, rep.info) + "\n")
+        sys.stderr.flush()
+
+
+class _CallbackSink:
+    def __init__(self, callback):
+        self.callback = callback
+
+    def step(self, rep: Reporter, n: int, info: str) -> None:
+        self.callback(ProgressEvent(rep.desc, rep.done, rep.total, n, rep.unit, info))
+
+    def close(self, rep: Reporter) -> None:
+        self.callback(ProgressEvent(rep.desc, rep.done, rep.total, 0, rep.unit, rep.info, finished=True))
+
+
+def format_line(desc: str, done: int, total: int | None, unit: str, info: str = "", width: int = 30) -> str:
+    """One plain progress line (used when no bar is drawn)."""
+    if total:
+        frac = min(done / total, 1.0)
+        fill = int(width * frac)
+        text = f"{desc} [{'#' * fill}{'.' * (width - fill)}] {100 * frac:5.1f}% ({done:,} of {total:,} {unit})"
+    else:
+        text = f"{desc}: {done:,} {unit}"
+    return f"{text} {info}" if info else text
