@@ -80,7 +80,7 @@ def cylinder_stats(local: np.ndarray, cores: np.ndarray, normals: np.ndarray, ra
         for arr, part in zip(out, grid_kernels.cylinder_stats(grid, cores[rows], normals[rows], radius, depth)):
             arr[rows] = part
         if progress is not None:
-            progress.update(len(cores[rows]))
+            progress(len(cores[rows]))
     return tuple(out)
 
 
@@ -153,7 +153,7 @@ def _tree_cylinder_stats(tree: cKDTree, local: np.ndarray, cores: np.ndarray, no
         count[rows], mean[rows] = k, np.where(k > 0, mu, np.nan)
         std[rows] = np.where(k > 1, np.sqrt(np.clip(var, 0, None)), np.nan)
         if progress is not None:
-            progress.update(len(rows))
+            progress(len(rows))
     return count, mean, std
 
 

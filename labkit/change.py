@@ -14,13 +14,21 @@ Notation (notebook 09):
 - (eq. 3) distance      d_i = mean_k((p2_k - c_i) . n_i) - mean_k((p1_k - c_i) . n_i)
 - (eq. 4) spread        s_j = standard deviation (ddof = 1) of the axial coordinates in epoch j
 - (eq. 5) level of detection
-                        LoD_i = z_(1 - alpha/2) sqrt(s1^2 / n1 + s2^2 / n2 + n_i^T Sigma_t n_i)
+                        LoD_i = q_i sqrt(s1^2 / n1 + s2^2 / n2 + n_i^T Sigma_t n_i)
+                        q_i = t_(1 - alpha/2, k_i), Student t with the Welch-Satterthwaite degrees of freedom
+                        k_i = (s1^2/n1 + s2^2/n2)^2 / ((s1^2/n1)^2/(n1-1) + (s2^2/n2)^2/(n2-1))
+                        (``quantile='normal'``: q = z_(1 - alpha/2) as PDAL, CloudCompare, py4dgeo)
 - (eq. 6) with a rigid registration (angles w, shift t about the origin o):
                         n_i^T Sigma_t n_i -> g_i^T Sigma_(w,t) g_i,  g_i = [(c_i - o) x n_i ; n_i]
 - (eq. 7) significant   |d_i| > LoD_i
 
 Eq. 5 without the registration term is the LoD of Lague et al. (2013, eq. 1); it
-treats the two mean positions as independent with standard errors s/sqrt(n). A
+treats the two mean positions as independent with standard errors s/sqrt(n). The
+spreads are estimated from a few dozen points per cylinder, so the ratio d / se follows
+a Student t rather than a normal distribution: with z = 1.96 and about 30 points per
+cylinder 5.7 % of unchanged cores were flagged at 95 %; the t quantile with Welch's degrees
+of freedom keeps the false-alarm rate at 1 - confidence (it tends to z for large counts).
+The registration term, a stated covariance, does not reduce the degrees of freedom. A
 registration error moves the whole compared epoch: its covariance Sigma_t adds
 the variance of that displacement along the normal, so a poorly determined X
 widens the LoD on steep faces (n along X) but not on flat ground (n along Z).
@@ -45,15 +53,16 @@ import numbers
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import norm
+from scipy.stats import norm, t as student_t
 
 from . import _change_search as search
 from ._change_registration import (RegistrationCovariance, load_registration, registration_variance,
                                    save_registration)
-from ._checks import as_points, positive, probability
+from ._checks import as_points, choice, positive, probability
 from ._frame import local_origin, reduce
 from ._report import ReportMixin, fmt
 from .errors import LabkitError
+from .progress import progress_steps
 
 __all__ = ["M3C2Result", "RegistrationCovariance", "load_registration", "m3c2", "registration_variance",
            "save_registration"]
@@ -85,8 +94,11 @@ class M3C2Result(ReportMixin):
         The registration term n^T Sigma_t n of eq. 5 (zero without a registration covariance).
     normal_radius : ndarray (m,)
         The normal radius chosen at each core point (NaN for given normals).
-    cylinder_radius, max_depth, confidence, z, min_points :
-        The parameters used (z is the two-sided normal quantile of ``confidence``).
+    z : ndarray (m,)
+        The two-sided quantile of ``confidence`` used at each core point (eq. 5): Student t with
+        Welch's degrees of freedom, or the normal quantile for ``quantile='normal'``; NaN without a distance.
+    cylinder_radius, max_depth, confidence, min_points, quantile :
+        The parameters used.
     """
 
     corepoints: np.ndarray
@@ -103,8 +115,9 @@ class M3C2Result(ReportMixin):
     cylinder_radius: float
     max_depth: float
     confidence: float
-    z: float
+    z: np.ndarray
     min_points: int
+    quantile: str = "student"
 
     @property
     def valid(self) -> np.ndarray:
@@ -113,7 +126,7 @@ class M3C2Result(ReportMixin):
 
     @property
     def lod_without_registration(self) -> np.ndarray:
-        """z sqrt(s1^2/n1 + s2^2/n2): eq. 5 without the registration term."""
+        """q sqrt(s1^2/n1 + s2^2/n2): eq. 5 without the registration term."""
         return self.z * np.sqrt(self.spread1**2 / self.count1 + self.spread2**2 / self.count2)
 
     def to_cloud(self):
@@ -135,7 +148,8 @@ class M3C2Result(ReportMixin):
             ("core points", f"{n} ({nv} with a distance, {n - nv} without)"),
             ("cylinder", f"radius {fmt(self.cylinder_radius, 3)}, half length {fmt(self.max_depth, 3)}"),
             ("normal radius", _radius_text(self.normal_radius)),
-            ("confidence", f"{self.confidence:.3f} (z = {self.z:.3f}), at least {self.min_points} points per cylinder"),
+            ("confidence", f"{self.confidence:.3f} ({_quantile_text(self)}), at least {self.min_points} points "
+                           "per cylinder"),
         ]
         if nv:
             lod = self.lod[ok]
@@ -174,6 +188,7 @@ def m3c2(
     orientation=(0.0, 0.0, 1.0),
     min_points: int = 2,
     held_std=None,
+    quantile: str = "student",
 ) -> M3C2Result:
     """M3C2 distances from ``reference`` to ``compared`` with a level of detection (eq. 1-7).
 
@@ -201,8 +216,8 @@ def m3c2(
         Given cylinder axes instead of PCA normals (normalised and oriented here).
     confidence : float
         Confidence of the level of detection (two-sided), default 0.95 (z = 1.96).
-    progress : bool
-        Show a progress bar on stderr.
+    progress : bool, str or callable
+        Progress of the cylinder search (see :mod:`labkit.progress`); silent by default.
     orientation : array_like (3,)
         Normals are flipped to a positive component along it (default up, for ALS).
     min_points : int
@@ -212,6 +227,10 @@ def m3c2(
         Prior standard deviations for registration parameters the data did not determine,
         e.g. ``{"rz": np.radians(0.02)}`` (see :func:`registration_variance`). Without it the
         LoD is infinite wherever such a parameter moves the surface along the normal.
+    quantile : {"student", "normal"}
+        The quantile of eq. 5: Student t with Welch's degrees of freedom (default; holds the
+        false-alarm rate at 1 - confidence for small cylinders) or the normal quantile z
+        (PDAL, CloudCompare and py4dgeo's convention).
 
     Returns
     -------
@@ -236,6 +255,7 @@ def m3c2(
     r = positive(cylinder_radius, "cylinder_radius")
     h = positive(max_depth, "max_depth")
     conf = probability(confidence, "confidence")
+    choice(quantile, ("student", "normal"), "quantile")
     min_points = _check_min_points(min_points)
     up = _check_orientation(orientation)
     registration_variance(registration_covariance, np.zeros((1, 3)), up[None], held_std)  # fail before the work
@@ -250,29 +270,43 @@ def m3c2(
         nrm, chosen = _given_normals(normals, len(cores)), np.full(len(cores), np.nan)
     nrm = search.orient(nrm, up)
     # Cylinder statistics of both epochs (eq. 2-4)
-    bar = _progress(progress, 2 * len(cores))
-    try:
-        n1, mean1, s1 = search.cylinder_stats(ref_l, cores, nrm, r, h, bar)
-        n2, mean2, s2 = search.cylinder_stats(cmp_l, cores, nrm, r, h, bar)
-    finally:
-        if bar is not None:
-            bar.close()
+    with progress_steps(progress, 2 * len(cores), "m3c2", "cylinders") as step:
+        n1, mean1, s1 = search.cylinder_stats(ref_l, cores, nrm, r, h, step if step.enabled else None)
+        n2, mean2, s2 = search.cylinder_stats(cmp_l, cores, nrm, r, h, step if step.enabled else None)
     enough = (n1 >= min_points) & (n2 >= min_points)
     distance = np.where(enough, mean2 - mean1, np.nan)  # (eq. 3)
     # Level of detection (eq. 5, 6) and significance (eq. 7)
     reg = registration_variance(registration_covariance, cores_world, nrm, held_std)
-    z = float(norm.ppf(0.5 + conf / 2))
     with np.errstate(invalid="ignore", divide="ignore"):
+        z = np.where(enough, _quantile(conf, s1, n1, s2, n2, quantile), np.nan)
         lod = np.where(enough, z * np.sqrt(s1**2 / n1 + s2**2 / n2 + reg), np.nan)  # (eq. 5)
     significant = np.abs(np.nan_to_num(distance)) > np.where(enough, lod, np.inf)  # (eq. 7)
     nan = np.nan
     return M3C2Result(
         cores_world, nrm, distance, lod, significant,
-        np.where(enough, s1, nan), np.where(enough, s2, nan), n1, n2, reg, chosen, r, h, conf, z, min_points,
+        np.where(enough, s1, nan), np.where(enough, s2, nan), n1, n2, reg, chosen, r, h, conf, z, min_points, quantile,
     )
 
 
 # --------------------------------------------------------------------------- private steps
+def _quantile(conf, s1, n1, s2, n2, kind):
+    """Two-sided quantile of eq. 5 per core: Student t with Welch-Satterthwaite degrees of freedom, or z."""
+    z = float(norm.ppf(0.5 + conf / 2))
+    if kind == "normal":
+        return np.full(np.shape(n1), z)
+    a, b = s1**2 / n1, s2**2 / n2
+    dof = (a + b) ** 2 / (a**2 / (n1 - 1) + b**2 / (n2 - 1))
+    dof = np.where(np.isfinite(dof), dof, np.minimum(n1, n2) - 1.0)  # zero spreads: the smaller sample
+    return np.where(dof > 0, student_t.ppf(0.5 + conf / 2, np.maximum(dof, 1e-9)), np.nan)
+
+
+def _quantile_text(result) -> str:
+    q = result.z[np.isfinite(result.z)]
+    if result.quantile == "normal" or not len(q):
+        return f"z = {float(norm.ppf(0.5 + result.confidence / 2)):.3f}"
+    return f"Student t, quantile median {np.median(q):.3f}, range {q.min():.3f}..{q.max():.3f}"
+
+
 def _check_radii(normal_radius):
     values = np.atleast_1d(np.asarray(normal_radius, dtype=object))
     if values.ndim != 1 or len(values) == 0:
@@ -322,14 +356,6 @@ def _given_normals(normals, m):
     if not (np.isfinite(N).all() and (length > 0).all()):
         raise LabkitError("normals must be finite and non-zero")
     return N / length[:, None]
-
-
-def _progress(enabled, total):
-    if not enabled:
-        return None
-    from .io import _Progress
-
-    return _Progress(total, "m3c2", True, unit="cylinders")
 
 
 def _radius_text(chosen) -> str:

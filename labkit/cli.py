@@ -260,7 +260,7 @@ def _cmd_change(args) -> int:
         if held:
             print(f"undetermined {', '.join(held)}: prior std {args.held_rotation_std:g} deg in the LoD")
     result = m3c2(ref, moved, args.spacing, normal_radius=args.normal_radius, cylinder_radius=args.cylinder_radius,
-                  max_depth=args.max_depth, registration_covariance=registration, confidence=args.confidence,
+                  max_depth=args.max_depth, registration_covariance=registration, confidence=args.confidence, quantile=args.quantile,
                   progress=sys.stderr.isatty(), held_std=held)
     print()
     print(result.summary())
@@ -602,6 +602,9 @@ def build_parser() -> argparse.ArgumentParser:
     change.add_argument("--spacing", type=_positive_float,
                         help="core points: one reference point per cube of this edge (default: the cylinder radius)")
     change.add_argument("--confidence", type=_probability, default=0.95, help="LoD confidence (default: %(default)s)")
+    change.add_argument("--quantile", choices=("student", "normal"), default="student",
+                        help="LoD quantile: Student t with Welch's degrees of freedom, or the normal z of "
+                             "PDAL/CloudCompare (default: %(default)s)")
     change.add_argument("--held-rotation-std", type=_non_negative_float, default=0.02, metavar="DEG",
                         help="prior std (deg) of a rotation the registration left undetermined, as ICP's "
                              "held_rotation_std_deg (default: %(default)s)")

@@ -11,7 +11,7 @@ from labkit.change import m3c2, registration_variance
 from labkit.transforms import rotation_from_angles
 
 EPOCHS = Path(__file__).resolve().parents[1] / "data" / "real" / "epochs"
-PDAL_PARAMS = dict(normal_radius=1.390432, cylinder_radius=2.890432, max_depth=5.5)
+PDAL_PARAMS = dict(normal_radius=1.390432, cylinder_radius=2.890432, max_depth=5.5, quantile="normal")  # their z
 ROUND = 0.0005 + 1e-9  # the reference files carry 3 decimals
 
 
@@ -198,8 +198,8 @@ def _no_change_epochs(rng, sigma=0.01, slope=(0.0, 0.0)):
 def test_lod_false_alarm_rate_without_change_is_one_minus_confidence(radius):
     """Monte Carlo: no change, 95 % LoD -> about 5 % of independent cores flagged (binomial bounds).
 
-    Measured: 5.7 % with about 30 points per cylinder (the ratio d / se follows a Student t there,
-    not a normal distribution), 4.9 % with about 70.
+    With the normal quantile z = 1.96, 5.7 % were flagged with about 30 points per cylinder (d / se
+    follows a Student t there); the default Student t quantile holds 1 - confidence.
     """
     rng = np.random.default_rng(5)
     cores = _grid_cores(20.0, 2.0)  # 100 cores, cylinders 1.2 m apart: independent
@@ -214,7 +214,7 @@ def test_lod_false_alarm_rate_without_change_is_one_minus_confidence(radius):
     n = len(flags)  # 2000 core tests
     rate = flags.mean()
     bound = 3 * np.sqrt(0.05 * 0.95 / n)
-    assert abs(rate - 0.05) < bound, (rate, bound)
+    assert 0.05 - bound < rate <= 0.05 + bound / 3, (rate, bound)  # at most 1 - confidence (within 1 sigma)
     # the stated standard error of the distance against the Monte Carlo spread
     ratio = np.std(np.concatenate(dists)) / np.sqrt(np.mean(np.concatenate(se) ** 2))
     assert 0.8 < ratio < 1.25

@@ -114,12 +114,12 @@ def plot_registration_term(result, *, ax=None, s=8.0, title="registration term o
     ax = _axes(ax, figsize=(6, 4.5), layout="constrained")
     ok = result.valid & np.isfinite(result.registration_variance)
     slope = np.degrees(np.arccos(np.clip(np.abs(result.normals[ok, 2]), 0, 1)))
-    term = result.z * np.sqrt(result.registration_variance[ok])
+    term = result.z[ok] * np.sqrt(result.registration_variance[ok])
     ax.scatter(slope, term, s=s, c=COLORS["source"], alpha=0.6, label="registration part")
     ax.scatter(slope, result.lod_without_registration[ok], s=0.5 * s, c=NOT_SIGNIFICANT,
                label="LoD without registration")
     ax.set_xlabel("slope of the surface (deg)")
-    ax.set_ylabel("z sqrt(n^T Sigma_t n)")
+    ax.set_ylabel("q sqrt(n^T Sigma_t n)")
     ax.legend(fontsize="small")
     ax.set_title(title)
     return ax
