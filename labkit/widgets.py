@@ -368,7 +368,7 @@ def _field_figure(field, test):
 
 
 def matching_gates_explorer(source, target, max_distance=1.0, max_angle_deg=30.0, max_noise=None, truth=None,
-                            run_icp=True, **match_kwargs):
+                            run_icp=True, icp_kwargs=None, **match_kwargs):
     """Sliders for the matching gates of ICP (notebook 05, eq. 5.5).
 
     Each change calls :func:`labkit.match` with the distance gate ``max_distance``
@@ -390,6 +390,8 @@ def matching_gates_explorer(source, target, max_distance=1.0, max_angle_deg=30.0
         True translation, to report the error of the ICP shift.
     run_icp : bool
         Also run ICP with the gates (a second or so per change on 5000 pairs).
+    icp_kwargs : dict, optional
+        Further options of :func:`labkit.icp` only (e.g. ``reject_sigma=None``).
     **match_kwargs
         Passed to both :func:`labkit.match` and :func:`labkit.icp` (e.g. ``sample``, ``rng``).
 
@@ -424,7 +426,7 @@ def matching_gates_explorer(source, target, max_distance=1.0, max_angle_deg=30.0
     def update(*_):
         kw = {**match_kwargs, **gates()}
         corr = match(source, target, **kw)
-        result = icp(source, target, **kw) if run_icp else None
+        result = icp(source, target, **kw, **(icp_kwargs or {})) if run_icp else None
         box.last_match, box.last_icp = corr, result
         report.value = _gates_html(corr, result, truth, kw)
         figure.value = _png(_gates_figure(corr))

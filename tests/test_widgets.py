@@ -117,10 +117,10 @@ def test_matching_gates_explorer_equals_match_and_icp():
     pair = als_epochs("trees_felled", size=(30.0, 30.0), density=4.0, rng=3)
     kw = dict(sample=("normal_space", 1500), rng=0)
     box = widgets.matching_gates_explorer(pair.source, pair.target, max_distance=2.0, max_angle_deg=None,
-                                          truth=pair.translation, **kw)
+                                          truth=pair.translation, icp_kwargs=dict(reject_sigma=None), **kw)
     loose = labkit.match(pair.source, pair.target, max_distance=2.0, max_angle_deg=None, **kw)
     assert np.array_equal(box.last_match.rule, loose.rule)
-    direct = labkit.icp(pair.source, pair.target, max_distance=2.0, max_angle_deg=None, **kw)
+    direct = labkit.icp(pair.source, pair.target, max_distance=2.0, max_angle_deg=None, reject_sigma=None, **kw)
     assert np.allclose(box.last_icp.translation, direct.translation)
     img, n_loose = box.figure.value, box.last_match.n_accepted
     # a tight distance gate and a noise gate reject more pairs, each under its own rule
