@@ -1,4 +1,4 @@
-"""Registration uncertainty for :func:`labkit.m3c2` (module ``labkit.change``, eq. 5-6 of notebook 09).
+"""Registration uncertainty for :func:`labkit.m3c2` (module ``labkit.change``, eq. 5-6 of notebook 10).
 
 The registration term of the level of detection, n^T Sigma_t n, from a 3x3 shift
 covariance or from a registration's parameter covariance (angles and shift), and a

@@ -1,11 +1,11 @@
-"""Change between two epochs: M3C2 distances with a level of detection (notebook 09).
+"""Change between two epochs: M3C2 distances with a level of detection (notebook 10).
 
 M3C2 (Multiscale Model to Model Cloud Comparison, Lague, Brodu and Leroux 2013)
 measures change at *core points* along a local surface normal, from the mean
 positions of both epochs inside a short cylinder around that normal, and says
 whether the change is larger than the two clouds can tell apart.
 
-Notation (notebook 09):
+Notation (notebook 10):
 
 - (eq. 1) normal        n_i = eigenvector of the smallest eigenvalue of the reference points
                         within ``normal_radius`` of core point c_i (several radii: the one of
@@ -70,7 +70,7 @@ __all__ = ["M3C2Result", "RegistrationCovariance", "load_registration", "m3c2", 
 
 @dataclass(frozen=True, eq=False, repr=False)
 class M3C2Result(ReportMixin):
-    """M3C2 change at core points (eq. 1-7 of notebook 09).
+    """M3C2 change at core points (eq. 1-7 of notebook 10).
 
     Attributes
     ----------

@@ -365,3 +365,108 @@ def _field_figure(field, test):
     fig = Figure(figsize=(7, 5.5), layout="constrained")
     plot_shift_field(field, test=test, ax=fig.subplots())
     return fig
+
+
+def matching_gates_explorer(source, target, max_distance=1.0, max_angle_deg=30.0, max_noise=None, truth=None,
+                            run_icp=True, icp_kwargs=None, **match_kwargs):
+    """Sliders for the matching gates of ICP (notebook 05, eq. 5.5).
+
+    Each change calls :func:`labkit.match` with the distance gate ``max_distance``
+    (eq. 5.1), the normal-angle gate ``max_angle_deg`` and the local-noise gate
+    ``max_noise``, shows how many pairs each rule rejects (map in XY and XZ), and,
+    with ``run_icp``, registers with :func:`labkit.icp` under the same gates and
+    reports the shift (and its error against ``truth``, the true translation).
+
+    Parameters
+    ----------
+    source, target : array_like (n, 3) or PointCloud
+    max_distance : float
+        Initial distance gate in metres (slider 0.1 .. 3 m).
+    max_angle_deg : float or None
+        Initial normal-angle gate in degrees; 90 (or None) switches it off.
+    max_noise : float or None
+        Initial local-noise gate in metres; 0 (or None) switches it off.
+    truth : array_like (3,), optional
+        True translation, to report the error of the ICP shift.
+    run_icp : bool
+        Also run ICP with the gates (a second or so per change on 5000 pairs).
+    icp_kwargs : dict, optional
+        Further options of :func:`labkit.icp` only (e.g. ``reject_sigma=None``).
+    **match_kwargs
+        Passed to both :func:`labkit.match` and :func:`labkit.icp` (e.g. ``sample``, ``rng``).
+
+    Returns
+    -------
+    ipywidgets.VBox
+        With attributes ``distance_slider`` (m), ``angle_slider`` (deg),
+        ``noise_slider`` (cm), ``report`` (HTML), ``figure`` (Image),
+        ``last_match``, ``last_icp`` (None without ``run_icp``), ``gates()`` and ``update()``.
+    """
+    import ipywidgets as widgets
+
+    from .registration import icp, match
+
+    d_slider = widgets.FloatSlider(value=float(max_distance), min=0.1, max=3.0, step=0.1, description="d_max (m)",
+                                   continuous_update=False)
+    a_slider = widgets.FloatSlider(value=90.0 if max_angle_deg is None else float(max_angle_deg), min=5.0, max=90.0,
+                                   step=5.0, description="angle (deg)", continuous_update=False)
+    n_slider = widgets.FloatSlider(value=0.0 if max_noise is None else float(max_noise) * 100, min=0.0, max=20.0,
+                                   step=0.5, description="noise (cm)", continuous_update=False)
+    report = widgets.HTML()
+    figure = widgets.Image(format="png")
+    box = widgets.VBox([widgets.HBox([d_slider, a_slider, n_slider]), report, figure])
+    box.add_class("labkit-gates-explorer")
+
+    def gates():
+        """The current slider values as keyword arguments of match/icp (90 deg and 0 cm: gate off)."""
+        return dict(max_distance=d_slider.value,
+                    max_angle_deg=None if a_slider.value >= 90.0 else a_slider.value,
+                    max_noise=None if n_slider.value <= 0.0 else n_slider.value / 100)
+
+    def update(*_):
+        kw = {**match_kwargs, **gates()}
+        corr = match(source, target, **kw)
+        result = icp(source, target, **kw, **(icp_kwargs or {})) if run_icp else None
+        box.last_match, box.last_icp = corr, result
+        report.value = _gates_html(corr, result, truth, kw)
+        figure.value = _png(_gates_figure(corr))
+
+    for s in (d_slider, a_slider, n_slider):
+        s.observe(update, names="value")
+    box.distance_slider, box.angle_slider, box.noise_slider = d_slider, a_slider, n_slider
+    box.report, box.figure, box.gates, box.update = report, figure, gates, update
+    update()
+    return box
+
+
+def _gates_html(corr, result, truth, kw):
+    from .registration.matching import RULES
+
+    counts = np.bincount(corr.rule, minlength=len(RULES))
+    rows = "".join(f"<td>{RULES[c]}: {counts[c]}</td>" for c in range(len(RULES)) if counts[c])
+    off = [k for k in ("max_angle_deg", "max_noise") if kw[k] is None]
+    text = (f"<p><b>{corr.n_accepted} of {len(corr)} pairs accepted</b> (d_max {kw['max_distance']:.1f} m"
+            + (f"; off: {', '.join(off)}" if off else "") + ")</p><table><tr>" + rows + "</tr></table>")
+    if result is not None:
+        t = np.asarray(result.translation) * 1e3
+        text += "<p>ICP shift (mm): " + ", ".join(f"{v:+.1f}" for v in t)
+        if truth is not None:
+            e = t - np.asarray(truth, dtype=np.float64) * 1e3
+            text += "; error vs truth (mm): " + ", ".join(f"{v:+.1f}" for v in e)
+        text += f"; {result.iterations} iterations</p>"
+    return text
+
+
+def _gates_figure(corr):
+    from matplotlib.figure import Figure
+
+    from .plotting.registration import plot_correspondences
+
+    fig = Figure(figsize=(12, 4.6), layout="constrained")
+    ax0, ax1 = fig.subplots(1, 2)
+    plot_correspondences(corr, ax=ax0, view="xy")
+    plot_correspondences(corr, ax=ax1, view="xz")
+    ax1.set_aspect("auto")
+    ax0.set_title("pairs by the rule that rejected them (XY)")
+    ax1.set_title("the same, side view (XZ)")
+    return fig

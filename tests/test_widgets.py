@@ -109,3 +109,25 @@ def test_slice_marks_a_projected_truth():
     ax2 = plot_consensus_slice(cube, "XY", k_truth, truth=truth)
     assert "truth" in ax2.get_legend_handles_labels()[1]
     plt.close("all")
+
+
+def test_matching_gates_explorer_equals_match_and_icp():
+    from labkit.synthetic import als_epochs
+
+    pair = als_epochs("trees_felled", size=(30.0, 30.0), density=4.0, rng=3)
+    kw = dict(sample=("normal_space", 1500), rng=0)
+    box = widgets.matching_gates_explorer(pair.source, pair.target, max_distance=2.0, max_angle_deg=None,
+                                          truth=pair.translation, icp_kwargs=dict(reject_sigma=None), **kw)
+    loose = labkit.match(pair.source, pair.target, max_distance=2.0, max_angle_deg=None, **kw)
+    assert np.array_equal(box.last_match.rule, loose.rule)
+    direct = labkit.icp(pair.source, pair.target, max_distance=2.0, max_angle_deg=None, reject_sigma=None, **kw)
+    assert np.allclose(box.last_icp.translation, direct.translation)
+    img, n_loose = box.figure.value, box.last_match.n_accepted
+    # a tight distance gate and a noise gate reject more pairs, each under its own rule
+    box.distance_slider.value = 0.3
+    box.noise_slider.value = 5.0
+    tight = labkit.match(pair.source, pair.target, max_distance=0.3, max_angle_deg=None, max_noise=0.05, **kw)
+    assert box.gates() == dict(max_distance=0.3, max_angle_deg=None, max_noise=0.05)
+    assert np.array_equal(box.last_match.rule, tight.rule)
+    assert box.last_match.n_accepted < n_loose and box.figure.value != img
+    assert f"{tight.n_accepted} of {len(tight)} pairs accepted" in box.report.value

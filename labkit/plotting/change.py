@@ -1,4 +1,4 @@
-"""Plots of M3C2 change (notebook 09, ``labkit change``).
+"""Plots of M3C2 change (notebook 10, ``labkit change``).
 
 Every helper takes an optional ``ax`` and returns it; none calls ``show()``.
 Core points are drawn in a top view reduced to a local origin.
