@@ -151,18 +151,21 @@ def _cmd_register(args) -> int:
     from .compare import standard_methods
     from .distances import distances_before_after
     from .io import read_cloud, write_cloud
+    from .progress import from_cli
 
     _check_dof([args.method], args.dof)
-    source, target = read_cloud(args.source), read_cloud(args.target)
+    progress = from_cli(args.quiet)  # on stderr: reading, each ICP iteration, normals, distances, writing
+    source = read_cloud(args.source, progress=progress)
+    target = read_cloud(args.target, progress=progress)
     print(f"source {args.source}: {len(source)} points; target {args.target}: {len(target)} points")
     method = standard_methods([args.method], dof=args.dof, extent=args.extent, max_points=args.max_points,
                               rng=args.seed)[args.method]
-    result = method(source, target)
+    result = method(source, target, progress=progress)
     print()
     print(result.summary())
     print()
     print(_rotation_text(result))
-    change = distances_before_after(source, target, result)
+    change = distances_before_after(source, target, result, progress=progress)
     print()
     print(change.summary())
 
@@ -172,7 +175,7 @@ def _cmd_register(args) -> int:
     stem = Path(args.source).stem
     fig = _distance_figure(source, change, f"{stem} -> {Path(args.target).stem} ({result.method})", args.seed)
     with staged_outputs(args.out) as stage:
-        write_cloud(moved, stage(f"{stem}_registered{suffix}"))
+        write_cloud(moved, stage(f"{stem}_registered{suffix}"), progress=progress)
         save_figure(fig, stage(f"{stem}_distances.png"))
     print()
     for path in stage.written:
@@ -547,6 +550,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "shifts (default: %(default)s)")
     _add_method_options(reg)
     reg.add_argument("--out", default=".", help="output folder (default: the current folder)")
+    reg.add_argument("--quiet", action="store_true",
+                     help="no progress on stderr (reading, ICP iterations, distances, writing)")
     reg.set_defaults(func=_cmd_register)
 
     cmp_ = sub.add_parser("compare", help="compare registration methods with references; write a CSV table",
