@@ -6,7 +6,10 @@ shifts differ by more than their combined uncertainty do not move together;
 tiles linked by agreeing neighbours form *coherent areas*.
 
 The per-tile work runs on Dask: one ``dask.delayed`` task per tile, computed by
-the local threaded scheduler, or by any ``dask.distributed`` Client passed in.
+a local scheduler, a ``distributed.LocalCluster`` started for the run, a running
+cluster named by its address (``tcp://HOST:PORT``) or any Client passed in. With
+a ``results`` folder every finished tile is written at once as one JSON file, and
+a rerun reads those back instead of computing them (resume after a crash).
 Tiles of LAS/LAZ files are read lazily inside their task (only the files whose
 header extent meets the tile, filtered by the tile's box while reading), so a
 survey of hundreds of files never has to fit in memory.
