@@ -159,8 +159,9 @@ class IterationSteps:
         self._seen = 0
 
     def update(self, history) -> None:
-        for rec in history[self._seen:]:
-            self._rep(1, info=iteration_text(rec))
+        if self._rep.enabled:  # silent: not even the text is made
+            for rec in history[self._seen:]:
+                self._rep(1, info=iteration_text(rec))
         self._seen = len(history)
 
     def close(self, history=()) -> None:
