@@ -23,6 +23,7 @@ side by side in one run:
 The machine's load matters: run the peers in one run and compare ratios.
 
 Run:  python benchmarks/bench_large.py [--points 2e6] [--skip-register] [--keep DIR]
+            [--als-sizes 100 300 700] [--als-only]
 
 Measured 2026-12-01 on 2 shared cores at load 6-7 (noisy; compare within a run):
 
@@ -37,6 +38,15 @@ Measured 2026-12-01 on 2 shared cores at load 6-7 (noisy; compare within a run):
     10 M           normals k=20             101.7 s  Open3D 304.0 s    2648 / 1671
 
 (baseline process 54 MB; lazrs on all cores gave no gain on the loaded machine.)
+
+``--als-sizes 100 200 300 700 --als-only`` (``labkit.synthetic.als_epochs``, both epochs), same day,
+loaded machine; "before" is the route that evaluated every roof on every point (same output):
+
+    size (m)       points  time (s)  us/point  peak RSS (MB)   before (s)
+         100      432,512       0.5      1.09            142          0.6
+         200    1,737,054       2.9      1.64            314          4.7
+         300    3,905,601       6.8      1.74            596         16.8
+         700   21,286,806      37.6      1.77           2766    about 480 (issue 14)
 """
 
 from __future__ import annotations
@@ -139,6 +149,28 @@ def _best(fn, repeat):
         value = fn()
         best = min(best, time.perf_counter() - t)
     return best, value
+
+
+def step_als_epochs(args):
+    """``labkit.synthetic.als_epochs`` (town region 'xyz', 20 pts/m^2) on a square of ``size`` m."""
+    from labkit.synthetic import als_epochs
+
+    t = time.perf_counter()
+    pair = als_epochs("xyz", size=(args["size"], args["size"]), density=DENSITY, rng=1)
+    return {"seconds": time.perf_counter() - t, "points": len(pair.source) + len(pair.target)}
+
+
+def run_als_sizes(sizes, timeout) -> None:
+    """Time the synthetic ALS generator at several areas: its cost should grow like the number of points."""
+    print(f"\nlabkit.synthetic.als_epochs('xyz', density={DENSITY:.0f}), both epochs, one fresh process each")
+    print(f"{'size (m)':>9s} {'points':>12s} {'time (s)':>9s} {'us/point':>9s} {'peak RSS (MB)':>14s}")
+    for size in sizes:
+        r = run_step("als_epochs", {"size": float(size)}, timeout)
+        if "error" in r:
+            print(f"{size:9.0f} {'-':>12s} {'-':>9s} {'-':>9s} {'-':>14s}  {r['error']}")
+            continue
+        print(f"{size:9.0f} {r['points']:12,d} {r['seconds']:9.1f} {1e6 * r['seconds'] / r['points']:9.2f} "
+              f"{r['peak_mb']:14.0f}", flush=True)
 
 
 def step_baseline(args):
@@ -262,6 +294,7 @@ STEPS = {
     "normals labkit k=20": step_normals_labkit,
     "normals Open3D k=20": step_normals_open3d,
     "labkit register": step_register,
+    "als_epochs": step_als_epochs,
 }
 
 
@@ -303,10 +336,17 @@ def main(argv=None):
     ap.add_argument("--keep", help="folder for the LAZ files (default: a temporary folder)")
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per step")
     ap.add_argument("--repeat", type=int, default=3, help="runs of each read/write step, the least time counts")
+    ap.add_argument("--als-sizes", type=float, nargs="*", default=None, metavar="M",
+                    help="also time labkit.synthetic.als_epochs on squares of these sizes (e.g. 100 200 300 700)")
+    ap.add_argument("--als-only", action="store_true", help="only the als_epochs timings")
     ap.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
         return child(args.child[0], json.loads(args.child[1]))
+    if args.als_sizes:
+        run_als_sizes(args.als_sizes, args.timeout)
+    if args.als_only:
+        return 0
 
     with tempfile.TemporaryDirectory(dir=args.keep) as tmp:
         laz, src_laz = Path(tmp) / "target.laz", Path(tmp) / "source.laz"
@@ -321,7 +361,8 @@ def main(argv=None):
               f"(peak {made['peak_mb']:.0f} MB); target.laz {mb:.0f} MB")
         print(f"machine: {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f} (timings are noisy under load); "
               f"io steps: least of {args.repeat} runs")
-        names = [n for n in STEPS if n != "make" and not (args.skip_register and n == "labkit register")
+        names = [n for n in STEPS if n not in ("make", "als_epochs")
+                 and not (args.skip_register and n == "labkit register")
                  and not (args.skip_open3d and "Open3D" in n)]
         print(f"\n{'step':28s} {'time (s)':>9s} {'peak RSS (MB)':>14s}  note")
         results = {}

@@ -151,18 +151,21 @@ def _cmd_register(args) -> int:
     from .compare import standard_methods
     from .distances import distances_before_after
     from .io import read_cloud, write_cloud
+    from .progress import from_cli
 
     _check_dof([args.method], args.dof)
-    source, target = read_cloud(args.source), read_cloud(args.target)
+    progress = from_cli(args.quiet)  # on stderr: reading, each ICP iteration, normals, distances, writing
+    source = read_cloud(args.source, progress=progress)
+    target = read_cloud(args.target, progress=progress)
     print(f"source {args.source}: {len(source)} points; target {args.target}: {len(target)} points")
     method = standard_methods([args.method], dof=args.dof, extent=args.extent, max_points=args.max_points,
                               rng=args.seed)[args.method]
-    result = method(source, target)
+    result = method(source, target, progress=progress)
     print()
     print(result.summary())
     print()
     print(_rotation_text(result))
-    change = distances_before_after(source, target, result)
+    change = distances_before_after(source, target, result, progress=progress)
     print()
     print(change.summary())
 
@@ -172,7 +175,7 @@ def _cmd_register(args) -> int:
     stem = Path(args.source).stem
     fig = _distance_figure(source, change, f"{stem} -> {Path(args.target).stem} ({result.method})", args.seed)
     with staged_outputs(args.out) as stage:
-        write_cloud(moved, stage(f"{stem}_registered{suffix}"))
+        write_cloud(moved, stage(f"{stem}_registered{suffix}"), progress=progress)
         save_figure(fig, stage(f"{stem}_distances.png"))
     print()
     for path in stage.written:
@@ -208,20 +211,25 @@ def _cmd_compare(args) -> int:
 def _cmd_tiles(args) -> int:
     from .compare import standard_methods
     from .plotting.compare import plot_shift_field
+    from .progress import from_cli
     from .tiles import MAX_TILES, neighbour_test, register_tiles
 
     _check_dof([args.method], args.dof)
     method = standard_methods([args.method], dof=args.dof, extent=args.extent, max_points=args.max_points,
                               rng=args.seed)[args.method]
-    field = register_tiles([Path(p) for p in args.source], [Path(p) for p in args.target], method,
+    scheduler = args.scheduler or default_scheduler()
+    results = Path(args.results) if args.results else Path(args.out) / "tiles"
+    field = register_tiles(list(args.source), list(args.target), method,
                            size=args.size, buffer=args.buffer, min_points=args.min_points,
-                           scheduler=args.scheduler, progress=sys.stdout.isatty(),
+                           scheduler=scheduler, progress=from_cli(args.quiet), results=results,
                            max_tiles=MAX_TILES if args.max_tiles is None else args.max_tiles)
     test = neighbour_test(field, args.alpha, extra_std=args.extra_std)
     print(field.summary())
     print()
     print(test.summary())
     _print_tiles(field, test)
+    print(f"\ntiles: {len(field) - field.n_reused} computed, {field.n_reused} read back from {results} "
+          f"(scheduler: {scheduler})")
     ax = plot_shift_field(field, test=test)
     with staged_outputs(args.out) as stage:
         field.to_csv(stage("shift_field.csv"))
@@ -230,6 +238,23 @@ def _cmd_tiles(args) -> int:
     for path in stage.written:
         print(f"wrote {path}")
     return 0
+
+
+def default_scheduler() -> str:
+    """``labkit tiles`` runs on a LocalCluster when dask.distributed is installed, else on threads."""
+    import importlib.util
+
+    return "cluster" if importlib.util.find_spec("distributed") is not None else "threads"
+
+
+def _scheduler_option(text: str) -> str:
+    from .tiles import check_scheduler
+
+    try:
+        return check_scheduler(text)
+    except LabkitError:
+        raise argparse.ArgumentTypeError(
+            f"expected threads, processes, sync, serial, cluster or tcp://HOST:PORT, got {text!r}") from None
 
 
 def _cmd_change(args) -> int:
@@ -547,6 +572,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "shifts (default: %(default)s)")
     _add_method_options(reg)
     reg.add_argument("--out", default=".", help="output folder (default: the current folder)")
+    reg.add_argument("--quiet", action="store_true",
+                     help="no progress on stderr (reading, ICP iterations, distances, writing)")
     reg.set_defaults(func=_cmd_register)
 
     cmp_ = sub.add_parser("compare", help="compare registration methods with references; write a CSV table",
@@ -564,8 +591,10 @@ def build_parser() -> argparse.ArgumentParser:
     tiles = sub.add_parser("tiles", help="register tile by tile and test neighbouring tiles (shift field)",
                            description="Cut two surveys into square tiles, register every tile, test whether "
                                        "neighbouring tiles agree; write the shift field as PNG and CSV.")
-    tiles.add_argument("source", nargs="+", help="point-cloud file(s) of the epoch to move")
-    tiles.add_argument("--target", nargs="+", required=True, help="point-cloud file(s) of the reference epoch")
+    tiles.add_argument("source", nargs="+",
+                       help="point-cloud files, folders of LAS/LAZ tiles or globs ('2016/*.laz') of the epoch to move")
+    tiles.add_argument("--target", nargs="+", required=True,
+                       help="files, folders or globs of the reference epoch")
     tiles.add_argument("--size", type=_positive_float, default=100.0, help="tile edge in m (default: %(default)s)")
     tiles.add_argument("--buffer", type=_non_negative_float, default=0.0, help="margin read around each tile in m")
     tiles.add_argument("--max-tiles", type=_count, default=None,
@@ -576,8 +605,14 @@ def build_parser() -> argparse.ArgumentParser:
     tiles.add_argument("--alpha", type=_probability, default=0.05, help="test level (default: %(default)s)")
     tiles.add_argument("--extra-std", type=_non_negative_float, default=0.0,
                        help="extra std per tile in m for the neighbour test")
-    tiles.add_argument("--scheduler", choices=("threads", "processes", "sync", "serial"), default="threads",
-                       help="Dask scheduler (default: %(default)s)")
+    tiles.add_argument("--scheduler", type=_scheduler_option, default=None, metavar="SCHEDULER",
+                       help="where the tiles run: cluster (a dask LocalCluster, one worker process per core; the "
+                            "default when dask.distributed is installed), tcp://HOST:PORT (a running Dask "
+                            "scheduler), threads (default without distributed), processes, sync or serial")
+    tiles.add_argument("--results", metavar="DIR",
+                       help="folder for one JSON per finished tile; a rerun reads finished tiles back instead of "
+                            "computing them (default: OUT/tiles)")
+    tiles.add_argument("--quiet", action="store_true", help="no progress on stderr")
     _add_method_options(tiles)
     tiles.add_argument("--out", default=".", help="output folder (default: the current folder)")
     tiles.set_defaults(func=_cmd_tiles)

@@ -281,7 +281,7 @@ def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "tra
     return out
 
 
-def _standard(source, target, *, name, dof, extent, max_points, rng):
+def _standard(source, target, *, name, dof, extent, max_points, rng, progress=False):
     from .registration import icp, max_consensus
 
     if name.startswith("icp"):
@@ -289,11 +289,11 @@ def _standard(source, target, *, name, dof, extent, max_points, rng):
         metric = "point_to_point" if kind == "point" else "point_to_plane"
         classes = STABLE_CLASSES if kind == "classes" else None
         return icp(source, target, dof=dof, metric=metric, robust=kind if kind in ("huber", "tukey") else None,
-                   classes=classes, rng=rng)
+                   classes=classes, rng=rng, progress=progress)
     result = max_consensus(source, target, extent=extent, max_points=max_points)  # an even subset votes
     if name == "consensus":
         return result
-    refined = icp(source, target, dof=dof, robust="tukey", initial=result.matrix, rng=rng)
+    refined = icp(source, target, dof=dof, robust="tukey", initial=result.matrix, rng=rng, progress=progress)
     return replace(refined, method=f"max_consensus + {refined.method}",
                    runtime_s=result.runtime_s + refined.runtime_s)
 

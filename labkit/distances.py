@@ -23,6 +23,7 @@ from ._checks import as_points, choice, count
 from ._frame import local_origin, reduce
 from ._report import ReportMixin
 from .errors import DegenerateGeometryError, EmptyRegionError, LabkitError
+from .progress import progress_steps
 from .transforms import apply_transform, check_transform
 
 
@@ -138,20 +139,31 @@ class DistanceChange(ReportMixin):
 
 
 def distances_before_after(source, target, transform, *, kind: str = "point_to_plane", k: int = 10,
-                           target_normals=None) -> DistanceChange:
-    """Distances of ``source`` to ``target`` without and with ``transform`` (4x4, result or reference)."""
+                           target_normals=None, progress=False) -> DistanceChange:
+    """Distances of ``source`` to ``target`` without and with ``transform`` (4x4, result or reference).
+
+    ``progress`` (bool, "bar", "lines" or callable, see :mod:`labkit.progress`) reports the target
+    normals and then the two passes ("before", "after") over the source points; default silent.
+    """
     T = as_matrix(transform)
     if kind == "point_to_plane":
         if target_normals is None:
             from .features import normals
 
-            target_normals = normals(as_points(target, min_points=3), k=count(k, "k", minimum=3))
+            target_normals = normals(as_points(target, min_points=3), k=count(k, "k", minimum=3),
+                                     progress=progress)
         f = lambda tr: point_to_plane_distance(source, target, target_normals, transform=tr)  # noqa: E731
     elif kind == "cloud_to_cloud":
         f = lambda tr: cloud_to_cloud(source, target, transform=tr)  # noqa: E731
     else:
         raise LabkitError(f"kind must be 'point_to_plane' or 'cloud_to_cloud', got {kind!r}")
-    return DistanceChange(f(None), f(T), kind)
+    n = len(as_points(source, name="source"))
+    with progress_steps(progress, 2 * n, f"distances ({kind})", "pts") as step:
+        before = f(None)
+        step(n, info="before")
+        after = f(T)
+        step(n, info="after")
+    return DistanceChange(before, after, kind)
 
 
 def _prepared(source, target, transform):

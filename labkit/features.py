@@ -61,6 +61,7 @@ else:  # pragma: no cover - numpy route in _covariances
 from ._frame import local_origin, reduce
 from ._report import ReportMixin, fmt
 from .errors import LabkitError
+from .progress import progress_steps
 
 CHUNK_SIZE = 20_000  # points per chunk (measured: 25 % less CPU than 100k, whose 50 MB temporaries
 #                      always come from fresh mmap pages; about 10 MB of temporaries per chunk at k = 20)
@@ -236,6 +237,7 @@ def local_pca(
     at=None,
     duplicates: str = "merge",
     chunk_size: int = CHUNK_SIZE,
+    progress=False,
 ) -> LocalPCA:
     """PCA of the neighbourhood of every point (eq. 1-4), vectorized and chunked.
 
@@ -260,6 +262,8 @@ def local_pca(
         number merged is ``n_duplicates``. 'keep': every row counts.
     chunk_size : int
         Points per chunk; memory grows with chunk_size * k, not with n * k.
+    progress : bool, "bar", "lines" or callable
+        Report the chunks done (see :mod:`labkit.progress`); default silent.
 
     Returns
     -------
@@ -294,7 +298,8 @@ def local_pca(
         lam[rows], vec[rows] = _sorted_eigh(C)
         cen[rows], counts[rows] = c, seg_counts
 
-    _run_chunks(plan, [(k, radius)], _check_chunk(chunk_size), work)
+    with progress_steps(progress, plan.n_query, "normals", "pts") as step:
+        _run_chunks(plan, [(k, radius)], _check_chunk(chunk_size), work, step=step)
     lam, vec, cen, counts = plan.out(lam), plan.out(vec), plan.out(cen), plan.out(counts)
     # Degenerate neighbourhoods (a point, a line) have no normal: NaN, valid=False
     _undetermined(lam, vec, counts)
@@ -306,7 +311,7 @@ def local_pca(
 
 def normals(
     points, k: int = 20, orient: str = "up", viewpoint=None, *, radius=None, at=None, duplicates="merge",
-    chunk_size=CHUNK_SIZE,
+    chunk_size=CHUNK_SIZE, progress=False,
 ):
     """Unit normals (n, 3): eigenvector of the smallest eigenvalue of each neighbourhood (eq. 4).
 
@@ -326,6 +331,8 @@ def normals(
         Only at these points (neighbours from the whole cloud); shape (len(at), 3).
     duplicates : {'merge', 'keep'}
         Exact duplicates count once (default), see :func:`local_pca`.
+    progress : bool, "bar", "lines" or callable
+        Report the chunks done (see :mod:`labkit.progress`); default silent.
 
     Returns
     -------
@@ -337,7 +344,7 @@ def normals(
     local_pca : eigenvalues, centroids and counts as well.
     """
     pca = local_pca(points, k, radius, orient=orient, viewpoint=viewpoint, at=at, duplicates=duplicates,
-                    chunk_size=chunk_size)
+                    chunk_size=chunk_size, progress=progress)
     return pca.normals
 
 
@@ -824,7 +831,7 @@ class _Plan:
         return values
 
 
-def _run_chunks(plan, scales, chunk_size, work, rng=None) -> None:
+def _run_chunks(plan, scales, chunk_size, work, rng=None, step=None) -> None:
     """Call ``work(rows, per_scale, chunk_rng)`` for chunks of query points in the tree's leaf order.
 
     ``rows`` index the output (see :class:`_Plan`); the neighbour indices refer to
@@ -834,6 +841,7 @@ def _run_chunks(plan, scales, chunk_size, work, rng=None) -> None:
     run in one thread per core; the kNN kernel, gathers, matmul and eigh release the
     GIL. Every chunk writes only its own rows. With ``rng``, each chunk gets its own
     child generator (reproducible for a given chunk_size, independent of thread timing).
+    ``step(n)`` (a progress reporter) hears of every finished chunk, from the calling thread.
     """
     tree = plan.tree
     n_q = plan.n_query
@@ -858,12 +866,15 @@ def _run_chunks(plan, scales, chunk_size, work, rng=None) -> None:
             rows = plan.order[a:b]
             q = plan.points[plan.query_pos[rows]]
         work(rows, _query(tree, ball[0], q, scales), rngs[i])
+        return b - a
 
+    report = step if step is not None else (lambda n: None)
     if len(starts) == 1:
-        job(0)
+        report(job(0))
         return
     with ThreadPoolExecutor(threads) as pool:
-        list(pool.map(job, range(len(starts))))  # list(): re-raise a failure of any chunk
+        for n in pool.map(job, range(len(starts))):  # in order; re-raises a failure of any chunk
+            report(n)
 
 
 def _query(tree, ball, q, scales):

@@ -45,7 +45,7 @@ from dataclasses import dataclass
 
 from .errors import LabkitError
 
-__all__ = ["progress_steps", "ProgressEvent", "Reporter", "from_cli"]
+__all__ = ["progress_steps", "ProgressEvent", "Reporter", "from_cli", "IterationSteps"]
 
 MODES = ("bar", "lines")
 INTERVAL = 1.0  # seconds between two plain lines
@@ -137,6 +137,42 @@ def progress_steps(progress, total: int | None = None, desc: str = "", unit: str
         yield reporter
     finally:
         reporter.close()
+
+
+class IterationSteps:
+    """Progress of an iterative solver that keeps a history of records (ICP).
+
+    ``update(history)`` reports every record not yet reported, one step each, with the
+    current shift (``record.translation``) and number of pairs (``record.n_used``) as
+    ``info``; ``close(history)`` reports the rest and ends the task. Meant for a loop head,
+    so that the loop body stays untouched::
+
+        steps = IterationSteps(progress, max_iterations, "ICP")
+        for it in range(...):
+            steps.update(history)
+            ...
+        steps.close(history)
+    """
+
+    def __init__(self, progress, total: int | None, desc: str = "ICP", *, interval: float = INTERVAL):
+        self._rep = Reporter(_sink(progress, interval), desc, None if total is None else max(int(total), 0), "it")
+        self._seen = 0
+
+    def update(self, history) -> None:
+        if self._rep.enabled:  # silent: not even the text is made
+            for rec in history[self._seen:]:
+                self._rep(1, info=iteration_text(rec))
+        self._seen = len(history)
+
+    def close(self, history=()) -> None:
+        self.update(history)
+        self._rep.close()
+
+
+def iteration_text(record) -> str:
+    """``shift (+0.2300, -0.1700, +0.1100) m, 12,345 pairs`` for one iteration record."""
+    t = tuple(float(v) for v in record.translation)
+    return f"shift ({t[0]:+.4f}, {t[1]:+.4f}, {t[2]:+.4f}) m, {int(record.n_used):,} pairs"
 
 
 def from_cli(quiet: bool) -> bool:

@@ -6,7 +6,10 @@ shifts differ by more than their combined uncertainty do not move together;
 tiles linked by agreeing neighbours form *coherent areas*.
 
 The per-tile work runs on Dask: one ``dask.delayed`` task per tile, computed by
-the local threaded scheduler, or by any ``dask.distributed`` Client passed in.
+a local scheduler, a ``distributed.LocalCluster`` started for the run, a running
+cluster named by its address (``tcp://HOST:PORT``) or any Client passed in. With
+a ``results`` folder every finished tile is written at once as one JSON file, and
+a rerun reads those back instead of computing them (resume after a crash).
 Tiles of LAS/LAZ files are read lazily inside their task (only the files whose
 header extent meets the tile, filtered by the tile's box while reading), so a
 survey of hundreds of files never has to fit in memory.
@@ -20,8 +23,11 @@ Equation numbers refer to ``notebooks/08-shift-field-over-tiles.ipynb``.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
+import json
+import re
 import time
 import warnings
 from dataclasses import dataclass
@@ -179,17 +185,16 @@ def _read_part(path: str, bbox: tuple, classes):
 
 
 def _survey(data, classes=None, name: str = "survey"):
-    """PointCloud/array -> itself; path or list of paths -> _Files (LAS/LAZ lazily, others read now).
+    """PointCloud/array -> itself; path, folder, glob or a list of these -> _Files (LAS/LAZ lazily, others read now).
 
     A class filter on points without a ``classification`` attribute (an array, or a
     cloud read from a format without classes) is refused rather than ignored.
     """
     if isinstance(data, (str, Path)) or (isinstance(data, (list, tuple)) and data
                                          and all(isinstance(p, (str, Path)) for p in data)):
-        paths = [Path(p) for p in ([data] if isinstance(data, (str, Path)) else data)]
-        missing = [str(p) for p in paths if not p.is_file()]
-        if missing:
-            raise CloudFileError(f"point-cloud file(s) not found: {', '.join(missing)}")
+        from .io import cloud_files
+
+        paths = cloud_files(data)  # files, folders (their LAS/LAZ files) and globs
         if all(p.suffix.lower() in LAS_SUFFIXES for p in paths):
             return _Files(tuple(str(p) for p in paths), np.array([_las_extent(p) for p in paths]),
                           None if classes is None else tuple(classes))
@@ -341,15 +346,15 @@ def register_tile(tile: Tile, source, target, method, min_points: int = 200) -> 
 
 def register_tiles(source, target, method=None, *, size: float = 100.0, buffer: float = 0.0,
                    min_points: int = 200, classes=None, client=None, scheduler: str = "threads",
-                   progress: bool = True, max_tiles: int = MAX_TILES) -> "ShiftField":
+                   progress=False, max_tiles: int = MAX_TILES, results=None) -> "ShiftField":
     """Split a survey into tiles and register every tile; the per-tile work runs on Dask.
 
     Parameters
     ----------
-    source, target : PointCloud, array (n, 3), path, or list of paths
-        The two epochs. LAS/LAZ paths are read lazily per tile (header extents
-        decide which files a tile touches; points are filtered by the tile's
-        box while reading).
+    source, target : PointCloud, array (n, 3), path, folder, glob, or a list of paths/folders/globs
+        The two epochs. LAS/LAZ files are read lazily per tile: their header extents
+        decide which files a tile touches, and only the points in the tile's box (with
+        buffer) are kept while reading, so no process holds more than its tile.
     method : callable(source, target) -> RegistrationResult, or str, optional
         Default: ``labkit.icp`` with ``dof="translation"``. A name among
         :data:`labkit.compare.METHODS` (``'icp'``, ``'consensus'``, ...) means that
@@ -366,24 +371,33 @@ def register_tiles(source, target, method=None, *, size: float = 100.0, buffer: 
         Keep only these ASPRS classes (e.g. ground and buildings); refused for
         input without a ``classification`` attribute (e.g. plain arrays).
     client : distributed.Client, optional
-        Run on this cluster; otherwise Dask's local ``scheduler``.
-    scheduler : {'threads', 'processes', 'sync', 'serial'}
-        The local Dask scheduler; ``'serial'`` is a plain loop without Dask.
-    progress : bool
-        Show a progress bar counting tiles.
+        Run on this cluster; otherwise ``scheduler``.
+    scheduler : str
+        ``'threads'``, ``'processes'``, ``'sync'`` (Dask's local schedulers), ``'serial'``
+        (a plain loop without Dask), ``'cluster'`` (a ``distributed.LocalCluster`` started
+        for this run, one single-threaded worker process per core, closed afterwards) or
+        the address of a running Dask scheduler (``'tcp://HOST:PORT'``).
+    progress : bool, "bar", "lines" or callable
+        Count the finished tiles (see :mod:`labkit.progress`); default silent.
     max_tiles : int
         Refuse grids of more tiles (:data:`MAX_TILES`), before anything is read.
+    results : path, optional
+        Folder for one JSON file per tile, written (atomically) as soon as the tile is
+        done. A tile whose file is there from an earlier run with the same options and
+        input is read back instead of computed, so a run that was killed resumes where it
+        stopped. The folder must be visible to the workers (a local cluster or a shared
+        file system).
 
     Returns
     -------
     ShiftField
+        ``n_reused`` counts the tiles read back from ``results``.
     """
     # Check every option before any file is opened
     method = _as_method(method)
-    choice(scheduler, ("threads", "processes", "sync", "serial"), "scheduler")
+    scheduler = check_scheduler(scheduler)
     size, buffer = positive(size, "size"), non_negative(buffer, "buffer")
     min_points = count(min_points, "min_points", minimum=1)
-    progress = flag(progress, "progress")
     if classes is not None:
         from .regions import as_classes
 
@@ -395,11 +409,140 @@ def register_tiles(source, target, method=None, *, size: float = 100.0, buffer: 
     if (common[2:] < common[:2]).any():
         raise LabkitError("source and target surveys do not overlap in x, y")
     tiles = tile_grid(common, size, buffer=buffer, max_tiles=max_tiles)
-    # One job per tile: its inputs are cut out (clouds) or listed (files) here, read in the job
-    jobs = list(zip(tiles, _cut_all(src, tiles), _cut_all(tgt, tiles)))
+    # Tiles finished by an earlier run with the same options and input are read back
+    store = None if results is None else _TileStore(results, _run_key(method, min_points, classes, size, buffer,
+                                                                       src, tgt))
+    earlier = {} if store is None else {i: r for i, t in enumerate(tiles) if (r := store.load(t)) is not None}
+    todo = [i for i in range(len(tiles)) if i not in earlier]
+    # One job per tile still to do: its inputs are cut out (clouds) or listed (files) here, read in the job
+    todo_tiles = tuple(tiles[i] for i in todo)
+    jobs = list(zip(todo_tiles, _cut_all(src, todo_tiles), _cut_all(tgt, todo_tiles)))
     run = partial(register_tile, method=method, min_points=min_points)
-    shifts = _run_jobs(run, jobs, client, scheduler, progress)
-    return ShiftField(tuple(shifts), float(size), _method_name(method))
+    if store is not None:
+        run = partial(_run_and_save, run=run, store=store)
+    with _dask_client(client, scheduler) as cl:
+        computed = dict(zip(todo, _run_jobs(run, jobs, cl, scheduler, progress)))
+    shifts = [earlier[i] if i in earlier else computed[i] for i in range(len(tiles))]
+    return ShiftField(tuple(shifts), float(size), _method_name(method), n_reused=len(earlier))
+
+
+SCHEDULERS = ("threads", "processes", "sync", "serial", "cluster")
+_ADDRESS = re.compile(r"^(tcp|tls|ucx)://(\[[0-9a-fA-F:]+\]|[A-Za-z0-9_.-]+):(\d{1,5})$")
+
+
+def check_scheduler(scheduler: str) -> str:
+    """A scheduler name of :data:`SCHEDULERS` or a Dask scheduler address ``tcp://HOST:PORT``; else LabkitError."""
+    if isinstance(scheduler, str):
+        text = scheduler.strip()
+        if text in SCHEDULERS:
+            return text
+        m = _ADDRESS.match(text)
+        if m and 0 < int(m.group(3)) < 65536:
+            return text
+    raise LabkitError(f"scheduler must be one of {', '.join(SCHEDULERS)} or a Dask scheduler address "
+                      f"like tcp://HOST:PORT, got {scheduler!r}")
+
+
+def _is_address(scheduler) -> bool:
+    return isinstance(scheduler, str) and "://" in scheduler
+
+
+@contextlib.contextmanager
+def _dask_client(client, scheduler: str):
+    """The distributed Client to run on (given, started for a LocalCluster, or connected by address), or None."""
+    if client is not None or not (scheduler == "cluster" or _is_address(scheduler)):
+        yield client
+        return
+    try:
+        import distributed
+    except ImportError:
+        raise LabkitError(f"scheduler={scheduler!r} needs dask.distributed (pip install distributed); "
+                          "use scheduler='threads'") from None
+    if scheduler == "cluster":
+        with distributed.LocalCluster(threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+                distributed.Client(cluster) as cl:
+            yield cl
+        return
+    try:
+        cl = distributed.Client(scheduler, timeout="10s")
+    except OSError as exc:
+        raise LabkitError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
+    with cl:
+        yield cl
+
+
+# --------------------------------------------------------------------------- results per tile (resume)
+def _run_key(method, min_points, classes, size, buffer, src, tgt) -> dict:
+    """What a stored tile result depends on besides its tile: options and a fingerprint of the input."""
+    key = {"method": _method_text(method), "min_points": int(min_points),
+           "classes": None if classes is None else list(classes), "size": float(size), "buffer": float(buffer),
+           "source": _fingerprint(src), "target": _fingerprint(tgt)}
+    return json.loads(json.dumps(key))  # as it reads back from a file
+
+
+def _method_text(method) -> str:
+    if isinstance(method, partial):
+        func = getattr(method.func, "__module__", "") + "." + getattr(method.func, "__qualname__", "")
+        return f"{func}{sorted((k, repr(v)) for k, v in method.keywords.items())}"
+    return getattr(method, "__module__", "") + "." + getattr(method, "__qualname__", type(method).__name__)
+
+
+def _fingerprint(data) -> list:
+    if isinstance(data, _Files):
+        return [[str(Path(p).resolve()), Path(p).stat().st_size, Path(p).stat().st_mtime_ns] for p in data.paths]
+    xyz = as_points(data, name="survey cloud")
+    return [len(xyz), float(np.sum(xyz, dtype=np.float64)), float(np.sum(xyz * xyz, dtype=np.float64))]
+
+
+@dataclass(frozen=True)
+class _TileStore:
+    """One JSON per tile in ``folder``; a file counts only if it was written with the same ``key``."""
+
+    folder: str
+    key: dict
+
+    def path(self, tile: Tile) -> Path:
+        return Path(self.folder) / f"tile_{tile.row}_{tile.col}.json"
+
+    def load(self, tile: Tile) -> "TileShift | None":
+        path = self.path(tile)
+        try:
+            rec = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return None  # missing or cut short: compute again
+        same_tile = rec.get("tile") == _tile_json(tile)
+        return _shift_from_json(rec, tile) if rec.get("key") == self.key and same_tile else None
+
+    def save(self, shift: "TileShift") -> None:
+        Path(self.folder).mkdir(parents=True, exist_ok=True)
+        atomic_write_text(self.path(shift.tile), json.dumps(dict(_shift_json(shift), key=self.key), indent=1))
+
+
+def _run_and_save(tile, source, target, *, run, store):
+    """Register one tile and write its JSON at once (a crash later loses nothing finished)."""
+    shift = run(tile, source, target)
+    store.save(shift)
+    return shift
+
+
+def _tile_json(tile: Tile) -> dict:
+    return {"row": int(tile.row), "col": int(tile.col), "bounds": [float(v) for v in tile.bounds],
+            "buffer": float(tile.buffer)}
+
+
+def _shift_json(s: "TileShift") -> dict:
+    return {"tile": _tile_json(s.tile), "translation": s.translation.tolist(), "covariance": s.covariance.tolist(),
+            "axis_determined": [bool(v) for v in s.axis_determined], "n_source": int(s.n_source),
+            "n_target": int(s.n_target), "n_used": int(s.n_used), "sigma0": float(s.sigma0),
+            "converged": bool(s.converged), "runtime_s": float(s.runtime_s), "status": s.status,
+            "message": s.message}
+
+
+def _shift_from_json(rec: dict, tile: Tile) -> "TileShift":
+    return TileShift(tile, np.array(rec["translation"], float), np.array(rec["covariance"], float),
+                     np.array(rec["axis_determined"], bool), int(rec["n_source"]), int(rec["n_target"]),
+                     int(rec["n_used"]), float(rec["sigma0"]), bool(rec["converged"]), float(rec["runtime_s"]),
+                     str(rec["status"]), str(rec["message"]))
 
 
 def _method_name(method) -> str:
@@ -430,32 +573,37 @@ def _as_method(method):
 
 
 def _run_jobs(run, jobs, client, scheduler, progress) -> list:
-    if scheduler == "serial" and client is None:
-        return [run(*job) for job in jobs]
-    import dask
+    """Results of ``run(*job)`` in the order of ``jobs``; progress counts finished tiles."""
+    from .progress import progress_steps
 
-    tasks = [dask.delayed(run, pure=True)(*j, dask_key_name=f"tile-{j[0].row}-{j[0].col}") for j in jobs]
-    if client is not None:
-        futures = client.compute(tasks)
-        if progress:
+    with progress_steps(progress, len(jobs), "tiles", "tiles") as step:
+        if not jobs:
+            return []
+        if client is None and scheduler == "serial":
+            out = []
+            for job in jobs:
+                out.append(run(*job))
+                step(1)
+            return out
+        import dask
+
+        tasks = [dask.delayed(run, pure=True)(*j, dask_key_name=f"tile-{j[0].row}-{j[0].col}") for j in jobs]
+        if client is not None:
             from distributed import as_completed
 
-            for done, _ in enumerate(as_completed(futures), 1):
-                _print_bar(done, len(futures))
-        return client.gather(futures)
-    if progress:
-        from dask.diagnostics import ProgressBar
+            futures = client.compute(tasks)
+            for _ in as_completed(futures):
+                step(1)
+            return client.gather(futures)
+        from dask.callbacks import Callback
 
-        with ProgressBar():
+        def posttask(key, result, dsk, state, worker_id):
+            name = key[0] if isinstance(key, tuple) else key
+            if isinstance(name, str) and name.startswith("tile-"):
+                step(1)
+
+        with Callback(posttask=posttask):
             return list(dask.compute(*tasks, scheduler=scheduler))
-    return list(dask.compute(*tasks, scheduler=scheduler))
-
-
-def _print_bar(done: int, total: int, width: int = 40) -> None:
-    """A text progress bar counting tiles (for runs on a distributed Client)."""
-    fill = int(width * done / max(total, 1))
-    end = "\n" if done == total else ""
-    print(f"\r[{'#' * fill}{' ' * (width - fill)}] {done}/{total} tiles", end=end, flush=True)
 
 
 # --------------------------------------------------------------------------- the field and its test
@@ -499,6 +647,7 @@ class ShiftField(ReportMixin):
     tiles: tuple
     size: float
     method: str = ""
+    n_reused: int = 0  # tiles read back from an earlier run's results (register_tiles(results=...))
 
     def __len__(self) -> int:
         return len(self.tiles)

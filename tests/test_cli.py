@@ -3,6 +3,7 @@
 import csv
 import json
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -181,6 +182,65 @@ def test_tiles_writes_field_png_and_csv(files, tmp_path, capsys):
         std = np.array([float(r[k]) for k in ("sx", "sy", "sz")])
         assert np.all(np.abs(err) < 3 * std + 0.005), (err, std)
     assert (tmp_path / "shift_field.png").read_bytes()[:8] == PNG_MAGIC
+
+
+def test_tiles_on_a_cluster_by_address_resumes_a_killed_run(files, tmp_path, capsys):
+    distributed = pytest.importorskip("distributed")
+    results = tmp_path / "done"
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, protocol="tcp",
+                                  dashboard_address=None) as cluster:
+        address = cluster.scheduler_address
+        assert address.startswith("tcp://")
+        ref = tmp_path / "ref"  # the reference epoch as a folder of tiles, the source as a glob
+        ref.mkdir()
+        shutil.copy(files["tgt"], ref / "als_2014.laz")
+        argv = ["tiles", str(files["dir"] / "als_2016.la?"), "--target", str(ref), "--size", "15",
+                "--min-points", "100", "--scheduler", address, "--results", str(results)]
+        assert main(argv + ["--out", str(tmp_path / "a")]) == 0
+        out, err = capsys.readouterr()
+        assert "tiles: 4 computed, 0 read back" in out and f"scheduler: {address}" in out
+        assert "tiles [" in err  # progress on stderr
+        done = sorted(results.glob("tile_*.json"))
+        assert len(done) == 4
+        first = list(csv.DictReader((tmp_path / "a" / "shift_field.csv").open()))
+        # the run "was killed" before its last tile was written: only that one is computed again
+        stamps = {p.name: p.stat().st_mtime_ns for p in done[1:]}
+        done[0].unlink()
+        assert main(argv + ["--out", str(tmp_path / "b"), "--quiet"]) == 0
+        out, err = capsys.readouterr()
+        assert "tiles: 1 computed, 3 read back" in out and err == ""
+        assert {p.name: p.stat().st_mtime_ns for p in done[1:]} == stamps and done[0].is_file()
+        again = list(csv.DictReader((tmp_path / "b" / "shift_field.csv").open()))
+        assert [r["dx"] for r in again] == [r["dx"] for r in first]
+        # a complete rerun computes nothing
+        assert main(argv + ["--out", str(tmp_path / "c"), "--quiet"]) == 0
+        assert "tiles: 0 computed, 4 read back" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("text, expected", [("tcp://127.0.0.1:8786", "tcp://127.0.0.1:8786"),
+                                            ("tcp://dask-head.example.org:8786", "tcp://dask-head.example.org:8786"),
+                                            ("cluster", "cluster"), ("threads", "threads"), (None, None)])
+def test_tiles_scheduler_option_parses(text, expected):
+    argv = ["tiles", "a.laz", "--target", "b.laz"] + ([] if text is None else ["--scheduler", text])
+    assert cli.build_parser().parse_args(argv).scheduler == expected
+
+
+@pytest.mark.parametrize("text", ["tcp://127.0.0.1", "127.0.0.1:8786", "gpu", "tcp://h:0", "http://h:8786"])
+def test_tiles_bad_scheduler_exits_2(text, capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli.build_parser().parse_args(["tiles", "a.laz", "--target", "b.laz", "--scheduler", text])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "tcp://HOST:PORT" in err and repr(text) in err and err.count("\n") == 1
+
+
+def test_tiles_default_scheduler_is_a_local_cluster_when_distributed_is_there(monkeypatch):
+    import importlib.util
+
+    have = importlib.util.find_spec("distributed") is not None
+    assert cli.default_scheduler() == ("cluster" if have else "threads")
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None)
+    assert cli.default_scheduler() == "threads"
 
 
 # --------------------------------------------------------------------------- bad input

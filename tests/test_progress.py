@@ -3,6 +3,7 @@
 import re
 import sys
 
+import numpy as np
 import pytest
 
 from labkit import progress as P
@@ -133,3 +134,71 @@ def test_bad_progress_values_raise(bad):
 
 def test_cli_quiet():
     assert P.from_cli(quiet=True) is False and P.from_cli(quiet=False) is True
+
+
+# --------------------------------------------------------------------------- library functions report their steps
+@pytest.fixture(scope="module")
+def small_pair():
+    from labkit.synthetic import als_epochs
+
+    return als_epochs("xyz", size=(40.0, 40.0), density=5.0, rng=21)
+
+
+def _by_desc(events):
+    out = {}
+    for e in events:
+        out.setdefault(e.desc, []).append(e)
+    return out
+
+
+def test_icp_reports_every_iteration_with_shift_and_pairs(small_pair):
+    from labkit.registration import icp
+
+    events = []
+    res = icp(small_pair.source, small_pair.target, rng=0, progress=events.append)
+    steps = [e for e in events if not e.finished]
+    assert events[-1].finished and events[-1].desc == "ICP" and events[-1].done == len(res.history)
+    assert len(steps) == len(res.history) and [e.done for e in steps] == list(range(1, len(res.history) + 1))
+    for e, rec in zip(steps, res.history):  # the text carries that iteration's shift and pair count
+        shown = np.array([float(v) for v in re.search(r"shift \(([^)]*)\)", e.info).group(1).split(",")])
+        np.testing.assert_allclose(shown, rec.translation, atol=6e-5)
+        assert f"{rec.n_used:,} pairs" in e.info
+    # silent by default and the same answer with and without a receiver
+    again = icp(small_pair.source, small_pair.target, rng=0)
+    np.testing.assert_array_equal(again.matrix, res.matrix)
+
+
+def test_normals_report_every_point_once(small_pair):
+    from labkit.features import normals
+
+    events = []
+    n1 = normals(small_pair.target, k=10, progress=events.append, chunk_size=2000)
+    steps = [e for e in events if not e.finished]
+    assert len(steps) >= 2 and sum(e.n for e in steps) == len(small_pair.target)
+    assert events[-1].finished and events[-1].done == events[-1].total == len(small_pair.target)
+    np.testing.assert_array_equal(n1, normals(small_pair.target, k=10, chunk_size=2000))
+
+
+def test_distances_report_normals_then_before_and_after(small_pair):
+    from labkit.distances import distances_before_after
+
+    events = []
+    ch = distances_before_after(small_pair.source, small_pair.target, small_pair.truth, progress=events.append)
+    groups = _by_desc(events)
+    assert set(groups) == {"normals", "distances (point_to_plane)"}
+    assert [e.desc for e in events].index("normals") < [e.desc for e in events].index("distances (point_to_plane)")
+    dist = [e for e in groups["distances (point_to_plane)"] if not e.finished]
+    assert [e.info for e in dist] == ["before", "after"] and dist[-1].done == 2 * len(ch.after)
+
+
+def test_cli_register_shows_progress_on_stderr_unless_quiet(small_pair, tmp_path, capsys):
+    from labkit.cli import main
+    from labkit.io import write_cloud
+
+    src, tgt = write_cloud(small_pair.source, tmp_path / "s.laz"), write_cloud(small_pair.target, tmp_path / "t.laz")
+    assert main(["register", str(src), str(tgt), "--out", str(tmp_path / "o")]) == 0
+    err = capsys.readouterr().err
+    for what in ("reading s.laz", "reading t.laz", "ICP [", "pairs", "distances (point_to_plane)", "writing"):
+        assert what in err, (what, err)
+    assert main(["register", str(src), str(tgt), "--out", str(tmp_path / "q"), "--quiet"]) == 0
+    assert capsys.readouterr().err == ""

@@ -323,3 +323,68 @@ def test_layout_rng_fixes_the_surface_and_rng_the_sampling():
     near = da < 0.3  # same surface: nearby points of the two samplings agree within slope x distance + noise
     assert np.median(np.abs(za[near] - b.target.xyz[::7, 2][near])) < 0.2
     assert np.median(np.abs(zc - b.target.xyz[::7, 2])) > 1.0  # another layout: another surface
+
+
+# --------------------------------------------------------------------------- linear cost, same output
+from labkit.synthetic._als_scene import hard_surface as _GRID_HARD_SURFACE  # noqa: E402  (buildings-free part)
+
+
+def _reference_hard_surface(scene, x, y, epoch, grid=None):
+    """The plain route: every roof evaluated on every point (quadratic in the area, kept as a check)."""
+    from labkit.synthetic import _als_scene as S
+    z, mat = _GRID_HARD_SURFACE(S.Scene(scene.size, scene.terrain, (), scene.trees, scene.water, scene.roads,
+                                    scene.fields, scene.low_veg, scene.patches), x, y, epoch)
+    for b in scene.buildings:
+        if b.epochs[epoch]:
+            zr = b.roof(x, y)
+            up = zr > z
+            z = np.where(up, zr, z)
+            mat[up] = b.material
+    return z, mat
+
+
+def _reference_rounded_surface(scene, x, y, epoch, radius=0.35):
+    from labkit.synthetic import _als_scene as S
+    z, mat = _reference_hard_surface(scene, x, y, epoch)
+    near = np.zeros(x.shape, dtype=bool)
+    for b in scene.buildings:
+        if b.epochs[epoch]:
+            near |= b.near_edge(x, y, radius)
+    off, w = S._kernel(radius)
+    zs = np.zeros(near.sum())
+    for (dx, dy), wk in zip(off, w):
+        zs += wk * _reference_hard_surface(scene, x[near] + dx, y[near] + dy, epoch)[0]
+    z = z.copy()
+    z[near] = zs
+    return z, mat
+
+
+@pytest.mark.parametrize("region, dim", [("xyz", False), ("xyz", True), ("xz", False), ("xy", True),
+                                         ("demolished", False), ("new_building", True)])
+def test_grid_route_gives_identical_epochs(region, dim, monkeypatch):
+    """The per-cell building evaluation changes the cost only: every coordinate and attribute is bit-equal
+    to the route that evaluates each roof on all points."""
+    from labkit.synthetic import _als_scene as S
+    kw = dict(size=(90.0, 70.0), density=4.0, dim=dim, rng=11, rotation_deg=(0.5, -0.3, 2.0))
+    fast = als_epochs(region, **kw)
+    monkeypatch.setattr(S, "hard_surface", _reference_hard_surface)
+    monkeypatch.setattr(S, "rounded_surface", _reference_rounded_surface)
+    slow = als_epochs(region, **kw)
+    for a, b in ((fast.target, slow.target), (fast.source, slow.source)):
+        assert a.xyz.shape == b.xyz.shape and np.array_equal(a.xyz, b.xyz)
+        for name in ("classification", "intensity", "return_number", "gps_time"):
+            assert np.array_equal(a[name], b[name])
+    # the check is not empty: buildings are present and roofs were hit
+    assert (fast.target["classification"] == 6).sum() > 50
+
+
+def test_grid_finds_every_point_of_a_box():
+    from labkit.synthetic._als_scene import _Grid
+    rng = np.random.default_rng(3)
+    x, y = rng.uniform(-5, 95, 20000), rng.uniform(3, 61, 20000)
+    grid = _Grid(x, y, cell=7.0)
+    for x0, x1, y0, y1 in [(10, 30, 10, 20), (-50, 200, -50, 200), (94.9, 300, 0, 4), (200, 300, 0, 10)]:
+        got = set(grid.points_in(x0, x1, y0, y1).tolist())
+        want = set(np.nonzero((x >= x0) & (x <= x1) & (y >= y0) & (y <= y1))[0].tolist())
+        assert want <= got  # a superset (whole cells), never missing a point
+        assert len(got) < len(x) or (x0 < -5 and x1 > 95)

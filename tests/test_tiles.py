@@ -254,3 +254,94 @@ def test_binned_cut_equals_masking_every_tile(buffer):
     if buffer == 0:  # no buffer: the tiles partition the points inside the grid
         inside = ((xyz[:, :2] >= 0) & (xyz[:, :2] < 35)).all(axis=1)
         assert sum(sizes) == inside.sum()
+
+
+# --------------------------------------------------------------------------- campaigns: folders, resume, schedulers
+class _Counting:
+    """plane_translation that counts its calls (the tiles actually computed)."""
+
+    def __init__(self):
+        self.calls = 0
+
+    def __call__(self, source, target):
+        self.calls += 1
+        return plane_translation(source, target)
+
+
+def test_results_folder_resumes_without_recomputing(tmp_path):
+    src, tgt, _ = _survey(n=12_000)
+    method = _Counting()
+    first = tiles.register_tiles(src, tgt, method, size=50.0, scheduler="threads", results=tmp_path / "r")
+    files = sorted((tmp_path / "r").glob("tile_*.json"))
+    assert method.calls == len(first) == len(files) == 8 and first.n_reused == 0
+    stamps = {p.name: p.stat().st_mtime_ns for p in files}
+    again = tiles.register_tiles(src, tgt, method, size=50.0, scheduler="threads", results=tmp_path / "r")
+    assert method.calls == 8 and again.n_reused == 8  # a rerun computes nothing new ...
+    assert {p.name: p.stat().st_mtime_ns for p in files} == stamps  # ... and writes nothing
+    np.testing.assert_array_equal(again.translations, first.translations)
+    np.testing.assert_array_equal(again.covariances, first.covariances)
+    assert [t.tile.bounds for t in again.tiles] == [t.tile.bounds for t in first.tiles]
+    # a killed run: two tiles never written, one cut short; exactly those three are computed
+    files[0].unlink(), files[3].unlink(), files[5].write_text('{"tile": ')
+    resumed = tiles.register_tiles(src, tgt, method, size=50.0, scheduler="serial", results=tmp_path / "r")
+    assert method.calls == 11 and resumed.n_reused == 5
+    np.testing.assert_allclose(resumed.translations, first.translations, rtol=0, atol=1e-12)
+    # other options or other input: nothing is reused
+    tiles.register_tiles(src, tgt, method, size=50.0, min_points=300, scheduler="serial", results=tmp_path / "r")
+    assert method.calls == 19
+    moved = PointCloud(src.xyz + [0.01, 0, 0], src.attributes)
+    tiles.register_tiles(moved, tgt, method, size=50.0, min_points=300, scheduler="serial", results=tmp_path / "r")
+    assert method.calls == 27
+
+
+def test_progress_counts_tiles_on_every_scheduler():
+    src, tgt, _ = _survey(n=6000)
+    for scheduler in ("serial", "threads", "sync"):
+        events = []
+        field = tiles.register_tiles(src, tgt, plane_translation, size=50.0, scheduler=scheduler,
+                                     progress=events.append)
+        steps = [e for e in events if not e.finished]
+        assert len(steps) == len(field) == 8 and events[-1].done == events[-1].total == 8, scheduler
+        assert all(e.desc == "tiles" for e in events)
+
+
+def test_folders_and_globs_of_tiles_read_only_what_a_tile_needs(tmp_path):
+    io = pytest.importorskip("labkit.io")
+    src, tgt, _ = _survey(n=8000, seed=5)
+    (tmp_path / "s").mkdir(), (tmp_path / "t").mkdir()
+    s_paths = tiles.write_tiles(src, tmp_path / "s", 50.0)
+    tiles.write_tiles(tgt, tmp_path / "t", 50.0, prefix="ref")
+    by_folder = tiles.register_tiles(tmp_path / "s", str(tmp_path / "t" / "ref_*.laz"), plane_translation,
+                                     size=50.0, buffer=5.0, scheduler="serial")
+    listed = tiles.register_tiles(s_paths, sorted((tmp_path / "t").iterdir()), plane_translation,
+                                  size=50.0, buffer=5.0, scheduler="serial")
+    np.testing.assert_array_equal(by_folder.translations, listed.translations)
+    # a tile task receives only the files whose header meets its buffered box
+    survey = tiles._survey(str(tmp_path / "s"))
+    tile = tiles.tile_grid(survey.bounds(), 50.0, buffer=5.0)[0]
+    near = survey.for_tile(tile)
+    want = io.files_in_box(str(tmp_path / "s"), tile.read_bounds)
+    assert sorted(near.paths) == sorted(str(p) for p in want) and 1 <= len(near.paths) < len(s_paths)
+    with pytest.raises(CloudFileError, match="no point-cloud file"):
+        tiles.register_tiles(str(tmp_path / "nothing_*.laz"), tmp_path / "t", plane_translation)
+
+
+@pytest.mark.parametrize("text, ok", [
+    ("threads", True), ("cluster", True), ("serial", True), ("tcp://127.0.0.1:8786", True),
+    ("tcp://scheduler.lab.local:8786", True), ("tls://[::1]:9000", True),
+    ("tcp://127.0.0.1", False), ("tcp://host:99999", False), ("127.0.0.1:8786", False), ("gpu", False),
+    ("http://host:8786", False), ("", False), (None, False),
+])
+def test_scheduler_names_and_addresses(text, ok):
+    if ok:
+        assert tiles.check_scheduler(text) == text
+    else:
+        with pytest.raises(LabkitError, match="scheduler"):
+            tiles.check_scheduler(text)
+
+
+def test_unreachable_scheduler_is_a_clear_error():
+    pytest.importorskip("distributed")
+    src, tgt, _ = _survey(n=3000)
+    with pytest.raises(LabkitError, match="cannot reach the Dask scheduler at tcp://127.0.0.1:9"):
+        tiles.register_tiles(src, tgt, plane_translation, size=50.0, scheduler="tcp://127.0.0.1:9")

@@ -20,6 +20,7 @@ from .._checks import as_points, choice, positive
 from .._frame import local_origin
 from .._report import ReportMixin, fmt
 from ..errors import EmptyRegionError, LabkitError
+from ..progress import IterationSteps
 from ..transforms import angles_from_rotation, check_transform
 from .matching import Correspondences, prepare
 from .result import RegistrationResult, degeneracy_report, group_consistency
@@ -130,6 +131,7 @@ def icp(
     target_normals=None,
     source_normals=None,
     rng=None,
+    progress=False,
 ) -> RegistrationResult:
     """Register ``source`` onto ``target`` by ICP (seed: ``ICP``).
 
@@ -199,6 +201,8 @@ def icp(
     max_distance, max_angle_deg, classes, class_sigma, default_sigma, noise_weighting, max_noise, sample, unique, k,
     target_normals, source_normals, rng
         Matching options, see :func:`labkit.registration.match`.
+    progress : bool, "bar", "lines" or callable
+        One step per iteration with the current shift and number of pairs (:mod:`labkit.progress`).
 
     Returns
     -------
@@ -288,8 +292,10 @@ def icp(
     opts["cascade"] = True
     plain = dict(opts, robust=None, k=None, cascade=False)  # warm-up stage: no robust measures, no cascade
     history, converged, adj, step, robust_stage = [], False, None, np.inf, False
-    # 3. iterate: match, clean, adjust, update
+    # 3. iterate: match, clean, adjust, update (progress: one step per iteration, shift and pairs)
+    steps = IterationSteps(progress, max_iterations, "ICP")
     for it in range(1, max_iterations + 1):
+        steps.update(history)
         # once entered, the robust stage stays: its first steps can be large (the outliers
         # lose their pull), and falling back to the plain stage would undo them (a 3-cycle)
         robust_stage = robust_stage or step < robust_start
@@ -303,6 +309,7 @@ def icp(
         if final_stage and (small or (cycle and max(h.step for h in history[-cycle:]) < 100 * tol)):
             converged = True
             break
+    steps.close(history)
     # 4. final report from the last adjustment
     return _result(R, t, origin, adj, history, converged, matcher, opts, time.perf_counter() - t_start)
 

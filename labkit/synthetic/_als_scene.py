@@ -11,7 +11,8 @@ plus tree crowns (ellipsoids) and building walls. Two sensors sample it:
   (crown tops, no ground below trees), building edges rounded by a smoothing
   kernel, large noise on textureless materials.
 
-Everything is vectorized over points; loops run over a handful of buildings.
+Everything is vectorized over points; loops run over the buildings, each on the points of the grid
+cells under its footprint (cost linear in the area).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ MATERIALS = {
     8: ("low vegetation", 3, 0.08, 0.15, 22000, 5000),
 }
 GROUND, ROAD, FIELD, WATER, ROOF, FLAT_ROOF, WALL, VEG, LOW_VEG = range(9)
+GRID_CELL = 10.0  # side (m) of the cells that sort the points for the per-building evaluation
 
 
 def _table(col: int) -> np.ndarray:
@@ -181,8 +183,49 @@ def ground_z(scene: Scene, x, y):
     return z
 
 
-def hard_surface(scene: Scene, x, y, epoch: int):
-    """First hard surface (no vegetation crowns) at x, y: height and material code."""
+class _Grid:
+    """Points sorted once into square cells, so a building touches only the points near its footprint.
+
+    Evaluating every roof on every point costs (number of buildings) x (number of points), which grows
+    with the square of the area; through the grid each building costs only the points of the cells its
+    footprint covers, and the whole surface stays linear in the area. The values are the same as the
+    full evaluation: a roof is -inf (no effect) outside its footprint.
+    """
+
+    def __init__(self, x, y, cell: float = GRID_CELL):
+        self.cell = float(cell)
+        self.x0, self.y0 = (float(x.min()), float(y.min())) if x.size else (0.0, 0.0)
+        ix = ((x - self.x0) // self.cell).astype(np.int64) if x.size else np.zeros(0, np.int64)
+        iy = ((y - self.y0) // self.cell).astype(np.int64) if y.size else np.zeros(0, np.int64)
+        self.nx = int(ix.max()) + 1 if x.size else 1
+        self.ny = int(iy.max()) + 1 if y.size else 1
+        key = iy * self.nx + ix
+        self.order = np.argsort(key, kind="stable")
+        self.start = np.searchsorted(key[self.order], np.arange(self.nx * self.ny + 1))
+
+    def points_in(self, x0: float, x1: float, y0: float, y1: float) -> np.ndarray:
+        """Indices of all points in the cells that meet the box [x0, x1] x [y0, y1] (a superset of the box)."""
+        i0 = max(int((x0 - self.x0) // self.cell), 0)
+        i1 = min(int((x1 - self.x0) // self.cell), self.nx - 1)
+        j0 = max(int((y0 - self.y0) // self.cell), 0)
+        j1 = min(int((y1 - self.y0) // self.cell), self.ny - 1)
+        if i1 < i0 or j1 < j0:
+            return np.zeros(0, dtype=np.int64)
+        rows = [self.order[self.start[j * self.nx + i0]:self.start[j * self.nx + i1 + 1]]
+                for j in range(j0, j1 + 1)]
+        return np.concatenate(rows)
+
+
+def _footprint(b: "Building", pad: float = 0.0):
+    return b.cx - b.hx - pad, b.cx + b.hx + pad, b.cy - b.hy - pad, b.cy + b.hy + pad
+
+
+def hard_surface(scene: Scene, x, y, epoch: int, grid: _Grid | None = None):
+    """First hard surface (no vegetation crowns) at x, y: height and material code.
+
+    Each building's roof is evaluated only on the points of the grid cells under its footprint
+    (``grid``, built here when not given), so the cost is linear in the number of points.
+    """
     z = ground_z(scene, x, y)
     mat = np.full(x.shape, GROUND, dtype=np.int8)
     for x0, x1, y0, y1 in scene.fields:
@@ -203,13 +246,18 @@ def hard_surface(scene: Scene, x, y, epoch: int):
         wet = z < level
         z = np.where(wet, level, z)
         mat[wet] = WATER
-    for b in scene.buildings:
-        if not b.epochs[epoch]:
+    present = [b for b in scene.buildings if b.epochs[epoch]]
+    if present:
+        z = np.array(z, dtype=np.float64, copy=True)
+        grid = _Grid(x, y) if grid is None else grid
+    for b in present:
+        idx = grid.points_in(*_footprint(b))
+        if idx.size == 0:
             continue
-        zr = b.roof(x, y)
-        up = zr > z
-        z = np.where(up, zr, z)
-        mat[up] = b.material
+        zr = b.roof(x[idx], y[idx])
+        up = zr > z[idx]
+        z[idx] = np.where(up, zr, z[idx])
+        mat[idx[up]] = b.material
     return z, mat
 
 
@@ -228,11 +276,13 @@ def _kernel(radius: float):
 
 def rounded_surface(scene: Scene, x, y, epoch: int, radius: float = 0.35):
     """Hard surface smoothed near buildings, as dense image matching renders edges."""
-    z, mat = hard_surface(scene, x, y, epoch)
+    grid = _Grid(x, y)
+    z, mat = hard_surface(scene, x, y, epoch, grid)
     near = np.zeros(x.shape, dtype=bool)
     for b in scene.buildings:
         if b.epochs[epoch]:
-            near |= b.near_edge(x, y, radius)
+            idx = grid.points_in(*_footprint(b, radius))
+            near[idx] |= b.near_edge(x[idx], y[idx], radius)
     if near.any():
         off, w = _kernel(radius)
         xs, ys = x[near], y[near]
