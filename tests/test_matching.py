@@ -265,3 +265,13 @@ def test_quadric_needs_enough_neighbours():
         match(pts, pts, surface="quadric", k=8)
     with pytest.raises(LabkitError, match="surface must be one of"):
         match(pts, pts, surface="cubic")
+
+
+def test_auto_surface_chooses_by_neighbourhood_size():
+    # sparse ALS-like ground (k-neighbourhoods metres wide): quadric; the same ground 400 times
+    # denser (a few centimetres wide, as TLS): plane, whose sagitta is negligible there
+    sparse, _ = _sparse_hills(np.random.default_rng(14), side=60.0)
+    assert match(sparse[::2], sparse[1::2], surface="auto").settings["surface"] == "quadric"
+    dense = sparse[:2000] * 0.02
+    assert match(dense[::2], dense[1::2], surface="auto", max_distance=None).settings["surface"] == "plane"
+
