@@ -856,8 +856,9 @@ def match(
         holds the curvature, so its noise (and weight, and ``max_noise``) is wrong by
         that much, and the point-to-plane residual carries the sagitta between p_i and
         q_j. With 'quadric' the noise is the spread about the quadric (redundancy
-        k - 6), ``d`` runs from p_i to its foot point on the target's quadric and
-        ``target_normal`` is the quadric's normal there. Needs k >= 10. 'auto': the quadric
+        k - 6), ``d`` runs from p_i to its foot point on the target's quadric, shifted to pass
+        through the measured q_j (its slopes and curvatures kept, so that q_j's noise enters one
+        residual only, as with the plane), and ``target_normal`` is the quadric's normal there. Needs k >= 10. 'auto': the quadric
         where the target's k-neighbourhoods are wider than 0.25 m (median radius; sparse
         ALS), else the plane; ``settings['surface']`` of the result names the choice.
     tree : optional
