@@ -202,10 +202,12 @@ def icp(
         (default): the PCA plane through q_j. 'quadric': a local quadric through q_j, which removes
         the sagitta of the plane on curved ground; on the real ALS halves at full density
         (2.7 pts/m^2, mostly ground) the plane's X is 13 mm off at a stated 3.5 mm (3.8 std, the
-        same sign over three random splits), the quadric's within 2.1 std. Not the default: on the
-        synthetic scenes with roofs and walls its stated covariance is 1.3-1.7 times too small
-        (the plane's 1.0-1.2). 'auto': the quadric where the target's k-neighbourhoods are wider
-        than 0.25 m, else the plane. ``result.method`` names the model used.
+        same sign over three random splits), the quadric's within 2.1 std. Not the default: its
+        stated covariance is too small in Monte Carlo runs (spread / stated 1.5-1.6 on the small
+        test scene with roofs, 1.3-1.65 on smooth wavy ground at 2.5 pts/m^2, 1.2 on the sparse
+        hills at 0.8 pts/m^2; the plane's 1.0-1.2), and its actual error there is not smaller than
+        the plane's. 'auto': the quadric where the target's k-neighbourhoods are wider than
+        0.25 m, else the plane. ``result.method`` names the model used.
     max_distance, max_angle_deg, classes, class_sigma, default_sigma, noise_weighting, max_noise, sample, unique, k,
     target_normals, source_normals, rng
         Matching options, see :func:`labkit.registration.match`.
