@@ -18,7 +18,7 @@ with independent noise (alternating lines of the ALS file differ systematically,
 facet, and blocks of lines leave no overlap). Times include each library's own normal estimation
 (Open3D ``estimate_normals`` KNN 20 on the target; labkit inside ``icp``). labkit estimates a
 translation (its default); Open3D's point-to-plane estimator is rigid. ALS rows also show
-``surface='auto'`` (the local quadric on metre-wide neighbourhoods). Errors are the difference
+``surface='plane'`` beside the default 'auto' (the local quadric on metre-wide neighbourhoods). Errors are the difference
 of the estimated and the true motion of the source's centre, in mm. The machine may be loaded by
 other jobs: compare the two libraries within one row, not across runs.
 
@@ -138,8 +138,8 @@ def main(argv=None):
         ref = shift_mm(truth, c) if truth is not None else np.zeros(3)
         n = f"{len(src)}/{len(tgt)}"
         variants = [("labkit icp", {})]
-        if name.startswith("als"):  # the local quadric ('auto' picks it for metre-wide neighbourhoods)
-            variants.append(("labkit auto", {"surface": "auto"}))
+        if name.startswith("als"):  # the default 'auto' picks the local quadric here; the plane beside it
+            variants.append(("labkit plane", {"surface": "plane"}))
         for label, kw in variants:
             t, T, res = run_labkit(src, tgt, **kw)
             print(f"{name if not kw else '':18s} {n if not kw else '':>16s} {label:14s} {t:7.2f} "
