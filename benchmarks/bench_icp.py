@@ -17,7 +17,8 @@ Random halves, not alternating scan lines, make the honest epochs: disjoint poin
 with independent noise (alternating lines of the ALS file differ systematically, e.g. by mirror
 facet, and blocks of lines leave no overlap). Times include each library's own normal estimation
 (Open3D ``estimate_normals`` KNN 20 on the target; labkit inside ``icp``). labkit estimates a
-translation (its default); Open3D's point-to-plane estimator is rigid. Errors are the difference
+translation (its default); Open3D's point-to-plane estimator is rigid. ALS rows also show
+``surface='plane'`` beside the default 'auto' (the local quadric on metre-wide neighbourhoods). Errors are the difference
 of the estimated and the true motion of the source's centre, in mm. The machine may be loaded by
 other jobs: compare the two libraries within one row, not across runs.
 
@@ -89,9 +90,9 @@ def pairs(root, quick):
     return out
 
 
-def run_labkit(src, tgt):
+def run_labkit(src, tgt, **kw):
     t = time.perf_counter()
-    res = icp(src, tgt, rng=0)
+    res = icp(src, tgt, rng=0, **kw)
     return time.perf_counter() - t, res.matrix, res
 
 
@@ -136,12 +137,18 @@ def main(argv=None):
         c = src.mean(axis=0)
         ref = shift_mm(truth, c) if truth is not None else np.zeros(3)
         n = f"{len(src)}/{len(tgt)}"
-        t, T, res = run_labkit(src, tgt)
-        print(f"{name:18s} {n:>16s} {'labkit icp':14s} {t:7.2f} " + " ".join(f"{v:8.2f}" for v in shift_mm(T, c) - ref))
-        std = 1000 * res.translation_std
-        print(f"{'':18s} {'':16s} {'  stated std':14s} {'':7s} " + " ".join(f"{v:8.2f}" for v in std)
-              + f"   {res.iterations} it., {'converged' if res.converged else 'NOT converged'}"
-              + (f"; undetermined {','.join(res.degeneracy.undetermined_axes)}" if res.degeneracy.undetermined_axes else ""))  # fmt: skip
+        variants = [("labkit icp", {})]
+        if name.startswith("als"):  # the default 'auto' picks the local quadric here; the plane beside it
+            variants.append(("labkit plane", {"surface": "plane"}))
+        for label, kw in variants:
+            t, T, res = run_labkit(src, tgt, **kw)
+            print(f"{name if not kw else '':18s} {n if not kw else '':>16s} {label:14s} {t:7.2f} "
+                  + " ".join(f"{v:8.2f}" for v in shift_mm(T, c) - ref))
+            std = 1000 * res.translation_std
+            print(f"{'':18s} {'':16s} {'  stated std':14s} {'':7s} " + " ".join(f"{v:8.2f}" for v in std)
+                  + f"   {res.iterations} it., {'converged' if res.converged else 'NOT converged'}"
+                  + (f"; undetermined {','.join(res.degeneracy.undetermined_axes)}" if res.degeneracy.undetermined_axes else "")
+                  + f"; {res.method.split('surface=')[-1].rstrip(')')}")  # fmt: skip
         if o3d is not None:
             t, T = run_open3d(src, tgt, o3d)
             print(f"{'':18s} {'':16s} {'open3d p2pl':14s} {t:7.2f} " + " ".join(f"{v:8.2f}" for v in shift_mm(T, c) - ref))

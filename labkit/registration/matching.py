@@ -43,8 +43,11 @@ RULES = ("accepted", "class", "noise", "distance", "normal_angle", "duplicate", 
 _CODE = {name: code for code, name in enumerate(RULES)}
 #: Floor for a point's standard deviation in the weights (m), keeps weights finite.
 MIN_SIGMA = 0.005
-#: Local surface models of :func:`match`: the PCA plane (default) or a quadric (curved, sparse surfaces).
-SURFACES = ("plane", "quadric")
+#: Local surface models of :func:`match`: the PCA plane (default) or a quadric (curved, sparse surfaces);
+#: 'auto' chooses by the size of the target's k-neighbourhoods (:func:`_auto_surface`).
+SURFACES = ("plane", "quadric", "auto")
+#: surface='auto' fits quadrics where the median radius of the target's k-neighbourhoods exceeds this (m).
+AUTO_QUADRIC_RADIUS = 1.0
 #: Normal-space sampling draws only from planar neighbourhoods: l3 / (l1 + l2 + l3) below this.
 MAX_VARIATION = 0.02
 
@@ -224,33 +227,37 @@ def _leaf_geometry(tree, cols, pos, k, quadric=False):
         vecs[~ok] = np.nan
         flip = vecs[:, 2, 0] < 0  # orient the frame's normal up; h and its coefficients flip with it
         vecs[flip, :, 0] *= -1
-        coef, sig = np.empty((len(pos), 6)), np.empty(len(pos))
-        _quadric(tree.data, nb, pos, vecs, coef, sig)
+        coef, sig, slope = np.empty((len(pos), 6)), np.empty(len(pos)), np.empty((len(pos), 3))
+        _quadric(tree.data, nb, pos, vecs, coef, sig, slope)
         fit = np.isfinite(sig)  # else (k < 7, degenerate fit) the plane stays
         _, n_q = _on_quadric(coef[fit], vecs[fit], np.zeros((int(fit.sum()), 3)))
         n[fit] = n_q  # the surface normal at the point itself
-        return n, np.where(fit, sig, noise), np.where(ok, variation, np.nan), coef, vecs
+        return n, np.where(fit, sig, noise), np.where(ok, variation, np.nan), coef, vecs, slope
     return n, noise, np.where(ok, variation, np.nan)
 
 
-def _quadric_kernel(X, nb, qpos, V, coef, sig):  # pragma: no cover - compiled
+def _quadric_kernel(X, nb, qpos, V, coef, sig, slope):  # pragma: no cover - compiled
     """Local quadric h = a u^2 + b uv + c v^2 + d u + e v + f per neighbourhood, in the PCA frame at q.
 
     (u, v) are the coordinates along the two largest eigenvectors, h along the normal
     (V's columns: eigenvalues ascending), all relative to the query point q itself and
     scaled by the neighbourhood's extent for conditioning. Least squares by the 6x6
     normal equations (Gaussian elimination with partial pivoting);
-    sig = sqrt(RSS / (m - 6)), the noise about the curved surface.
+    sig = sqrt(RSS / (m - 6)), the noise about the curved surface; ``slope`` holds the
+    covariance (var d, cov de, var e) of the surface's slopes at q, sig^2 times the (d, e)
+    block of the inverse normal matrix: the random tilt of the quadric's normal.
     """
     m, k = nb.shape
     N = np.empty((6, 6))
     g = np.empty(6)
     r = np.empty(6)
+    c = np.empty((6, 3))
     for i in range(m):
         q = qpos[i]
         nx, ny, nz = V[i, 0, 0], V[i, 1, 0], V[i, 2, 0]
         ax, ay, az = V[i, 0, 2], V[i, 1, 2], V[i, 2, 2]
         bx, by, bz = V[i, 0, 1], V[i, 1, 1], V[i, 2, 1]
+        slope[i, :] = np.nan
         if not (np.isfinite(nx) and np.isfinite(ax) and np.isfinite(bx)) or k < 7:
             coef[i, :] = np.nan
             sig[i] = np.nan
@@ -284,7 +291,10 @@ def _quadric_kernel(X, nb, qpos, V, coef, sig):  # pragma: no cover - compiled
             for b in range(a):
                 N[a, b] = N[b, a]
         A = N.copy()
-        c = g.copy()
+        c[:, :] = 0.0  # right-hand sides: g, and the unit vectors of d and e (their inverse columns)
+        c[:, 0] = g
+        c[3, 1] = 1.0
+        c[4, 2] = 1.0
         ok = True
         for col in range(6):  # elimination with partial pivoting
             piv = col
@@ -297,28 +307,33 @@ def _quadric_kernel(X, nb, qpos, V, coef, sig):  # pragma: no cover - compiled
             if piv != col:
                 for b in range(6):
                     A[col, b], A[piv, b] = A[piv, b], A[col, b]
-                c[col], c[piv] = c[piv], c[col]
+                for b in range(3):
+                    c[col, b], c[piv, b] = c[piv, b], c[col, b]
             for row in range(col + 1, 6):
                 f = A[row, col] / A[col, col]
                 for b in range(col, 6):
                     A[row, b] -= f * A[col, b]
-                c[row] -= f * c[col]
+                for b in range(3):
+                    c[row, b] -= f * c[col, b]
         if not ok:
             coef[i, :] = np.nan
             sig[i] = np.nan
             continue
-        for col in range(5, -1, -1):
-            t = c[col]
-            for b in range(col + 1, 6):
-                t -= A[col, b] * c[b]
-            c[col] = t / A[col, col]
+        for b in range(3):
+            for col in range(5, -1, -1):
+                t = c[col, b]
+                for a in range(col + 1, 6):
+                    t -= A[col, a] * c[a, b]
+                c[col, b] = t / A[col, col]
         rss = hh
         for a in range(6):
-            rss -= c[a] * g[a]
+            rss -= c[a, 0] * g[a]
         sig[i] = np.sqrt(max(rss, 0.0) / (k - 6))
         # back to metres: u_scaled = u / s
-        coef[i, 0], coef[i, 1], coef[i, 2] = c[0] / (s * s), c[1] / (s * s), c[2] / (s * s)
-        coef[i, 3], coef[i, 4], coef[i, 5] = c[3] / s, c[4] / s, c[5]
+        coef[i, 0], coef[i, 1], coef[i, 2] = c[0, 0] / (s * s), c[1, 0] / (s * s), c[2, 0] / (s * s)
+        coef[i, 3], coef[i, 4], coef[i, 5] = c[3, 0] / s, c[4, 0] / s, c[5, 0]
+        s2n = sig[i] * sig[i] / (s * s)
+        slope[i, 0], slope[i, 1], slope[i, 2] = s2n * c[3, 1], s2n * 0.5 * (c[4, 1] + c[3, 2]), s2n * c[4, 2]
 
 
 if HAVE_NUMBA:
@@ -369,6 +384,7 @@ class _Geometry:
         self.done = np.zeros(m, dtype=bool)  # computed (NaN results of degenerate points included)
         if quadric:
             self.coef, self.frame = np.full((m, 6), np.nan), np.full((m, 3, 3), np.nan)
+            self.slope = np.full((m, 3), np.nan)
 
     def at(self, index, need_noise=False):
         pos = self.tree.representative[index]
@@ -381,7 +397,7 @@ class _Geometry:
                 out = _leaf_geometry(self.tree, self.cols, new, self.k, self.quadric)
                 self.normals[new], self.noise[new] = out[0], out[1]
                 if self.quadric:
-                    self.coef[new], self.frame[new] = out[3], out[4]
+                    self.coef[new], self.frame[new], self.slope[new] = out[3], out[4], out[5]
                 self.done[new] = True
         normals = self.normals[pos] if self.given is None else self.given[index]
         return normals, self.noise[pos]
@@ -390,7 +406,21 @@ class _Geometry:
         """Offsets (m, 3) from the points ``q + w`` to the local quadric of ``q`` = point ``index``, and
         the surface normals there (requires :meth:`at` first); rows without a quadric get NaN offsets."""
         pos = self.tree.representative[index]
-        return _on_quadric(self.coef[pos], self.frame[pos], w)
+        coef = self.coef[pos].copy()
+        coef[:, 5] = 0.0  # the surface through the measured q itself (see _Matcher.__call__)
+        return _on_quadric(coef, self.frame[pos], w)
+
+    def tilt(self, index):
+        """Covariance (m, 3, 3) of the random tilt of the quadric normals at the points ``index``.
+
+        The normal n - d t1 - e t2 at q tilts by -(dd t1 + de t2) with the covariance of the
+        fitted slopes (d, e) (requires :meth:`at` first; NaN where no quadric was fitted).
+        """
+        pos = self.tree.representative[index]
+        T = self.frame[pos][:, :, [2, 1]]  # tangents t1 (u), t2 (v)
+        vd, cde, ve = self.slope[pos].T
+        C = np.stack([np.stack([vd, cde], -1), np.stack([cde, ve], -1)], -2)
+        return np.einsum("mia,mab,mjb->mij", T, C, T)
 
     def compute(self, index, k):
         """Normals, noise and change of curvature at ``index`` with k neighbours (no caching)."""
@@ -536,11 +566,17 @@ class _Matcher:
         tidx[live] = j
         d[live] = self.target[j] - p[live]
         nt[live], noise_t[live] = self.geometry.at(j, need_noise=opt["need_noise"])
+        nearest_d = d  # q_j - p_i: the duplicate rule keeps the nearest source point by this
         if opt["surface"] == "quadric" and len(live):
-            # the foot point on the target's local quadric replaces q_j: no curvature bias (sagitta)
+            nearest_d = d.copy()
+            # the foot point on the target's local quadric replaces q_j: no curvature bias (sagitta).
+            # The quadric is shifted to pass through the measured q_j (its slopes and curvatures
+            # kept): q_j's noise then enters one residual only, as with the plane; the fitted value
+            # would spread every target point's noise over the ~k residuals around it, correlated
+            # beyond the block cells (stated std 1.4-1.6 times too small on sparse hills)
             off, n_s = self.geometry.foot(j, -d[live])
             fit = np.isfinite(off[:, 0])
-            d[live[fit]], nt[live[fit]] = off[fit], n_s[fit]
+            d[live[fit]], nt[live[fit]] = off[fit], n_s[fit]  # the quadric's normal at the foot point
         # a target point whose neighbourhood is a point or a line has no normal (issue 16)
         rule[live[np.isnan(nt[live, 0]) & (rule[live] == 0)]] = _CODE["degenerate"]
         # (4) gates on the target point: class, noise, normal angle
@@ -560,7 +596,10 @@ class _Matcher:
                 bad = angle[live] > opt["max_angle_deg"]
                 rule[live[bad & (rule[live] == 0)]] = _CODE["normal_angle"]
         if opt["unique"]:
-            _reject_duplicates(rule, tidx, d, len(self.target))
+            # by the point-to-point distance, never by the residual: keeping the source point with
+            # the smallest quadric offset would select on the residual itself (residuals too small,
+            # stated covariance 1.3-1.65 times too small in Monte Carlo runs)
+            _reject_duplicates(rule, tidx, nearest_d, len(self.target))
         # (5) weights p = 1 / (sigma_s^2 + sigma_t^2)  (eq. 5.6)
         weight = np.zeros(m)
         weight[live] = 1.0 / (self.source_sigma[live] ** 2 + self._target_sigma(j, noise_t[live]) ** 2)
@@ -578,9 +617,8 @@ class _Matcher:
             s = _class_sigma(self.target_class[j], opt["class_sigma"])
             var += np.where(np.isnan(s), opt["default_sigma"], s) ** 2
         if opt["noise_weighting"]:
-            # the plane's q_j is one measured point; the quadric's foot point is a fitted value, whose
-            # variance is on average sigma^2 u / k (mean leverage of u = 6 parameters over k points)
-            var += noise**2 * (6.0 / opt["k"] if opt["surface"] == "quadric" else 1.0)
+            # the plane and the quadric both pass through the measured q_j: its variance counts once
+            var += noise**2
         if not opt["class_sigma"] and not opt["noise_weighting"]:
             return np.full(len(j), np.sqrt(0.5))  # unit weights: p = 1
         return np.sqrt(np.maximum(var, MIN_SIGMA**2))
@@ -666,7 +704,10 @@ def prepare(
         raise LabkitError(f"the given tree holds {getattr(tree, 'n', '?')} points, the target has {len(tgt_l)}")
     # the target's compiled kd-tree (exact duplicates merged) and its geometry cache: once per call
     tree = KDTree(tgt_l, merge_duplicates=True)
-    quadric = choice(surface, SURFACES, "surface") == "quadric"
+    choice(surface, SURFACES, "surface")
+    if surface == "auto":
+        surface = _auto_surface(tree, int(k))
+    quadric = surface == "quadric"
     if quadric and int(k) < 10:
         raise LabkitError(f"surface='quadric' fits 6 parameters: k must be at least 10, got {k}")
     tgt_geo = _Geometry(tgt_l, int(k), _given_normals(target_normals, len(tgt_l), "target_normals"), tree, quadric)
@@ -715,6 +756,25 @@ def prepare(
         src_l[idx], idx, src_normals, sigma, rule, tgt_l, tree, tgt_geo, tgt_cls, options, origin, len(src),
         None if src_cls is None else src_cls[idx], order,
     )  # fmt: skip
+
+
+def _auto_surface(tree, k):
+    """'quadric' where the target's k-neighbourhoods are wide (sparse ALS), else 'plane' (TLS, dense DIM).
+
+    A plane fitted to a neighbourhood of radius r on ground curved with radius R misses the surface
+    by up to the sagitta r^2 / (2 R); its point-to-plane residuals carry that offset, and weighted by
+    the slopes it biases the weak horizontal shift (real ALS halves at 2.7 pts/m^2: X 13 mm off at a
+    stated 3.5 mm with the plane, 1.5 mm at a stated 2.9 mm with the quadric). Within r = 1 m the
+    sagitta of natural ground (R > 100 m) stays below 5 mm and averages out over the neighbourhood,
+    and the plane - robust at edges, cheaper, with the better known tilt noise that
+    determinability relies on (eq. 5.12b) - is kept (dense ALS above about 6 pts/m^2, TLS). r is the median distance of the k-th neighbour over an even subset of at
+    most 2000 target points; k < 10 leaves too few points for a quadric.
+    """
+    if k < 10 or tree.n <= k:
+        return "plane"
+    step = max(1, tree.n // 2000)
+    dist = tree.query(tree.data[::step], k=k, workers=1)[0][:, -1]
+    return "quadric" if float(np.median(dist)) > AUTO_QUADRIC_RADIUS else "plane"
 
 
 def _non_negative(value, name):
@@ -806,7 +866,7 @@ def match(
         Neighbours for normals and local noise.
     rng : int or Generator, optional
         For the sampling.
-    surface : {'plane', 'quadric'}
+    surface : {'plane', 'quadric', 'auto'}
         Local surface model of both clouds from their k neighbours. 'plane' (default): the
         PCA plane (notebook 04), right for dense data. 'quadric': a quadric
         h = a u^2 + b uv + c v^2 + d u + e v + f fitted in the PCA frame at each target
@@ -814,8 +874,12 @@ def match(
         holds the curvature, so its noise (and weight, and ``max_noise``) is wrong by
         that much, and the point-to-plane residual carries the sagitta between p_i and
         q_j. With 'quadric' the noise is the spread about the quadric (redundancy
-        k - 6), ``d`` runs from p_i to its foot point on the target's quadric and
-        ``target_normal`` is the quadric's normal there. Needs k >= 10.
+        k - 6), ``d`` runs from p_i to its foot point on the target's quadric, shifted to pass
+        through the measured q_j (its slopes and curvatures kept, so that q_j's noise enters one
+        residual only, as with the plane), and ``target_normal`` is the quadric's normal at
+        the foot point. Needs k >= 10. 'auto': the quadric where the target's k-neighbourhoods are wider
+        than 1 m (median radius; sparse ALS), else the plane; ``settings['surface']`` of the
+        result names the choice.
     tree : optional
         Kept for compatibility: labkit builds its own compiled kd-tree of the target
         (exact duplicates merged) once per call; a given tree is only checked for its size.
