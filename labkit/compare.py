@@ -298,16 +298,6 @@ def _standard(source, target, *, name, dof, extent, max_points, rng, progress=Fa
                    runtime_s=result.runtime_s + refined.runtime_s)
 
 
-def _random_subset(cloud, n, rng):
-    from ._checks import as_rng
-
-    size = len(as_points(cloud, name="source"))
-    if n is None or size <= n:
-        return cloud
-    idx = np.sort(as_rng(rng).choice(size, int(n), replace=False))
-    return cloud.subset(idx) if hasattr(cloud, "subset") else as_points(cloud)[idx]
-
-
 @dataclass(frozen=True, eq=False)
 class FilePair:
     """Two epochs of one region read from files (see :func:`load_pairs`)."""
