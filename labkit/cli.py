@@ -154,7 +154,7 @@ def _cmd_register(args) -> int:
     from .progress import from_cli
 
     _check_dof([args.method], args.dof)
-    progress = from_cli(args.quiet)  # on stderr: reading, each ICP iteration, normals, distances, writing
+    progress = from_cli(args.quiet, args.progress)  # on stderr: reading, ICP iterations, distances, writing
     source = read_cloud(args.source, progress=progress)
     target = read_cloud(args.target, progress=progress)
     print(f"source {args.source}: {len(source)} points; target {args.target}: {len(target)} points")
@@ -221,7 +221,7 @@ def _cmd_tiles(args) -> int:
     results = Path(args.results) if args.results else Path(args.out) / "tiles"
     field = register_tiles(list(args.source), list(args.target), method,
                            size=args.size, buffer=args.buffer, min_points=args.min_points,
-                           scheduler=scheduler, progress=from_cli(args.quiet), results=results,
+                           scheduler=scheduler, progress=from_cli(args.quiet, args.progress), results=results,
                            max_tiles=MAX_TILES if args.max_tiles is None else args.max_tiles)
     test = neighbour_test(field, args.alpha, extra_std=args.extra_std)
     print(field.summary())
@@ -572,8 +572,11 @@ def build_parser() -> argparse.ArgumentParser:
                           "shifts (default: %(default)s)")
     _add_method_options(reg)
     reg.add_argument("--out", default=".", help="output folder (default: the current folder)")
-    reg.add_argument("--quiet", action="store_true",
-                     help="no progress on stderr (reading, ICP iterations, distances, writing)")
+    shown = reg.add_mutually_exclusive_group()
+    shown.add_argument("--quiet", action="store_true",
+                       help="no progress on stderr (reading, ICP iterations, distances, writing)")
+    shown.add_argument("--progress", action="store_true",
+                       help="progress on stderr even when it is not a terminal (default: only on a terminal)")
     reg.set_defaults(func=_cmd_register)
 
     cmp_ = sub.add_parser("compare", help="compare registration methods with references; write a CSV table",
@@ -612,7 +615,10 @@ def build_parser() -> argparse.ArgumentParser:
     tiles.add_argument("--results", metavar="DIR",
                        help="folder for one JSON per finished tile; a rerun reads finished tiles back instead of "
                             "computing them (default: OUT/tiles)")
-    tiles.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    shown = tiles.add_mutually_exclusive_group()
+    shown.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    shown.add_argument("--progress", action="store_true",
+                       help="progress on stderr even when it is not a terminal (default: only on a terminal)")
     _add_method_options(tiles)
     tiles.add_argument("--out", default=".", help="output folder (default: the current folder)")
     tiles.set_defaults(func=_cmd_tiles)

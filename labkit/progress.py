@@ -175,9 +175,19 @@ def iteration_text(record) -> str:
     return f"shift ({t[0]:+.4f}, {t[1]:+.4f}, {t[2]:+.4f}) m, {int(record.n_used):,} pairs"
 
 
-def from_cli(quiet: bool) -> bool:
-    """``progress`` for the command line: shown unless ``--quiet``."""
-    return not quiet
+def from_cli(quiet: bool, force: bool = False, stream=None) -> bool:
+    """``progress`` for the command line.
+
+    ``--quiet`` silences it; ``--progress`` forces it (plain lines in logs and pipes);
+    otherwise it is shown when stderr is a terminal, so that a script or a log that
+    only reads errors sees exactly one line when a command fails.
+    """
+    if quiet:
+        return False
+    if force:
+        return True
+    stream = sys.stderr if stream is None else stream
+    return bool(getattr(stream, "isatty", lambda: False)())
 
 
 # ---------------------------------------------------------------------------- sinks

@@ -294,9 +294,9 @@ def _tiles(epochs, **kwargs):
     ({"min_points": 0}, LabkitError, "min_points must be a whole number >= 1, got 0"),
     ({"size": 1e-3}, LabkitError, "tiles of 0.001 m"),
     ({"size": -5}, LabkitError, "size must be a finite number > 0"),
-    ({"scheduler": "gpu"}, LabkitError, "scheduler must be one of 'threads'"),
+    ({"scheduler": "gpu"}, LabkitError, "scheduler must be one of threads, processes, sync, serial, cluster"),
     ({"max_tiles": 2.5}, LabkitError, "max_tiles must be a whole number"),
-    ({"progress": "no"}, LabkitError, "progress must be True or False, got 'no'"),
+    ({"progress": "no"}, LabkitError, "progress must be True, False, 'bar', 'lines' or a callable, got 'no'"),
 ])
 def test_register_tiles_refuses_before_any_work(epochs, kwargs, error, fragment, monkeypatch):
     import labkit.tiles as T
@@ -529,7 +529,7 @@ CMP = ["compare", "{p}"]
     (TIL + ["--size", "0"], "argument --size: expected a positive number, got '0'"),
     (TIL + ["--size", "nan"], "argument --size: expected a positive number, got 'nan'"),
     (TIL + ["--max-tiles", "0"], "argument --max-tiles: expected a whole number >= 1, got '0'"),
-    (TIL + ["--scheduler", "gpu"], "argument --scheduler: invalid choice: 'gpu'"),
+    (TIL + ["--scheduler", "gpu"], "argument --scheduler: expected threads, processes, sync, serial, cluster or tcp://"),
     (TIL + ["--size", "0.01"], "tiles of 0.01 m"),
     (TIL + ["--method", "consensus", "--dof", "rigid"], "consensus estimates a translation only"),
     (CMP + ["--methods", "icp", "consensus", "--dof", "rigid"], "consensus estimates a translation only"),

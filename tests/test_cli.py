@@ -196,10 +196,10 @@ def test_tiles_on_a_cluster_by_address_resumes_a_killed_run(files, tmp_path, cap
         shutil.copy(files["tgt"], ref / "als_2014.laz")
         argv = ["tiles", str(files["dir"] / "als_2016.la?"), "--target", str(ref), "--size", "15",
                 "--min-points", "100", "--scheduler", address, "--results", str(results)]
-        assert main(argv + ["--out", str(tmp_path / "a")]) == 0
+        assert main(argv + ["--out", str(tmp_path / "a"), "--progress"]) == 0
         out, err = capsys.readouterr()
         assert "tiles: 4 computed, 0 read back" in out and f"scheduler: {address}" in out
-        assert "tiles [" in err  # progress on stderr
+        assert "tiles [" in err  # progress on stderr (asked for: stderr is not a terminal here)
         done = sorted(results.glob("tile_*.json"))
         assert len(done) == 4
         first = list(csv.DictReader((tmp_path / "a" / "shift_field.csv").open()))

@@ -132,8 +132,19 @@ def test_bad_progress_values_raise(bad):
         _run(bad, [1])
 
 
-def test_cli_quiet():
-    assert P.from_cli(quiet=True) is False and P.from_cli(quiet=False) is True
+class _Stream:
+    def __init__(self, tty):
+        self.tty = tty
+
+    def isatty(self):
+        return self.tty
+
+
+def test_cli_quiet_progress_and_terminal():
+    assert P.from_cli(quiet=True, stream=_Stream(True)) is False
+    assert P.from_cli(quiet=False, stream=_Stream(True)) is True  # a terminal: shown
+    assert P.from_cli(quiet=False, stream=_Stream(False)) is False  # a log or pipe: only errors
+    assert P.from_cli(quiet=False, force=True, stream=_Stream(False)) is True  # --progress
 
 
 # --------------------------------------------------------------------------- library functions report their steps
@@ -196,7 +207,9 @@ def test_cli_register_shows_progress_on_stderr_unless_quiet(small_pair, tmp_path
     from labkit.io import write_cloud
 
     src, tgt = write_cloud(small_pair.source, tmp_path / "s.laz"), write_cloud(small_pair.target, tmp_path / "t.laz")
-    assert main(["register", str(src), str(tgt), "--out", str(tmp_path / "o")]) == 0
+    assert main(["register", str(src), str(tgt), "--out", str(tmp_path / "n")]) == 0
+    assert capsys.readouterr().err == ""  # stderr is not a terminal here: no progress unless asked
+    assert main(["register", str(src), str(tgt), "--out", str(tmp_path / "o"), "--progress"]) == 0
     err = capsys.readouterr().err
     for what in ("reading s.laz", "reading t.laz", "ICP [", "pairs", "distances (point_to_plane)", "writing"):
         assert what in err, (what, err)
