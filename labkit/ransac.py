@@ -1153,6 +1153,8 @@ class _Verifier:
             if x_new is None:
                 return None
             x = x_new
+            if not 0.5 * self.cfg.r_min <= x[3] <= 2.0 * self.cfg.r_max:
+                return x  # far outside the radius range: more rounds will not bring it back (reasons() rejects)
             _, d = self._local(x, band)
             d = d[np.abs(d) < band]
             if len(d) > S:
