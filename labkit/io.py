@@ -69,7 +69,7 @@ from . import regions
 from ._report import ReportMixin, fmt
 from .cloud import PointCloud, Units, UnitsError
 from ._atomic import atomic_path
-from ._checks import choice
+from ._checks import check_precision, choice
 from .errors import CloudFileError, EmptyRegionError, LabkitError
 from .progress import progress_steps
 
@@ -830,8 +830,6 @@ def _read_numpy(path: Path, flt: _Filter, keep, chunk_size: int, units: str):
     else:
         with np.load(path, allow_pickle=False) as z:
             xyz, attrs, crs = _split_npz(z, path)
-    from ._checks import check_precision  # (issue 16) float32 files are cast to float64 below
-
     check_precision(xyz, f"the coordinates in {path.name}")
     found = units_from_crs_text(crs)
     if path.suffix.lower() == ".npz":

@@ -41,6 +41,7 @@ from scipy.sparse.csgraph import connected_components
 
 from ._atomic import atomic_write_text
 from ._checks import as_points, choice, count, flag, non_negative, positive, probability
+from .progress import progress_steps
 from ._report import ReportMixin
 from .errors import CloudFileError, EmptyRegionError, LabkitError
 
@@ -574,7 +575,6 @@ def _as_method(method):
 
 def _run_jobs(run, jobs, client, scheduler, progress) -> list:
     """Results of ``run(*job)`` in the order of ``jobs``; progress counts finished tiles."""
-    from .progress import progress_steps
 
     with progress_steps(progress, len(jobs), "tiles", "tiles") as step:
         if not jobs:
