@@ -296,6 +296,117 @@ def _knn(X, nodes, box, depth, Q, k, bound2, idx, dist2):  # pragma: no cover - 
             dist2[q, j] = bd[j]
 
 
+@_njit
+def _knn_leaves(X, nodes, box, depth, leaves, k, idx):  # pragma: no cover - compiled
+    """k nearest tree points of every point of the given leaves (self-queries, leaf order).
+
+    The points of one leaf are searched together: first among themselves, then the
+    tree is walked ONCE for the whole leaf, pruning every node whose box is farther
+    from the leaf's box than the largest current k-th distance of its points; at each
+    visited leaf, a point scans it only if the leaf's box is nearer to it than its own
+    k-th distance. Same neighbours as :func:`_knn` (sorted ascending, ties in any
+    order); the walk from the root is no longer paid per point. Row ``pos - start`` of
+    ``idx`` belongs to leaf-order position ``pos``, ``start`` the first leaf's start.
+    """
+    most = 1
+    for t in range(len(leaves)):
+        most = max(most, nodes[leaves[t], 1] - nodes[leaves[t], 0])
+    bd = np.empty((most, k))
+    bi = np.empty((most, k), np.int64)
+    worst = np.empty(most)
+    stack = np.empty(2 * depth + 4, np.int64)
+    lower = np.empty(2 * depth + 4)  # lower bound of the squared box-to-box distance of each stacked node
+    start = nodes[leaves[0], 0]
+    for t in range(len(leaves)):
+        leaf = leaves[t]
+        a, b = nodes[leaf, 0], nodes[leaf, 1]
+        m = b - a
+        # 1. the leaf's own points
+        wmax = 0.0
+        for qi in range(m):
+            for j in range(k):
+                bd[qi, j] = np.inf
+                bi[qi, j] = -1
+            qx, qy, qz = X[a + qi, 0], X[a + qi, 1], X[a + qi, 2]
+            w = np.inf
+            filled = 0
+            for i in range(a, b):
+                dx, dy, dz = X[i, 0] - qx, X[i, 1] - qy, X[i, 2] - qz
+                d2 = dx * dx + dy * dy + dz * dz
+                if filled < k:  # still filling: shift only the entries found so far
+                    _insert(bd[qi], bi[qi], d2, i, filled + 1)
+                    filled += 1
+                    if filled == k:
+                        w = bd[qi, k - 1]
+                elif d2 < w:
+                    _insert(bd[qi], bi[qi], d2, i, k)
+                    w = bd[qi, k - 1]
+            worst[qi] = w
+            wmax = max(wmax, w)
+        # 2. one walk for the leaf: nodes nearer to its box than the largest k-th distance
+        lo0, lo1, lo2, hi0, hi1, hi2 = box[leaf, 0], box[leaf, 1], box[leaf, 2], box[leaf, 3], box[leaf, 4], box[leaf, 5]
+        sp = 1
+        stack[0] = 0
+        lower[0] = 0.0
+        while sp > 0:
+            sp -= 1
+            node = stack[sp]
+            if lower[sp] >= wmax or node == leaf:
+                continue
+            g = _gap2(box[node, 0], box[node, 3], lo0, hi0) + _gap2(box[node, 1], box[node, 4], lo1, hi1)
+            g += _gap2(box[node, 2], box[node, 5], lo2, hi2)
+            if g >= wmax:
+                continue
+            child = nodes[node, 2]
+            if child < 0:  # a leaf: scanned by the points whose k-th distance reaches its box
+                s, e = nodes[node, 0], nodes[node, 1]
+                wmax = 0.0
+                for qi in range(m):
+                    w = worst[qi]
+                    qx, qy, qz = X[a + qi, 0], X[a + qi, 1], X[a + qi, 2]
+                    gq = _gap2(box[node, 0], box[node, 3], qx, qx) + _gap2(box[node, 1], box[node, 4], qy, qy)
+                    gq += _gap2(box[node, 2], box[node, 5], qz, qz)
+                    if gq < w:
+                        for i in range(s, e):
+                            dx, dy, dz = X[i, 0] - qx, X[i, 1] - qy, X[i, 2] - qz
+                            d2 = dx * dx + dy * dy + dz * dz
+                            if d2 < w:
+                                _insert(bd[qi], bi[qi], d2, i, k)
+                                w = bd[qi, k - 1]
+                        worst[qi] = w
+                    wmax = max(wmax, w)
+                continue
+            # the child on the side of the leaf's centre first; the other beyond the split plane
+            d = int(box[node, 7])
+            v = box[node, 6]
+            lo_d, hi_d = (lo0, hi0) if d == 0 else ((lo1, hi1) if d == 1 else (lo2, hi2))
+            if lo_d + hi_d < 2.0 * v:
+                near, other, cut = child, nodes[node, 3], v - hi_d
+            else:
+                near, other, cut = nodes[node, 3], child, lo_d - v
+            far = max(g, cut * cut) if cut > 0.0 else g
+            if far < wmax:
+                stack[sp] = other
+                lower[sp] = far
+                sp += 1
+            stack[sp] = near
+            lower[sp] = g
+            sp += 1
+        for qi in range(m):
+            for j in range(k):
+                idx[a + qi - start, j] = bi[qi, j]
+
+
+@_njit
+def _gap2(lo, hi, a, b):  # pragma: no cover - compiled
+    """Squared gap between the intervals [lo, hi] and [a, b] (0 where they overlap)."""
+    t = lo - b
+    if t > 0.0:
+        return t * t
+    t = a - hi
+    return t * t if t > 0.0 else 0.0
+
+
 def _build_two(P, leafsize):
     """:func:`_build`, with the root split here and its two halves built in two threads (the kernel
     releases the GIL); the same tree as one call, up to the numbering of the nodes."""
@@ -373,11 +484,39 @@ class KDTree:
                 self.representative[perm] = np.arange(len(P))
         self.data, self.indices = np.ascontiguousarray(X), perm.astype(np.intp)
         self._nodes = (nodes, box, int(depth))
+        self._leaves = None  # leaf node ids in leaf order (see leaf_bounds)
         self.n = len(X)
 
     def query_leaf_positions(self, pos, k: int, workers: int = 1):
         """Leaf-order indices (m, k) of the k nearest tree points of the tree's own points ``pos``."""
         return self._run(self.data[pos], int(k), np.inf, _threads(workers))[1]
+
+    @property
+    def leaf_bounds(self) -> np.ndarray:
+        """Leaf-order start of every non-empty leaf, then ``n``: leaf j holds positions bounds[j]:bounds[j+1]."""
+        if self._leaves is None:
+            nodes = self._nodes[0]
+            leaves = np.flatnonzero((nodes[:, 2] < 0) & (nodes[:, 1] > nodes[:, 0]))
+            self._leaves = leaves[np.argsort(nodes[leaves, 0], kind="stable")]
+        return np.append(self._nodes[0][self._leaves, 0], self.n)
+
+    def knn_of_leaves(self, a: int, b: int, k: int):
+        """Leaf-order indices (b - a, k) of the k nearest tree points of the tree's points a..b-1.
+
+        ``a`` and ``b`` must be leaf bounds (:attr:`leaf_bounds`); the points of a leaf are
+        searched together (:func:`_knn_leaves`), sorted by distance like :meth:`query`.
+        """
+        bounds = self.leaf_bounds
+        j0, j1 = np.searchsorted(bounds, [a, b])
+        if bounds[j0] != a or bounds[j1] != b:
+            raise ValueError(f"{a}:{b} does not start and end at leaf bounds")
+        idx = np.empty((b - a, k), dtype=np.intp)
+        if b > a:
+            if HAVE_NUMBA:
+                _knn_leaves(self.data, *self._nodes, self._leaves[j0:j1], k, idx)
+            else:  # pragma: no cover - depends on the environment
+                idx[:] = self._run(self.data[a:b], k, np.inf, 1)[1]
+        return idx
 
     def query(self, q, k: int = 1, distance_upper_bound: float = np.inf, workers: int = 1):
         """Like ``cKDTree.query``: (distance, input index); k = 1 gives 1-D arrays.

@@ -6,6 +6,7 @@ import pytest
 from labkit import features as F
 from labkit.cloud import PointCloud
 from labkit.errors import LabkitError
+from labkit.features.robust import _random_triples as random_triples
 
 UTM = np.array([600000.0, 5400000.0, 300.0])
 
@@ -163,18 +164,6 @@ def test_input_not_modified_and_pointcloud_accepted():
 # ----------------------------------------------------------------------------- neighbourhoods
 
 
-def test_knn_and_radius_neighbourhoods_match_brute_force():
-    rng = np.random.default_rng(9)
-    xyz = rng.uniform(0, 5, (800, 3)) + UTM
-    knn = F.neighbourhoods(xyz, k=8)
-    ball = F.neighbourhoods(xyz, radius=0.6)
-    assert knn.dense().shape == (800, 8) and (knn.counts == 8).all()
-    for i in rng.choice(len(xyz), 30, replace=False):
-        d = np.linalg.norm(xyz - xyz[i], axis=1)
-        assert knn[i][0] == i and np.allclose(np.sort(d[knn[i]]), np.sort(d)[:8])
-        assert set(ball[i]) == set(np.flatnonzero(d <= 0.6))
-
-
 def test_radius_pca_marks_small_neighbourhoods():
     xyz = np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0.1, 0.1, 0.001], [50, 50, 50.0]])
     pca = F.local_pca(xyz, radius=0.5)
@@ -275,7 +264,7 @@ def test_robust_normals_beat_pca_with_gross_outliers(threshold):
 
 def test_random_triples_are_distinct_and_uniform():
     rng = np.random.default_rng(14)
-    tri = F._random_triples(rng, (20000,), 5)
+    tri = random_triples(rng, (20000,), 5)
     assert (tri[:, 0] != tri[:, 1]).all() and (tri[:, 0] != tri[:, 2]).all() and (tri[:, 1] != tri[:, 2]).all()
     counts = np.bincount(np.sort(tri, axis=1) @ [25, 5, 1], minlength=125)
     counts = counts[counts > 0]
@@ -326,27 +315,6 @@ def test_reports_render():
     xyz, _ = tilted_plane(rng, n=300)
     for res in (F.local_pca(xyz, k=10), F.neighbourhoods(xyz, k=5), F.robust_normals(xyz, k=10, rng=0)):
         assert res.summary() and "<table>" in res._repr_html_()
-
-
-def test_compiled_and_numpy_knn_covariances_agree(monkeypatch):
-    """The compiled kNN covariance kernel and the numpy route compute eq. 1-2 alike."""
-    import labkit.features as F
-
-    if not F.HAVE_NUMBA:
-        pytest.skip("numba not installed")
-    rng = np.random.default_rng(5)
-    local = rng.normal(size=(2000, 3)) * [30.0, 20.0, 0.05]
-    idx = rng.integers(0, 2000, size=(500, 12))
-    cols = local.T.copy()
-    cen_c, C_c = F._covariances(local, None, idx, cols)
-    monkeypatch.setattr(F, "HAVE_NUMBA", False)
-    cen_n, C_n = F._covariances(local, None, idx, cols)
-    X = local[idx]  # direct definition
-    D = X - X.mean(axis=1, keepdims=True)
-    C_ref = np.einsum("cka,ckb->cab", D, D) / idx.shape[1]
-    for C in (C_c, C_n):
-        assert np.allclose(C, C_ref, rtol=1e-12, atol=1e-12 * np.abs(C_ref).max())
-    assert np.allclose(cen_c, cen_n, rtol=0, atol=1e-12) and np.allclose(cen_c, X.mean(axis=1), atol=1e-12)
 
 
 def test_real_tls_pca_matches_brute_force(realdata):

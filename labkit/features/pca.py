@@ -1,0 +1,239 @@
+"""Local PCA of every neighbourhood: normals, eigenvalues, centroids, local noise (notebook 04, eqs. 1-5).
+
+For every point p_i the m points of its neighbourhood (k nearest neighbours, or
+all points within a radius; :mod:`labkit.neighbours`) are reduced to their
+centroid and summarised by their 3x3 covariance matrix:
+
+- (eq. 1) centroid            p_bar = 1/m sum_j p_j
+- (eq. 2) covariance          C = 1/m sum_j (p_j - p_bar)(p_j - p_bar)^T
+- (eq. 3) eigen decomposition C = V diag(l1, l2, l3) V^T with l1 >= l2 >= l3 >= 0
+- (eq. 4) normal              n = v3 (eigenvector of the smallest eigenvalue)
+- (eq. 5) local noise         sigma_n = sqrt(m l3 / (m - 3)) (redundancy m - 3 of a fitted plane)
+
+Exact duplicates are merged before the search (issue 16: a copy is not a second
+observation of the surface). Degenerate neighbourhoods (fewer than 3 distinct
+points, or all on one line) do not determine a plane: their normal is NaN and
+``LocalPCA.valid`` is False.
+
+References
+----------
+Hoppe, DeRose, Duchamp, McDonald, Stuetzle (1992): Surface reconstruction from
+unorganized points. SIGGRAPH '92, 71-78.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .._report import ReportMixin, fmt
+from ..neighbours import CHUNK_SIZE, SearchPlan, check_chunk_size, check_scale, covariances, reduced, run_chunks, scale_text
+from ..progress import progress_steps
+from ._steps import check_at, check_duplicates, check_orientation, determined, mark_undetermined, orient_normals
+from ._steps import plane_noise, sorted_eigh
+from .eigen import EigenFeatures, eigen_features
+
+
+@dataclass(frozen=True, eq=False, repr=False)
+class LocalPCA(ReportMixin):
+    """Result of :func:`local_pca`: per point eigenvalues, eigenvectors, normal and centroid.
+
+    Attributes
+    ----------
+    eigenvalues : ndarray (n, 3)
+        l1 >= l2 >= l3 >= 0 of the covariance (eq. 2-3), m^2.
+    eigenvectors : ndarray (n, 3, 3)
+        Column j belongs to ``eigenvalues[:, j]``; column 2 equals ``normals``.
+    normals : ndarray (n, 3)
+        Unit normals (eq. 4), oriented as requested.
+    centroids : ndarray (n, 3)
+        Neighbourhood centroids (eq. 1) in the input frame.
+    counts : ndarray (n,)
+        Number of neighbours m (including the point), distinct points when duplicates are merged.
+    k, radius : search used.
+    n_duplicates : int
+        Input points that were exact copies of another point and were merged into it
+        before the PCA (``duplicates='merge'``); they get the result of their kept copy.
+    """
+
+    eigenvalues: np.ndarray
+    eigenvectors: np.ndarray
+    normals: np.ndarray
+    centroids: np.ndarray
+    counts: np.ndarray
+    k: int | None
+    radius: float | None
+    n_duplicates: int = 0
+
+    def __repr__(self) -> str:
+        return f"LocalPCA({len(self.counts)} points, {scale_text(self.k, self.radius)})"
+
+    @property
+    def noise(self) -> np.ndarray:
+        """Local noise sigma_n (eq. 5), metres; NaN where m <= 3 or the normal is undetermined."""
+        return np.where(self.valid, plane_noise(self.eigenvalues[:, 2], self.counts), np.nan)
+
+    @property
+    def features(self) -> "EigenFeatures":
+        """Eigenvalue features (eq. 6-8) of every neighbourhood."""
+        return eigen_features(self.eigenvalues)
+
+    @property
+    def valid(self) -> np.ndarray:
+        """True where the normal is determined: m >= 3 and the neighbourhood is not a line or a point.
+
+        Where False the normal (and eigenvector column 2) is NaN.
+        """
+        return determined(self.eigenvalues, self.counts)
+
+    @property
+    def verticality(self) -> np.ndarray:
+        """1 - |n_z|: 0 for horizontal surfaces, 1 for walls."""
+        return 1.0 - np.abs(self.normals[:, 2])
+
+    def _report(self):
+        noise, f = self.noise, self.features
+        rows = [
+            ("points", str(len(self.counts))),
+            ("search", scale_text(self.k, self.radius)),
+            ("neighbours median", f"{np.median(self.counts):.0f}"),
+            ("normal undetermined", str(int((~self.valid).sum()))),
+            ("exact duplicates merged", str(self.n_duplicates)),
+            ("local noise median", fmt(np.nanmedian(noise) if np.isfinite(noise).any() else np.nan, 4, "m")),
+        ]
+        rows += [(f"{name} median", fmt(np.nanmedian(v), 3)) for name, v in f.items() if np.isfinite(v).any()]
+        return "Local PCA", [("", rows)]
+
+
+def local_pca(
+    points,
+    k: int | None = 20,
+    radius: float | None = None,
+    *,
+    orient: str = "up",
+    viewpoint=None,
+    at=None,
+    duplicates: str = "merge",
+    chunk_size: int = CHUNK_SIZE,
+    progress=False,
+) -> LocalPCA:
+    """PCA of the neighbourhood of every point (eq. 1-4), vectorized and chunked.
+
+    Parameters
+    ----------
+    points : array_like (n, 3) or PointCloud
+        UTM-sized coordinates are fine: the algebra runs on a local origin.
+    k : int, optional
+        Nearest neighbours including the point (3 <= k <= n). Ignored if ``radius`` is given.
+    radius : float, optional
+        Ball radius in metres instead of kNN; points with fewer than 3 neighbours get NaN.
+    orient : {'up', 'viewpoint', 'none'}
+        'up': n_z >= 0 (ALS); 'viewpoint': toward ``viewpoint`` (3,) or per point (n, 3) (TLS
+        scanner position, ALS trajectory); 'none': the sign eigh returns.
+    at : array_like of int, optional
+        Compute only at these points (neighbours still come from the whole cloud); the
+        results then have ``len(at)`` rows and a per-point viewpoint has shape (len(at), 3).
+    duplicates : {'merge', 'keep'}
+        'merge' (default): exact duplicates (identical coordinates) count once, so that
+        k means k distinct points; a duplicate is a second copy, not a second observation
+        of the surface, and copies bias the plane toward themselves (issue 16). The
+        number merged is ``n_duplicates``. 'keep': every row counts.
+    chunk_size : int
+        Points per chunk; memory grows with chunk_size * k, not with n * k.
+    progress : bool, "bar", "lines" or callable
+        Report the chunks done (see :mod:`labkit.progress`); default silent.
+
+    Returns
+    -------
+    LocalPCA
+        Where the neighbourhood is degenerate (fewer than 3 distinct points, all on one
+        line) the normal is NaN and ``valid`` is False.
+
+    Raises
+    ------
+    LabkitError
+        Bad points (NaN, wrong shape), k < 3 or k > n, radius <= 0, bad orientation.
+    """
+    # Reduce to a local origin and check the arguments
+    local, origin = reduced(points)
+    k, radius = check_scale(k, radius, len(local))
+    at = check_at(at, len(local))
+    here = local if at is None else local[at]  # the points that get a PCA
+    view = check_orientation(orient, viewpoint, len(here))
+    merge = check_duplicates(duplicates)
+    # Exact duplicates merged into one point (issue 16), kd-tree, output rows
+    plan = SearchPlan(local, at, merge)
+    # Per chunk (in leaf order): neighbours, centroid, covariance, sorted eigh
+    n = plan.n_out
+    lam, vec = np.empty((n, 3)), np.empty((n, 3, 3))
+    cen, counts = np.empty((n, 3)), np.empty(n, dtype=np.intp)
+    pts = plan.points
+    cols = pts.T.copy()  # coordinate columns: contiguous gathers (see covariances)
+
+    def work(rows, per_scale, _):
+        seg_counts, flat = per_scale[0]
+        c, C = covariances(pts, seg_counts, flat, cols)
+        lam[rows], vec[rows] = sorted_eigh(C)
+        cen[rows], counts[rows] = c, seg_counts
+
+    with progress_steps(progress, plan.n_query, "normals", "pts") as step:
+        run_chunks(plan, [(k, radius)], check_chunk_size(chunk_size), work, step=step)
+    lam, vec, cen, counts = plan.out(lam), plan.out(vec), plan.out(cen), plan.out(counts)
+    # Degenerate neighbourhoods (a point, a line) have no normal: NaN, valid=False
+    mark_undetermined(lam, vec, counts)
+    # Orient the normals; results in the input frame
+    normals = orient_normals(vec[:, :, 2], here, orient, view, origin)
+    vec[:, :, 2] = normals
+    return LocalPCA(lam, vec, normals, cen + origin, counts, k, radius, plan.n_duplicates)
+
+
+def normals(
+    points, k: int = 20, orient: str = "up", viewpoint=None, *, radius=None, at=None, duplicates="merge",
+    chunk_size=CHUNK_SIZE, progress=False,
+):
+    """Unit normals (n, 3): eigenvector of the smallest eigenvalue of each neighbourhood (eq. 4).
+
+    Parameters
+    ----------
+    points : array_like (n, 3) or PointCloud
+    k : int
+        Neighbours including the point itself (3 <= k <= n).
+    orient : {'up', 'viewpoint', 'none'}
+        'up' gives n_z >= 0 (ALS convention); 'viewpoint' points the normals toward
+        ``viewpoint``; 'none' leaves eigh's arbitrary sign.
+    viewpoint : array_like (3,) or (n, 3), optional
+        Sensor position(s) in the frame of ``points``; only with orient='viewpoint'.
+    radius : float, optional
+        Radius neighbourhood instead of kNN.
+    at : array_like of int, optional
+        Only at these points (neighbours from the whole cloud); shape (len(at), 3).
+    duplicates : {'merge', 'keep'}
+        Exact duplicates count once (default), see :func:`local_pca`.
+    progress : bool, "bar", "lines" or callable
+        Report the chunks done (see :mod:`labkit.progress`); default silent.
+
+    Returns
+    -------
+    ndarray (n, 3)
+        NaN rows where the neighbourhood is degenerate (a point or a line).
+
+    See Also
+    --------
+    local_pca : eigenvalues, centroids and counts as well.
+    """
+    pca = local_pca(points, k, radius, orient=orient, viewpoint=viewpoint, at=at, duplicates=duplicates,
+                    chunk_size=chunk_size, progress=progress)
+    return pca.normals
+
+
+def local_noise(points, k: int = 20, radius: float | None = None, *, chunk_size: int = CHUNK_SIZE) -> np.ndarray:
+    """Local noise sigma_n = sqrt(m l3 / (m - 3)) (eq. 5): spread of the neighbourhood along its normal, metres.
+
+    l3 is the mean squared orthogonal residual of the best-fitting plane through the
+    m neighbours; a plane has u = 3 parameters (two angles, one distance), so the
+    redundancy is m - 3. ``points`` may also be a :class:`LocalPCA` (no new search).
+    """
+    pca = points if isinstance(points, LocalPCA) else local_pca(points, k, radius, orient="none", chunk_size=chunk_size)
+    return pca.noise
+
