@@ -171,23 +171,22 @@ def distances_before_after(source, target, transform, *, kind: str = "point_to_p
     from ._kdtree import KDTree
 
     origin = local_origin(tgt)
-    q = reduce(tgt, origin)
-    tree = KDTree(q, merge_duplicates=nrm is None and kind == "point_to_plane")
+    tree = KDTree(reduce(tgt, origin), merge_duplicates=nrm is None and kind == "point_to_plane")  # its own copy
     n = len(src)
     order = _spatial_order(src)  # neighbouring queries in turn: the tree's nodes stay in cache (10x faster)
     with progress_steps(progress, 2 * n, f"distances ({kind})", "pts") as step:
         passes = []
         for name, tr in (("before", None), ("after", T)):
-            passes.append(_nearest(tree, src, order, tr, origin, q, lambda c, name=name: step(c, info=name)))
+            passes.append(_nearest(tree, src, order, tr, origin, tgt, kind, lambda c, name=name: step(c, info=name)))
     if kind == "cloud_to_cloud":
         return DistanceChange(passes[0][0], passes[1][0], kind)
     if nrm is None:  # normals only at the target points that are used (a nearest neighbour)
-        used = np.zeros(len(q), dtype=bool)
+        used = np.zeros(len(tgt), dtype=bool)
         for _, j, _ in passes:
             used[j] = True
         at = np.flatnonzero(used)
         at = at[np.argsort(tree.representative[at], kind="stable")]  # leaf order: coherent neighbour searches
-        nrm = np.full((len(q), 3), np.nan, dtype=np.float32)
+        nrm = np.full((len(tgt), 3), np.nan, dtype=np.float32)
         with progress_steps(progress, len(at), "normals", "pts") as step:  # of the used target points
             nrm[at] = _normals_at(tree, at, k, step)
     before, after = (_dot(nrm, j, v) for _, j, v in passes)
@@ -215,20 +214,26 @@ def _spatial_order(points, per_cell=256):
     return np.argsort(cell[:, 0] * (int(cell[:, 1].max(initial=0)) + 1) + cell[:, 1], kind="stable")
 
 
-def _nearest(tree, src, order, transform, origin, q, report):
-    """Nearest target point of every (moved) source point: distance, target row, p - q_j (float32).
+def _nearest(tree, src, order, transform, origin, tgt, kind, report):
+    """Nearest target point of every (moved) source point: distance (cloud to cloud only), target row
+    and p - q_j (float32; point to plane only).
 
     The source is visited in ``order`` (spatially coherent) and the results scattered back.
     """
     n = len(src)
-    dist, j, v = np.empty(n), np.empty(n, dtype=np.intp), np.empty((n, 3), dtype=np.float32)
+    c2c = kind == "cloud_to_cloud"
+    dist = np.empty(n) if c2c else None
+    j = np.empty(n, dtype=np.int32 if len(tgt) < 2**31 else np.int64)
+    v = None if c2c else np.empty((n, 3), dtype=np.float32)
     for a in range(0, n, CHUNK):
         rows = order[a : a + CHUNK]
-        p = src[rows]
-        p = reduce(p, origin) if transform is None else apply_transform(transform, p) - origin
-        dist[rows], jj = tree.query(p, k=1, workers=-1)
+        p = src[rows] if transform is None else apply_transform(transform, src[rows])
+        d, jj = tree.query(p - origin, k=1, workers=-1)
+        if c2c:
+            dist[rows] = d
+        else:
+            v[rows] = p - tgt[jj]  # float32: mm on offsets of metres (the plane distance is taken in float64)
         j[rows] = jj
-        v[rows] = p - q[jj]  # float32: mm on offsets of metres (the plane distance is taken in float64)
         report(len(p))
     return dist, j, v
 

@@ -494,17 +494,26 @@ def _sample(points, geometry, spec, rng):
 def _voxel_sample(points, size, rng):
     """One random point per cubic voxel of edge ``size``."""
     order = rng.permutation(len(points))
-    _, first = np.unique(_voxel_keys(points[order], size), return_index=True)
+    _, first = np.unique(_voxel_keys(points, size)[order], return_index=True)
     return np.sort(order[first])
 
 
 def _voxel_keys(points, size):
-    """One int64 key per cubic voxel of edge ``size`` (21 bits per axis; wider grids raise)."""
-    cell = np.floor(points / size).astype(np.int64)  # the grid through 0 of the local frame
-    cell -= cell.min(axis=0)
-    if cell.size and cell.max() >= 2**21:
-        raise LabkitError(f"voxel size {size:g} m is too small for the cloud's extent (over 2 million voxels per axis)")
-    return (cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2]
+    """One int64 key per cubic voxel of edge ``size`` (21 bits per axis; wider grids raise).
+
+    Column by column: no (n, 3) temporaries on a 10-million-point cloud.
+    """
+    key = np.zeros(len(points), dtype=np.int64)
+    for a in range(3):
+        cell = np.floor(points[:, a] / size).astype(np.int64)  # the grid through 0 of the local frame
+        if cell.size:
+            cell -= cell.min()
+            if cell.max() >= 2**21:
+                raise LabkitError(
+                    f"voxel size {size:g} m is too small for the cloud's extent (over 2 million voxels per axis)"
+                )
+        key |= cell << (21 * (2 - a))
+    return key
 
 
 def _auto_sample(points, geometry, m, rng):
@@ -592,6 +601,27 @@ def _class_sigma(cls, class_sigma):
     return out
 
 
+class _TreePoints:
+    """The target's points by input row, read from the kd-tree's own leaf-order copy (private).
+
+    ``view[j]`` equals ``points[j]`` (a merged duplicate reads its identical kept copy), so the
+    matcher holds one copy of a 10-million-point target instead of two.
+    """
+
+    def __init__(self, tree, n):
+        self.tree, self.n = tree, n
+
+    def __len__(self):
+        return self.n
+
+    @property
+    def shape(self):
+        return (self.n, 3)
+
+    def __getitem__(self, j):
+        return self.tree.data[self.tree.representative[j]]
+
+
 @dataclass(frozen=True, eq=False)
 class _Matcher:
     """Everything that stays fixed over the ICP iterations (private)."""
@@ -601,7 +631,7 @@ class _Matcher:
     source_normals: np.ndarray | None
     source_sigma: np.ndarray  # per sampled source point, from class and noise
     source_rule: np.ndarray  # pre-assignment exclusions (class, noise)
-    target: np.ndarray
+    target: _TreePoints  # target points by input row (local frame), from the tree
     tree: KDTree
     geometry: _Geometry
     target_class: np.ndarray | None
@@ -781,6 +811,8 @@ def prepare(
     if quadric and int(k) < 10:
         raise LabkitError(f"surface='quadric' fits 6 parameters: k must be at least 10, got {k}")
     tgt_geo = _Geometry(tgt_l, int(k), _given_normals(target_normals, len(tgt_l), "target_normals"), tree, quadric)
+    n_tgt = len(tgt_l)
+    del tgt_l  # the tree holds the target (one copy of a large cloud, read through _TreePoints)
     need_src_geo = (
         max_angle_deg is not None or noise_weighting or max_noise is not None
         or (isinstance(sample, (tuple, list)) and sample[0] == "normal_space")
@@ -824,7 +856,7 @@ def prepare(
     src_normals, src_noise = (None, None) if src_geo is None else src_geo.at(idx, need_noise=True)
     rule, sigma = _source_rules(src_cls, idx, src_noise, options)
     return _Matcher(
-        src_l[idx], idx, src_normals, sigma, rule, tgt_l, tree, tgt_geo, tgt_cls, options, origin, len(src),
+        src_l[idx], idx, src_normals, sigma, rule, _TreePoints(tree, n_tgt), tree, tgt_geo, tgt_cls, options, origin, len(src),
         None if src_cls is None else src_cls[idx], order,
     )  # fmt: skip
 
