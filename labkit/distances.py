@@ -168,10 +168,11 @@ def distances_before_after(source, target, transform, *, kind: str = "point_to_p
             nrm = _unit_normals(target_normals, tgt.shape)
         elif k > len(tgt):
             raise LabkitError(f"k must lie between 3 and the number of target points ({len(tgt)}), got {k}")
-    from ._kdtree import KDTree
+    from ._treecache import local_tree
 
     origin = local_origin(tgt)
-    tree = KDTree(reduce(tgt, origin), merge_duplicates=nrm is None and kind == "point_to_plane")  # its own copy
+    # the tree ICP built on this target is reused (labkit register: no second build, no second copy)
+    tree = local_tree(tgt, origin, merge_duplicates=nrm is None and kind == "point_to_plane")
     n = len(src)
     order = _spatial_order(src)  # neighbouring queries in turn: the tree's nodes stay in cache (10x faster)
     with progress_steps(progress, 2 * n, f"distances ({kind})", "pts") as step:

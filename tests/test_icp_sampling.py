@@ -131,3 +131,24 @@ def test_distances_of_every_point_equal_the_plain_route():
     c2c = distances_before_after(pair.source, pair.target, pair.truth, kind="cloud_to_cloud")
     ref = cKDTree(pair.target.xyz - pair.target.xyz[0]).query(pair.source.xyz - pair.target.xyz[0])[0]
     np.testing.assert_allclose(c2c.before, ref, rtol=0, atol=1e-9)
+
+
+def test_distances_reuse_the_tree_icp_built_on_the_same_target(monkeypatch):
+    from labkit import _treecache
+
+    builds = []
+    real = _treecache.KDTree
+    monkeypatch.setattr(_treecache, "KDTree", lambda *a, **kw: builds.append(len(a[0])) or real(*a, **kw))
+    _treecache.forget()
+    pair = _village(5, size=30.0)
+    res = icp(pair.source, pair.target, rng=0)
+    reused = distances_before_after(pair.source, pair.target, res)
+    assert builds == [len(pair.target)]  # one target tree for both steps
+    _treecache.forget()
+    fresh = distances_before_after(pair.source, pair.target, res)
+    assert builds == [len(pair.target)] * 2
+    np.testing.assert_array_equal(reused.after, fresh.after)
+    moved = pair.target.xyz.copy()  # another array (or one changed in place): a new tree
+    distances_before_after(pair.source, moved, res)
+    assert len(builds) == 3
+    _treecache.forget()

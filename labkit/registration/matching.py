@@ -29,6 +29,7 @@ import numpy as np
 from .._checks import as_points, as_rng, choice, positive
 from .._eigh3 import HAVE_NUMBA, eigh3
 from .._kdtree import KDTree
+from .._treecache import local_tree
 from ..features import _covariances  # shared kNN covariance kernel (compiled)
 from .._frame import local_origin, reduce
 from .._report import ReportMixin, fmt
@@ -799,20 +800,20 @@ def prepare(
         raise LabkitError(f"k must lie between 3 and the number of target points ({len(tgt)}), got {k}")
     rng = as_rng(rng)
     origin = local_origin(tgt) if origin is None else np.asarray(origin, dtype=np.float64)
-    src_l, tgt_l = reduce(src, origin), reduce(tgt, origin)
-    if tree is not None and getattr(tree, "n", None) != len(tgt_l):
-        raise LabkitError(f"the given tree holds {getattr(tree, 'n', '?')} points, the target has {len(tgt_l)}")
+    src_l = reduce(src, origin)
+    if tree is not None and getattr(tree, "n", None) != len(tgt):
+        raise LabkitError(f"the given tree holds {getattr(tree, 'n', '?')} points, the target has {len(tgt)}")
     # the target's compiled kd-tree (exact duplicates merged) and its geometry cache: once per call
-    tree = KDTree(tgt_l, merge_duplicates=True)
+    # (kept for the next step on the same target, e.g. the distances of labkit register)
+    tree = local_tree(tgt, origin, merge_duplicates=True)
     choice(surface, SURFACES, "surface")
     if surface == "auto":
         surface = _auto_surface(tree, int(k))
     quadric = surface == "quadric"
     if quadric and int(k) < 10:
         raise LabkitError(f"surface='quadric' fits 6 parameters: k must be at least 10, got {k}")
-    tgt_geo = _Geometry(tgt_l, int(k), _given_normals(target_normals, len(tgt_l), "target_normals"), tree, quadric)
-    n_tgt = len(tgt_l)
-    del tgt_l  # the tree holds the target (one copy of a large cloud, read through _TreePoints)
+    tgt_geo = _Geometry(None, int(k), _given_normals(target_normals, len(tgt), "target_normals"), tree, quadric)
+    n_tgt = len(tgt)  # the tree holds the target (one copy of a large cloud, read through _TreePoints)
     need_src_geo = (
         max_angle_deg is not None or noise_weighting or max_noise is not None
         or (isinstance(sample, (tuple, list)) and sample[0] == "normal_space")
