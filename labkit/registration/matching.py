@@ -18,6 +18,11 @@ distinct target point (the target does not move); the source is queried in its o
 leaf order; the one-source-per-target rule is one O(m) pass, not a sort of all pairs.
 Points whose neighbourhood is a point or a line have no normal and are rejected
 by the rule 'degenerate' (issue 16).
+
+Large clouds (issue 14): ``sample='auto'`` (ICP's default) thins a source of more than
+:data:`AUTO_LIMIT` points to about :data:`AUTO_PAIRS` (voxel, then normal-space balance); the
+geometry of both clouds is computed and stored only at the points used (compact cache); the
+matcher reads the target from its kd-tree, which ``labkit._treecache`` keeps for the distances.
 """
 
 from __future__ import annotations
