@@ -213,9 +213,9 @@ def icp(
         model used.
     sample : None, 'auto', int or (method, value)
         Source points that form pairs (:func:`labkit.registration.match`). Default ``'auto'``: the
-        whole source up to 300,000 points; a larger one is thinned to about 200,000 points spread
+        whole source up to 300,000 points; a larger one is thinned to about 100,000 points spread
         evenly in space and over the normal directions, so that the shift of a 10-million-point
-        cloud costs what that of a 200,000-point cloud costs. The covariance stays honest (the block
+        cloud costs what that of a 100,000-point cloud costs. The covariance stays honest (the block
         covariance, eq. 5.13, takes its variance from the residuals of the pairs used; Monte Carlo
         spread / stated in tests/test_icp_sampling.py). Distances and the moved cloud are computed
         for every point by the caller. ``result.message`` states how many pairs were used out of

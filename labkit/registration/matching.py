@@ -59,7 +59,7 @@ MAX_VARIATION = 0.02
 #: sample='auto': a source of at most this many points is used whole; a larger one is thinned to
 #: about :data:`AUTO_PAIRS` points (one per voxel, then normal-space balance, see :func:`_auto_sample`).
 AUTO_LIMIT = 300_000
-AUTO_PAIRS = 200_000
+AUTO_PAIRS = 100_000
 
 
 @dataclass(frozen=True, eq=False)
