@@ -53,15 +53,16 @@ _PER_THREAD = 4000  # queries per thread at least; below, one thread is faster t
 
 
 @_njit
-def _build(P, leafsize):  # pragma: no cover - compiled
+def _build(P, leafsize, inplace=False):  # pragma: no cover - compiled
     """Median kd-tree: permutation (leaf order), node ranges, children, boxes, depth, leaf-order points.
 
     The coordinates are moved along with the permutation (W), so every pass over a
     node reads its points sequentially instead of gathering them through ``perm``.
+    ``inplace``: P is a private copy and becomes W (one copy less of a large cloud).
     """
     n = P.shape[0]
     perm = np.arange(n)
-    W = P.copy()
+    W = P if inplace else P.copy()
     wbuf = np.empty((n, 3))
     cap = max(16, 4 * (n // max(1, leafsize // 2)) + 16)
     start = np.empty(cap, np.int64)
@@ -425,7 +426,7 @@ def _build_two(P, leafsize):
         v = keys[~left].min()
     iL, iR = np.flatnonzero(left), np.flatnonzero(~left)
     with ThreadPoolExecutor(2) as pool:
-        jobs = [pool.submit(_build, np.ascontiguousarray(P[i]), leafsize) for i in (iL, iR)]
+        jobs = [pool.submit(_build, np.ascontiguousarray(P[i]), leafsize, True) for i in (iL, iR)]  # private halves
         (pL, nL, bL, dL, wL), (pR, nR, bR, dR, wR) = (job.result() for job in jobs)
     mL = len(nL)
     nodes = np.empty((1 + mL + len(nR), 4), np.int64)

@@ -148,6 +148,7 @@ def _sphere_station(xyz, given, off):
 
 
 def _cmd_register(args) -> int:
+    from ._treecache import forget as forget_tree
     from .compare import standard_methods
     from .distances import distances_before_after
     from .io import read_cloud, write_cloud
@@ -165,7 +166,8 @@ def _cmd_register(args) -> int:
     print(result.summary())
     print()
     print(_rotation_text(result))
-    change = distances_before_after(source, target, result, progress=progress)
+    change = distances_before_after(source, target, result, progress=progress)  # reuses ICP's target tree
+    forget_tree()  # then frees it before the moved cloud is written
     print()
     print(change.summary())
 

@@ -190,14 +190,16 @@ def test_normals_report_every_point_once(small_pair):
     np.testing.assert_array_equal(n1, normals(small_pair.target, k=10, chunk_size=2000))
 
 
-def test_distances_report_normals_then_before_and_after(small_pair):
+def test_distances_report_before_and_after_then_normals(small_pair):
     from labkit.distances import distances_before_after
 
     events = []
     ch = distances_before_after(small_pair.source, small_pair.target, small_pair.truth, progress=events.append)
     groups = _by_desc(events)
     assert set(groups) == {"normals", "distances (point_to_plane)"}
-    assert [e.desc for e in events].index("normals") < [e.desc for e in events].index("distances (point_to_plane)")
+    # the normals only at the target points found as nearest neighbours: after both searches
+    assert [e.desc for e in events].index("normals") > [e.desc for e in events].index("distances (point_to_plane)")
+    assert groups["normals"][-1].total <= len(small_pair.target)
     dist = [e for e in groups["distances (point_to_plane)"] if not e.finished]
     assert [e.info for e in dist] == ["before", "after"] and dist[-1].done == 2 * len(ch.after)
 

@@ -18,6 +18,11 @@ distinct target point (the target does not move); the source is queried in its o
 leaf order; the one-source-per-target rule is one O(m) pass, not a sort of all pairs.
 Points whose neighbourhood is a point or a line have no normal and are rejected
 by the rule 'degenerate' (issue 16).
+
+Large clouds (issue 14): ``sample='auto'`` (ICP's default) thins a source of more than
+:data:`AUTO_LIMIT` points to about :data:`AUTO_PAIRS` (voxel, then normal-space balance); the
+geometry of both clouds is computed and stored only at the points used (compact cache); the
+matcher reads the target from its kd-tree, which ``labkit._treecache`` keeps for the distances.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ import numpy as np
 from .._checks import as_points, as_rng, choice, positive
 from .._eigh3 import HAVE_NUMBA, eigh3
 from .._kdtree import KDTree
+from .._treecache import local_tree
 from ..features import _covariances  # shared kNN covariance kernel (compiled)
 from .._frame import local_origin, reduce
 from .._report import ReportMixin, fmt
@@ -50,6 +56,10 @@ SURFACES = ("plane", "quadric", "auto")
 AUTO_QUADRIC_RADIUS = 1.0
 #: Normal-space sampling draws only from planar neighbourhoods: l3 / (l1 + l2 + l3) below this.
 MAX_VARIATION = 0.02
+#: sample='auto': a source of at most this many points is used whole; a larger one is thinned to
+#: about :data:`AUTO_PAIRS` points (one per voxel, then normal-space balance, see :func:`_auto_sample`).
+AUTO_LIMIT = 300_000
+AUTO_PAIRS = 100_000
 
 
 @dataclass(frozen=True, eq=False)
@@ -370,45 +380,68 @@ class _Geometry:
     points that are ever matched; computing them lazily saves most of the work.
     The cache holds one entry per distinct point (leaf position of the kd-tree, exact
     duplicates merged) for the whole ICP call: the target does not move, so no point
-    is computed twice, and finding the missing ones needs no sort.
+    is computed twice. Storage is compact: a slot per computed point (``slot``, -1 for
+    none) into buffers that grow with the points actually used, so that a 10-million-point
+    target whose ICP touches 300,000 points holds 300,000 normals, not 10 million.
+    ``n_computed`` counts the points whose geometry was computed (tests use it).
     """
 
     def __init__(self, points, k, normals=None, tree=None, quadric=False):
         self.tree = KDTree(points, merge_duplicates=True) if tree is None else tree
         self.k, self.quadric = k, quadric
         self.cols = np.ascontiguousarray(self.tree.data.T)  # coordinate columns for contiguous gathers
-        m = self.tree.n
         self.given = normals  # per input point, or None
-        self.normals = np.full((m, 3), np.nan)
-        self.noise = np.full(m, np.nan)
-        self.done = np.zeros(m, dtype=bool)  # computed (NaN results of degenerate points included)
-        if quadric:
-            self.coef, self.frame = np.full((m, 6), np.nan), np.full((m, 3, 3), np.nan)
-            self.slope = np.full((m, 3), np.nan)
+        self.slot = np.full(self.tree.n, -1, dtype=np.int32 if self.tree.n < 2**31 else np.int64)
+        self.n_computed = 0
+        self._store = {}  # name -> buffer (capacity, ...), rows 0..n_computed-1 used
+
+    def _grow(self, values):
+        """Append the rows of each named array to its buffer (doubling the capacity when full)."""
+        n_new = len(next(iter(values.values())))
+        for name, v in values.items():
+            buf = self._store.get(name)
+            need = self.n_computed + n_new
+            if buf is None or len(buf) < need:
+                cap = max(need, 2 * (0 if buf is None else len(buf)), 1024)
+                bigger = np.empty((cap,) + v.shape[1:], dtype=v.dtype)
+                if buf is not None:
+                    bigger[: self.n_computed] = buf[: self.n_computed]
+                self._store[name] = buf = bigger
+            buf[self.n_computed : need] = v
+        self.n_computed += n_new
+
+    _SHAPES = dict(normals=(3,), noise=(), coef=(6,), frame=(3, 3), slope=(3,))
+
+    def _get(self, name, pos):
+        if name not in self._store:  # nothing computed yet (e.g. no pairs at all)
+            return np.full((len(pos),) + self._SHAPES[name], np.nan)
+        return self._store[name][self.slot[pos]]
 
     def at(self, index, need_noise=False):
         pos = self.tree.representative[index]
         if need_noise or self.given is None:
-            todo = ~self.done[pos]
+            todo = self.slot[pos] < 0
             if todo.any():
                 mark = np.zeros(self.tree.n, dtype=bool)
                 mark[pos[todo]] = True
                 new = np.flatnonzero(mark)  # sorted leaf positions: coherent queries, no sort
                 out = _leaf_geometry(self.tree, self.cols, new, self.k, self.quadric)
-                self.normals[new], self.noise[new] = out[0], out[1]
+                values = dict(normals=out[0], noise=out[1])
                 if self.quadric:
-                    self.coef[new], self.frame[new], self.slope[new] = out[3], out[4], out[5]
-                self.done[new] = True
-        normals = self.normals[pos] if self.given is None else self.given[index]
-        return normals, self.noise[pos]
+                    values.update(coef=out[3], frame=out[4], slope=out[5])
+                self.slot[new] = np.arange(self.n_computed, self.n_computed + len(new))
+                self._grow(values)
+        normals = self._get("normals", pos) if self.given is None else self.given[index]
+        noise = self._get("noise", pos) if need_noise or self.given is None else np.full(len(pos), np.nan)
+        return normals, noise
 
     def foot(self, index, w):
         """Offsets (m, 3) from the points ``q + w`` to the local quadric of ``q`` = point ``index``, and
         the surface normals there (requires :meth:`at` first); rows without a quadric get NaN offsets."""
         pos = self.tree.representative[index]
-        coef = self.coef[pos].copy()
+        coef = self._get("coef", pos)  # a copy (fancy indexing)
         coef[:, 5] = 0.0  # the surface through the measured q itself (see _Matcher.__call__)
-        return _on_quadric(coef, self.frame[pos], w)
+        return _on_quadric(coef, self._get("frame", pos), w)
 
     def tilt(self, index):
         """Covariance (m, 3, 3) of the random tilt of the quadric normals at the points ``index``.
@@ -417,8 +450,8 @@ class _Geometry:
         fitted slopes (d, e) (requires :meth:`at` first; NaN where no quadric was fitted).
         """
         pos = self.tree.representative[index]
-        T = self.frame[pos][:, :, [2, 1]]  # tangents t1 (u), t2 (v)
-        vd, cde, ve = self.slope[pos].T
+        T = self._get("frame", pos)[:, :, [2, 1]]  # tangents t1 (u), t2 (v)
+        vd, cde, ve = self._get("slope", pos).T
         C = np.stack([np.stack([vd, cde], -1), np.stack([cde, ve], -1)], -2)
         return np.einsum("mia,mab,mjb->mij", T, C, T)
 
@@ -433,8 +466,12 @@ class _Geometry:
 def _sample(points, geometry, spec, rng):
     """Indices of the sampled source points (step 1)."""
     n = len(points)
-    if spec is None:
+    if spec is None or (isinstance(spec, str) and spec == "auto" and n <= AUTO_LIMIT):
         return np.arange(n)
+    if isinstance(spec, str) and spec == "auto":
+        return _auto_sample(points, geometry, AUTO_PAIRS, rng)
+    if isinstance(spec, str):
+        raise LabkitError(f"sample must be None, 'auto', an int or (method, value), got {spec!r}")
     if isinstance(spec, (int, np.integer)):
         spec = ("random", int(spec))
     kind, value = spec
@@ -463,9 +500,57 @@ def _sample(points, geometry, spec, rng):
 def _voxel_sample(points, size, rng):
     """One random point per cubic voxel of edge ``size``."""
     order = rng.permutation(len(points))
-    keys = np.floor(points[order] / size).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
+    _, first = np.unique(_voxel_keys(points, size)[order], return_index=True)
     return np.sort(order[first])
+
+
+def _voxel_keys(points, size):
+    """One int64 key per cubic voxel of edge ``size`` (21 bits per axis; wider grids raise).
+
+    Column by column: no (n, 3) temporaries on a 10-million-point cloud.
+    """
+    key = np.zeros(len(points), dtype=np.int64)
+    for a in range(3):
+        cell = np.floor(points[:, a] / size).astype(np.int64)  # the grid through 0 of the local frame
+        if cell.size:
+            cell -= cell.min()
+            if cell.max() >= 2**21:
+                raise LabkitError(
+                    f"voxel size {size:g} m is too small for the cloud's extent (over 2 million voxels per axis)"
+                )
+        key |= cell << (21 * (2 - a))
+    return key
+
+
+def _auto_sample(points, geometry, m, rng):
+    """About ``m`` source points spread evenly in space and over the normal directions (sample='auto').
+
+    1. The voxel edge h that leaves about 2 m occupied voxels: the count at a trial edge on a random
+       subset, scaled with the surface law count ~ h^-2 (two rounds); one random point per voxel of
+       the whole cloud (dense strip overlaps and the scanner's near range count no more than sparse
+       parts). 2. Normal-space balance (Rusinkiewicz & Levoy 2001) from these 2 m candidates to m:
+       every normal direction keeps its points up to an equal quota, so that walls and slopes, which
+       determine the horizontal shift, are not thinned as much as the ground.
+    The shift's covariance stays honest: the cluster-robust block covariance (eq. 5.13) takes its
+    variance from the residuals of the pairs actually used, whatever their number.
+    """
+    n = len(points)
+    sub = points[rng.choice(n, min(n, 1_000_000), replace=False)] if n > 1_000_000 else points
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    ext = np.sort(hi - lo)[::-1]
+    h = max(float(np.sqrt(ext[0] * max(ext[1], 1e-9) / (2 * m))), 1e-6)  # a horizontal surface's guess
+    for _ in range(2):  # the subset has >= 2 points per voxel at this size: nearly all voxels occupied
+        h *= float(np.sqrt(max(len(np.unique(_voxel_keys(sub, h))), 1) / (2 * m)))
+    pool = _voxel_sample(points, h, rng)
+    if len(pool) <= m:
+        return pool
+    coarse, _, variation = geometry.compute(pool, min(10, geometry.k))  # coarse normals suffice for the bins
+    # rough points (vegetation) have random normals and would fill the rare bins: planar candidates only
+    planar = np.isfinite(coarse[:, 0]) & (variation < MAX_VARIATION)
+    if planar.sum() >= m:
+        pool, coarse = pool[planar], coarse[planar]
+    coarse = np.where(np.isfinite(coarse[:, :1]), coarse, [0.0, 0.0, 1.0])
+    return pool[_normal_space_sample(coarse, m, rng)]
 
 
 def _normal_space_sample(normals, m, rng, bins=8):
@@ -522,6 +607,27 @@ def _class_sigma(cls, class_sigma):
     return out
 
 
+class _TreePoints:
+    """The target's points by input row, read from the kd-tree's own leaf-order copy (private).
+
+    ``view[j]`` equals ``points[j]`` (a merged duplicate reads its identical kept copy), so the
+    matcher holds one copy of a 10-million-point target instead of two.
+    """
+
+    def __init__(self, tree, n):
+        self.tree, self.n = tree, n
+
+    def __len__(self):
+        return self.n
+
+    @property
+    def shape(self):
+        return (self.n, 3)
+
+    def __getitem__(self, j):
+        return self.tree.data[self.tree.representative[j]]
+
+
 @dataclass(frozen=True, eq=False)
 class _Matcher:
     """Everything that stays fixed over the ICP iterations (private)."""
@@ -531,7 +637,7 @@ class _Matcher:
     source_normals: np.ndarray | None
     source_sigma: np.ndarray  # per sampled source point, from class and noise
     source_rule: np.ndarray  # pre-assignment exclusions (class, noise)
-    target: np.ndarray
+    target: _TreePoints  # target points by input row (local frame), from the tree
     tree: KDTree
     geometry: _Geometry
     target_class: np.ndarray | None
@@ -699,21 +805,24 @@ def prepare(
         raise LabkitError(f"k must lie between 3 and the number of target points ({len(tgt)}), got {k}")
     rng = as_rng(rng)
     origin = local_origin(tgt) if origin is None else np.asarray(origin, dtype=np.float64)
-    src_l, tgt_l = reduce(src, origin), reduce(tgt, origin)
-    if tree is not None and getattr(tree, "n", None) != len(tgt_l):
-        raise LabkitError(f"the given tree holds {getattr(tree, 'n', '?')} points, the target has {len(tgt_l)}")
+    src_l = reduce(src, origin)
+    if tree is not None and getattr(tree, "n", None) != len(tgt):
+        raise LabkitError(f"the given tree holds {getattr(tree, 'n', '?')} points, the target has {len(tgt)}")
     # the target's compiled kd-tree (exact duplicates merged) and its geometry cache: once per call
-    tree = KDTree(tgt_l, merge_duplicates=True)
+    # (kept for the next step on the same target, e.g. the distances of labkit register)
+    tree = local_tree(tgt, origin, merge_duplicates=True)
     choice(surface, SURFACES, "surface")
     if surface == "auto":
         surface = _auto_surface(tree, int(k))
     quadric = surface == "quadric"
     if quadric and int(k) < 10:
         raise LabkitError(f"surface='quadric' fits 6 parameters: k must be at least 10, got {k}")
-    tgt_geo = _Geometry(tgt_l, int(k), _given_normals(target_normals, len(tgt_l), "target_normals"), tree, quadric)
+    tgt_geo = _Geometry(None, int(k), _given_normals(target_normals, len(tgt), "target_normals"), tree, quadric)
+    n_tgt = len(tgt)  # the tree holds the target (one copy of a large cloud, read through _TreePoints)
     need_src_geo = (
         max_angle_deg is not None or noise_weighting or max_noise is not None
         or (isinstance(sample, (tuple, list)) and sample[0] == "normal_space")
+        or (isinstance(sample, str) and sample == "auto" and len(src_l) > AUTO_LIMIT)
     )  # fmt: skip
     src_geo = None
     if need_src_geo:
@@ -753,7 +862,7 @@ def prepare(
     src_normals, src_noise = (None, None) if src_geo is None else src_geo.at(idx, need_noise=True)
     rule, sigma = _source_rules(src_cls, idx, src_noise, options)
     return _Matcher(
-        src_l[idx], idx, src_normals, sigma, rule, tgt_l, tree, tgt_geo, tgt_cls, options, origin, len(src),
+        src_l[idx], idx, src_normals, sigma, rule, _TreePoints(tree, n_tgt), tree, tgt_geo, tgt_cls, options, origin, len(src),
         None if src_cls is None else src_cls[idx], order,
     )  # fmt: skip
 
@@ -856,8 +965,11 @@ def match(
         Add each point's local noise (std along its normal) to its variance.
     max_noise : float, optional
         Reject points whose local noise exceeds this (m), e.g. vegetation.
-    sample : None, int or (method, value)
+    sample : None, 'auto', int or (method, value)
         ``("random", n)``, ``("voxel", size_m)`` or ``("normal_space", n)``; an int means random.
+        ``'auto'``: the whole source up to :data:`AUTO_LIMIT` points, a larger one thinned to about
+        :data:`AUTO_PAIRS` points spread evenly in space and over the normal directions (one per
+        voxel of an edge chosen from the density, then normal-space balance; :func:`_auto_sample`).
     unique : bool
         At most one source point per target point (the closest; the others are
         rejected as 'duplicate'), so that no target point's noise enters two
