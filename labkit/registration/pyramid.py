@@ -1,10 +1,10 @@
 """Coarse-to-fine ICP: a voxel pyramid with a shrinking matching distance (notebook 05, section 6b).
 
-A shift close to the matching distance leaves few pairs inside the gate at the start, and the pairs it
-leaves are the wrong ones on sparse, hilly ground; beyond the gate nothing is matched at all. The
-pyramid runs ICP first on voxel-thinned copies of both clouds with a wide gate, then on finer copies
-with a narrower one, each level starting from the previous estimate, and ends with the caller's own
-ICP on the full clouds:
+ICP's gate (``max_distance``) limits its reach: a source point moved further than the gate from the
+surface finds no partner, and where the gate leaves too few pairs the shift is undetermined at the
+start. The pyramid runs ICP first on voxel-thinned copies of both clouds with a wide gate, then on
+finer copies with a narrower one, each level starting from the previous estimate, and ends with the
+caller's own ICP on the full clouds (``icp(..., reach=R)``, or ``coarse_to_fine=True``):
 
 1. levels: matching distance d_l = max_distance * 2^l (l = L..1) from about twice the reach down to
    the caller's ``max_distance``; voxel edge d_l / 4, never finer than the target's point spacing;
@@ -31,9 +31,6 @@ VOXEL_SHARE = 0.25
 MAX_LEVELS = 4
 #: Iterations of a coarse level (it only has to bring the next level within its reach).
 COARSE_ITERATIONS = 20
-#: coarse_to_fine='auto' runs the pyramid where the target's point spacing exceeds this share of the
-#: matching distance (sparse clouds, where a shift near the gate leaves few and wrong pairs).
-AUTO_SPACING_SHARE = 0.25
 
 
 def coarse_to_fine_levels(max_distance, reach=None, spacing=0.0):
@@ -75,11 +72,19 @@ def point_spacing(points, sample=2000):
     return float(np.median(tree.query(sub, k=2, workers=1)[0][:, 1]))
 
 
-def use_pyramid(target, max_distance):
-    """coarse_to_fine='auto': True where the target's point spacing exceeds a quarter of the gate."""
-    if max_distance is None or not np.isfinite(max_distance):
+def use_pyramid(max_distance, reach):
+    """coarse_to_fine='auto': the pyramid only for a ``reach`` beyond the matching distance.
+
+    Measured on real halves moved by 0.3-1.5 m (benchmarks/bench_reach.py: IGN ALS, sample_c roofs,
+    MixedConifer forest, Autzen ground at 0.6 pts/m^2, SfM DIM) and on sparse synthetic hills: within
+    the gate the single level reached the same fixed point (within 1 mm or 0.1 std) in 1.5-4 times less
+    time, and on most of them even from 3 m. The pyramid pays where the gate leaves too few pairs at the
+    start: Autzen halves moved by 2-3 m (single level: X and Y undetermined, 1.5-2.7 m off; pyramid with
+    reach=3: the same fixed point as from 0.3 m).
+    """
+    if reach is None or max_distance is None:
         return False
-    return point_spacing(target) > AUTO_SPACING_SHARE * float(max_distance)
+    return float(reach) > float(max_distance)
 
 
 def _voxel_index(xyz, size):
