@@ -279,6 +279,7 @@ def icp(
     village pairs, 1.12, 1.14, 1.0 with Tukey weights. The remaining 10-15 % in X and Y is not
     visible in the residuals of one registration (about 6 % on the village is the re-selection).
     """
+    reach = None if reach is None else positive(reach, "reach")
     if reach is not None and coarse_to_fine is False:
         raise LabkitError("reach= sets the coarsest level of the pyramid: give coarse_to_fine=True or 'auto' with it")
     if coarse_to_fine is not False:  # the voxel pyramid runs this function once per level (pyramid.py)
