@@ -158,3 +158,26 @@ def test_real_sparse_ground_beyond_the_gate_needs_the_pyramid(realdata):
     assert res.converged and np.all(np.isfinite(std)), res.message
     assert np.all(np.abs(err) < 0.08) and np.all(np.abs(err) <= 3 * std), (err, std)
     np.testing.assert_allclose(res.translation, near.translation, atol=0.5 * std.max())
+
+
+# ----------------------------------------------------------------------------- command line
+
+
+def test_cli_register_reach_runs_the_pyramid(tmp_path, capsys):
+    import re
+
+    from labkit.cli import main
+    from labkit.io import write_cloud
+
+    pair = als_epochs("xyz", size=(30.0, 30.0), density=4.0, shift=(1.3, -0.9, 0.2), rng=12)
+    write_cloud(pair.source, tmp_path / "src.laz")
+    write_cloud(pair.target, tmp_path / "tgt.laz")
+    args = ["register", str(tmp_path / "src.laz"), str(tmp_path / "tgt.laz"), "--out", str(tmp_path), "--quiet"]
+    assert main(args + ["--reach", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "coarse_to_fine" in out
+    shift = [float(re.search(rf"^d{a}\s+([+-][0-9.]+) m", out, flags=re.M).group(1)) for a in "XYZ"]
+    np.testing.assert_allclose(shift, pair.translation, atol=0.01)
+    with pytest.raises(SystemExit) as exit_:  # argparse: a clear usage error
+        main(args + ["--reach", "-1"])
+    assert exit_.value.code == 2 and "--reach" in capsys.readouterr().err
