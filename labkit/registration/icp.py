@@ -150,8 +150,10 @@ def icp(
     max_iterations : int
     tol : float
         Convergence when the update is smaller than ``tol`` metres (at the cloud's radius for
-        rotations) or than 5 % of every component's standard deviation, or when the iteration cycles between a few sets of correspondences with
-        updates below ``100 tol``.
+        rotations) or than 5 % of every component's standard deviation, when the last four iterates
+        lie within 5 % of every component's standard deviation, or when the iteration cycles between a
+        few sets of correspondences with updates below ``100 tol`` or within 25 % of every standard
+        deviation. A step that points back against the previous one is halved (down to 1/8).
     robust : {None, 'huber', 'tukey'}
         IRLS weights on the standardized residuals (eq. 5.9).
     reject_sigma : float or None
