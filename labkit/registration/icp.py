@@ -216,6 +216,11 @@ def icp(
         the quadric: 1.16, 0.98, 0.99 on the sparse hills, 1.16, 1.19, 1.08 on the test scene with
         roofs (the plane's 1.15, 1.02, 0.98 and 1.15, 1.19, 1.08). ``result.method`` names the
         model used.
+    max_distance, max_angle_deg, classes, class_sigma, default_sigma, noise_weighting, max_noise, sample, unique, k,
+    target_normals, source_normals, rng
+        Matching options, see :func:`labkit.registration.match`.
+    progress : bool, "bar", "lines" or callable
+        One step per iteration with the current shift and number of pairs (:mod:`labkit.progress`).
     coarse_to_fine : {'auto', True, False}
         Run a voxel pyramid first (:mod:`labkit.registration.pyramid`): coarse levels on voxel-thinned
         clouds with the gate doubled per level, from twice ``reach`` down to ``max_distance``, each
@@ -228,11 +233,6 @@ def icp(
     reach : float, optional
         Largest expected shift (m) for the pyramid; default ``max_distance``. A reach beyond the gate
         switches the pyramid on (with ``coarse_to_fine='auto'``); with ``coarse_to_fine=False`` it is an error.
-    max_distance, max_angle_deg, classes, class_sigma, default_sigma, noise_weighting, max_noise, sample, unique, k,
-    target_normals, source_normals, rng
-        Matching options, see :func:`labkit.registration.match`.
-    progress : bool, "bar", "lines" or callable
-        One step per iteration with the current shift and number of pairs (:mod:`labkit.progress`).
 
     Returns
     -------
