@@ -135,17 +135,15 @@ def main(argv=None):
             head = f"{name:9s} {np.array2string(s, precision=2):>22s} "
             for label, kw in (("single", dict(coarse_to_fine=False)), ("pyramid", dict(coarse_to_fine=True))):
                 t = time.perf_counter()
-                try:
-                    res = icp(src, tgt, rng=0, **kw)
-                except TypeError:
-                    res = icp(src, tgt, rng=0)
+                res = icp(src, tgt, rng=0, **kw)
                 text = row(label, res, s, time.perf_counter() - t)[0]
                 print(head + text, flush=True)
                 head = " " * len(head)
             if o3d is not None:
                 t, est = run_open3d(src, tgt, o3d)
                 err = 1000 * (est - s)
-                print(head + f"{'open3d':10s} " + " ".join(f"{v:8.1f}" for v in err) + f"  {'':6s} {t:7.2f}", flush=True)
+                cells = " ".join(f"{v:8.1f}" for v in err)
+                print(head + f"{'open3d':10s} {cells}  {'':6s} {t:7.2f}", flush=True)
 
 
 if __name__ == "__main__":
