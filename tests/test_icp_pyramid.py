@@ -21,7 +21,7 @@ def test_levels_double_the_gate_up_to_twice_the_reach():
     assert len(coarse_to_fine_levels(0.1, reach=100.0)) == 4  # at most four levels
 
 
-def test_auto_runs_the_pyramid_only_for_a_reach_beyond_the_gate():
+def test_auto_runs_the_pyramid_for_a_reach_beyond_the_gate():
     assert not use_pyramid(1.0, None) and not use_pyramid(1.0, 1.0) and use_pyramid(1.0, 2.5)
     assert not use_pyramid(None, 5.0)
 
@@ -144,20 +144,29 @@ def test_real_halves_reach_the_matching_distance(realdata, name):
 
 
 def test_real_sparse_ground_beyond_the_gate_needs_the_pyramid(realdata):
-    # Autzen ground (0.6 pts/m^2, Z read from US survey feet) moved by 2.5 m: one level leaves X and Y
-    # undetermined; the pyramid (reach 3 m) finds the fixed point of a start at the truth
+    # Autzen ground (0.6 pts/m^2, Z read from US survey feet) moved by 2.5 m: one level holds X and Y
+    # (at 0, 2.5 m off) and says so; the pyramid (reach 3 m) finds the fixed point of a start at the
+    # truth, and coarse_to_fine='auto' retries with it by itself (39 % of the points beyond the gate)
     from labkit.io import read_cloud
 
     target, source = _halves(read_cloud(realdata / "epochs/autzen-bmx-2010.las").xyz, 0)
     shift = np.array([-0.8, 2.4, -0.5])
-    single = icp(source - shift, target, rng=0)
-    assert single.degeneracy.undetermined_axes  # the gate left too few pairs: honest, not confident
-    res = icp(source - shift, target, rng=0, reach=3.0)
+    single = icp(source - shift, target, rng=0, coarse_to_fine=False)
+    assert single.degeneracy.undetermined_axes == ("X", "Y")  # honest, not confident
     near = icp(source - shift, target, rng=0, initial=make_transform(np.eye(3), shift))
-    err, std = res.translation - shift, res.translation_std
-    assert res.converged and np.all(np.isfinite(std)), res.message
-    assert np.all(np.abs(err) < 0.08) and np.all(np.abs(err) <= 3 * std), (err, std)
-    np.testing.assert_allclose(res.translation, near.translation, atol=0.5 * std.max())
+    for res in (icp(source - shift, target, rng=0, reach=3.0), icp(source - shift, target, rng=0)):
+        err, std = res.translation - shift, res.translation_std
+        assert res.converged and np.all(np.isfinite(std)), res.message
+        assert np.all(np.abs(err) < 0.08) and np.all(np.abs(err) <= 3 * std), (err, std)
+        np.testing.assert_allclose(res.translation, near.translation, atol=0.5 * std.max())
+    assert "retried coarse-to-fine" in res.message and res.runtime_s > single.runtime_s
+
+
+def test_auto_does_not_retry_where_the_geometry_leaves_axes_free():
+    # a flat field: X and Y undetermined with no point beyond the gate: one level, no pyramid
+    pair = als_epochs("field", size=(40.0, 40.0), density=10.0, rng=1)
+    res = icp(pair.source, pair.target)
+    assert res.degeneracy.undetermined_axes == ("X", "Y") and "coarse" not in res.message + res.method
 
 
 # ----------------------------------------------------------------------------- command line

@@ -23,7 +23,7 @@ from ..errors import EmptyRegionError, LabkitError
 from ..progress import IterationSteps
 from ..transforms import angles_from_rotation, check_transform
 from .matching import Correspondences, prepare
-from .pyramid import pyramid_icp, use_pyramid
+from .pyramid import RETRY_REACH, pyramid_icp, retry_with_pyramid, use_pyramid
 from .result import RegistrationResult, degeneracy_report, group_consistency
 
 NAMES = {"translation": ("tx", "ty", "tz"), "rigid": ("rx", "ry", "rz", "tx", "ty", "tz")}
@@ -225,11 +225,15 @@ def icp(
         Run a voxel pyramid first (:mod:`labkit.registration.pyramid`): coarse levels on voxel-thinned
         clouds with the gate doubled per level, from twice ``reach`` down to ``max_distance``, each
         starting from the previous estimate; then this ICP on the full clouds. The result's covariance,
-        degeneracy report and message come from the full clouds only. 'auto' (default): only when
-        ``reach`` exceeds ``max_distance``. Measured on real halves moved by 0.3-1.5 m (IGN ALS, roofs,
-        conifer forest, Autzen ground at 0.6 pts/m^2, SfM; benchmarks/bench_reach.py): within the gate
-        one level reached the same fixed point (within 1 mm or 0.1 std) 1.5-4 times faster; on the Autzen
-        halves moved by 2-3 m one level left X and Y undetermined, the pyramid (reach=3) recovered them.
+        degeneracy report and message come from the full clouds only. 'auto' (default): when ``reach``
+        exceeds ``max_distance``, and as a retry (with a reach of 2.5 ``max_distance``) when one level
+        left axes undetermined while more than 20 % of the searched source points had no partner within
+        the gate (:func:`labkit.registration.pyramid.retry_with_pyramid`; a flat field or one-way ridges
+        reject 0-0.3 % by distance and are not retried). Measured on real halves moved by 0.3-1.5 m (IGN
+        ALS, roofs, conifer forest, Autzen ground at 0.6 pts/m^2, SfM; benchmarks/bench_reach.py): within
+        the gate one level reached the same fixed point (within 1 mm or 0.1 std) 1.5-4 times faster; on
+        the Autzen halves moved by 1.9-2.5 m one level held X and Y at 0 (undetermined, 28-39 % beyond the
+        gate), the pyramid recovered them.
     reach : float, optional
         Largest expected shift (m) for the pyramid; default ``max_distance``. A reach beyond the gate
         switches the pyramid on (with ``coarse_to_fine='auto'``); with ``coarse_to_fine=False`` it is an error.
@@ -289,6 +293,12 @@ def icp(
         choice(coarse_to_fine, (True, False, "auto"), "coarse_to_fine")
         if coarse_to_fine is True or use_pyramid(max_distance, reach):
             return pyramid_icp(source, target, icp_function=icp, reach=reach, **options)
+        single = icp(source, target, coarse_to_fine=False, **options)  # 'auto': one level, the pyramid if
+        if not retry_with_pyramid(single, max_distance):  # it left axes undetermined for want of partners
+            return single
+        res = pyramid_icp(source, target, icp_function=icp, reach=RETRY_REACH * max_distance, **options)
+        note = f"; retried coarse-to-fine: one level left {', '.join(single.degeneracy.undetermined_axes)} undetermined"
+        return replace(res, runtime_s=res.runtime_s + single.runtime_s, message=res.message + note)
     t_start = time.perf_counter()
     choice(dof, tuple(NAMES), "dof")
     choice(metric, ("point_to_plane", "point_to_point"), "metric")

@@ -4,7 +4,8 @@ ICP's gate (``max_distance``) limits its reach: a source point moved further tha
 surface finds no partner, and where the gate leaves too few pairs the shift is undetermined at the
 start. The pyramid runs ICP first on voxel-thinned copies of both clouds with a wide gate, then on
 finer copies with a narrower one, each level starting from the previous estimate, and ends with the
-caller's own ICP on the full clouds (``icp(..., reach=R)``, or ``coarse_to_fine=True``):
+caller's own ICP on the full clouds (``icp(..., reach=R)``, ``coarse_to_fine=True``, or by default as a
+retry when one level left axes undetermined for want of partners, :func:`retry_with_pyramid`):
 
 1. levels: matching distance d_l = max_distance * 2^l (l = L..1) from about twice the reach down to
    the caller's ``max_distance``; voxel edge d_l / 4, never finer than the target's point spacing;
@@ -29,6 +30,11 @@ from ..errors import EmptyRegionError, LabkitError
 VOXEL_SHARE = 0.25
 #: At most this many coarse levels (the gate doubles per level: 2^4 = 16 times the matching distance).
 MAX_LEVELS = 4
+#: coarse_to_fine='auto' retries with the pyramid when more than this share of the searched source points
+#: had no partner within the gate and axes were left undetermined (see :func:`retry_with_pyramid`).
+RETRY_DISTANCE_SHARE = 0.2
+#: ... with this reach, in matching distances.
+RETRY_REACH = 2.5
 #: Iterations of a coarse level (it only has to bring the next level within its reach).
 COARSE_ITERATIONS = 20
 
@@ -85,6 +91,24 @@ def use_pyramid(max_distance, reach):
     if reach is None or max_distance is None:
         return False
     return float(reach) > float(max_distance)
+
+
+def retry_with_pyramid(result, max_distance):
+    """coarse_to_fine='auto' after one level: retry with the pyramid where axes were left undetermined
+    while many source points found no partner within the gate.
+
+    Undetermined axes with few distance rejections are the geometry's verdict (a flat field, ridges in one
+    direction: 0-0.3 % of the searched points rejected by distance); with a shift near the gate or a point
+    spacing near it, a large share of the searched points has no partner within the gate (Autzen ground
+    halves, 0.6 pts/m^2, moved by 1.5-2.5 m: 28-39 %), and the single level may hold X and Y at a start
+    metres off. The pyramid's own full-cloud level decides again.
+    """
+    if max_distance is None or not np.isfinite(max_distance) or not result.degeneracy.undetermined_axes:
+        return False
+    corr = result.correspondences
+    rejected = dict(corr.rejected)
+    searched = len(corr) - rejected.get("class", 0) - rejected.get("noise", 0)
+    return rejected.get("distance", 0) > RETRY_DISTANCE_SHARE * max(searched, 1)
 
 
 def _voxel_index(xyz, size):
@@ -147,14 +171,14 @@ def pyramid_icp(source, target, *, icp_function, reach=None, **options):
         level = dict(coarse, max_distance=d, source_normals=src_n, target_normals=tgt_n,
                      max_std=options.get("max_std"))  # fmt: skip
         try:
-            res = icp_function(src, tgt, initial=initial, **level)
+            res = icp_function(src, tgt, initial=initial, coarse_to_fine=False, **level)
         except EmptyRegionError:  # too few pairs at this voxel size: the next level tries
             notes.append(f"{d:g} m: too few pairs")
             continue
         initial = res.matrix
         history.extend(res.history)
         notes.append(f"{d:g} m / voxel {voxel:.2g} m: {res.iterations} it.")
-    final = icp_function(source, target, initial=initial, **options)
+    final = icp_function(source, target, initial=initial, coarse_to_fine=False, **options)
     history.extend(final.history)
     history = tuple(replace(h, iteration=i + 1) for i, h in enumerate(history))
     text = "coarse-to-fine " + ("; ".join(notes) if notes else "(no coarse level needed)")
