@@ -160,7 +160,7 @@ def _cmd_register(args) -> int:
     target = read_cloud(args.target, progress=progress)
     print(f"source {args.source}: {len(source)} points; target {args.target}: {len(target)} points")
     method = standard_methods([args.method], dof=args.dof, extent=args.extent, max_points=args.max_points,
-                              rng=args.seed)[args.method]
+                              rng=args.seed, reach=args.reach)[args.method]
     result = method(source, target, progress=progress)
     print()
     print(result.summary())
@@ -573,6 +573,9 @@ def build_parser() -> argparse.ArgumentParser:
                           "within +-EXTENT, consensus+icp that search followed by ICP: the route for large "
                           "shifts (default: %(default)s)")
     _add_method_options(reg)
+    reg.add_argument("--reach", type=_positive_float, default=None,
+                     help="icp methods: largest expected shift in m; beyond the 1 m matching distance a "
+                          "coarse-to-fine pyramid (voxel levels, wider gates) runs first (default: none)")
     reg.add_argument("--out", default=".", help="output folder (default: the current folder)")
     shown = reg.add_mutually_exclusive_group()
     shown.add_argument("--quiet", action="store_true",

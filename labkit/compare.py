@@ -258,7 +258,7 @@ STABLE_CLASSES = (2, 6, 11)  # ASPRS ground, building, road surface: what ``icp-
 
 
 def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "translation", extent: float = 1.0,
-                     max_points: int | None = 5000, rng=0) -> dict:
+                     max_points: int | None = 5000, rng=0, reach: float | None = None) -> dict:
     """Ready-made registration methods by name, for :func:`compare_methods`, tiles and the command line.
 
     ``icp`` (point to plane), ``icp-point`` (point to point), ``icp-huber`` and
@@ -268,7 +268,8 @@ def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "tra
     "Nutzen nur von best. Klassen"); ``consensus`` (maximum consensus,
     a translation within +-``extent`` m, on at most ``max_points`` source points spread
     evenly); ``consensus+icp`` (consensus, then a Tukey ICP with ``dof`` from there: the
-    route for shifts larger than ICP's matching distance).
+    route for shifts larger than ICP's matching distance). ``reach`` (m, optional) is passed to the ICP
+    methods: a reach beyond the matching distance runs ICP's coarse-to-fine pyramid first.
     The callables are picklable (for Dask workers in other processes).
     """
     from ._checks import choice
@@ -277,11 +278,12 @@ def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "tra
     out = {}
     for name in names:
         choice(name, METHODS, "method")
-        out[name] = partial(_standard, name=name, dof=dof, extent=float(extent), max_points=max_points, rng=rng)
+        out[name] = partial(_standard, name=name, dof=dof, extent=float(extent), max_points=max_points, rng=rng,
+                            reach=reach)
     return out
 
 
-def _standard(source, target, *, name, dof, extent, max_points, rng, progress=False):
+def _standard(source, target, *, name, dof, extent, max_points, rng, progress=False, reach=None):
     from .registration import icp, max_consensus
 
     if name.startswith("icp"):
@@ -289,7 +291,7 @@ def _standard(source, target, *, name, dof, extent, max_points, rng, progress=Fa
         metric = "point_to_point" if kind == "point" else "point_to_plane"
         classes = STABLE_CLASSES if kind == "classes" else None
         return icp(source, target, dof=dof, metric=metric, robust=kind if kind in ("huber", "tukey") else None,
-                   classes=classes, rng=rng, progress=progress)
+                   classes=classes, rng=rng, progress=progress, reach=reach)
     result = max_consensus(source, target, extent=extent, max_points=max_points)  # an even subset votes
     if name == "consensus":
         return result
