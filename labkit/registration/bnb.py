@@ -178,6 +178,18 @@ def _consensus_set(t, src_of, D, nrm, R, E):
     return idx[first]
 
 
+def _consistent(src, t, tgt, tree, k, R, E):
+    """Indices of the points ``src + t`` with a target point within ``R`` and |residual| < ``E`` to their
+    local target plane (eq. 6.4 with the plane of the k-neighbourhood)."""
+    x = src + t
+    d, _ = tree.query(x, k=1, workers=-1)
+    near = np.flatnonzero(d < R)
+    if near.size == 0:
+        return near
+    n, c, _, _ = _local_planes(tgt, tree, x[near], k)
+    return near[np.abs(np.einsum("ij,ij->i", n, x[near] - c)) < E]
+
+
 def _local_planes(tgt, tree, x, k):
     """Plane of the k target points nearest to each x: unit normal, centroid, noise^2 (eq. 6.11).
 
@@ -304,7 +316,7 @@ def _sandwich(A, l, p, x, deg, cells, box_var):
     return Vc @ cov_c @ Vc.T + box_var * (Vu @ Vu.T)
 
 
-def _held_effect(t, deg, box_var, members, pb, tgt, tree, k, deletion_k, max_std):
+def _held_effect(t, deg, box_var, members, src, w, tgt, tree, k, deletion_k, max_std):
     """Covariance that the held (undetermined) directions pass on to the determined ones.
 
     A held component keeps the branch-and-bound value, anywhere within the search box. On
@@ -322,7 +334,7 @@ def _held_effect(t, deg, box_var, members, pb, tgt, tree, k, deletion_k, max_std
     step = np.sqrt(box_var)
     for j in range(Vu.shape[1]):
         tj = t + step * Vu[:, j]
-        A, l, p, tilt = _design(members, pb.src[members] + tj, tgt, tree, k, pb.w, pb.src)
+        A, l, p, tilt = _design(members, src[members] + tj, tgt, tree, k, w, src)
         fit = _fit_with_deletion(A, l, p, tilt, tj, tj, box_var, deletion_k, max_std)
         if fit is None:
             continue
@@ -352,9 +364,13 @@ def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: i
     R, E = pb.radius, pb.eps
     tgt = pb.tgt if pb.tgt_full is None else pb.tgt_full
     box_var = float((2 * ext.max()) ** 2 / 12)  # undetermined directions: uniform over the search box
-    members = np.unique(src_of[_consensus_set(bb.translation, src_of, D, nrm, R, E)])
     tree = cKDTree(tgt)
     k = int(min(k, len(tgt)))
+    src, w = (pb.src, pb.w) if pb.src_ref is None else (pb.src_ref, pb.w_ref)
+    if pb.src_ref is None:  # the consensus set of the voting points
+        members = np.unique(src_of[_consensus_set(bb.translation, src_of, D, nrm, R, E)])
+    else:  # the refinement points consistent at the optimum: a target point within R, off its local plane by < eps
+        members = _consistent(src, bb.translation, tgt, tree, k, R, E)
     if block_size is None:  # radius of the k-neighbourhoods: residuals closer than that share target points
         d, _ = tree.query(tgt[:: max(1, len(tgt) // 5000)], k=k, workers=-1)
         block_size = max(float(np.median(d[:, -1])), 1e-3)
@@ -362,7 +378,7 @@ def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: i
     sigma0, cov, deg, n_used, kind = float("nan"), np.full((3, 3), np.nan), None, 0, "none"
     for _ in range(max_outer if members.size >= 3 else 0):
         # Associate every member with its local target plane at t, then adjust
-        A, l, p, tilt = _design(members, pb.src[members] + t, tgt, tree, k, pb.w, pb.src)
+        A, l, p, tilt = _design(members, src[members] + t, tgt, tree, k, w, src)
         fit = _fit_with_deletion(A, l, p, tilt, t, bb.translation, box_var, deletion_k, max_std or E / 2)
         if fit is None:
             deg = None
@@ -377,15 +393,15 @@ def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: i
             ls_ok = True
             break
     if deg is not None:
-        cells = np.floor(pb.src[members[keep]][:, :2] / block_size).astype(np.int64)
+        cells = np.floor(src[members[keep]][:, :2] / block_size).astype(np.int64)
         robust = _sandwich(A[keep], l[keep], p[keep], t, deg, cells, box_var)
         cov, kind = (cov, "sigma0^2 N^-1 (too few blocks for the jackknife)") if robust is None else (
             robust, f"delete-a-block jackknife over {block_size:.3g} m blocks")
-        cov = cov + _held_effect(t, deg, box_var, members, pb, tgt, tree, k, deletion_k, max_std or E / 2)
+        cov = cov + _held_effect(t, deg, box_var, members, src, w, tgt, tree, k, deletion_k, max_std or E / 2)
     undetermined = deg.undetermined_axes if deg is not None else NAMES
     msg = (f"branch and bound: consensus {bb.lower:.6g}, certified upper bound {bb.upper:.6g} "
            f"(gap {bb.gap:.6g}) after {bb.splits} splits, {bb.reason}; eps {E * 1000:.1f} mm, "
-           f"{len(pb.src)} of {pb.n_source or len(pb.src)} source points vote")
+           f"{len(pb.src)} of {pb.n_source or len(pb.src)} source points vote, {len(src)} refine")
     if deg is None:
         msg += "; too few consistent points for the least-squares refinement"
     elif not deg.well_posed:
@@ -397,7 +413,7 @@ def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: i
         msg += "; refinement did not settle"
     return RegistrationResult(
         translation=t, rotation=np.eye(3), origin=pb.origin.copy(), covariance=cov, parameter_names=NAMES,
-        sigma0=sigma0, n_used=n_used, share_used=n_used / len(pb.src), converged=bool(bb.converged and ls_ok),
+        sigma0=sigma0, n_used=n_used, share_used=n_used / len(src), converged=bool(bb.converged and ls_ok),
         iterations=bb.splits, degeneracy=deg, method="max_consensus", history=(bb, *records),
         runtime_s=time.perf_counter() - t0, message=msg,
     )

@@ -247,14 +247,17 @@ class _Problem:
     noise: float = float("nan")  # median local noise of the target (m)
     n_source: int = 0  # source points handed in
     spacing: float = float("nan")  # spacing of the voting source points (m)
+    src_ref: np.ndarray | None = None  # (r, 3) reduced source points of the least-squares refinement
+    w_ref: np.ndarray | None = None  # (r,) their weights
 
 
 def _prepare(source, target, criterion, eps, radius, max_angle, weights, normals, normal_k, *,
-             max_points=None, pair_window=None, pair_budget=PAIR_BUDGET) -> _Problem:
+             max_points=None, pair_window=None, pair_budget=PAIR_BUDGET, refine_points=None) -> _Problem:
     """Check and reduce the inputs; choose the voting points, the search target and the tolerances.
 
     ``max_points``: keep at most that many source points, spread evenly in space
-    (:func:`even_subset`). ``pair_window``: half-width (m) of the translation window
+    (:func:`even_subset`); ``refine_points``: the points of the least-squares refinement, an even
+    subset of at most that many (None: the voting points). ``pair_window``: half-width (m) of the translation window
     searched; with it the target is thinned evenly until the candidate pairs fit
     ``pair_budget`` (dense TLS targets). Normals the local PCA cannot determine
     (identical or collinear neighbours) are dropped, never used.
@@ -270,6 +273,8 @@ def _prepare(source, target, criterion, eps, radius, max_angle, weights, normals
     n_src_given, n_tgt_given = (None, None) if normals is None else normals
     # Voting source points: an even subset (not random: dense parts would outvote sparse ones)
     keep_s = np.flatnonzero(w > 0)
+    keep_r = None if refine_points is None else (keep_s if keep_s.size <= refine_points else (
+        keep_s[even_subset(src[keep_s], refine_points)]))
     if max_points is not None and keep_s.size > max_points:
         keep_s = keep_s[even_subset(src[keep_s], max_points)]
     # Search target: the whole target, or an even thinning of it when the pairs would be too many
@@ -305,7 +310,8 @@ def _prepare(source, target, criterion, eps, radius, max_angle, weights, normals
         radius = eps
     spacing = _spacing(src[keep_s])
     return _Problem(src[keep_s], tgt, origin, w[keep_s], n_tgt, n_src, criterion, float(eps), float(radius),
-                    max_angle, tgt_full, noise, len(src), spacing)
+                    max_angle, tgt_full, noise, len(src), spacing,
+                    None if keep_r is None else src[keep_r], None if keep_r is None else w[keep_r])
 
 
 def _count(value, name, minimum):
@@ -674,6 +680,7 @@ def max_consensus(
     normals=None,
     normal_k: int = 12,
     max_points: int | None = 5000,
+    refine_points: int | None = None,
     max_time: float | None = 6.0,
     max_boxes: int = 20000,
     gap_tol: float = 0.0,
@@ -716,6 +723,13 @@ def max_consensus(
     max_points : int or None
         At most this many source points vote, spread evenly in space (one per voxel);
         None: all of them. 5000 points decide a translation (three parameters) well.
+    refine_points : int, optional
+        Refine on up to this many source points spread evenly in space (those with a target
+        point within the search radius and within eps of their local target plane at the
+        branch-and-bound optimum) instead of the consensus set of the voting points (default).
+        The search needs few points, the precision of weak directions needs many: on the real
+        ALS halves at 30,000 points, 30,000 refinement points halve the stated std of X and Y
+        (Notes). The refinement's time grows in proportion.
     max_time : float or None
         Time budget (s) of the branch and bound; when it is spent the best translation
         found so far is returned with its certified gap (converged = False).
@@ -775,9 +789,11 @@ def max_consensus(
     tol = positive(tol, "tol")
     ext, c = _box(extent, center)
     opts = _search_options(max_points, max_time, max_boxes, gap_tol, init_step, deletion_k, block_size, max_std)
+    refine_points = None if refine_points is None else _count(refine_points, "refine_points", 3)
     # Reduced coordinates: even subset of the source, search target, normals, tolerances
     pb = _prepare(source, target, criterion, eps, radius, max_angle, weights, normals, normal_k,
-                  max_points=opts["max_points"], pair_window=float((ext + np.abs(c)).max()))
+                  max_points=opts["max_points"], pair_window=float((ext + np.abs(c)).max()),
+                  refine_points=refine_points)
     step0 = opts["init_step"] or max(2 * pb.eps, float(2 * ext.max()) / 32)
     ptr, src_of, D, nrm = _pairs(pb, c - ext, c + ext, pb.radius + 2 * step0)
     # Branch and bound over continuous translations, within the budget
