@@ -3,7 +3,8 @@
 A survey is cut into square tiles (e.g. 100 m); every tile is registered on its
 own, giving one shift per tile (the *shift field*). Neighbouring tiles whose
 shifts differ by more than their combined uncertainty do not move together;
-tiles linked by agreeing neighbours form *coherent areas*.
+tiles linked by agreeing neighbours, each fitting its area's common shift, form
+*coherent areas* (the tests and their correction: :mod:`labkit.coherent_areas`).
 
 The per-tile work runs on Dask: one ``dask.delayed`` task per tile, computed by
 a local scheduler, a ``distributed.LocalCluster`` started for the run, a running
