@@ -174,3 +174,40 @@ def test_correction_is_checked():
     field = _field(np.tile(SHIFT, (NROW * NCOL, 1)), C, det, rng)
     with pytest.raises(LabkitError, match="correction must be one of 'holm', 'fdr', 'none'"):
         field.neighbour_test(correction="bonferroni")
+
+
+def test_real_als_halves_one_area_with_extra_std_and_a_moved_tile_found(realdata):
+    """Real flat ALS (IGN, 350 x 370 m, mostly ground): two random halves of the points as two epochs, one
+    moved by a known shift, registered in 100 m tiles. The stated ICP covariances alone split this stable field
+    (its tile shifts scatter more than they state, most in X and Y on flat ground); with the extra std of eq. 4
+    estimated from the field, Holm gives one area, and a tile whose shift is raised by 15 cm is an area of its own."""
+    import dataclasses
+    import warnings
+
+    from labkit.io import read_cloud
+
+    cloud = read_cloud(realdata / "als" / "las_with_several_extra_byte_bloc.laz")
+    half = np.random.default_rng(0).uniform(size=len(cloud)) < 0.5
+    source = cloud.subset(half)
+    source = source.with_xyz(source.xyz - SHIFT)
+    field = tiles.register_tiles(source, cloud.subset(~half), "icp", size=100.0, scheduler="threads")
+    ok = field.ok
+    assert ok.sum() >= 10
+    # the determined components recover the shift (flat ground: X, Y loosely, Z to millimetres)
+    err = (field.determined_translations - SHIFT)[ok]
+    assert np.nanmax(np.abs(err[:, 2])) < 0.005 and np.nanmax(np.abs(err[:, :2])) < 0.15
+    # eq. 4 on the determined components: the scatter beyond the stated variances
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        std = np.where(field.determined, field.std, np.nan)[ok]
+        excess = np.nanvar(field.determined_translations[ok], axis=0, ddof=1) - np.nanmean(std**2, axis=0)
+    extra_std = float(np.sqrt(np.nanmax(excess)))
+    assert field.neighbour_test(0.05, correction="none").n_areas > 1  # stated covariances alone: split
+    stable = field.neighbour_test(0.05, extra_std=extra_std)
+    assert stable.n_areas == 1 and stable.agree.all()
+    # a tile that moved 15 cm in Z (its covariance unchanged): found, and only it
+    k = int(np.flatnonzero(ok & field.determined[:, 2])[len(np.flatnonzero(ok)) // 2])
+    moved = tiles.ShiftField(tuple(dataclasses.replace(s, translation=s.translation + [0, 0, 0.15]) if n == k else s
+                                   for n, s in enumerate(field.tiles)), field.size, field.method)
+    test = moved.neighbour_test(0.05, extra_std=extra_std)
+    assert test.n_areas == 2 and (test.areas == test.areas[k]).sum() == 1
