@@ -371,16 +371,17 @@ def _calls(folder) -> int:
     return len(list(folder.iterdir()))
 
 
-def _settled(folder, quiet: float = 1.0, timeout: float = 30.0) -> int:
-    """Wait until no call has finished for ``quiet`` seconds (tasks still running after an interrupt)."""
+def _settled(calls, results, quiet: float = 1.0, timeout: float = 60.0) -> int:
+    """Wait until every finished call has its JSON and none has finished for ``quiet`` s (tasks that were
+    running when the run stopped complete and are written)."""
     import time
 
     t_end, last, since = time.monotonic() + timeout, -1, time.monotonic()
     while time.monotonic() < t_end:
-        n = _calls(folder)
+        n = _calls(calls)
         if n != last:
             last, since = n, time.monotonic()
-        elif time.monotonic() - since >= quiet:
+        elif time.monotonic() - since >= quiet and len(list(results.glob("tile_*.json"))) == n:
             break
         time.sleep(0.1)
     return last
@@ -411,7 +412,7 @@ def test_interrupted_run_on_a_cluster_by_address_resumes(tmp_path, how):
         with pytest.raises(error):
             tiles.register_tiles(src, tgt, stop, scheduler=address, progress=interrupt if how == "ctrl-c" else None,
                                  results=results, **kw)
-        first = _settled(calls)  # tiles still running when the client left finish and are written
+        first = _settled(calls, results)  # tiles still running when the run stopped finish and are written
         saved = len(list(results.glob("tile_*.json")))
         assert 3 <= saved == first < len(reference)
         resumed = tiles.register_tiles(src, tgt, method, scheduler=address, results=results, **kw)
