@@ -1,6 +1,9 @@
-"""Statistics of a least-squares adjustment: global test, w-test, confidence ellipsoid.
+"""Statistics of a least-squares adjustment: global test, w-test, confidence ellipsoid, chi-square tests.
 
-Generic helpers shared by the adjustments (notebook 01, section "Statistics").
+Generic helpers shared by the adjustments (notebook 01, section "Statistics"),
+the comparison of transformations (notebook 07, eq. 6) and the neighbour test
+of a shift field (notebook 08, eqs. 3 and 5), with the correction of a family
+of many tests (Holm; Benjamini-Hochberg).
 """
 
 from __future__ import annotations
@@ -11,7 +14,7 @@ from functools import lru_cache
 import numpy as np
 from scipy import stats
 
-from ._checks import probability
+from ._checks import choice, probability
 from ._report import ReportMixin, fmt
 
 
@@ -151,3 +154,107 @@ def confidence_ellipsoid(center, covariance, level: float = 0.95, dof: int | Non
     order = np.argsort(lam)[::-1]
     semi = np.sqrt(np.clip(lam[order], 0.0, None) * q)
     return ConfidenceEllipsoid(np.asarray(center, dtype=np.float64).copy(), C, semi, vecs[:, order], level, float(q))
+
+
+# --------------------------------------------------------------------------- chi-square test of a difference
+def chi2_test(e, C):
+    """T = e^T C^-1 e and its chi-square p-value with ``len(e)`` degrees of freedom (notebook 07, eq. 6).
+
+    ``e`` is one difference (k,) with covariance ``C`` (k, k), or a stack
+    (..., k) with (..., k, k). T is solved through a Cholesky factor of C; where
+    C (or e) is not finite or C is not positive definite, or k = 0, T and p are
+    NaN (no test), never a number that looks like one.
+
+    Returns
+    -------
+    (T, p) : floats for one difference, arrays of shape ``e.shape[:-1]`` for a stack.
+
+    Examples
+    --------
+    >>> T, p = chi2_test([0.01, 0.0], [[1e-4, 0.0], [0.0, 1e-4]])
+    >>> round(T, 6), round(p, 4)
+    (1.0, 0.6065)
+    """
+    e = np.asarray(e, dtype=np.float64)
+    k = e.shape[-1]
+    T = quadratic_form(e, C)
+    with np.errstate(invalid="ignore"):
+        p = stats.chi2.sf(T, max(k, 1))
+    if e.ndim == 1:
+        return float(T), float(p)
+    return T, p
+
+
+def quadratic_form(e, C):
+    """T = e^T C^-1 e through a Cholesky factor of C (one or a stack); NaN where C is not positive definite."""
+    e, C = np.asarray(e, dtype=np.float64), np.asarray(C, dtype=np.float64)
+    k = e.shape[-1]
+    if k == 0:  # no axis to test
+        return np.nan if e.ndim == 1 else np.full(e.shape[:-1], np.nan)
+    E, Cs = e.reshape(-1, k), C.reshape(-1, k, k)
+    T = np.full(len(E), np.nan)
+    if len(E):
+        idx = np.flatnonzero(np.isfinite(E).all(axis=1) & np.isfinite(Cs).all(axis=(1, 2)))
+        L, factored = _cholesky(Cs[idx])
+        if factored.any():
+            # z = L^-1 e, T = z^T z
+            z = np.linalg.solve(L[factored], E[idx[factored], :, None])[..., 0]
+            T[idx[factored]] = np.einsum("ij,ij->i", z, z)
+    return float(T[0]) if e.ndim == 1 else T.reshape(e.shape[:-1])
+
+
+def _cholesky(C: np.ndarray):
+    """Lower Cholesky factors of a stack of matrices and a mask of those that have one (positive definite)."""
+    try:
+        return np.linalg.cholesky(C), np.ones(len(C), bool)
+    except np.linalg.LinAlgError:  # at least one is not positive definite: factor one by one
+        L, ok = np.zeros_like(C), np.zeros(len(C), bool)
+        for n, c in enumerate(C):
+            try:
+                L[n], ok[n] = np.linalg.cholesky(c), True
+            except np.linalg.LinAlgError:
+                pass
+        return L, ok
+
+
+# --------------------------------------------------------------------------- a family of many tests
+#: Corrections for a family of tests: family-wise error (Holm), false discovery rate (Benjamini-Hochberg), none.
+CORRECTIONS = ("holm", "fdr", "none")
+
+
+def adjusted_p_values(p, correction: str = "holm") -> np.ndarray:
+    """p-values of a family of tests adjusted for their number; reject where the adjusted value <= alpha.
+
+    ``'holm'`` (Holm 1979) keeps the family-wise error rate, the probability of
+    rejecting any true hypothesis, at alpha under any dependence between the
+    tests: sorted p_(1) <= ... <= p_(m), p~_(i) = max_{j <= i} min(1, (m - j + 1) p_(j)).
+    ``'fdr'`` (Benjamini and Hochberg 1995) keeps the expected share of false
+    rejections among the rejections at alpha (for independent or positively
+    dependent tests): p~_(i) = min_{j >= i} min(1, m p_(j) / j). When every
+    hypothesis is true, both keep the chance of any rejection at alpha.
+    ``'none'`` returns the p-values unchanged. NaN entries are not tests: they
+    stay NaN and do not count in m.
+
+    Examples
+    --------
+    >>> adjusted_p_values([0.01, 0.04, 0.03, np.nan], "holm").round(3).tolist()
+    [0.03, 0.06, 0.06, nan]
+    >>> adjusted_p_values([0.01, 0.04, 0.03], "fdr").round(3).tolist()
+    [0.03, 0.04, 0.04]
+    """
+    correction = choice(correction, CORRECTIONS, "correction")
+    p = np.asarray(p, dtype=np.float64)
+    out = p.copy()
+    tested = np.flatnonzero(np.isfinite(p))
+    m = len(tested)
+    if correction == "none" or m == 0:
+        return out
+    order = tested[np.argsort(p[tested], kind="stable")]
+    ps = p[order]
+    rank = np.arange(1, m + 1)
+    if correction == "holm":
+        adj = np.maximum.accumulate(np.minimum(1.0, (m - rank + 1) * ps))
+    else:
+        adj = np.minimum.accumulate(np.minimum(1.0, m * ps / rank)[::-1])[::-1]
+    out[order] = adj
+    return out

@@ -225,7 +225,7 @@ def _cmd_tiles(args) -> int:
                            size=args.size, buffer=args.buffer, min_points=args.min_points,
                            scheduler=scheduler, progress=from_cli(args.quiet, args.progress), results=results,
                            max_tiles=MAX_TILES if args.max_tiles is None else args.max_tiles)
-    test = neighbour_test(field, args.alpha, extra_std=args.extra_std)
+    test = neighbour_test(field, args.alpha, extra_std=args.extra_std, correction=args.correction)
     print(field.summary())
     print()
     print(test.summary())
@@ -613,6 +613,10 @@ def build_parser() -> argparse.ArgumentParser:
     tiles.add_argument("--alpha", type=_probability, default=0.05, help="test level (default: %(default)s)")
     tiles.add_argument("--extra-std", type=_non_negative_float, default=0.0,
                        help="extra std per tile in m for the neighbour test")
+    tiles.add_argument("--correction", choices=("holm", "fdr", "none"), default="holm",
+                       help="control of the many tests: holm keeps the chance of any false alarm in a stable survey "
+                            "at alpha, fdr the share of false alarms among the flagged, none tests each at alpha "
+                            "(default: %(default)s)")
     tiles.add_argument("--scheduler", type=_scheduler_option, default=None, metavar="SCHEDULER",
                        help="where the tiles run: cluster (a dask LocalCluster, one worker process per core; the "
                             "default when dask.distributed is installed), tcp://HOST:PORT (a running Dask "

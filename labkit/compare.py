@@ -20,11 +20,12 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
-from scipy import linalg, stats
+from scipy import stats
 
 from ._atomic import atomic_write_text
 from ._checks import as_points, probability
 from ._report import ReportMixin
+from ._stats import chi2_test
 from .distances import (  # noqa: F401  (re-exported)
     DistanceChange, as_matrix, check_overlap, cloud_to_cloud, distances_before_after, point_to_plane_distance,
 )
@@ -438,7 +439,7 @@ def _row(name, region, case, pair, ref, result, runtime, error, alpha) -> Compar
     e = shift - r_shift
     missed = mask & ~np.isfinite(np.diag(Sigma_m))  # constrained by the data, undetermined by the method
     test = mask & ~missed
-    chi2, p = _chi2_test(e[test], (Sigma_m + ref.covariance)[np.ix_(test, test)])  # (eq. 6)
+    chi2, p = chi2_test(e[test], (Sigma_m + ref.covariance)[np.ix_(test, test)])  # (eq. 6)
     inside = bool(np.isfinite(chi2) and chi2 <= stats.chi2.ppf(1 - alpha, test.sum()) and not missed.any())
     dR = T[:3, :3] @ ref.rotation.T
     rot_err = np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))) * 3600
@@ -473,18 +474,6 @@ def shift_covariance(result, c) -> np.ndarray:
     terms = np.einsum("ik,kl,jl->ijkl", J, np.nan_to_num(Sigma, nan=0.0, posinf=0.0, neginf=0.0), J)
     bad = ~np.isfinite(Sigma)[None, None] & (J[:, None, :, None] != 0) & (J[None, :, None, :] != 0)
     return np.where(bad.any(axis=(2, 3)), np.inf, terms.sum(axis=(2, 3)))
-
-
-def _chi2_test(e: np.ndarray, C: np.ndarray):
-    """T = e^T C^-1 e (eq. 6) by Cholesky; NaN when C is not positive definite."""
-    if e.size == 0 or not np.isfinite(C).all():
-        return float("nan"), float("nan")
-    try:
-        factor = linalg.cho_factor(C)
-    except linalg.LinAlgError:
-        return float("nan"), float("nan")
-    T = float(e @ linalg.cho_solve(factor, e))
-    return T, float(stats.chi2.sf(T, e.size))
 
 
 def _constrained_axes(pair) -> np.ndarray:

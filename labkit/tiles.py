@@ -3,7 +3,8 @@
 A survey is cut into square tiles (e.g. 100 m); every tile is registered on its
 own, giving one shift per tile (the *shift field*). Neighbouring tiles whose
 shifts differ by more than their combined uncertainty do not move together;
-tiles linked by agreeing neighbours form *coherent areas*.
+tiles linked by agreeing neighbours, each fitting its area's common shift, form
+*coherent areas* (the tests and their correction: :mod:`labkit.coherent_areas`).
 
 The per-tile work runs on Dask: one ``dask.delayed`` task per tile, computed by
 a local scheduler, a ``distributed.LocalCluster`` started for the run, a running
@@ -35,14 +36,12 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
-from scipy import linalg, stats
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from ._atomic import atomic_write_text
 from ._checks import as_points, choice, count, flag, non_negative, positive, probability
 from .progress import progress_steps
 from ._report import ReportMixin
+from .coherent_areas import CORRECTIONS, NeighbourTest, neighbour_areas  # noqa: F401  (NeighbourTest re-exported)
 from .errors import CloudFileError, EmptyRegionError, LabkitError
 
 LAS_SUFFIXES = (".las", ".laz")
@@ -608,39 +607,6 @@ def _run_jobs(run, jobs, client, scheduler, progress) -> list:
 
 # --------------------------------------------------------------------------- the field and its test
 @dataclass(frozen=True, eq=False, repr=False)
-class NeighbourTest(ReportMixin):
-    """Agreement of neighbouring tiles within their uncertainty (eq. 2, 3).
-
-    ``pairs`` (k, 2) indices into the field's tiles, ``difference`` (k, 3) of
-    their shifts, ``chi2`` with ``dof`` and ``p_value``, ``agree`` per pair;
-    ``areas`` labels each tile with its coherent area (connected through agreeing
-    neighbours; -1 for tiles without a shift).
-    """
-
-    pairs: np.ndarray
-    difference: np.ndarray
-    chi2: np.ndarray
-    dof: np.ndarray
-    p_value: np.ndarray
-    agree: np.ndarray
-    areas: np.ndarray
-    alpha: float
-    extra_std: float
-
-    @property
-    def n_areas(self) -> int:
-        return int(self.areas.max() + 1) if (self.areas >= 0).any() else 0
-
-    def _report(self):
-        k = len(self.pairs)
-        rows = [("neighbour pairs tested", str(k)),
-                ("agree within uncertainty", f"{int(self.agree.sum())} of {k}"),
-                ("coherent areas", str(self.n_areas)),
-                ("test", f"chi-square, alpha = {self.alpha}, extra std per tile {self.extra_std:.4f} m")]
-        return "Neighbouring-tile agreement", [("", rows)]
-
-
-@dataclass(frozen=True, eq=False, repr=False)
 class ShiftField(ReportMixin):
     """The shift of every tile of a survey."""
 
@@ -682,9 +648,10 @@ class ShiftField(ReportMixin):
     def std(self) -> np.ndarray:
         return np.sqrt(np.clip(np.einsum("nii->ni", self.covariances), 0, None))
 
-    def neighbour_test(self, alpha: float = 0.05, *, extra_std: float = 0.0, diagonal: bool = False) -> NeighbourTest:
-        """Test whether neighbouring tiles shift alike (eq. 2, 3); see :func:`neighbour_test`."""
-        return neighbour_test(self, alpha, extra_std=extra_std, diagonal=diagonal)
+    def neighbour_test(self, alpha: float = 0.05, *, extra_std: float = 0.0, diagonal: bool = False,
+                       correction: str = "holm") -> NeighbourTest:
+        """Test whether neighbouring tiles shift alike and find the coherent areas; see :func:`neighbour_test`."""
+        return neighbour_test(self, alpha, extra_std=extra_std, diagonal=diagonal, correction=correction)
 
     def to_csv(self, path) -> Path:
         """One line per tile: index, bounds, shift, standard deviations, counts, status (atomic write)."""
@@ -719,39 +686,54 @@ class ShiftField(ReportMixin):
         return "Shift field", [("", rows)]
 
 
-def neighbour_test(field: ShiftField, alpha: float = 0.05, *, extra_std: float = 0.0,
-                   diagonal: bool = False) -> NeighbourTest:
-    """Do neighbouring tiles agree within their uncertainty? (notebook 08, eq. 2, 3)
+def neighbour_test(field: ShiftField, alpha: float = 0.05, *, extra_std: float = 0.0, diagonal: bool = False,
+                   correction: str = "holm") -> NeighbourTest:
+    """Do neighbouring tiles agree within their uncertainty, and which areas move as one? (notebook 08, eqs. 2-7)
 
     For tiles i, j sharing an edge (or a corner with ``diagonal``) the
     difference d = t_i - t_j has covariance C = Sigma_i + Sigma_j + 2 s^2 I
     (eq. 2; s = ``extra_std``, an uncertainty per tile beyond the formal one,
     e.g. for systematic effects the covariance of ICP does not see). On the
     axes both tiles determine, T = d^T C^-1 d is chi-square distributed with as
-    many degrees of freedom (eq. 3); the pair agrees when T <= chi2_{1-alpha}.
-    Tiles connected by agreeing pairs form coherent areas.
+    many degrees of freedom (eq. 3). Tiles linked by agreeing pairs are a first
+    guess of the coherent areas; each tile is then tested against its area's
+    common weighted shift (eqs. 5, 6), and an area with a tile that disagrees
+    is split, so that a chain of small steps is not one area (see
+    :mod:`labkit.coherent_areas`).
+
+    Parameters
+    ----------
+    field : ShiftField
+    alpha : float
+        Level of the tests; with ``correction='holm'`` the family-wise level: the
+        chance that a survey whose tiles all shift alike shows any disagreeing
+        border or more than one area.
+    extra_std : float
+        Extra standard deviation per tile (m).
+    diagonal : bool
+        Also test tiles that share only a corner.
+    correction : {'holm', 'fdr', 'none'}
+        Control of the many tests (about three per tile) (eq. 7). ``'holm'`` (default)
+        keeps the family-wise error at alpha under any dependence (pairs sharing a
+        tile are correlated): a flagged border is then evidence about the survey,
+        not the expected few percent of false alarms among hundreds of borders -
+        without correction a stable survey of 100 tiles shows about ten. ``'fdr'``
+        (Benjamini-Hochberg) bounds the expected share of false alarms among the
+        flagged ones instead; it finds more where much has moved (a campaign after
+        a landslide). ``'none'`` tests each pair at alpha (as notebook 08 does first).
+
+    Returns
+    -------
+    NeighbourTest
     """
     alpha = probability(alpha, "alpha")
     extra_std = non_negative(extra_std, "extra_std")
     diagonal = flag(diagonal, "diagonal")
+    correction = choice(correction, CORRECTIONS, "correction")
     if not isinstance(field, ShiftField):
         raise LabkitError(f"neighbour_test needs a ShiftField (from register_tiles), got {type(field).__name__}")
-    pairs = _neighbour_pairs(field, diagonal)
-    t, C = field.translations, field.covariances + extra_std**2 * np.eye(3)
-    det = np.array([s.axis_determined for s in field.tiles], bool).reshape(-1, 3)
-    k = len(pairs)
-    chi2, p, dof = np.full(k, np.nan), np.full(k, np.nan), np.zeros(k, int)
-    for n, (i, j) in enumerate(pairs):
-        axes = det[i] & det[j]
-        d = (t[i] - t[j])[axes]  # (eq. 2)
-        Cd = (C[i] + C[j])[np.ix_(axes, axes)]
-        dof[n] = axes.sum()
-        chi2[n], p[n] = _chi2(d, Cd)  # (eq. 3)
-    crit = stats.chi2.ppf(1 - alpha, np.maximum(dof, 1))
-    agree = np.isfinite(chi2) & (chi2 <= crit)
-    areas = _areas(len(field), pairs[agree], field.ok)
-    diff = (t[pairs[:, 0]] - t[pairs[:, 1]]) if k else np.zeros((0, 3))
-    return NeighbourTest(pairs, diff, chi2, dof, p, agree, areas, alpha, float(extra_std))
+    return neighbour_areas(_neighbour_pairs(field, diagonal), field.translations, field.covariances,
+                           field.determined, field.ok, alpha=alpha, extra_std=extra_std, correction=correction)
 
 
 def _neighbour_pairs(field: ShiftField, diagonal: bool) -> np.ndarray:
@@ -760,23 +742,3 @@ def _neighbour_pairs(field: ShiftField, diagonal: bool) -> np.ndarray:
     pairs = [(n, index[(r + dr, c + dc)]) for (r, c), n in index.items() for dr, dc in steps
              if (r + dr, c + dc) in index]
     return np.array(sorted(pairs), int).reshape(-1, 2)
-
-
-def _chi2(d: np.ndarray, C: np.ndarray):
-    if d.size == 0:
-        return np.nan, np.nan
-    try:
-        factor = linalg.cho_factor(C)
-    except linalg.LinAlgError:
-        return np.nan, np.nan
-    T = float(d @ linalg.cho_solve(factor, d))
-    return T, float(stats.chi2.sf(T, d.size))
-
-
-def _areas(n: int, edges: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
-    _, labels = connected_components(graph, directed=False)
-    labels = np.where(ok, labels, -1)
-    # renumber 0..k-1 over registered tiles, in order of first appearance
-    uniq = {lab: i for i, lab in enumerate(dict.fromkeys(labels[ok]))}
-    return np.array([uniq.get(lab, -1) if o else -1 for lab, o in zip(labels, ok)], int)

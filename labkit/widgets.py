@@ -314,35 +314,40 @@ def _k_figure(pca, err, k):
 _ALPHA_OPTIONS = (0.001, 0.01, 0.05, 0.1, 0.2)
 
 
-def neighbour_test_explorer(field, alpha=0.05, extra_std=0.0, max_extra_mm=20.0):
+def neighbour_test_explorer(field, alpha=0.05, extra_std=0.0, max_extra_mm=20.0, correction="holm"):
     """Sliders for the significance level and the extra standard deviation of the neighbour test (notebook 08).
 
     Each change reruns :func:`labkit.neighbour_test` on ``field`` and redraws
     the shift field with the disagreeing borders and the coherent areas. A
-    smaller alpha or a larger extra standard deviation accepts more pairs.
+    smaller alpha or a larger extra standard deviation accepts more pairs; the
+    ``correction`` menu (holm, fdr, none) chooses the control of the many tests.
 
     Returns
     -------
     ipywidgets.VBox
-        With attributes ``alpha_slider``, ``extra_slider`` (mm), ``report``
-        (HTML), ``figure`` (Image), ``last_test`` and ``update()``.
+        With attributes ``alpha_slider``, ``extra_slider`` (mm), ``correction_menu``,
+        ``report`` (HTML), ``figure`` (Image), ``last_test`` and ``update()``.
     """
     import ipywidgets as widgets
 
-    from .tiles import neighbour_test
+    from ._checks import choice
+    from .tiles import CORRECTIONS, neighbour_test
 
     a0 = min(_ALPHA_OPTIONS, key=lambda v: abs(np.log(v) - np.log(alpha)))
     alpha_slider = widgets.SelectionSlider(options=_ALPHA_OPTIONS, value=a0, description="alpha",
                                            continuous_update=False)
     extra_slider = widgets.FloatSlider(value=extra_std * 1e3, min=0.0, max=max_extra_mm, step=0.5,
                                        description="s_e (mm)", continuous_update=False)
+    correction_menu = widgets.Dropdown(options=CORRECTIONS, value=choice(correction, CORRECTIONS, "correction"),
+                                       description="correction")
     report = widgets.HTML()
     figure = widgets.Image(format="png")
-    box = widgets.VBox([widgets.HBox([alpha_slider, extra_slider]), report, figure])
+    box = widgets.VBox([widgets.HBox([alpha_slider, extra_slider, correction_menu]), report, figure])
     box.add_class("labkit-neighbour-explorer")
 
     def update(*_):
-        test = neighbour_test(field, alpha_slider.value, extra_std=extra_slider.value * 1e-3)
+        test = neighbour_test(field, alpha_slider.value, extra_std=extra_slider.value * 1e-3,
+                              correction=correction_menu.value)
         box.last_test = test
         report.value = (f"<p><b>alpha = {alpha_slider.value:g}, s<sub>e</sub> = {extra_slider.value:.1f} mm:</b> "
                         f"{int((~test.agree).sum())} of {len(test.agree)} neighbour pairs disagree; "
@@ -351,8 +356,10 @@ def neighbour_test_explorer(field, alpha=0.05, extra_std=0.0, max_extra_mm=20.0)
 
     alpha_slider.observe(update, names="value")
     extra_slider.observe(update, names="value")
+    correction_menu.observe(update, names="value")
     box.alpha_slider, box.extra_slider, box.report, box.figure, box.update = (alpha_slider, extra_slider, report,
                                                                              figure, update)
+    box.correction_menu = correction_menu
     update()
     return box
 

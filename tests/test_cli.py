@@ -168,9 +168,9 @@ def test_compare_takes_the_truth_from_the_pair_file(files, tmp_path, capsys):
 # --------------------------------------------------------------------------- tiles
 def test_tiles_writes_field_png_and_csv(files, tmp_path, capsys):
     assert main(["tiles", str(files["src"]), "--target", str(files["tgt"]), "--size", "15", "--min-points", "100",
-                 "--out", str(tmp_path)]) == 0
+                 "--correction", "fdr", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
-    assert "Shift field" in out and "Neighbouring-tile agreement" in out
+    assert "Shift field" in out and "Neighbouring-tile agreement" in out and "Benjamini-Hochberg" in out
     rows = list(csv.DictReader((tmp_path / "shift_field.csv").open()))
     assert len(rows) == 4  # 30 m x 30 m on a 15 m grid anchored at round coordinates
     # tiles that determine every axis recover the true shift within their uncertainty (+ 5 mm for

@@ -345,3 +345,79 @@ def test_unreachable_scheduler_is_a_clear_error():
     src, tgt, _ = _survey(n=3000)
     with pytest.raises(LabkitError, match="cannot reach the Dask scheduler at tcp://127.0.0.1:9"):
         tiles.register_tiles(src, tgt, plane_translation, size=50.0, scheduler="tcp://127.0.0.1:9")
+
+
+class _Marked:
+    """plane_translation that leaves a file per call in ``folder`` (counts calls across worker threads and
+    processes, where an in-memory counter would be a copy)."""
+
+    def __init__(self, folder, crash_after=None):
+        self.folder, self.crash_after = str(folder), crash_after
+
+    def __call__(self, source, target):
+        import time
+        import uuid
+        from pathlib import Path
+
+        if self.crash_after is not None and len(list(Path(self.folder).iterdir())) >= self.crash_after:
+            raise RuntimeError("worker lost")  # not a labkit error: the run stops
+        result = plane_translation(source, target)
+        time.sleep(0.2)  # a tile takes a moment, so that the interrupt meets tiles still queued
+        (Path(self.folder) / uuid.uuid4().hex).touch()
+        return result
+
+
+def _calls(folder) -> int:
+    return len(list(folder.iterdir()))
+
+
+def _settled(calls, results, quiet: float = 1.0, timeout: float = 60.0) -> int:
+    """Wait until every finished call has its JSON and none has finished for ``quiet`` s (tasks that were
+    running when the run stopped complete and are written)."""
+    import time
+
+    t_end, last, since = time.monotonic() + timeout, -1, time.monotonic()
+    while time.monotonic() < t_end:
+        n = _calls(calls)
+        if n != last:
+            last, since = n, time.monotonic()
+        elif time.monotonic() - since >= quiet and len(list(results.glob("tile_*.json"))) == n:
+            break
+        time.sleep(0.1)
+    return last
+
+
+@pytest.mark.parametrize("how", ["ctrl-c", "crash"])
+def test_interrupted_run_on_a_cluster_by_address_resumes(tmp_path, how):
+    """A run on a LocalCluster named by its tcp:// address stops after three tiles - Ctrl-C in the client
+    (raised from the progress callback) or an error in a worker; the rerun computes only the tiles without
+    a result file and gives the field of an uninterrupted run."""
+    distributed = pytest.importorskip("distributed")
+    src, tgt, _ = _survey(n=12_000)
+    kw = dict(size=50.0, min_points=100)
+    reference = tiles.register_tiles(src, tgt, plane_translation, scheduler="serial", **kw)
+    calls, results = tmp_path / "calls", tmp_path / "results"
+    calls.mkdir()
+    method = _Marked(calls)
+    stop, error = (_Marked(calls, crash_after=3), RuntimeError) if how == "crash" else (method, KeyboardInterrupt)
+
+    def interrupt(event):
+        if event.done >= 3 and not event.finished:
+            raise KeyboardInterrupt
+
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, protocol="tcp",
+                                  host="127.0.0.1", dashboard_address=None) as cluster:
+        address = cluster.scheduler_address
+        assert address.startswith("tcp://")
+        with pytest.raises(error):
+            tiles.register_tiles(src, tgt, stop, scheduler=address, progress=interrupt if how == "ctrl-c" else None,
+                                 results=results, **kw)
+        first = _settled(calls, results)  # tiles still running when the run stopped finish and are written
+        saved = len(list(results.glob("tile_*.json")))
+        assert 3 <= saved == first < len(reference)
+        resumed = tiles.register_tiles(src, tgt, method, scheduler=address, results=results, **kw)
+    assert _calls(calls) - first == len(reference) - saved  # only the missing tiles were computed
+    assert resumed.n_reused == saved and resumed.ok.all()
+    np.testing.assert_array_equal(resumed.translations, reference.translations)
+    np.testing.assert_array_equal(resumed.covariances, reference.covariances)
+    assert [t.tile.bounds for t in resumed.tiles] == [t.tile.bounds for t in reference.tiles]

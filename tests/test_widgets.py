@@ -63,6 +63,10 @@ def test_neighbour_test_explorer_follows_the_sliders():
     box.extra_slider.value = 20.0
     loose = int((~box.last_test.agree).sum())
     assert loose <= strict and box.last_test.extra_std == pytest.approx(0.02)
+    box.correction_menu.value = "none"
+    assert box.last_test.correction == "none"
+    assert int((~box.last_test.agree).sum()) == int((~labkit.neighbour_test(field, box.alpha_slider.value,
+                                                                         extra_std=0.02, correction="none").agree).sum())
 
 
 def _small_field():

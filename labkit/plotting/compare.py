@@ -237,8 +237,9 @@ def plot_shift_field(field, *, ax=None, test=None, scale=None, cmap=CMAP_SEQUENT
     labelled, and its colour uses the determined components.
 
     With ``test`` (a :class:`labkit.tiles.NeighbourTest`), borders between
-    neighbours that do NOT agree within their uncertainty are drawn in red and
-    each tile is labelled with its coherent area.
+    neighbours that do NOT agree within their uncertainty are drawn in red,
+    borders between areas that the area test split (the pair itself agrees)
+    dashed, and each tile is labelled with its coherent area.
     """
     import matplotlib.patches as mpatches
 
@@ -281,12 +282,14 @@ def plot_shift_field(field, *, ax=None, test=None, scale=None, cmap=CMAP_SEQUENT
 def _draw_disagreement(ax, field, test, xy):
     half = field.size / 2
     for (i, j), agree in zip(test.pairs, test.agree):
-        if agree:
+        split = agree and test.areas[i] != test.areas[j]  # the pair agrees, their areas' common shifts do not
+        if agree and not split:
             continue
         mid = (xy[i] + xy[j]) / 2
         d = (xy[j] - xy[i]) / np.linalg.norm(xy[j] - xy[i])
         perp = np.array([-d[1], d[0]]) * half
-        ax.plot(*np.c_[mid - perp, mid + perp], color=COLORS["outlier"], lw=3, solid_capstyle="butt")
+        ax.plot(*np.c_[mid - perp, mid + perp], color=COLORS["outlier"], lw=1.5 if split else 3,
+                ls="--" if split else "-", solid_capstyle="butt")
     for n, (x, y) in enumerate(xy):
         if test.areas[n] >= 0:
             ax.text(x - 0.45 * field.size, y + 0.38 * field.size, f"area {test.areas[n]}", fontsize=7)
