@@ -23,12 +23,14 @@ import numpy as np
 from scipy import linalg, stats
 
 from ._atomic import atomic_write_text
-from ._checks import as_points, probability
+from ._checks import as_points, as_rng, choice, probability
 from ._report import ReportMixin
 from .distances import (  # noqa: F401  (re-exported)
     DistanceChange, as_matrix, check_overlap, cloud_to_cloud, distances_before_after, point_to_plane_distance,
 )
 from .errors import LabkitError
+from .io import read_cloud
+from .synthetic import REGIONS, als_epochs
 from .transforms import check_transform
 from .references import (  # noqa: F401  (re-exported)
     Reference, average_references, load_references, manual_reference, reference_from_pairs,
@@ -233,9 +235,6 @@ def synthetic_cases(regions=None, cases=CASES, *, size=(60.0, 60.0), density=10.
     regions. ``regions`` restricts the regions (default: all of
     :data:`labkit.synthetic.REGIONS`).
     """
-    from ._checks import as_rng, choice
-    from .synthetic import REGIONS, als_epochs
-
     regions = REGIONS if regions is None else tuple(choice(r, REGIONS, "region") for r in regions)
     gen = as_rng(rng)
     out = {}
@@ -271,8 +270,6 @@ def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "tra
     route for shifts larger than ICP's matching distance).
     The callables are picklable (for Dask workers in other processes).
     """
-    from ._checks import choice
-
     choice(dof, ("translation", "rigid"), "dof")
     out = {}
     for name in names:
@@ -282,7 +279,7 @@ def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "tra
 
 
 def _standard(source, target, *, name, dof, extent, max_points, rng, progress=False):
-    from .registration import icp, max_consensus
+    from .registration import icp, max_consensus  # (numba: loaded when a registration runs)
 
     if name.startswith("icp"):
         kind = name.partition("-")[2]
@@ -321,8 +318,6 @@ def load_pairs(path) -> dict:
     the JSON file.
     """
     import json
-
-    from .io import read_cloud
 
     path = Path(path)
     if not path.is_file():

@@ -13,6 +13,7 @@ import numpy as np
 
 from ..cloud import PointCloud
 from ..errors import LabkitError
+from ..regions import as_bbox, as_rings, density_grid
 from ._style import CMAP_SEQUENTIAL, POINT_SIZE, new_plotter, scalar_bar
 
 # ASPRS LAS 1.4 standard classes: name and display colour (close to common viewer palettes)
@@ -178,8 +179,6 @@ def plot_outline(*, bbox=None, polygon=None, circle=None, ax=None, label: str | 
 
     Uses the origin that :func:`plot_top_view` stored on the axes (zero otherwise).
     """
-    from ..regions import as_bbox, as_rings
-
     ax = _axes(ax)
     o = np.asarray(getattr(ax, "labkit_origin", np.zeros(3)))[:2]
     if sum(v is not None for v in (bbox, polygon, circle)) != 1:
@@ -204,8 +203,6 @@ def plot_outline(*, bbox=None, polygon=None, circle=None, ax=None, label: str | 
 
 def plot_density(grid, *, ax=None, vmax=None, cmap: str = "magma", origin=None):
     """Map of points per m^2 from a :class:`labkit.regions.DensityGrid` (or a cloud, with 1 m cells)."""
-    from ..regions import density_grid
-
     if isinstance(grid, PointCloud):
         grid = density_grid(grid, 1.0)
     ax = _axes(ax)

@@ -12,7 +12,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from .._report import ReportMixin, fmt
-from ..transforms import make_transform
+from ..transforms import angles_from_rotation, apply_transform, make_transform
 
 AXES = ("X", "Y", "Z")
 
@@ -248,8 +248,6 @@ class RegistrationResult(ReportMixin):
 
     def apply(self, points) -> np.ndarray:
         """Map source points (n, 3) into the target frame."""
-        from ..transforms import apply_transform
-
         return apply_transform(self.matrix, points)
 
     def _report(self):
@@ -258,8 +256,6 @@ class RegistrationResult(ReportMixin):
             (f"d{a}", f"{t:+.4f} m  +- {s:.4f} m") for a, t, s in zip(AXES, self.translation, std)
         ]
         if not np.allclose(self.rotation, np.eye(3)):
-            from ..transforms import angles_from_rotation
-
             ang = np.degrees(angles_from_rotation(self.rotation)) * 3600
             rows.append(("rotation rx, ry, rz", fmt(ang, 2, "arcsec")))
         rows += [
