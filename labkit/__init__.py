@@ -15,7 +15,6 @@ _EXPORTS = {
     # errors
     "LabkitError": "labkit.errors",
     "DegenerateGeometryError": "labkit.errors",
-    "ConvergenceError": "labkit.errors",
     "EmptyRegionError": "labkit.errors",
     "CloudFileError": "labkit.errors",
     "precision_tolerance": "labkit._checks",
@@ -84,6 +83,8 @@ def __getattr__(name: str):
         value = importlib.import_module(f"labkit.{name}")
         globals()[name] = value
         return value
+    if name == "ConvergenceError":  # deprecated: warns on every access, so it is not cached
+        return importlib.import_module("labkit.errors")._deprecated_convergence_error()
     module = _EXPORTS.get(name)
     if module is None:
         raise AttributeError(f"module 'labkit' has no attribute {name!r}")

@@ -46,7 +46,7 @@ def _cmd_demo(args) -> int:
 
 
 def _cmd_sphere(args) -> int:
-    xyz = _read_sphere_cloud(args.file)  # (a missing or corrupt file is reported first)
+    xyz = read_cloud(args.file).xyz  # (a missing or corrupt file is reported first)
     print(f"{args.file}: {len(xyz)} points")
     station, why = _sphere_station(xyz, args.station, args.no_station)
     print(f"station: {why}")
@@ -66,68 +66,6 @@ def _cmd_sphere(args) -> int:
     print()
     print(result.fit.summary())
     return 0
-
-
-def _read_sphere_cloud(path):
-    """Coordinates of a cloud file; ``.ply`` through a small local reader where read_cloud lacks it."""
-    try:
-        return read_cloud(path).xyz
-    except LabkitError:
-        if Path(path).suffix.lower() != ".ply" or not Path(path).is_file():
-            raise
-    return _read_ply_xyz(Path(path))
-
-
-_PLY_TYPES = {"char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2", "int": "i4", "uint": "u4",
-              "float": "f4", "double": "f8", "int8": "i1", "uint8": "u1", "int16": "i2", "uint16": "u2",
-              "int32": "i4", "uint32": "u4", "float32": "f4", "float64": "f8"}
-
-
-def _read_ply_xyz(path):
-    """x, y, z of the vertex element of an ASCII or binary PLY file (fallback reader, no list properties)."""
-    with open(path, "rb") as fh:
-        raw = fh.read()
-    end = raw.find(b"end_header")
-    if not raw.startswith(b"ply") or end < 0:
-        raise LabkitError(f"{path}: not a PLY file (no 'ply' magic or no end_header)")
-    header = raw[:end].decode("ascii", "replace").splitlines()
-    body = raw[raw.index(b"\n", end) + 1:]
-    fmt_, n, props, in_vertex, before = None, 0, [], False, 0
-    for line in header:
-        words = line.split()
-        if not words:
-            continue
-        if words[0] == "format":
-            fmt_ = words[1]
-        elif words[0] == "element":
-            in_vertex = words[1] == "vertex"
-            if in_vertex:
-                n = int(words[2])
-            elif not props:
-                before += 1
-        elif words[0] == "property" and in_vertex:
-            if words[1] == "list" or words[1] not in _PLY_TYPES:
-                raise LabkitError(f"{path}: vertex property {' '.join(words[1:])!r} is not supported")
-            props.append((words[2], _PLY_TYPES[words[1]]))
-    names = [p[0] for p in props]
-    if before or not {"x", "y", "z"} <= set(names):
-        raise LabkitError(f"{path}: the PLY file needs a first element 'vertex' with x, y, z")
-    if fmt_ == "ascii":
-        table = np.loadtxt(body.decode("ascii").splitlines()[:n], ndmin=2)
-        cols = [table[:, names.index(k)] for k in "xyz"]
-    elif fmt_ in ("binary_little_endian", "binary_big_endian"):
-        order = "<" if fmt_ == "binary_little_endian" else ">"
-        dtype = np.dtype([(k, order + t) for k, t in props])
-        if len(body) < n * dtype.itemsize:
-            raise LabkitError(f"{path}: the PLY file is truncated ({n} vertices announced)")
-        rec = np.frombuffer(body, dtype=dtype, count=n)
-        cols = [rec[k] for k in "xyz"]
-    else:
-        raise LabkitError(f"{path}: unknown PLY format {fmt_!r}")
-    xyz = np.column_stack(cols).astype(np.float64)
-    if not np.isfinite(xyz).all():
-        raise LabkitError(f"{path}: NaN or infinite coordinates")
-    return xyz
 
 
 def _sphere_station(xyz, given, off):

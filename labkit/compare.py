@@ -31,11 +31,12 @@ from .distances import (  # noqa: F401  (re-exported)
 from .errors import LabkitError
 from .io import read_cloud
 from .synthetic import REGIONS, als_epochs
-from .transforms import check_transform
+from .transforms import check_transform, skew
 from .references import (  # noqa: F401  (re-exported)
     Reference, average_references, load_references, manual_reference, reference_from_pairs,
     reference_from_targets, save_references, truth_reference,
 )
+from .regions import STABLE_CLASSES
 
 AXES = ("X", "Y", "Z")
 
@@ -253,7 +254,6 @@ def synthetic_cases(regions=None, cases=CASES, *, size=(60.0, 60.0), density=10.
 
 
 METHODS = ("icp", "icp-point", "icp-huber", "icp-tukey", "icp-classes", "consensus", "consensus+icp")
-STABLE_CLASSES = (2, 6, 11)  # ASPRS ground, building, road surface: what ``icp-classes`` matches on
 
 
 def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "translation", extent: float = 1.0,
@@ -458,7 +458,7 @@ def shift_covariance(result, c) -> np.ndarray:
         return np.full((3, 3), np.nan)
     arm = c - np.asarray(getattr(result, "origin", np.zeros(3)), dtype=float)
     # d(shift)/d(angle): a small rotation dtheta moves c by dtheta x arm = -[arm]x dtheta
-    dtheta = -np.array([[0, -arm[2], arm[1]], [arm[2], 0, -arm[0]], [-arm[1], arm[0], 0]])
+    dtheta = -skew(arm)
     cols = {"tx": np.eye(3)[:, 0], "ty": np.eye(3)[:, 1], "tz": np.eye(3)[:, 2],
             "rx": dtheta[:, 0], "ry": dtheta[:, 1], "rz": dtheta[:, 2]}
     J = np.column_stack([cols.get(n, np.zeros(3)) for n in names])

@@ -24,6 +24,16 @@ from ._report import ReportMixin, fmt
 from .cloud import PointCloud
 from .errors import EmptyRegionError, LabkitError
 
+#: Names of the ASPRS class codes (LAS 1.4 specification); codes 19-63 are reserved, 64-255 user defined.
+ASPRS_NAMES = {
+    0: "never classified", 1: "unclassified", 2: "ground", 3: "low vegetation", 4: "medium vegetation",
+    5: "high vegetation", 6: "building", 7: "low point (noise)", 8: "model key point", 9: "water", 10: "rail",
+    11: "road surface", 12: "overlap", 13: "wire guard", 14: "wire conductor", 15: "transmission tower",
+    16: "wire connector", 17: "bridge deck", 18: "high noise",
+}
+#: The classes that stay put between epochs: ground, building, road surface (what ``icp-classes`` matches on).
+STABLE_CLASSES = (2, 6, 11)
+
 #: Most grid cells a density grid may have (a cell typed in mm instead of m would exhaust the memory).
 MAX_CELLS = 50_000_000
 

@@ -91,3 +91,32 @@ def angles_from_rotation(R) -> np.ndarray:
     rx = np.arctan2(R[2, 1], R[2, 2])
     rz = np.arctan2(R[1, 0], R[0, 0])
     return np.array([rx, ry, rz])
+
+
+def skew(v) -> np.ndarray:
+    """The cross-product matrix [v]x with [v]x w = v x w, for one vector (3,) or a stack (n, 3).
+
+    Parameters
+    ----------
+    v : array_like (3,) or (n, 3)
+
+    Returns
+    -------
+    ndarray (3, 3) or (n, 3, 3)
+        ``[[0, -v3, v2], [v3, 0, -v1], [-v2, v1, 0]]`` for each vector.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> v, w = np.array([1.0, 2.0, 3.0]), np.array([0.5, -1.0, 2.0])
+    >>> bool(np.allclose(skew(v) @ w, np.cross(v, w)))
+    True
+    >>> skew(np.zeros((4, 3))).shape
+    (4, 3, 3)
+    """
+    v = np.asarray(v, dtype=np.float64)
+    if v.shape[-1:] != (3,) or v.ndim not in (1, 2):
+        raise LabkitError(f"skew needs a vector (3,) or a stack (n, 3), got shape {v.shape}")
+    z = np.zeros(v.shape[:-1])
+    x, y, w = v[..., 0], v[..., 1], v[..., 2]
+    return np.stack([np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._checks import as_rng, positive
+from .._checks import as_rng, count, non_negative, positive
 from .._report import ReportMixin, fmt
 from ..errors import LabkitError
 
@@ -165,8 +165,8 @@ def sphere_on_tripod(
     rng = as_rng(rng)
     counts = _counts(n_sphere, n_clutter, outlier_ratio)
     radius = positive(radius, "radius")
-    noise = _non_negative(noise, "noise")
-    range_noise = noise if range_noise is None else _non_negative(range_noise, "range_noise")
+    noise = non_negative(noise, "noise")
+    range_noise = noise if range_noise is None else non_negative(range_noise, "range_noise")
     offset = _offset(utm)
 
     # True geometry, local frame
@@ -202,26 +202,6 @@ def sphere_on_tripod(
 
 
 # ----------------------------------------------------------------- arguments
-def _non_negative(value, name):
-    try:
-        val = float(value)
-    except (TypeError, ValueError):
-        val = np.nan
-    if not np.isfinite(val) or val < 0:
-        raise LabkitError(f"{name} must be a finite number >= 0, got {value!r}")
-    return val
-
-
-def _count(value, name):
-    try:
-        ok = not isinstance(value, bool) and int(value) == value and value >= 0
-    except (TypeError, ValueError, OverflowError):
-        ok = False
-    if not ok:
-        raise LabkitError(f"{name} must be a whole number >= 0, got {value!r}")
-    return int(value)
-
-
 def _offset(utm):
     if utm is True:
         return UTM_OFFSET.copy()
@@ -235,17 +215,17 @@ def _offset(utm):
 
 def _counts(n_sphere, n_clutter, outlier_ratio):
     """Number of points per label: [sphere, legs, base, ground, clutter]."""
-    n_sphere = _count(n_sphere, "n_sphere")
+    n_sphere = count(n_sphere, "n_sphere", minimum=0)
     if outlier_ratio is None:
         n_structure = {k: int(round(s * n_sphere)) for k, s in _STRUCTURE_SHARE.items()}
         n_out = sum(n_structure.values())
-        n_clutter = int(round(0.1 * n_out / 0.9)) if n_clutter is None else _count(n_clutter, "n_clutter")
+        n_clutter = int(round(0.1 * n_out / 0.9)) if n_clutter is None else count(n_clutter, "n_clutter", minimum=0)
         return [n_sphere, n_structure[LEGS], n_structure[BASE], n_structure[GROUND], n_clutter]
-    ratio = _non_negative(outlier_ratio, "outlier_ratio")
+    ratio = non_negative(outlier_ratio, "outlier_ratio")
     if not (0.0 <= ratio < 1.0):
         raise LabkitError(f"outlier_ratio must lie in [0, 1), got {outlier_ratio!r}")
     n_out = int(round(n_sphere * ratio / (1.0 - ratio)))
-    n_clutter = int(round(0.1 * n_out)) if n_clutter is None else _count(n_clutter, "n_clutter")
+    n_clutter = int(round(0.1 * n_out)) if n_clutter is None else count(n_clutter, "n_clutter", minimum=0)
     if n_clutter > n_out:
         raise LabkitError(
             f"n_clutter={n_clutter} exceeds the {n_out} non-sphere points that outlier_ratio={ratio} allows"
