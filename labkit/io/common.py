@@ -79,15 +79,6 @@ def _canonical(token: str) -> str:
     return re.sub(r"[^0-9a-z]+", "_", word.lower()).strip("_") or "column"
 
 
-def _positive_int(value, name: str) -> int:
-    """A whole number >= 1 (bool, fractions and text refused)."""
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer, float, np.floating)):
-        raise LabkitError(f"{name} must be a whole number >= 1, got {value!r}")
-    if not np.isfinite(value) or value != int(value) or value < 1:
-        raise LabkitError(f"{name} must be a whole number >= 1, got {value!r}")
-    return int(value)
-
-
 def _attribute_names(attributes) -> set | None:
     """The attribute selection as a set of names; a bare string is one name."""
     if attributes is None:

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._checks import choice
+from .._checks import choice, count
 from ..cloud import PointCloud, Units
 from ..errors import CloudFileError, EmptyRegionError, LabkitError
 from .ascii import _SCAN_ANGLE_NAMES, _read_ascii
 from .common import (
     ASCII_SUFFIXES, DEFAULT_CHUNK, LAS_SUFFIXES, NUMPY_SUFFIXES, PLY_SUFFIXES, UNIT_CHOICES,
-    _attribute_names, _existing, _positive_int, _unsupported,
+    _attribute_names, _existing, _unsupported,
 )
 from .filter import _Filter
 from .las import _read_las
@@ -80,7 +80,7 @@ def read_cloud(
     """
     path = _existing(path)
     flt = _Filter.build(bbox, polygon, classes)
-    chunk_size = _positive_int(chunk_size, "chunk_size")
+    chunk_size = count(chunk_size, "chunk_size")
     choice(units, UNIT_CHOICES, "units")
     keep = _attribute_names(attributes)
     suffix = path.suffix.lower()

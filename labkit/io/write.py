@@ -10,10 +10,11 @@ from pathlib import Path
 import numpy as np
 
 from .._atomic import atomic_path
+from .._checks import count
 from ..cloud import PointCloud
 from ..errors import CloudFileError, LabkitError
 from .ascii import _write_ascii
-from .common import ASCII_SUFFIXES, DEFAULT_CHUNK, LAS_SUFFIXES, _positive_int, _unsupported
+from .common import ASCII_SUFFIXES, DEFAULT_CHUNK, LAS_SUFFIXES, _unsupported
 from .las_write import _write_las
 from .npy import _write_npz
 
@@ -72,7 +73,7 @@ def write_cloud(cloud: PointCloud, path, *, scale=DEFAULT_SCALE, point_format: i
         raise LabkitError(f"write_cloud needs a PointCloud, got {type(cloud).__name__}")
     if not isinstance(path, (str, os.PathLike)) or (isinstance(path, str) and not path.strip()):
         raise CloudFileError(f"write_cloud needs a file path (str or Path), got {path!r}")
-    chunk_size = _positive_int(chunk_size, "chunk_size")
+    chunk_size = count(chunk_size, "chunk_size")
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in LAS_SUFFIXES + ASCII_SUFFIXES + (".npz",):

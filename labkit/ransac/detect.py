@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .._checks import as_points, choice, positive, probability
+from .._checks import as_points, choice, count, positive, probability
 from .._frame import local_origin, reduce
 from ..errors import LabkitError
 from .config import _FINAL_ATTEMPTS, _LOCAL_MAX_PAIRS, _LOCAL_MAX_SHARE, _LOCAL_REACH, S, _Config
@@ -146,8 +146,8 @@ def ransac_sphere(
     minimal_solver = choice(minimal_solver, ("closed_form", "ghm"), "minimal_solver")
     sampling = choice(sampling, ("auto", "uniform", "local"), "sampling")
     r_min, r_max, known = _radius_limits(radius_range, nominal_radius, hold_radius)
-    max_iterations = _whole(max_iterations, "max_iterations", 1)
-    min_inliers = _whole(min_inliers, "min_inliers", S + 1)
+    max_iterations = count(max_iterations, "max_iterations", minimum=1)
+    min_inliers = count(min_inliers, "min_inliers", minimum=S + 1)
     sigma = _check_sigma(sigma, len(xyz))
     station = _check_station(station)
 
@@ -226,7 +226,7 @@ def _reduction_sizes(n, preliminary_size):
     """Working-set sizes to try: the preliminary size, then 4x and 16x (capped at n)."""
     if preliminary_size is None:
         return [n]
-    size = _whole(preliminary_size, "preliminary_size", S)
+    size = count(preliminary_size, "preliminary_size", minimum=S)
     sizes = []
     for k in (size, 4 * size, 16 * size):
         if not sizes or sizes[-1] < min(k, n):
@@ -246,12 +246,6 @@ def _seed_and_generator(rng):
     else:
         raise LabkitError(f"rng must be a non-negative int, a numpy.random.Generator or None, got {rng!r}")
     return seed, np.random.default_rng(seed)
-
-
-def _whole(value, name, minimum):
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or int(value) != value or value < minimum:
-        raise LabkitError(f"{name} must be a whole number >= {minimum}, got {value!r}")
-    return int(value)
 
 
 def _radius_limits(radius_range, nominal_radius, hold_radius):
