@@ -21,7 +21,22 @@ from .errors import LabkitError
 
 
 def save_figure(fig, path) -> Path:
-    """Save a matplotlib figure as PNG (to ``path``, which should be a staged path) and close it."""
+    """Save a matplotlib figure as PNG (to ``path``, which should be a staged path) and close it.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> import matplotlib
+    >>> matplotlib.use("Agg")
+    >>> import matplotlib.pyplot as plt
+    >>> from labkit._outputs import save_figure
+    >>> fig, ax = plt.subplots()
+    >>> _ = ax.plot([0, 1], [0, 1])
+    >>> path = save_figure(fig, Path(tempfile.mkdtemp()) / "line.png")
+    >>> path.read_bytes()[:4] == b"\\x89PNG"
+    True
+    """
     import matplotlib.pyplot as plt
 
     try:
@@ -32,7 +47,23 @@ def save_figure(fig, path) -> Path:
 
 
 def save_render(plotter, path) -> Path:
-    """Render a pyvista plotter off screen into a PNG and close it."""
+    """Render a pyvista plotter off screen into a PNG and close it.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> from labkit._outputs import save_render
+    >>> class Plotter:  # stands in for a pyvista.Plotter: screenshot() and close()
+    ...     def screenshot(self, path):
+    ...         Path(path).write_bytes(b"png")
+    ...     def close(self):
+    ...         print("closed")
+    >>> path = save_render(Plotter(), Path(tempfile.mkdtemp()) / "view.png")
+    closed
+    >>> path.read_bytes()
+    b'png'
+    """
     try:
         plotter.screenshot(str(path))
     finally:
@@ -110,7 +141,20 @@ class _Stage:
 @contextlib.contextmanager
 def staged_folder(folder):
     """``with staged_folder(dir) as work: ...``: files written into the empty folder ``work`` move into
-    ``dir`` together when the block succeeds (all or nothing, as :func:`staged_outputs`)."""
+    ``dir`` together when the block succeeds (all or nothing, as :func:`staged_outputs`).
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> from labkit._outputs import staged_folder
+    >>> folder = Path(tempfile.mkdtemp()) / "figures"
+    >>> with staged_folder(folder) as work:
+    ...     _ = (work / "one.txt").write_text("1")
+    ...     _ = (work / "two.txt").write_text("2")
+    >>> sorted(p.name for p in folder.iterdir())
+    ['one.txt', 'two.txt']
+    """
     stage = _Stage(Path(folder))
     stage._make_folder()
     work = Path(tempfile.mkdtemp(dir=stage.folder, prefix=".staging-"))
@@ -128,7 +172,30 @@ def staged_folder(folder):
 
 @contextlib.contextmanager
 def staged_outputs(folder):
-    """``with staged_outputs(dir) as stage: write(stage("a.laz")) ...``: all files appear together or none."""
+    """``with staged_outputs(dir) as stage: write(stage("a.laz")) ...``: all files appear together or none.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> from labkit._outputs import staged_outputs
+    >>> folder = Path(tempfile.mkdtemp()) / "out"
+    >>> with staged_outputs(folder) as stage:
+    ...     _ = stage("a.txt").write_text("first")
+    ...     _ = stage("b.txt").write_text("second")
+    ...     sorted(p.name for p in folder.iterdir() if not p.name.startswith("."))  # nothing moved yet
+    []
+    >>> [p.name for p in stage.written]
+    ['a.txt', 'b.txt']
+    >>> try:
+    ...     with staged_outputs(folder) as stage:
+    ...         _ = stage("a.txt").write_text("replaced")
+    ...         raise RuntimeError("a later step failed")
+    ... except RuntimeError:
+    ...     pass
+    >>> (folder / "a.txt").read_text()
+    'first'
+    """
     stage = _Stage(Path(folder))
     try:
         yield stage

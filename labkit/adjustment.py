@@ -276,6 +276,35 @@ def gauss_helmert_model(
     misclosures w = -B v0 + f(l + v0, x0) (eq. 8), solve
     dx = -N^-1 A^T (B Sigma B^T)^-1 w (eq. 21), k (eq. 19), v = Sigma B^T k
     (eq. 13), repeat until max|dx| < tol, then the main check (eq. 4).
+
+    References
+    ----------
+    .. [1] Seed 000, section 1: functional model (eqs. 1-5), linearization and
+       normal equations (eqs. 6-21), sigma0 and Sigma_xx (eqs. 22-24).
+    .. [2] L. Lenzmann, E. Lenzmann (2004): Strenge Auswertung des nichtlinearen
+       Gauss-Helmert-Modells. Allgemeine Vermessungs-Nachrichten 111(2), 68-73
+       (the rigorous iteration: linearize at l + v0, misclosure w = -B v0 + f).
+    .. [3] F. Neitzel (2010): Generalization of total least-squares on example of
+       unweighted and weighted 2D similarity transformation. Journal of Geodesy
+       84(12), 751-762, doi:10.1007/s00190-010-0408-0.
+    .. [4] W. Baarda (1968): A testing procedure for use in geodetic networks.
+       Netherlands Geodetic Commission, Publications on Geodesy 2(5) (w-test).
+    .. [5] A. J. Pope (1976): The statistics of residuals and the detection of
+       outliers. NOAA Technical Report NOS 65 NGS 1 (tau test without a priori sigma0).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.adjustment import gauss_helmert_model
+    >>> rng = np.random.default_rng(1)
+    >>> u = rng.normal(size=(300, 3))
+    >>> u /= np.linalg.norm(u, axis=1, keepdims=True)
+    >>> points = np.array([2.0, 1.0, 0.5]) + 0.15 * u + rng.normal(0.0, 0.001, (300, 3))
+    >>> fit = gauss_helmert_model(points, sigma=0.001)
+    >>> fit.converged, fit.x.round(3).tolist()
+    (True, [2.0, 1.0, 0.5, 0.15])
+    >>> bool(np.all(fit.std < 2e-4)), fit.global_test.passed
+    (True, True)
     """
     # Check input and reduce to a local origin
     l_in = as_points(points, min_points=4)
@@ -567,6 +596,17 @@ def tau_critical(alpha_w: float, dof: int) -> float:
     not normal but tau-distributed: ``tau = sqrt(f) T / sqrt(f - 1 + T^2)``
     with T Student-t with f - 1 degrees of freedom (Pope 1976), |tau| <= sqrt(f).
     NaN for f < 2 (no test possible).
+
+    References
+    ----------
+    .. [1] A. J. Pope (1976): The statistics of residuals and the detection of
+       outliers. NOAA Technical Report NOS 65 NGS 1.
+
+    Examples
+    --------
+    >>> from labkit.adjustment import tau_critical
+    >>> round(tau_critical(0.001, 10), 3), round(tau_critical(0.001, 10_000), 3)
+    (2.679, 3.29)
     """
     alpha_w = probability(alpha_w, "alpha_w")
     if dof < 2:

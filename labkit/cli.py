@@ -170,7 +170,14 @@ def _cmd_tiles(args) -> int:
 
 
 def default_scheduler() -> str:
-    """``labkit tiles`` runs on a LocalCluster when dask.distributed is installed, else on threads."""
+    """``labkit tiles`` runs on a LocalCluster when dask.distributed is installed, else on threads.
+
+    Examples
+    --------
+    >>> from labkit.cli import default_scheduler
+    >>> default_scheduler() in ("cluster", "threads")
+    True
+    """
     import importlib.util
 
     return "cluster" if importlib.util.find_spec("distributed") is not None else "threads"
@@ -330,6 +337,15 @@ def _add_method_options(p) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``labkit``: one sub-command per job, each checking its numbers with labkit's validators.
+
+    Examples
+    --------
+    >>> from labkit.cli import build_parser
+    >>> args = build_parser().parse_args(["sphere", "scan.laz", "--radius-range", "0.1", "0.2"])
+    >>> args.command, args.file, args.radius_range
+    ('sphere', 'scan.laz', [0.1, 0.2])
+    """
     parser = _Parser(
         prog="labkit", description="labkit: robust adjustment of 3D point clouds for engineering geodesy.",
         epilog="Run 'labkit COMMAND --help' for the options of a command; 'labkit demo' needs no input files.")
@@ -467,6 +483,16 @@ def _one_line(text) -> str:
 
 
 def main(argv=None) -> int:
+    """Run ``labkit`` with the arguments ``argv`` (default: the command line); return the exit status.
+
+    0: done; 1: ``labkit sphere`` found no sphere; 2: bad input (one line on stderr); 3: an internal error.
+
+    Examples
+    --------
+    >>> from labkit.cli import main
+    >>> main(["sphere", "no-such-file.laz", "--radius", "0.1"])
+    2
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

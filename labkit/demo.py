@@ -45,6 +45,13 @@ def run_demo(out_dir: Path, quick: bool = False) -> list[Path]:
 
     The figures are written into a staging folder and moved into ``out_dir``
     together at the end: a step that fails leaves nothing new behind.
+
+    Examples
+    --------
+    The whole demo takes a minute (``tests/test_demo.py`` runs it), so it is not run here:
+
+    >>> from labkit.demo import run_demo
+    >>> files = run_demo("labkit-demo", quick=True)  # doctest: +SKIP
     """
     setup_headless()
     out_dir = Path(out_dir)

@@ -58,6 +58,14 @@ def as_bbox(bbox) -> np.ndarray:
 
     Accepted: ``(xmin, ymin, xmax, ymax)``, ``(xmin, ymin, zmin, xmax, ymax, zmax)``
     or a (2, 2) / (2, 3) array such as :attr:`PointCloud.bounds`.
+
+    Examples
+    --------
+    >>> from labkit.regions import as_bbox
+    >>> as_bbox((0, 0, 10, 5)).tolist()
+    [[0.0, 0.0], [10.0, 5.0]]
+    >>> as_bbox((0, 0, -1, 10, 5, 1)).tolist()
+    [[0.0, 0.0, -1.0], [10.0, 5.0, 1.0]]
     """
     try:
         arr = np.asarray(bbox, dtype=np.float64)
@@ -81,6 +89,13 @@ def as_rings(polygon) -> list[np.ndarray]:
     ``polygon`` is one ring ((m, 2) or (m, 3) array-like; z is ignored) or a list of
     rings (outer boundary and holes; the even-odd rule decides what is inside).
     A closing vertex equal to the first one may be given or omitted.
+
+    Examples
+    --------
+    >>> from labkit.regions import as_rings
+    >>> rings = as_rings([(0, 0), (4, 0), (4, 3)])
+    >>> len(rings), rings[0].shape
+    (1, (3, 2))
     """
     try:
         single = np.asarray(polygon, dtype=np.float64)
@@ -103,7 +118,14 @@ def as_rings(polygon) -> list[np.ndarray]:
 
 
 def as_classes(classes) -> np.ndarray:
-    """Return class codes as a sorted int array (a single int is accepted); codes lie in 0..255 (LAS)."""
+    """Return class codes as a sorted int array (a single int is accepted); codes lie in 0..255 (LAS).
+
+    Examples
+    --------
+    >>> from labkit.regions import as_classes
+    >>> as_classes(2).tolist(), as_classes([6, 2, 2]).tolist()
+    ([2], [2, 6])
+    """
     if isinstance(classes, (str, bytes)):
         raise LabkitError(f"classes must be one or more integer class codes (ASPRS), got the string {classes!r}")
     arr = np.unique(np.atleast_1d(np.asarray(classes)))
@@ -115,7 +137,16 @@ def as_classes(classes) -> np.ndarray:
 
 
 def as_cloud(cloud, name: str = "cloud") -> PointCloud:
-    """A PointCloud as is; an (n, 3) array-like wrapped into one (checked by ``as_points``)."""
+    """A PointCloud as is; an (n, 3) array-like wrapped into one (checked by ``as_points``).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.regions import as_cloud
+    >>> cloud = as_cloud(np.zeros((5, 3)))
+    >>> type(cloud).__name__, len(cloud), as_cloud(cloud) is cloud
+    ('PointCloud', 5, True)
+    """
     if isinstance(cloud, PointCloud):
         return cloud
     return PointCloud(as_points(cloud, min_points=0, name=name))
@@ -123,13 +154,31 @@ def as_cloud(cloud, name: str = "cloud") -> PointCloud:
 
 # ----------------------------------------------------------------------------- masks
 def box_mask(xyz: np.ndarray, box: np.ndarray) -> np.ndarray:
-    """True for points inside the closed box ``box`` (from :func:`as_bbox`)."""
+    """True for points inside the closed box ``box`` (from :func:`as_bbox`).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.regions import as_bbox, box_mask
+    >>> xyz = np.array([[1.0, 1, 0], [5, 1, 0], [1, 9, 0]])
+    >>> box_mask(xyz, as_bbox((0, 0, 2, 2))).tolist()
+    [True, False, False]
+    """
     d = box.shape[1]
     return np.all((xyz[:, :d] >= box[0]) & (xyz[:, :d] <= box[1]), axis=1)
 
 
 def circle_mask(xyz: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
-    """True for points whose horizontal distance to ``centre`` (x, y) is at most ``radius``."""
+    """True for points whose horizontal distance to ``centre`` (x, y) is at most ``radius``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.regions import circle_mask
+    >>> xyz = np.array([[0.5, 0, 9.0], [2.0, 0, 0]])
+    >>> circle_mask(xyz, np.array([0.0, 0.0]), 1.0).tolist()
+    [True, False]
+    """
     dx = xyz[:, 0] - centre[0]
     dy = xyz[:, 1] - centre[1]
     return dx * dx + dy * dy <= radius * radius
@@ -143,6 +192,14 @@ def polygon_mask(xyz: np.ndarray, rings: list[np.ndarray]) -> np.ndarray:
     crossing abscissa lies right of the point. The loop runs over edges, the
     test over all points at once. Coordinates are reduced to the polygon's first
     vertex so UTM values keep their precision.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.regions import as_rings, polygon_mask
+    >>> xyz = np.array([[1.0, 1, 0], [3, 1, 0]])
+    >>> polygon_mask(xyz, as_rings([(0, 0), (2, 0), (2, 2), (0, 2)])).tolist()
+    [True, False]
     """
     origin = rings[0][0]
     lo = np.min([r.min(axis=0) for r in rings], axis=0)
@@ -168,7 +225,15 @@ def polygon_mask(xyz: np.ndarray, rings: list[np.ndarray]) -> np.ndarray:
 
 
 def class_mask(classification: np.ndarray, classes: np.ndarray) -> np.ndarray:
-    """True for points whose class is one of ``classes``."""
+    """True for points whose class is one of ``classes``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.regions import class_mask
+    >>> class_mask(np.array([2, 5, 6, 2]), np.array([2, 6])).tolist()
+    [True, False, True, True]
+    """
     return np.isin(classification, classes)
 
 
@@ -198,6 +263,16 @@ def crop_box(cloud: PointCloud, bbox) -> PointCloud:
     ------
     EmptyRegionError
         If no point lies inside the box.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.regions import crop_box
+    >>> cloud = PointCloud(np.random.default_rng(0).uniform(0, 10, (1000, 3)))
+    >>> part = crop_box(cloud, (0, 0, 5, 5))
+    >>> bool(np.all(part.xyz[:, :2] <= 5)), len(part) < len(cloud)
+    (True, True)
     """
     box = as_bbox(bbox)
     cloud = as_cloud(cloud)
@@ -205,7 +280,18 @@ def crop_box(cloud: PointCloud, bbox) -> PointCloud:
 
 
 def crop_circle(cloud: PointCloud, centre, radius: float) -> PointCloud:
-    """Points within horizontal distance ``radius`` (m) of ``centre`` = (x, y) (a vertical cylinder)."""
+    """Points within horizontal distance ``radius`` (m) of ``centre`` = (x, y) (a vertical cylinder).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.regions import crop_circle
+    >>> cloud = PointCloud(np.random.default_rng(0).uniform(0, 10, (1000, 3)))
+    >>> part = crop_circle(cloud, (5, 5), 2.0)
+    >>> bool(np.all(np.hypot(part.xyz[:, 0] - 5, part.xyz[:, 1] - 5) <= 2.0))
+    True
+    """
     c = np.asarray(centre, dtype=np.float64).ravel()
     if c.size not in (2, 3) or not np.isfinite(c).all():
         raise LabkitError(f"centre must be (x, y) in the cloud's frame, got {centre!r}")
@@ -219,6 +305,16 @@ def crop_polygon(cloud: PointCloud, polygon) -> PointCloud:
 
     Points exactly on an edge may fall on either side (half-open crossing rule),
     as in every crossing-number implementation.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.regions import crop_polygon
+    >>> cloud = PointCloud(np.random.default_rng(0).uniform(0, 10, (1000, 3)))
+    >>> part = crop_polygon(cloud, [(0, 0), (10, 0), (0, 10)])
+    >>> bool(np.all(part.xyz[:, 0] + part.xyz[:, 1] <= 10))
+    True
     """
     rings = as_rings(polygon)
     cloud = as_cloud(cloud)
@@ -227,7 +323,19 @@ def crop_polygon(cloud: PointCloud, polygon) -> PointCloud:
 
 
 def crop_classes(cloud: PointCloud, classes, *, exclude: bool = False) -> PointCloud:
-    """Points of the given ASPRS classes (or all others with ``exclude=True``)."""
+    """Points of the given ASPRS classes (or all others with ``exclude=True``).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.regions import crop_classes
+    >>> cloud = PointCloud(np.zeros((4, 3)), {"classification": np.array([2, 5, 6, 2], dtype=np.uint8)})
+    >>> crop_classes(cloud, [2, 6])["classification"].tolist()
+    [2, 6, 2]
+    >>> crop_classes(cloud, 2, exclude=True)["classification"].tolist()
+    [5, 6]
+    """
     cloud = as_cloud(cloud)
     if "classification" not in cloud:
         raise LabkitError(f"{_label(cloud)} has no 'classification' attribute to select classes from")
@@ -242,6 +350,15 @@ def thin_random(cloud: PointCloud, fraction: float | None = None, *, n: int | No
     """A random subset without replacement: a ``fraction`` of the points or exactly ``n`` of them.
 
     The kept points stay in their original order.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.regions import thin_random
+    >>> cloud = PointCloud(np.random.default_rng(0).uniform(0, 10, (1000, 3)))
+    >>> len(thin_random(cloud, 0.1, rng=0)), len(thin_random(cloud, n=50, rng=0))
+    (100, 50)
     """
     if (fraction is None) == (n is None):
         raise LabkitError("give exactly one of fraction (0 < f <= 1) or n (number of points to keep)")
@@ -293,6 +410,15 @@ def thin_voxel(cloud: PointCloud, size: float, *, keep: str = "centre") -> Point
     -------
     PointCloud
         The surviving points in their original order.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.regions import thin_voxel
+    >>> cloud = PointCloud(np.random.default_rng(0).uniform(0, 4, (5000, 3)))
+    >>> len(thin_voxel(cloud, 1.0))
+    64
     """
     choice(keep, ("centre", "first"), "keep")
     size = positive(size, "size")
@@ -352,7 +478,18 @@ class DensityGrid(ReportMixin):
 
 
 def density_grid(cloud: PointCloud, cell: float = 1.0) -> DensityGrid:
-    """Count points per horizontal grid cell of edge ``cell`` metres."""
+    """Count points per horizontal grid cell of edge ``cell`` metres.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.regions import density_grid
+    >>> cloud = PointCloud(np.random.default_rng(0).uniform(0, 10, (2000, 3)))
+    >>> grid = density_grid(cloud, cell=2.0)
+    >>> grid.counts.shape, int(grid.counts.sum())
+    ((5, 5), 2000)
+    """
     cell = positive(cell, "cell")
     cloud = as_cloud(cloud)
     if len(cloud) == 0:
@@ -383,6 +520,15 @@ def point_density(cloud: PointCloud, cell: float | None = None) -> float:
     -----
     Counting occupied cells follows the cloud's real footprint (gaps such as
     water or data holes do not dilute the density), unlike ``n / hull area``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.regions import point_density
+    >>> cloud = PointCloud(np.random.default_rng(0).uniform(0, 10, (2000, 3)))
+    >>> round(point_density(cloud, cell=1.0), 1)
+    20.0
     """
     cloud = as_cloud(cloud)
     if len(cloud) < 3:
@@ -424,6 +570,16 @@ def equalize_density(cloud: PointCloud, target, *, cell: float = 1.0, rng=None) 
     -------
     PointCloud
         The kept points in their original order.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.regions import equalize_density, point_density
+    >>> cloud = PointCloud(np.random.default_rng(0).uniform(0, 10, (2000, 3)))
+    >>> even = equalize_density(cloud, 5.0, rng=0)
+    >>> len(even), round(point_density(even, cell=1.0), 1)
+    (500, 5.0)
     """
     density = point_density(target) if isinstance(target, PointCloud) else positive(target, "target density")
     cell = positive(cell, "cell")
@@ -454,6 +610,16 @@ def merge(*clouds: PointCloud, name: str = "") -> PointCloud:
     ------
     LabkitError
         If no cloud is given or the clouds carry different CRS texts.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.regions import merge
+    >>> a, b = PointCloud(np.zeros((3, 3)), name="a"), PointCloud(np.ones((2, 3)), name="b")
+    >>> both = merge(a, b, name="ab")
+    >>> len(both), both.name
+    (5, 'ab')
     """
     if not clouds:
         raise LabkitError("merge needs at least one PointCloud")

@@ -87,7 +87,16 @@ def _read_las(path: Path, flt: _Filter, keep, chunk_size: int, progress, units: 
 
 
 def laz_backend(parallel: bool = True):
-    """laspy's LAZ backends to try: lazrs on all cores first when ``parallel``, else lazrs on one."""
+    """laspy's LAZ backends to try: lazrs on all cores first when ``parallel``, else lazrs on one.
+
+    Examples
+    --------
+    >>> from labkit.io import laz_backend
+    >>> [b.name for b in laz_backend()]
+    ['LazrsParallel', 'Lazrs', 'Laszip']
+    >>> [b.name for b in laz_backend(parallel=False)][0]
+    'Lazrs'
+    """
     from laspy import LazBackend
 
     if parallel:
@@ -248,6 +257,20 @@ def las_units(header) -> tuple[Units, str | None]:
     The WKT governs a LAS 1.4 file with the global-encoding WKT bit set, the
     GeoTIFF keys every other file (LAS specification); the other record is used
     when the governing one names nothing. See ``labkit._units`` for the parser.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> import laspy
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.io import las_units, write_cloud
+    >>> path = write_cloud(PointCloud(np.zeros((1, 3)), crs="EPSG:25832"), Path(tempfile.mkdtemp()) / "a.las")
+    >>> with laspy.open(path) as reader:
+    ...     units, crs = las_units(reader.header)
+    >>> units.horizontal, crs
+    ('metre', 'EPSG:25832')
     """
     wkt, keys, doubles = _las_crs_records(header)
     las14 = (header.version.major, header.version.minor) >= (1, 4)
@@ -316,7 +339,20 @@ def _with_units(values, digits: int, units: Units) -> str:
 
 
 def cloud_info(path) -> CloudInfo:
-    """Header of a LAS/LAZ file (count, bounds, scale, offset, CRS, dimensions) without reading points."""
+    """Header of a LAS/LAZ file (count, bounds, scale, offset, CRS, dimensions) without reading points.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.io import cloud_info, write_cloud
+    >>> path = write_cloud(PointCloud(np.array([[0.0, 0, 0], [10, 20, 5]])), Path(tempfile.mkdtemp()) / "a.las")
+    >>> info = cloud_info(path)
+    >>> info.point_count, info.maxs.tolist(), info.version
+    (2, [10.0, 20.0, 5.0], '1.2')
+    """
     path = _existing(path)
     if path.suffix.lower() not in LAS_SUFFIXES:
         raise CloudFileError(f"cloud_info reads LAS/LAZ headers only, not {path}")

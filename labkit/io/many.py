@@ -21,6 +21,21 @@ def cloud_files(paths) -> list[Path]:
 
     Sorted by name within each entry, without duplicates. Raises
     :class:`CloudFileError` when an entry names no file.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.io import cloud_files, write_cloud
+    >>> folder = Path(tempfile.mkdtemp())
+    >>> for name in ("b.laz", "a.las"):
+    ...     _ = write_cloud(PointCloud(np.zeros((1, 3))), folder / name)
+    >>> [p.name for p in cloud_files(folder)]
+    ['a.las', 'b.laz']
+    >>> [p.name for p in cloud_files(str(folder / "*.laz"))]
+    ['b.laz']
     """
     entries = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
     if not entries:
@@ -64,6 +79,19 @@ def files_in_box(paths, bbox) -> list[Path]:
     -------
     list of Path
         In the order of :func:`cloud_files`; other formats (no header bounds) are always kept.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.io import files_in_box, write_cloud
+    >>> folder = Path(tempfile.mkdtemp())
+    >>> for i in range(3):  # three 10 m tiles in a row
+    ...     _ = write_cloud(PointCloud(np.array([[10.0 * i, 0, 0], [10.0 * i + 9, 9, 1]])), folder / f"t{i}.laz")
+    >>> [p.name for p in files_in_box(folder, (12, 0, 25, 5))]
+    ['t1.laz', 't2.laz']
     """
     box = regions.as_bbox(bbox)
     return [p for p in cloud_files(paths) if _header_meets(p, box, None)]
@@ -115,6 +143,21 @@ def read_clouds(paths, *, bbox=None, polygon=None, classes=None, attributes=None
         No file, a bad file, or files whose CRS or units differ.
     EmptyRegionError
         No file meets the area, or the filters keep no point.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.io import read_clouds, write_cloud
+    >>> folder = Path(tempfile.mkdtemp())
+    >>> for i in range(3):  # three 10 m tiles in a row
+    ...     xyz = np.column_stack([np.arange(10.0) + 10 * i, np.zeros(10), np.zeros(10)])
+    ...     _ = write_cloud(PointCloud(xyz, name=f"t{i}"), folder / f"t{i}.laz")
+    >>> part = read_clouds(folder, bbox=(8, -1, 12, 1))
+    >>> part.xyz[:, 0].tolist(), part.name
+    ([8.0, 9.0, 10.0, 11.0, 12.0], 't0+1 files')
     """
     files = cloud_files(paths)
     flt = _Filter.build(bbox, polygon, classes)

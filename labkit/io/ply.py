@@ -41,7 +41,17 @@ class Element:
 
 
 def read_header(f, path: Path):
-    """(format, elements, byte offset of the data) from an open binary file."""
+    """(format, elements, byte offset of the data) from an open binary file.
+
+    Examples
+    --------
+    >>> import io
+    >>> from labkit.io.ply import read_header
+    >>> f = io.BytesIO(b"ply\\nformat binary_little_endian 1.0\\nelement vertex 2\\nproperty double x\\nend_header\\n")
+    >>> fmt, elements, start = read_header(f, "in-memory.ply")
+    >>> fmt, elements[0].name, elements[0].count, elements[0].properties, start
+    ('binary_little_endian', 'vertex', 2, (('x', 'f8'),), 82)
+    """
     if f.readline().strip() != b"ply":
         raise CloudFileError(f"{path} is not a PLY file (no 'ply' magic line)")
     fmt, elements = None, []
@@ -80,6 +90,18 @@ def ply_vertex_blocks(path: Path, chunk_size: int):
     """(property names, format, iterator of blocks); a block is one array per vertex property.
 
     The file stays open while the iterator runs.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> from labkit.io.ply import ply_vertex_blocks
+    >>> path = Path(tempfile.mkdtemp()) / "tri.ply"
+    >>> _ = path.write_text("ply\\nformat ascii 1.0\\nelement vertex 3\\nproperty float x\\nproperty float y\\n"
+    ...                 "property float z\\nend_header\\n0 0 0\\n1 0 0\\n0 1 0\\n")
+    >>> names, fmt, blocks = ply_vertex_blocks(path, chunk_size=2)
+    >>> names, fmt, [len(block[0]) for block in blocks]
+    (['x', 'y', 'z'], 'ascii', [2, 1])
     """
     f = open(path, "rb")
     try:

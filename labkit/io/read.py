@@ -77,6 +77,20 @@ def read_cloud(
         The filters keep no point.
     UnitsError
         ``units="m"`` and the file is in degrees (or in a unit with no metre factor).
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> import numpy as np
+    >>> from labkit.io import read_cloud
+    >>> path = Path(tempfile.mkdtemp()) / "points.csv"
+    >>> _ = path.write_text("x,y,z,classification\\n0,0,0,2\\n1,0,0,6\\n5,5,1,2\\n")
+    >>> cloud = read_cloud(path)
+    >>> len(cloud), cloud["classification"].tolist()
+    (3, [2, 6, 2])
+    >>> read_cloud(path, bbox=(0, 0, 2, 2), classes=2).xyz.tolist()
+    [[0.0, 0.0, 0.0]]
     """
     path = _existing(path)
     flt = _Filter.build(bbox, polygon, classes)

@@ -68,6 +68,21 @@ def write_cloud(cloud: PointCloud, path, *, scale=DEFAULT_SCALE, point_format: i
     LAS/LAZ/NPZ in its CRS's units again; text files get the coordinates as held.
     Integer attributes must fit their LAS field (e.g. intensity 0..65535,
     classification 0..31 in formats 0-5): values outside raise, they never wrap.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.io import read_cloud, write_cloud
+    >>> folder = Path(tempfile.mkdtemp())
+    >>> cloud = PointCloud(np.array([[600000.0, 5400000.0, 300.0], [600001.5, 5400002.25, 301.0]]),
+    ...                {"intensity": np.array([10, 20], dtype=np.uint16)}, crs="EPSG:25832")
+    >>> path = write_cloud(cloud, folder / "two.laz")
+    >>> back = read_cloud(path)
+    >>> back.xyz.tolist(), back["intensity"].tolist(), back.crs
+    ([[600000.0, 5400000.0, 300.0], [600001.5, 5400002.25, 301.0]], [10, 20], 'EPSG:25832')
     """
     if not isinstance(cloud, PointCloud):
         raise LabkitError(f"write_cloud needs a PointCloud, got {type(cloud).__name__}")

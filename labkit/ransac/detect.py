@@ -135,6 +135,35 @@ def ransac_sphere(
       normals (p - c)/r spread in two directions over the cap (not a ring);
     - with ``station``: the station lies outside the sphere, the inliers face
       the station, and no points lie behind the sphere along the rays.
+
+    References
+    ----------
+    .. [1] Seed 000, section 2: minimal samples, inliers by eqs. (25-26), N by
+       eq. (27), refit of the best sphere in the Gauss-Helmert model.
+    .. [2] M. A. Fischler, R. C. Bolles (1981): Random sample consensus: a
+       paradigm for model fitting with applications to image analysis and
+       automated cartography. Communications of the ACM 24(6), 381-395,
+       doi:10.1145/358669.358692.
+    .. [3] R. Hartley, A. Zisserman (2004): Multiple View Geometry in Computer
+       Vision, 2nd edition, Cambridge University Press, section 4.7.
+    .. [4] P. H. S. Torr, A. Zisserman (2000): MLESAC: a new robust estimator
+       with application to estimating image geometry. Computer Vision and Image
+       Understanding 78(1), 138-156 (the MSAC score, ``scoring='msac'``).
+    .. [5] O. Chum, J. Matas, J. Kittler (2003): Locally optimized RANSAC.
+       Pattern Recognition (DAGM 2003), LNCS 2781, 236-243 (``local_optimization``).
+    .. [6] W. Baarda (1968): A testing procedure for use in geodetic networks.
+       Netherlands Geodetic Commission, Publications on Geodesy 2(5) (data snooping).
+
+    Examples
+    --------
+    >>> from labkit.ransac import ransac_sphere
+    >>> from labkit.synthetic import sphere_on_tripod
+    >>> scene = sphere_on_tripod(n_sphere=400, rng=1)
+    >>> result = ransac_sphere(scene.points, threshold=0.003, rng=0, radius_range=(0.05, 0.1))
+    >>> result.found, round(result.radius, 3), scene.sphere.round(4).tolist()
+    (True, 0.072, [0.0, 0.0, 1.4525, 0.0725])
+    >>> bool(abs(result.radius - scene.sphere[3]) < 3 * result.fit.std[3])
+    True
     """
     # Check the input, fix the seed
     xyz = as_points(points, min_points=S)

@@ -30,6 +30,25 @@ def required_iterations(outlier_ratio, p=0.99, s=S):
     int or float or ndarray
         An int for a scalar ratio (``math.inf`` when eps = 1); a float array
         for array input.
+
+    References
+    ----------
+    .. [1] Seed 000, section 2, eq. (27).
+    .. [2] M. A. Fischler, R. C. Bolles (1981): Random sample consensus: a
+       paradigm for model fitting with applications to image analysis and
+       automated cartography. Communications of the ACM 24(6), 381-395,
+       doi:10.1145/358669.358692.
+    .. [3] R. Hartley, A. Zisserman (2004): Multiple View Geometry in Computer
+       Vision, 2nd edition, Cambridge University Press, section 4.7.1 (the
+       adaptive number of samples).
+
+    Examples
+    --------
+    >>> from labkit.ransac import required_iterations
+    >>> required_iterations(0.5), required_iterations(0.5, p=0.999), required_iterations(0.0)
+    (72, 108, 1)
+    >>> required_iterations([0.2, 0.8]).tolist()
+    [9.0, 2876.0]
     """
     eps = np.asarray(outlier_ratio, dtype=np.float64)
     if not np.all((eps >= 0) & (eps <= 1)):

@@ -136,6 +136,30 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
     -------
     Consistency or None
         None when fewer than two groups are large enough.
+
+    References
+    ----------
+    .. [1] W. G. Cochran (1954): The combination of estimates from different
+       experiments. Biometrics 10(1), 101-129 (the Q statistic that eq. 5.16
+       generalizes to vector estimates in the directions each group determines).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.registration.consistency import group_consistency
+    >>> rng = np.random.default_rng(0)
+    >>> m = 400
+    >>> A = np.broadcast_to(np.eye(3), (m, 3, 3)).copy()  # a shift (tx, ty, tz) observed at every row
+    >>> labels = np.repeat([0, 1], m // 2)
+    >>> cells = np.arange(m) % 20
+    >>> l = rng.normal(0.0, 0.01, (m, 3))
+    >>> same = group_consistency(A, l, np.ones(m), labels, ["ground", "roofs"], cells, translation=[0, 1, 2])
+    >>> same.agree
+    True
+    >>> l[labels == 1, 2] += 0.05  # the roofs moved 5 cm up
+    >>> moved = group_consistency(A, l, np.ones(m), labels, ["ground", "roofs"], cells, translation=[0, 1, 2])
+    >>> moved.agree, moved.worst in ("ground", "roofs"), np.abs(moved.offset[:, 2]).round(2).tolist()
+    (False, True, [0.03, 0.03])
     """
     u = A.shape[2]
     if u == 0:  # every parameter held: nothing to test

@@ -138,6 +138,15 @@ def degeneracy_report(
         when its standard deviation ``sigma0 / sqrt(eigenvalue)`` exceeds ``max_std``, whatever
         its eigenvalue relative to the largest (on sloped terrain X and Y are often 5-50 times
         weaker than Z and still determined to centimetres). ``rel_threshold`` is then not used.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.registration.degeneracy import degeneracy_report
+    >>> N = np.diag([1.0, 1.0, 1e4])  # a flat floor: only the height (tz) is well constrained
+    >>> report = degeneracy_report(N, ["tx", "ty", "tz"])
+    >>> report.undetermined_axes, report.undetermined_parameters, report.well_posed
+    (('X', 'Y'), ('tx', 'ty'), False)
     """
     N = np.asarray(N, dtype=np.float64)
     lam, vecs = np.linalg.eigh(0.5 * (N + N.T))

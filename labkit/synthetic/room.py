@@ -118,6 +118,13 @@ def room_scene(
     Returns
     -------
     RoomScene
+
+    Examples
+    --------
+    >>> from labkit.synthetic import room_scene
+    >>> scene = room_scene(n_points=5000, rng=0)
+    >>> scene.points.shape
+    (5000, 3)
     """
     rng = as_rng(rng)
     n_sphere, n_clutter, n_surface = _counts(n_points, sphere_share)

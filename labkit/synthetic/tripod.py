@@ -161,6 +161,13 @@ def sphere_on_tripod(
     Returns
     -------
     TripodScene
+
+    Examples
+    --------
+    >>> from labkit.synthetic import sphere_on_tripod
+    >>> scene = sphere_on_tripod(n_sphere=500, rng=0)
+    >>> scene.points.shape[1], int(scene.is_sphere.sum()), scene.sphere.tolist()
+    (3, 500, [0.0, 0.0, 1.4525000000000001, 0.0725])
     """
     rng = as_rng(rng)
     counts = _counts(n_sphere, n_clutter, outlier_ratio)
