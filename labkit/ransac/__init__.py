@@ -11,7 +11,7 @@ final data-snooping pass with Baarda's w-test.
 
 Added for ring-structured (multi-beam) and cluttered real scans: every
 hypothesis that would become the best is verified on the full cloud
-(:class:`~labkit.ransac.verify._Verifier`: free space inside the sphere, shell
+(:class:`~labkit.ransac.verify.Verifier`: free space inside the sphere, shell
 contrast, plane pieces, cap spread, and from the scanner station: facing side,
 scan lines, points behind the sphere); a rejected one is skipped and the search
 continues. The final inliers come from a robust band k sigma_hat around the
@@ -32,12 +32,9 @@ One module per step, in the order of a detection:
 
 from __future__ import annotations
 
-from .config import _LOCAL_MAX_SHARE, S, _Config
+from .config import S
 from .detect import ransac_sphere
-from .hypotheses import _hypotheses
 from .iterations import required_iterations
 from .result import RansacResult
-from .sampling import _LocalSampler, _mean_neighbourhood_share
-from .verify import _Verifier
 
 __all__ = ["RansacResult", "S", "ransac_sphere", "required_iterations"]

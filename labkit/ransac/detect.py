@@ -11,12 +11,12 @@ import numpy as np
 from .._checks import as_points, choice, count, positive, probability
 from .._frame import local_origin, reduce
 from ..errors import LabkitError
-from .config import _FINAL_ATTEMPTS, _LOCAL_MAX_PAIRS, _LOCAL_MAX_SHARE, _LOCAL_REACH, S, _Config
-from .refit import _refit
-from .result import RansacResult, _not_found
-from .sampling import _LocalSampler, _mean_neighbourhood_share, _pick_sampling, _UniformSampler, _working_set
-from .search import _search
-from .verify import _Verifier
+from .config import FINAL_ATTEMPTS, LOCAL_MAX_PAIRS, LOCAL_MAX_SHARE, LOCAL_REACH, S, Config
+from .refit import refit_sphere
+from .result import RansacResult, not_found
+from .sampling import LocalSampler, UniformSampler, mean_neighbourhood_share, pick_sampling, working_set
+from .search import adaptive_search
+from .verify import Verifier
 
 
 def ransac_sphere(
@@ -180,16 +180,16 @@ def ransac_sphere(
     sigma = _check_sigma(sigma, len(xyz))
     station = _check_station(station)
 
-    cfg = _Config(t, p, r_min, r_max, known, scoring, minimal_solver, sampling, max_iterations,
+    cfg = Config(t, p, r_min, r_max, known, scoring, minimal_solver, sampling, max_iterations,
                   bool(local_optimization), min_inliers, bool(snooping), sigma, alpha,
                   float(nominal_radius) if hold_radius else None, station)
 
     # Search a random reduction of the cloud; if nothing is found there, a 4x and a 16x larger one
     origin = local_origin(xyz)
-    verifier = _Verifier(reduce(xyz, origin), None if station is None else station - origin, cfg)
+    verifier = Verifier(reduce(xyz, origin), None if station is None else station - origin, cfg)
     tried = []
     for size in _reduction_sizes(len(xyz), preliminary_size):
-        result, had_best = _detect(xyz, origin, _working_set(len(xyz), size, gen), cfg, seed, gen, verifier)
+        result, had_best = _detect(xyz, origin, working_set(len(xyz), size, gen), cfg, seed, gen, verifier)
         tried.append(size)
         if result.found or not had_best:
             break  # (without any hypothesis in range, a larger working set would not help)
@@ -209,20 +209,20 @@ def _detect(xyz, origin, idx, cfg, seed, gen, verifier):
     extent = float(np.linalg.norm(np.ptp(W, axis=0)))
     if not cfg.known:  # no sphere larger than the scan (a cropped cap is as wide as about its radius)
         cfg = replace(cfg, r_max=max(extent, 1e-9))
-    sampling = _pick_sampling(cfg.sampling, cfg.known, cfg.r_max, extent)
+    sampling = pick_sampling(cfg.sampling, cfg.known, cfg.r_max, extent)
     if cfg.sampling == "auto" and sampling == "local":
-        share = _mean_neighbourhood_share(W, _LOCAL_REACH * cfg.r_max + cfg.threshold)
-        if share > _LOCAL_MAX_SHARE or share * len(W) ** 2 > _LOCAL_MAX_PAIRS:
+        share = mean_neighbourhood_share(W, LOCAL_REACH * cfg.r_max + cfg.threshold)
+        if share > LOCAL_MAX_SHARE or share * len(W) ** 2 > LOCAL_MAX_PAIRS:
             # the neighbourhoods hold much of the scene: local sampling gains little and costs O(m^2) pairs
             sampling = "uniform"
-    sampler = _LocalSampler(W, _LOCAL_REACH * cfg.r_max + cfg.threshold) if sampling == "local" else _UniformSampler(len(W))
+    sampler = LocalSampler(W, LOCAL_REACH * cfg.r_max + cfg.threshold) if sampling == "local" else UniformSampler(len(W))
 
     # Adaptive search (eqs. 25-27) on the working set; a best whose final refit fails the checks is
-    # rejected and the search runs again without it (at most _FINAL_ATTEMPTS times)
+    # rejected and the search runs again without it (at most FINAL_ATTEMPTS times)
     shift = np.append(origin, 0.0)
-    for attempt in range(_FINAL_ATTEMPTS):
+    for attempt in range(FINAL_ATTEMPTS):
         verifier.start(cfg)
-        search = _search(W, sampler, cfg, gen, verifier)
+        search = adaptive_search(W, sampler, cfg, gen, verifier)
         common = dict(
             iterations=search.iterations, n_required_history=search.history, seed=seed, n_invalid=search.n_invalid,
             sampling=sampling, scoring=cfg.scoring, minimal_solver=cfg.minimal_solver, threshold=cfg.threshold,
@@ -234,10 +234,10 @@ def _detect(xyz, origin, idx, cfg, seed, gen, verifier):
             if verifier.n_rejected:
                 reason = (f"{reason}; {verifier.n_rejected} candidate(s) rejected by the verification, "
                           f"the best-scoring because {verifier.best_rejection}")
-            return _not_found(len(xyz), reason, **common), verifier.n_rejected > 0 or search.had_range
+            return not_found(len(xyz), reason, **common), verifier.n_rejected > 0 or search.had_range
 
         # Final inliers from the full cloud (robust band), Gauss-Helmert refit, data snooping, checks
-        final = _refit(xyz, search.x + shift, cfg)
+        final = refit_sphere(xyz, search.x + shift, cfg)
         reason = final.reason
         if not reason:
             reason = verifier.final_check(final.fit.x - shift, final.band)
@@ -247,7 +247,7 @@ def _detect(xyz, origin, idx, cfg, seed, gen, verifier):
                 reason=search.reason, n_snooped=final.n_snooped, sigma=final.sigma, band=final.band, **common,
             ), True
         verifier.reject(search.x, None if final.fit is None else final.fit.x - shift)
-    return _not_found(len(xyz), f"{reason} (the final refit of the best failed in {_FINAL_ATTEMPTS} searches)",
+    return not_found(len(xyz), f"{reason} (the final refit of the best failed in {FINAL_ATTEMPTS} searches)",
                       n_snooped=final.n_snooped, sigma=final.sigma, band=final.band, **common), True
 
 

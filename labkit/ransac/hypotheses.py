@@ -7,10 +7,10 @@ import numpy as np
 from ..adjustment import gauss_helmert_model
 from ..errors import LabkitError
 from ..sphere import algebraic_sphere, circumspheres
-from .config import _LO_STEPS, S
+from .config import LO_STEPS, S
 
 
-def _hypotheses(samples, solver):
+def spheres_through_samples(samples, solver):
     """Spheres [xc, yc, zc, r] (B, 4) through samples (B, 4, 3) and a validity mask."""
     if solver == "closed_form":
         centers, radii, valid = circumspheres(samples)
@@ -32,14 +32,14 @@ def _ghm_hypotheses(samples):
     return X, valid
 
 
-def _squared_center_distances(W, Wsq, C):
+def squared_center_distances(W, Wsq, C):
     """|w_i - c_b|^2 for all points and hypotheses, (m, B), via one matrix product."""
     return Wsq[:, None] - 2.0 * (W @ C.T) + np.einsum("ij,ij->i", C, C)[None, :]
 
 
-def _score(W, Wsq, X, t, scoring):
+def score_hypotheses(W, Wsq, X, t, scoring):
     """Score (higher is better) and inlier count of each hypothesis X (B, 4) on W (eqs. 25-26)."""
-    D2 = _squared_center_distances(W, Wsq, X[:, :3])
+    D2 = squared_center_distances(W, Wsq, X[:, :3])
     r = X[:, 3]
     if scoring == "ransac":
         # d_i^2 < t^2  <=>  (r - t)^2 < |w_i - c|^2 < (r + t)^2   (eq. 26)
@@ -51,30 +51,30 @@ def _score(W, Wsq, X, t, scoring):
     return gain.sum(axis=0), (gain > 0).sum(axis=0)
 
 
-def _inlier_mask(W, x, t):
+def shell_mask(W, x, t):
     diff = W - x[:3]
     d = np.sqrt(np.einsum("ij,ij->i", diff, diff)) - x[3]  # (eq. 25)
     return d * d < t * t  # (eq. 26)
 
 
-def _local_optimization(W, Wsq, x, score, cfg):
+def local_optimization_step(W, Wsq, x, score, cfg):
     """LO-RANSAC: iterate (inliers -> orthogonal least-squares sphere) while the score improves."""
     improved = False
-    for _ in range(_LO_STEPS):
-        mask = _inlier_mask(W, x, cfg.threshold)
+    for _ in range(LO_STEPS):
+        mask = shell_mask(W, x, cfg.threshold)
         if mask.sum() <= S:
             break
-        x_new = _orthogonal_fit(W[mask], x)
+        x_new = orthogonal_fit(W[mask], x)
         if x_new is None or not cfg.r_min <= x_new[3] <= cfg.r_max:
             break
-        s_new, _ = _score(W, Wsq, x_new[None, :], cfg.threshold, cfg.scoring)
+        s_new, _ = score_hypotheses(W, Wsq, x_new[None, :], cfg.threshold, cfg.scoring)
         if s_new[0] <= score:
             break
         x, score, improved = x_new, s_new[0], True
     return x, score, improved
 
 
-def _orthogonal_fit(P, x, steps=3):
+def orthogonal_fit(P, x, steps=3):
     """A few Gauss-Newton steps of the orthogonal-distance sphere fit, from x; None if it fails."""
     try:
         x = algebraic_sphere(P) if x is None else np.array(x, dtype=np.float64)

@@ -66,7 +66,7 @@ def required_iterations(outlier_ratio, p=0.99, s=S):
     return N
 
 
-def _required_from_probability(w, p):
+def required_from_probability(w, p):
     """N of eq. (27) written with the outlier-free sample probability w directly."""
     if w <= 0:
         return math.inf

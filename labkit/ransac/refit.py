@@ -11,8 +11,8 @@ from scipy.special import ndtr
 from ..adjustment import gauss_helmert_model
 from ..errors import LabkitError
 from ..sphere import sphere_residuals
-from .config import _BAND_K, _SNOOP_ROUNDS, S
-from .hypotheses import _inlier_mask, _orthogonal_fit
+from .config import BAND_K, SNOOP_ROUNDS, S
+from .hypotheses import orthogonal_fit, shell_mask
 
 
 @dataclass(frozen=True)
@@ -25,7 +25,7 @@ class _Final:
     band: float = float("nan")
 
 
-def _refit(xyz, x0, cfg):
+def refit_sphere(xyz, x0, cfg):
     """Final inliers from a robust band on the full cloud, Gauss-Helmert refit, then data snooping.
 
     The band |d| < k sigma_hat (k = 3) replaces the search threshold t: sigma_hat
@@ -47,8 +47,8 @@ def _refit(xyz, x0, cfg):
     unit = _point_sigma(sigma)
     x0, band, sigma_hat = _robust_band(xyz, x0, cfg, unit)
     if unit is not None:
-        band = _BAND_K * unit
-    inliers = _inlier_mask(xyz, x0, band)
+        band = BAND_K * unit
+    inliers = shell_mask(xyz, x0, band)
     if sigma is None:  # a priori sigma for the adjustment and the w-test: the robust scale
         sigma = sigma_hat
     fit = None
@@ -61,7 +61,7 @@ def _refit(xyz, x0, cfg):
             return _Final(None, inliers, 0, None, f"Gauss-Helmert refit failed: {exc}", band)
         if not fit.converged:
             return _Final(None, inliers, 0, None, f"Gauss-Helmert refit did not converge: {fit.reason}", band)
-        new = _inlier_mask(xyz, fit.x, band)
+        new = shell_mask(xyz, fit.x, band)
         if np.count_nonzero(new != inliers) <= 0.01 * inliers.sum() or round_ == 2:
             break  # (the fit always belongs to exactly these inliers)
         inliers = new
@@ -88,22 +88,22 @@ def _robust_band(xyz, x, cfg, unit=None, max_rounds=12):
     """
     t = cfg.threshold
     known = cfg.sigma if cfg.sigma is not None and np.ndim(cfg.sigma) == 0 else None
-    band = _BAND_K * known if known is not None else t
-    sigma_hat = known if known is not None else t / _BAND_K
+    band = BAND_K * known if known is not None else t
+    sigma_hat = known if known is not None else t / BAND_K
     # only points that can ever be in a band matter: a generous neighbourhood of the hypothesis
-    reach = max(8.0 * t, 8.0 * band) if unit is None else max(8.0 * t, 3.0 * _BAND_K * float(unit.max()))
+    reach = max(8.0 * t, 8.0 * band) if unit is None else max(8.0 * t, 3.0 * BAND_K * float(unit.max()))
     d = sphere_residuals(xyz, x)
     near = np.flatnonzero(np.abs(d) < reach)
     P = xyz[near]
     if unit is not None:
-        known, band = True, _BAND_K * unit[near]
+        known, band = True, BAND_K * unit[near]
         sigma_hat = float(np.median(unit))
     d = sphere_residuals(P, x)
     for _ in range(max_rounds):
         inl = np.abs(d) < band
         if inl.sum() <= S:
             break
-        x_new = _orthogonal_fit(P[inl], x, steps=2)
+        x_new = orthogonal_fit(P[inl], x, steps=2)
         x = x if x_new is None else x_new
         d = sphere_residuals(P, x)
         inl_new = np.abs(d) < band
@@ -113,8 +113,8 @@ def _robust_band(xyz, x, cfg, unit=None, max_rounds=12):
             continue
         if inl_new.sum() <= S:
             break
-        sigma_hat = _truncated_mad_scale(np.abs(d[inl_new]), band)
-        new_band = min(_BAND_K * sigma_hat, 2.0 * band, reach)  # grow at most 2x per round
+        sigma_hat = truncated_mad_scale(np.abs(d[inl_new]), band)
+        new_band = min(BAND_K * sigma_hat, 2.0 * band, reach)  # grow at most 2x per round
         converged = abs(new_band - band) <= 0.005 * band
         band = new_band
         if converged:
@@ -122,7 +122,7 @@ def _robust_band(xyz, x, cfg, unit=None, max_rounds=12):
     return x, (float(band) if np.ndim(band) == 0 else band), float(sigma_hat)
 
 
-def _truncated_mad_scale(abs_d, band):
+def truncated_mad_scale(abs_d, band):
     """sigma of N(0, sigma^2) whose |d|, truncated at ``band``, has the observed median.
 
     Solves (2 Phi(m / sigma) - 1) / (2 Phi(b / sigma) - 1) = 1/2 for sigma. A
@@ -132,7 +132,7 @@ def _truncated_mad_scale(abs_d, band):
     m = float(np.median(abs_d))
     q = m / band
     if q >= 0.499:
-        return 2.0 * band / _BAND_K
+        return 2.0 * band / BAND_K
     if q <= 1e-9:
         return max(m, 1e-12)
     g = lambda z: 2.0 * (2.0 * ndtr(q * z) - 1.0) - (2.0 * ndtr(z) - 1.0)  # noqa: E731  (z = b / sigma)
@@ -146,7 +146,7 @@ def _truncated_mad_scale(abs_d, band):
 def _snoop(fit, inliers, sigma, min_inliers, adjust):
     """Data snooping: drop points whose |w| exceeds the critical value, refit, repeat."""
     n_removed = 0
-    for _ in range(_SNOOP_ROUNDS):
+    for _ in range(SNOOP_ROUNDS):
         flagged = fit.flagged  # |w_i| > critical value of level alpha (two-sided)
         if not flagged.any():
             break

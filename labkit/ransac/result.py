@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._report import ReportMixin, fmt
-from .config import _BAND_K
+from .config import BAND_K
 
 
 @dataclass(frozen=True, eq=False, repr=False)
@@ -116,7 +116,7 @@ class RansacResult(ReportMixin):
             ("seed", f"{self.seed}"),
         ]
         checks = [
-            ("final inlier band", fmt(self.band * 1e3, 2, "mm") + f" ({_BAND_K:g} x robust sigma)"),
+            ("final inlier band", fmt(self.band * 1e3, 2, "mm") + f" ({BAND_K:g} x robust sigma)"),
             ("candidates rejected", f"{self.n_rejected} (not a sphere cap: verification)"),
             ("station", "not given (no visibility checks)" if self.station is None else fmt(self.station, 3, "m")),
             ("removed by data snooping", f"{self.n_snooped}"),
@@ -128,7 +128,7 @@ class RansacResult(ReportMixin):
         return "RANSAC sphere detection", [("", rows), ("Search", search), ("Checks", checks)]
 
 
-def _not_found(n, reason, **common) -> RansacResult:
+def not_found(n, reason, **common) -> RansacResult:
     return RansacResult(
         fit=None, inliers=np.zeros(n, dtype=bool), found=False, outlier_ratio=float("nan"), reason=reason, **common
     )

@@ -7,16 +7,16 @@ from scipy.spatial import cKDTree
 
 from ..errors import LabkitError
 from .config import S
-from .hypotheses import _score
-from .iterations import _required_from_probability, required_iterations
+from .hypotheses import score_hypotheses
+from .iterations import required_from_probability, required_iterations
 
 
-def _working_set(n, size, gen):
+def working_set(n, size, gen):
     """Indices of the random reduction used for sampling and scoring (the seed: 1000 points)."""
     return np.arange(n) if size >= n else np.sort(gen.choice(n, size=size, replace=False))
 
 
-def _pick_sampling(sampling, known, r_max, extent):
+def pick_sampling(sampling, known, r_max, extent):
     if sampling == "local" and not known:
         raise LabkitError("sampling='local' needs radius_range or nominal_radius (the neighbourhood is 2 r_max)")
     if sampling == "auto":
@@ -24,13 +24,13 @@ def _pick_sampling(sampling, known, r_max, extent):
     return sampling
 
 
-def _mean_neighbourhood_share(W, radius):
+def mean_neighbourhood_share(W, radius):
     """Mean share of the working set within ``radius`` of a point (counted in C, no lists)."""
     counts = cKDTree(W).query_ball_point(W, radius, return_length=True)
     return float(counts.mean()) / len(W)
 
 
-class _UniformSampler:
+class UniformSampler:
     """Four points drawn uniformly; N follows eq. (27) with eps = 1 - k/m."""
 
     def __init__(self, m):
@@ -44,7 +44,7 @@ class _UniformSampler:
         return required_iterations(1.0 - inlier_mask.sum() / self.m, p)
 
 
-class _LocalSampler:
+class LocalSampler:
     """A uniform first point and three distinct points within ``radius`` of it.
 
     The probability that a sample is outlier-free becomes
@@ -98,7 +98,7 @@ class _LocalSampler:
         ok = inlier_mask & (self.deg >= 3)
         share = k[ok] * (k[ok] - 1) * (k[ok] - 2) / (d[ok] * (d[ok] - 1) * (d[ok] - 2))
         w = share.sum() / max(self.first.size, 1)
-        return _required_from_probability(w, p)
+        return required_from_probability(w, p)
 
 
 class _Blocks:
@@ -132,12 +132,12 @@ class _Blocks:
         return self._block_cache[key]
 
     def score(self, W, Wsq, X, first, cfg):
-        """Scores of hypotheses X (B, 4) with first points ``first`` (B,), equal to _score on all of W."""
+        """Scores of hypotheses X (B, 4) with first points ``first`` (B,), equal to score_hypotheses on all of W."""
         scores = np.empty(len(X))
         cell_ids, inv = np.unique(self.cells[first], axis=0, return_inverse=True)
         inv = inv.ravel()
         for j, cell in enumerate(cell_ids):  # a loop over grid cells, not over points
             sel = np.flatnonzero(inv == j)
             pts = self._block(cell)
-            scores[sel] = _score(W[pts], Wsq[pts], X[sel], cfg.threshold, cfg.scoring)[0]
+            scores[sel] = score_hypotheses(W[pts], Wsq[pts], X[sel], cfg.threshold, cfg.scoring)[0]
         return scores

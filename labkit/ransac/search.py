@@ -12,9 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import _CELLS_PER_BATCH, _FIRST_BATCH, _MIN_BATCH, _VERIFY_MAX, _VERIFY_PER_BATCH
-from .hypotheses import _hypotheses, _inlier_mask, _local_optimization, _score
-from .sampling import _LocalSampler
+from .config import CELLS_PER_BATCH, FIRST_BATCH, MIN_BATCH, VERIFY_MAX, VERIFY_PER_BATCH
+from .hypotheses import local_optimization_step, score_hypotheses, shell_mask, spheres_through_samples
+from .sampling import LocalSampler
 
 
 @dataclass(frozen=True)
@@ -28,15 +28,15 @@ class _Search:
     had_range: bool = False
 
 
-def _search(W, sampler, cfg, gen, verifier=None):
+def adaptive_search(W, sampler, cfg, gen, verifier=None):
     """The adaptive RANSAC loop on the working set W, in replayed vectorized batches."""
     Wsq = np.einsum("ij,ij->i", W, W)
     best = _Best(x=None, score=-np.inf)
     n_valid = n_drawn = n_invalid = 0
     N = math.inf  # the seed starts with N = infinity
     history: list[tuple[int, float]] = []
-    cap = max(_MIN_BATCH, _CELLS_PER_BATCH // len(W))
-    batch = min(_FIRST_BATCH, cap) if cfg.minimal_solver == "closed_form" else _MIN_BATCH
+    cap = max(MIN_BATCH, CELLS_PER_BATCH // len(W))
+    batch = min(FIRST_BATCH, cap) if cfg.minimal_solver == "closed_form" else MIN_BATCH
     had_range = False
     while n_valid < min(N, cfg.max_iterations):
         if n_drawn >= 10 * cfg.max_iterations or (n_drawn >= 2000 and n_valid == 0):
@@ -45,7 +45,7 @@ def _search(W, sampler, cfg, gen, verifier=None):
             break  # every candidate so far failed the verification and its budget is spent
         # Draw and solve a batch; degenerate samples do not count
         idx = sampler.draw(gen, batch)
-        X, valid = _hypotheses(W[idx], cfg.minimal_solver)
+        X, valid = spheres_through_samples(W[idx], cfg.minimal_solver)
         position = np.flatnonzero(valid)[: cfg.max_iterations - n_valid]  # batch position of each valid sample
         X = X[position]
 
@@ -53,10 +53,10 @@ def _search(W, sampler, cfg, gen, verifier=None):
         scores = np.full(len(X), -np.inf)
         ok = (X[:, 3] >= cfg.r_min) & (X[:, 3] <= cfg.r_max)
         if ok.any():
-            if isinstance(sampler, _LocalSampler):  # inliers lie near the first point: score its block only
+            if isinstance(sampler, LocalSampler):  # inliers lie near the first point: score its block only
                 scores[ok] = sampler.blocks.score(W, Wsq, X[ok], idx[position[ok], 0], cfg)
             else:
-                scores[ok] = _score(W, Wsq, X[ok], cfg.threshold, cfg.scoring)[0]
+                scores[ok] = score_hypotheses(W, Wsq, X[ok], cfg.threshold, cfg.scoring)[0]
             had_range = True
 
         # Replay in sample order: new bests (verified, with LO), N after each (eq. 27), stop at N
@@ -93,13 +93,13 @@ def _replay(X, scores, best, n_valid, N, W, Wsq, sampler, cfg, verifier=None):
     candidates = np.flatnonzero((scores > best.score) & np.isfinite(scores))
     if verifier is not None and len(candidates):
         # known failures cost no check (looked up for the best-scoring few only)
-        top = candidates[np.argsort(-scores[candidates], kind="stable")[: 4 * _VERIFY_PER_BATCH]]
+        top = candidates[np.argsort(-scores[candidates], kind="stable")[: 4 * VERIFY_PER_BATCH]]
         candidates = np.sort(top[~verifier.near_rejected(X[top])])
-    if verifier is not None and len(candidates) > _VERIFY_PER_BATCH:
+    if verifier is not None and len(candidates) > VERIFY_PER_BATCH:
         # too many to verify: the running maxima (the new bests of the plain loop) and the
         # best-scoring others, still walked in sample order
         prefix = np.flatnonzero(scores > np.maximum.accumulate(np.concatenate([[best.score], scores]))[:-1])
-        top = candidates[np.argsort(-scores[candidates], kind="stable")[:_VERIFY_PER_BATCH]]
+        top = candidates[np.argsort(-scores[candidates], kind="stable")[:VERIFY_PER_BATCH]]
         candidates = np.union1d(prefix, top)
     events = []
     it = n_valid + np.arange(1, len(X) + 1)  # iteration number of each valid sample
@@ -111,13 +111,13 @@ def _replay(X, scores, best, n_valid, N, W, Wsq, sampler, cfg, verifier=None):
         if verifier is not None and not verifier.accepts(X[j], scores[j]):
             continue  # not a sphere cap: the next best may be
         best = _Best(X[j], scores[j])
-        N = sampler.required(_inlier_mask(W, best.x, cfg.threshold), cfg.p)  # (eq. 27)
+        N = sampler.required(shell_mask(W, best.x, cfg.threshold), cfg.p)  # (eq. 27)
         events.append((int(j), N))
         if cfg.local_optimization:
-            x, score, improved = _local_optimization(W, Wsq, best.x, best.score, cfg)
+            x, score, improved = local_optimization_step(W, Wsq, best.x, best.score, cfg)
             if improved:
                 best = _Best(x, score)
-                N = min(N, sampler.required(_inlier_mask(W, x, cfg.threshold), cfg.p))
+                N = min(N, sampler.required(shell_mask(W, x, cfg.threshold), cfg.p))
                 events.append((int(j), N))
     keep = int(min(len(X), max(N - n_valid, 0))) if np.isfinite(N) else len(X)
     if events:  # a new best at sample j is always used, even if its N is already exceeded
@@ -129,18 +129,18 @@ def _replay(X, scores, best, n_valid, N, W, Wsq, sampler, cfg, verifier=None):
 def _next_batch(N, cfg, n_valid, n_drawn, cap):
     """Enough samples to reach N at the observed validity rate, growing at most geometrically."""
     if cfg.minimal_solver == "ghm":
-        return _MIN_BATCH
+        return MIN_BATCH
     remaining = min(N, cfg.max_iterations) - n_valid
     rate = max(n_valid / max(n_drawn, 1), 0.05)
     wanted = remaining / rate if np.isfinite(remaining) else math.inf
-    return int(np.clip(min(wanted, max(n_valid, _FIRST_BATCH)), _MIN_BATCH, cap))
+    return int(np.clip(min(wanted, max(n_valid, FIRST_BATCH)), MIN_BATCH, cap))
 
 
 def _search_reason(x, n_valid, n_drawn, N, cfg, had_range=True):
     if n_valid == 0:
         return f"every one of the {n_drawn} samples was degenerate (coplanar or repeated points)"
     if x is None and had_range:
-        return f"no hypothesis in {n_valid} samples passed the verification (budget {_VERIFY_MAX} checks)"
+        return f"no hypothesis in {n_valid} samples passed the verification (budget {VERIFY_MAX} checks)"
     if x is None:
         return f"no hypothesis had a radius inside [{cfg.r_min:.4g}, {cfg.r_max:.4g}] m in {n_valid} samples"
     if n_valid >= N:

@@ -6,14 +6,14 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .config import (
-    _BACKFACE_SHARE, _BAND_K, _CONTRAST, _INTERIOR_SHARE, _MIN_LEVELS, _MIN_SPREAD, _PLANE_RATIO,
-    _SHADOW_SHARE, _TWO_PLANES_SHARE, _VERIFY_MAX, S,
+    BACKFACE_SHARE, BAND_K, CONTRAST, INTERIOR_SHARE, MIN_LEVELS, MIN_SPREAD, PLANE_RATIO,
+    SHADOW_SHARE, TWO_PLANES_SHARE, VERIFY_MAX, S,
 )
-from .hypotheses import _orthogonal_fit, _squared_center_distances
-from .refit import _truncated_mad_scale
+from .hypotheses import orthogonal_fit, squared_center_distances
+from .refit import truncated_mad_scale
 
 
-class _Verifier:
+class Verifier:
     """Is a hypothesis a sphere cap seen by the scanner? Checks on the full cloud (reduced frame).
 
     ``accepts(x)`` is asked for every hypothesis that would become the best:
@@ -43,7 +43,7 @@ class _Verifier:
 
     @property
     def exhausted(self):
-        return self.n_checked >= _VERIFY_MAX
+        return self.n_checked >= VERIFY_MAX
 
     def accepts(self, x, score=0.0):
         cfg = self.cfg
@@ -74,7 +74,7 @@ class _Verifier:
         shell = self.tree.query_ball_point(c, r + t, return_length=True) - self.tree.query_ball_point(
             c, r - t, return_length=True)
         deep = self.tree.query_ball_point(c, r - 5.0 * t, return_length=True)
-        if deep > max(5.0 * _INTERIOR_SHARE * shell, 20):
+        if deep > max(5.0 * INTERIOR_SHARE * shell, 20):
             return (f"{deep} points lie deep inside it (for {shell} on its shell): a solid sphere hides its "
                     "interior, so this is a cut through other surfaces or a volume of points, not a sphere")
         return ""
@@ -97,7 +97,7 @@ class _Verifier:
             self._R = np.array(self._rejected)
         R = self._R
         tol = np.maximum(self.cfg.threshold, 0.1 * R[:, 3])[None, :]
-        dc2 = _squared_center_distances(X[:, :3], np.einsum("ij,ij->i", X[:, :3], X[:, :3]), R[:, :3])
+        dc2 = squared_center_distances(X[:, :3], np.einsum("ij,ij->i", X[:, :3], X[:, :3]), R[:, :3])
         return ((dc2 < tol * tol) & (np.abs(X[:, None, 3] - R[None, :, 3]) < tol)).any(axis=1)
 
     def _local(self, x, reach):
@@ -114,7 +114,7 @@ class _Verifier:
             on = np.abs(d) < band
             if on.sum() <= S:
                 return None
-            x_new = _orthogonal_fit(self.X[idx[on]], x, steps=2)
+            x_new = orthogonal_fit(self.X[idx[on]], x, steps=2)
             if x_new is None:
                 return None
             x = x_new
@@ -123,7 +123,7 @@ class _Verifier:
             _, d = self._local(x, band)
             d = d[np.abs(d) < band]
             if len(d) > S:
-                band = max(t, min(_BAND_K * _truncated_mad_scale(np.abs(d), band), 3.0 * t))
+                band = max(t, min(BAND_K * truncated_mad_scale(np.abs(d), band), 3.0 * t))
         return x
 
     def reasons(self, x, t):
@@ -132,39 +132,39 @@ class _Verifier:
         c, r = x[:3], float(x[3])
         if not cfg.r_min <= r <= cfg.r_max:
             return f"the adjusted radius {r:.5g} m lies outside [{cfg.r_min:.5g}, {cfg.r_max:.5g}] m"
-        idx, d = self._local(x, 3.0 * max(t, 2.0 * _BAND_K * t))
+        idx, d = self._local(x, 3.0 * max(t, 2.0 * BAND_K * t))
         on = np.abs(d) < t
         n_in = int(on.sum())
         if n_in < cfg.min_inliers:
             return f"only {n_in} points on its shell |d| < {t:.3g} m in the full cloud (< min_inliers = {cfg.min_inliers})"
-        sigma_hat = _truncated_mad_scale(np.abs(d[on]), t)  # robust, and consistent for the cut at t
+        sigma_hat = truncated_mad_scale(np.abs(d[on]), t)  # robust, and consistent for the cut at t
         margin = max(t, 3.5 * sigma_hat)
         # the shell: at least the noise band k sigma_hat (a t below the noise must not thin it out)
-        t = max(t, min(_BAND_K * sigma_hat, 2.0 * t))
+        t = max(t, min(BAND_K * sigma_hat, 2.0 * t))
         on = np.abs(d) < t
         n_in = int(on.sum())
         inside = int(np.count_nonzero(d < -margin))
-        if inside > _INTERIOR_SHARE * n_in:
+        if inside > INTERIOR_SHARE * n_in:
             return (f"{inside} points lie inside it (for {n_in} on its shell): a solid sphere hides its interior, "
                     "so this is a cut through other surfaces or a volume of points, not a sphere")
         outside = int(np.count_nonzero((d >= t) & (d < 3.0 * t)))
-        if n_in < _CONTRAST * outside:
+        if n_in < CONTRAST * outside:
             return (f"too many points just outside the shell ({outside}, for {n_in} on it): no spherical surface "
                     "stands out, the points only pass through the shell (a cylinder, plane pieces, clutter)")
         P = self.X[idx[on]]
         q = P - P.mean(axis=0)
         rms_plane = np.sqrt(max(np.linalg.eigvalsh(q.T @ q / len(q))[0], 0.0))
         rms_sphere = np.sqrt(np.mean(d[on] ** 2))
-        if rms_plane < _PLANE_RATIO * rms_sphere:
+        if rms_plane < PLANE_RATIO * rms_sphere:
             return (f"the inliers are nearly flat (plane rms {rms_plane * 1e3:.3g} mm vs sphere rms "
                     f"{rms_sphere * 1e3:.3g} mm): a plane patch, not a sphere")
         planes = _two_plane_share(P, t)
-        if planes >= _TWO_PLANES_SHARE:
+        if planes >= TWO_PLANES_SHARE:
             return (f"{planes:.0%} of its inliers lie on one or two planes: pieces of planes (a floor, a wall, "
                     "an edge) cut by the sphere, not a sphere")
         normals = (P - c) / np.linalg.norm(P - c, axis=1, keepdims=True)  # from the model, not from neighbours
         spread = _cap_spread(normals, None if self.station is None else self.station - c)
-        if spread < _MIN_SPREAD:
+        if spread < MIN_SPREAD:
             return (f"the inliers cover no cap (their normals spread over {np.degrees(np.sqrt(max(spread, 0))):.1f} deg "
                     "across): a ring or a strip, e.g. one scan line on a round object")
         if self.station is None:
@@ -178,15 +178,15 @@ class _Verifier:
         view = s - P
         view /= np.linalg.norm(view, axis=1, keepdims=True)
         back = float(np.mean(np.einsum("ij,ij->i", normals, view) < -0.1))
-        if back > _BACKFACE_SHARE:
+        if back > BACKFACE_SHARE:
             return (f"{back:.0%} of its inliers lie on the side turned away from the station: "
                     "they cannot be a sphere the scanner saw")
         lines = _elevation_levels(P - s, 2.0 * np.arcsin(min(r / np.linalg.norm(s - c), 1.0)))
-        if lines < _MIN_LEVELS:
+        if lines < MIN_LEVELS:
             return (f"its inliers lie on only {lines} scan line(s) (elevation levels seen from the station): "
                     "two rings on a round object such as a cylinder fit such a sphere as well")
         shadow = _points_behind(self.X, s, c, r - margin, margin)
-        if shadow > _SHADOW_SHARE * n_in:
+        if shadow > SHADOW_SHARE * n_in:
             return (f"{shadow} points lie behind it seen from the station (for {n_in} on its shell): "
                     "the scanner looked through it, free space where a solid sphere would be")
         return ""
