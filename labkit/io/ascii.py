@@ -10,12 +10,12 @@ import numpy as np
 
 from ..errors import CloudFileError, LabkitError
 from ..progress import progress_steps
-from .chunks import _Gather
-from .common import SCAN_ANGLE_STEP, _STANDARD_DTYPES, _canonical, _needs_class
-from .filter import _Filter
+from .chunks import ChunkCollector
+from .common import SCAN_ANGLE_STEP, STANDARD_DTYPES, canonical_name, require_classification
+from .filter import ReadFilter
 
 
-def _read_ascii(path: Path, flt: _Filter, keep, chunk_size: int, progress: bool):
+def read_ascii(path: Path, flt: ReadFilter, keep, chunk_size: int, progress: bool):
     size = path.stat().st_size
     with open(path, encoding="utf-8", errors="strict") as f:
         first, skipped = _first_line(f, path)
@@ -24,10 +24,10 @@ def _read_ascii(path: Path, flt: _Filter, keep, chunk_size: int, progress: bool)
         header = not all(_is_number(t) for t in tokens)
         columns = _column_names(tokens, header, path)
         ix = [columns.index(c) for c in ("x", "y", "z")]
-        extra = [(i, c) for i, c in enumerate(columns) if c not in ("x", "y", "z") and _wanted(c, keep)]
-        _needs_class(flt, columns, path)
+        extra = [(i, c) for i, c in enumerate(columns) if c not in ("x", "y", "z") and wanted_column(c, keep)]
+        require_classification(flt, columns, path)
         lines = f if header else itertools.chain([first], f)
-        gather, row = _Gather(None), skipped
+        gather, row = ChunkCollector(None), skipped
         with progress_steps(progress, size, f"reading {path.name}", "B") as step:
             step(len(first.encode()) + 1 if header else 0)
             while True:
@@ -43,7 +43,7 @@ def _read_ascii(path: Path, flt: _Filter, keep, chunk_size: int, progress: bool)
                 gather.add(xyz[sel], {c: data[sel, i] for i, c in extra})
                 step(sum(len(s) for s in block))
     xyz, attrs = gather.result()
-    return xyz, _text_columns(attrs, path), None
+    return xyz, text_columns(attrs, path), None
 
 
 def _first_line(f, path: Path) -> tuple[str, int]:
@@ -72,7 +72,7 @@ def _column_names(tokens: list[str], header: bool, path: Path) -> list[str]:
         if len(tokens) < 3:
             raise CloudFileError(f"{path}: expected at least 3 columns (x y z), found {len(tokens)}")
         return ["x", "y", "z"] + [f"column_{i}" for i in range(3, len(tokens))]
-    names = [_canonical(t) for t in tokens]
+    names = [canonical_name(t) for t in tokens]
     missing = [c for c in ("x", "y", "z") if c not in names]
     if missing:
         raise CloudFileError(f"{path}: the header line names no column {', '.join(missing)} (found {tokens})")
@@ -91,7 +91,7 @@ def _parse_block(block: list[str], delimiter, ncol: int, path: Path, row: int) -
     return data
 
 
-def _text_columns(attrs: dict, path: Path) -> dict:
+def text_columns(attrs: dict, path: Path) -> dict:
     """Typed text columns; a scan-angle column in fractional degrees (PDAL's
     ``ScanAngleRank`` of LAS 1.4 data) becomes ``scan_angle`` in 0.006-degree units."""
     out = {}
@@ -107,14 +107,14 @@ def _text_columns(attrs: dict, path: Path) -> dict:
     return out
 
 
-_SCAN_ANGLE_NAMES = {"scan_angle_rank", "scan_angle", "scan_angle_degrees"}  # one text column, three names
+SCAN_ANGLE_NAMES = {"scan_angle_rank", "scan_angle", "scan_angle_degrees"}  # one text column, three names
 
 
-def _wanted(column: str, keep) -> bool:
+def wanted_column(column: str, keep) -> bool:
     """Is a text column asked for? A scan-angle column answers to each name it may be read under."""
     if keep is None or column in keep:
         return True
-    return column == "scan_angle_rank" and bool(keep & _SCAN_ANGLE_NAMES)
+    return column == "scan_angle_rank" and bool(keep & SCAN_ANGLE_NAMES)
 
 
 def _fractional_degrees(values: np.ndarray) -> bool:
@@ -127,7 +127,7 @@ def _text_dtype(name: str, values: np.ndarray, path: Path) -> np.ndarray:
     """Known dimensions get laspy's dtype, other integral columns int64, the rest float64."""
     finite = np.isfinite(values).all()
     integral = finite and np.array_equal(values, np.round(values))
-    target = _STANDARD_DTYPES.get(name)
+    target = STANDARD_DTYPES.get(name)
     if target is not None and np.issubdtype(target, np.integer):
         info = np.iinfo(target)
         if not integral or (values.size and (values.min() < info.min or values.max() > info.max)):
@@ -138,7 +138,7 @@ def _text_dtype(name: str, values: np.ndarray, path: Path) -> np.ndarray:
     return values
 
 
-def _write_ascii(cloud: PointCloud, tmp: Path, delimiter: str, scales: np.ndarray, chunk_size: int,
+def write_ascii(cloud: PointCloud, tmp: Path, delimiter: str, scales: np.ndarray, chunk_size: int,
                  progress=False, label: str = "") -> None:
     names = list(cloud.attributes)
     decimals = [max(0, int(np.ceil(-np.log10(s) - 1e-9))) for s in scales]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 
-class _Gather:
+class ChunkCollector:
     """Collects the kept part of each chunk; preallocates when the final size is known.
 
     With a known capacity the chunks are written into one array (the memory of

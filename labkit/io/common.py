@@ -18,10 +18,10 @@ PLY_SUFFIXES = (".ply",)
 UNIT_CHOICES = ("m", "native")
 SCAN_ANGLE_STEP = 0.006  # degrees per unit of the LAS 1.4 scan_angle field
 DEFAULT_CHUNK = 1_000_000
-_INT32_MAX = 2**31 - 1
+INT32_MAX = 2**31 - 1
 
 # laspy dtypes of the standard dimensions that can arrive as text or npz columns
-_STANDARD_DTYPES = {
+STANDARD_DTYPES = {
     "intensity": np.uint16,
     "return_number": np.uint8,
     "number_of_returns": np.uint8,
@@ -68,7 +68,7 @@ _ALIASES = {
 }
 
 
-def _canonical(token: str) -> str:
+def canonical_name(token: str) -> str:
     """Header spelling -> laspy-style name ('//X' -> 'x', 'GpsTime' -> 'gps_time')."""
     word = token.strip().lstrip("/#").strip().strip('"').strip("'")
     squeezed = re.sub(r"[^0-9a-z]", "", word.lower())
@@ -79,7 +79,7 @@ def _canonical(token: str) -> str:
     return re.sub(r"[^0-9a-z]+", "_", word.lower()).strip("_") or "column"
 
 
-def _attribute_names(attributes) -> set | None:
+def attribute_names(attributes) -> set | None:
     """The attribute selection as a set of names; a bare string is one name."""
     if attributes is None:
         return None
@@ -95,7 +95,7 @@ def _attribute_names(attributes) -> set | None:
     return set(names)
 
 
-def _existing(path) -> Path:
+def existing_file(path) -> Path:
     if not isinstance(path, (str, os.PathLike)):
         raise CloudFileError(f"a point-cloud file path (str or Path) is needed, got {type(path).__name__}")
     if isinstance(path, str) and not path.strip():
@@ -110,11 +110,11 @@ def _existing(path) -> Path:
     return path
 
 
-def _unsupported(path: Path) -> str:
+def unsupported_format(path: Path) -> str:
     known = " ".join(LAS_SUFFIXES + ASCII_SUFFIXES + NUMPY_SUFFIXES + PLY_SUFFIXES)
     return f"unsupported point-cloud format {path.suffix!r} of {path}; known suffixes: {known}"
 
 
-def _needs_class(flt: _Filter, names, path: Path) -> None:
+def require_classification(flt: ReadFilter, names, path: Path) -> None:
     if flt.classes is not None and "classification" not in names:
         raise CloudFileError(f"{path} has no classification, so it cannot be filtered by class")

@@ -10,7 +10,7 @@ from .. import regions
 
 
 @dataclass(frozen=True)
-class _Filter:
+class ReadFilter:
     """The spatial and class filter applied to every chunk while reading."""
 
     box: np.ndarray | None = None
@@ -18,7 +18,7 @@ class _Filter:
     classes: np.ndarray | None = None
 
     @classmethod
-    def build(cls, bbox, polygon, classes) -> "_Filter":
+    def build(cls, bbox, polygon, classes) -> "ReadFilter":
         return cls(
             box=None if bbox is None else regions.as_bbox(bbox),
             rings=None if polygon is None else regions.as_rings(polygon),

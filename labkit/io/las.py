@@ -13,9 +13,9 @@ from .._units import decide_units, parse_wkt
 from ..cloud import Units, UnitsError
 from ..errors import CloudFileError, EmptyRegionError, LabkitError
 from ..progress import progress_steps
-from .chunks import _Gather
-from .common import LAS_SUFFIXES, _existing, _needs_class
-from .filter import _Filter
+from .chunks import ChunkCollector
+from .common import LAS_SUFFIXES, existing_file, require_classification
+from .filter import ReadFilter
 
 
 def _check_las_header(path: Path) -> None:
@@ -51,7 +51,7 @@ def _check_las_header(path: Path) -> None:
         raise CloudFileError(f"{path} has a corrupt or unsupported LAS header: " + "; ".join(problems))
 
 
-def _read_las(path: Path, flt: _Filter, keep, chunk_size: int, progress, units: str, parallel: bool = True):
+def read_las(path: Path, flt: ReadFilter, keep, chunk_size: int, progress, units: str, parallel: bool = True):
     import laspy
 
     _check_las_header(path)
@@ -60,13 +60,13 @@ def _read_las(path: Path, flt: _Filter, keep, chunk_size: int, progress, units: 
         header = reader.header
         total = int(header.point_count)
         found, crs = las_units(header)
-        found, factors = _to_metres(found, units, path)
+        found, factors = to_metres(found, units, path)
         names = [d for d in header.point_format.dimension_names if d not in ("X", "Y", "Z")]
         names = [d for d in names if keep is None or d in keep]
-        _needs_class(flt, header.point_format.dimension_names, path)
+        require_classification(flt, header.point_format.dimension_names, path)
         _check_overlap(flt, header, path, factors)
         every = not flt.active  # no filter: each point is kept, coordinates go straight into the cloud
-        gather = _Gather(_plausible_count(header, path) if every or _holds_header(flt, header, factors) else None)
+        gather = ChunkCollector(_plausible_count(header, path) if every or _holds_header(flt, header, factors) else None)
         scales, offsets = np.asarray(header.scales, dtype=np.float64), np.asarray(header.offsets, dtype=np.float64)
         seen = 0
         with progress_steps(progress, total, f"reading {path.name}", "pts") as step:
@@ -132,7 +132,7 @@ _LAYERS = {
 }
 
 
-def _decompression_selection(keep, flt: _Filter):
+def _decompression_selection(keep, flt: ReadFilter):
     """The LAZ layers a read needs: all of them unless ``attributes`` names a few standard ones."""
     from laspy import DecompressionSelection
 
@@ -147,7 +147,7 @@ def _decompression_selection(keep, flt: _Filter):
     return sel
 
 
-def _holds_header(flt: _Filter, header, factors) -> bool:
+def _holds_header(flt: ReadFilter, header, factors) -> bool:
     """The box filter holds the file's whole header extent (so most points will be kept)."""
     if flt.box is None or flt.rings is not None or header.point_count == 0:
         return False
@@ -158,7 +158,7 @@ def _holds_header(flt: _Filter, header, factors) -> bool:
     return bool((box[0] <= lo[:d]).all() and (box[1] >= hi[:d]).all())
 
 
-def _to_metres(found: Units, units: str, path: Path):
+def to_metres(found: Units, units: str, path: Path):
     """(units recorded on the cloud, per-axis factors to apply or None) for ``units='m'|'native'``."""
     if units == "native" or not found.known:
         return found, None
@@ -197,7 +197,7 @@ def _plausible_count(header, path: Path) -> int | None:
     return total if needed <= 50 * size else None
 
 
-def _check_overlap(flt: _Filter, header, path: Path, factors=None) -> None:
+def _check_overlap(flt: ReadFilter, header, path: Path, factors=None) -> None:
     """Fail early when the filter's area misses the header's bounding box."""
     area = flt.xy_bounds()
     if area is None or header.point_count == 0:
@@ -353,7 +353,7 @@ def cloud_info(path) -> CloudInfo:
     >>> info.point_count, info.maxs.tolist(), info.version
     (2, [10.0, 20.0, 5.0], '1.2')
     """
-    path = _existing(path)
+    path = existing_file(path)
     if path.suffix.lower() not in LAS_SUFFIXES:
         raise CloudFileError(f"cloud_info reads LAS/LAZ headers only, not {path}")
     import laspy

@@ -10,7 +10,7 @@ import numpy as np
 from ..cloud import Units
 from ..errors import LabkitError
 from ..progress import progress_steps
-from .common import _INT32_MAX
+from .common import INT32_MAX
 from .las import laz_backend
 
 
@@ -25,7 +25,7 @@ def _las_offsets(xyz: np.ndarray, scales=None) -> np.ndarray:
     lo, hi = xyz.min(axis=0), xyz.max(axis=0)
     offsets = np.floor(lo / 1000.0) * 1000.0
     if scales is not None:
-        tight = (hi - offsets) / np.asarray(scales) > 0.9 * _INT32_MAX
+        tight = (hi - offsets) / np.asarray(scales) > 0.9 * INT32_MAX
         offsets[tight] = np.floor(lo[tight])
     return offsets
 
@@ -38,7 +38,7 @@ def _auto_format(attrs: dict) -> int:
     return {(False, False): 0, (True, False): 1, (False, True): 2, (True, True): 3}[("gps_time" in attrs, "red" in attrs)]
 
 
-def _write_las(cloud, tmp: Path, compress: bool, scales, point_format, chunk_size: int, progress=False,
+def write_las(cloud, tmp: Path, compress: bool, scales, point_format, chunk_size: int, progress=False,
                parallel: bool = True, label: str = "") -> None:
     import laspy
 
@@ -151,7 +151,7 @@ def _check_int32_range(xyz: np.ndarray, offsets, scales) -> None:
         return
     lo, hi = xyz.min(axis=0), xyz.max(axis=0)
     q = np.rint((np.vstack([lo, hi]) - np.asarray(offsets)) / np.asarray(scales))
-    if np.abs(q).max() > _INT32_MAX:
+    if np.abs(q).max() > INT32_MAX:
         raise LabkitError(
             f"the coordinates span {np.max(hi - lo):.1f} m, too much for LAS integers at "
             f"scale {np.asarray(scales).tolist()}; choose a coarser scale"

@@ -10,9 +10,9 @@ import numpy as np
 from .. import regions
 from ..cloud import PointCloud, UnitsError
 from ..errors import CloudFileError, EmptyRegionError
-from .common import DEFAULT_CHUNK, LAS_SUFFIXES, _existing
-from .filter import _Filter
-from .las import CloudInfo, _to_metres, cloud_info
+from .common import DEFAULT_CHUNK, LAS_SUFFIXES, existing_file
+from .filter import ReadFilter
+from .las import CloudInfo, cloud_info, to_metres
 from .read import read_cloud
 
 
@@ -61,7 +61,7 @@ def _expand(entry: Path) -> list[Path]:
         anchor = Path(entry.anchor) if entry.is_absolute() else Path(".")
         pattern = str(entry.relative_to(anchor)) if entry.is_absolute() else str(entry)
         return sorted(p for p in anchor.glob(pattern) if p.is_file())
-    return [_existing(entry)]
+    return [existing_file(entry)]
 
 
 def files_in_box(paths, bbox) -> list[Path]:
@@ -160,7 +160,7 @@ def read_clouds(paths, *, bbox=None, polygon=None, classes=None, attributes=None
     ([8.0, 9.0, 10.0, 11.0, 12.0], 't0+1 files')
     """
     files = cloud_files(paths)
-    flt = _Filter.build(bbox, polygon, classes)
+    flt = ReadFilter.build(bbox, polygon, classes)
     area = flt.xy_bounds()
     box = None if area is None else area
     if flt.box is not None and flt.box.shape[1] == 3 and flt.rings is None:
@@ -186,7 +186,7 @@ def read_clouds(paths, *, bbox=None, polygon=None, classes=None, attributes=None
 def _header_factors(info: "CloudInfo", units: str) -> np.ndarray:
     """Metres per stored unit of a header (ones when nothing is converted)."""
     try:
-        _, factors = _to_metres(info.units, units, info.path)
+        _, factors = to_metres(info.units, units, info.path)
     except UnitsError:
         return np.ones(3)  # read_cloud raises the proper error when the file is read
     return np.ones(3) if factors is None else factors

@@ -12,13 +12,13 @@ from .._checks import check_precision
 from .._units import units_from_crs_text
 from ..cloud import PointCloud, Units
 from ..errors import CloudFileError, LabkitError
-from .chunks import _Gather
-from .common import _canonical, _needs_class
-from .filter import _Filter
-from .las import _to_metres
+from .chunks import ChunkCollector
+from .common import canonical_name, require_classification
+from .filter import ReadFilter
+from .las import to_metres
 
 
-def _read_numpy(path: Path, flt: _Filter, keep, chunk_size: int, units: str):
+def read_numpy(path: Path, flt: ReadFilter, keep, chunk_size: int, units: str):
     if path.suffix.lower() == ".npy":
         arr = np.load(path, mmap_mode="r", allow_pickle=False)
         xyz, attrs = _split_npy(arr, path)
@@ -32,10 +32,10 @@ def _read_numpy(path: Path, flt: _Filter, keep, chunk_size: int, units: str):
         with np.load(path, allow_pickle=False) as z:
             if "units" in z.files:
                 found = _units_from_json(str(z["units"]), path)
-    found, factors = _to_metres(found, units, path)
+    found, factors = to_metres(found, units, path)
     attrs = {k: v for k, v in attrs.items() if keep is None or k in keep}
-    _needs_class(flt, attrs, path)
-    gather = _Gather(None)
+    require_classification(flt, attrs, path)
+    gather = ChunkCollector(None)
     for start in range(0, len(xyz), chunk_size):
         part = np.array(xyz[start : start + chunk_size], dtype=np.float64)
         if factors is not None:
@@ -54,7 +54,7 @@ def _split_npy(arr: np.ndarray, path: Path):
         if not all(c in names for c in "xyz"):
             raise CloudFileError(f"{path}: a structured array needs fields x, y, z (has {arr.dtype.names})")
         xyz = np.column_stack([arr[names[c]] for c in "xyz"])
-        attrs = {_canonical(n): arr[n] for n in arr.dtype.names if n.lower() not in "xyz"}
+        attrs = {canonical_name(n): arr[n] for n in arr.dtype.names if n.lower() not in "xyz"}
         return xyz, attrs
     if arr.ndim != 2 or arr.shape[1] < 3 or not np.issubdtype(arr.dtype, np.number):
         raise CloudFileError(f"{path}: expected a numeric (n, 3+) array, got shape {arr.shape} of {arr.dtype}")
@@ -91,7 +91,7 @@ def _units_from_json(text: str, path: Path) -> Units:
         raise CloudFileError(f"{path}: unreadable 'units' entry: {exc}") from None
 
 
-def _write_npz(cloud: PointCloud, tmp: Path) -> None:
+def write_npz(cloud: PointCloud, tmp: Path) -> None:
     reserved = sorted({"xyz", "x", "y", "z", "crs", "name", "units"} & set(cloud.attributes))
     if reserved:
         raise LabkitError(f"attribute name(s) {reserved} are reserved in an .npz cloud file: rename them")

@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CloudFileError
-from .ascii import _text_columns, _wanted
-from .chunks import _Gather
-from .common import _canonical, _needs_class
-from .filter import _Filter
+from .ascii import text_columns, wanted_column
+from .chunks import ChunkCollector
+from .common import canonical_name, require_classification
+from .filter import ReadFilter
 
 PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -163,19 +163,19 @@ def _binary_blocks(f, offset: int, dtype: np.dtype, count: int, chunk_size: int,
             yield [rec[name].astype(rec.dtype[name].newbyteorder("=")) for name in dtype.names]
 
 
-def _read_ply(path: Path, flt: _Filter, keep, chunk_size: int):
+def read_ply(path: Path, flt: ReadFilter, keep, chunk_size: int):
     """Vertex x, y, z and scalar properties of an ASCII or binary PLY file (see :func:`ply_vertex_blocks`)."""
     names, fmt, blocks = ply_vertex_blocks(path, chunk_size)
-    columns = [_canonical(n) for n in names]
+    columns = [canonical_name(n) for n in names]
     if len(set(columns)) != len(columns):
         raise CloudFileError(f"{path}: the PLY vertex element repeats a property ({names})")
     missing = [c for c in "xyz" if c not in columns]
     if missing:
         raise CloudFileError(f"{path}: the PLY vertex element has no property {', '.join(missing)}")
     ix = [columns.index(c) for c in "xyz"]
-    extra = [(i, c) for i, c in enumerate(columns) if c not in "xyz" and _wanted(c, keep)]
-    _needs_class(flt, columns, path)
-    gather = _Gather(None)
+    extra = [(i, c) for i, c in enumerate(columns) if c not in "xyz" and wanted_column(c, keep)]
+    require_classification(flt, columns, path)
+    gather = ChunkCollector(None)
     for block in blocks:  # one array per property
         xyz = np.column_stack([block[i].astype(np.float64) for i in ix])
         cls = block[columns.index("classification")] if flt.classes is not None else None
@@ -184,5 +184,5 @@ def _read_ply(path: Path, flt: _Filter, keep, chunk_size: int):
         gather.add(xyz[sel], {c: block[i][sel] for i, c in extra})
     xyz, attrs = gather.result()
     if fmt == "ascii":  # text: typed like the columns of an ASCII file
-        attrs = _text_columns(attrs, path)
+        attrs = text_columns(attrs, path)
     return xyz, attrs, None

@@ -7,15 +7,15 @@ import numpy as np
 from .._checks import choice, count
 from ..cloud import PointCloud, Units
 from ..errors import CloudFileError, EmptyRegionError, LabkitError
-from .ascii import _SCAN_ANGLE_NAMES, _read_ascii
+from .ascii import SCAN_ANGLE_NAMES, read_ascii
 from .common import (
     ASCII_SUFFIXES, DEFAULT_CHUNK, LAS_SUFFIXES, NUMPY_SUFFIXES, PLY_SUFFIXES, UNIT_CHOICES,
-    _attribute_names, _existing, _unsupported,
+    attribute_names, existing_file, unsupported_format,
 )
-from .filter import _Filter
-from .las import _read_las
-from .npy import _read_numpy
-from .ply import _read_ply
+from .filter import ReadFilter
+from .las import read_las
+from .npy import read_numpy
+from .ply import read_ply
 
 
 def read_cloud(
@@ -92,25 +92,25 @@ def read_cloud(
     >>> read_cloud(path, bbox=(0, 0, 2, 2), classes=2).xyz.tolist()
     [[0.0, 0.0, 0.0]]
     """
-    path = _existing(path)
-    flt = _Filter.build(bbox, polygon, classes)
+    path = existing_file(path)
+    flt = ReadFilter.build(bbox, polygon, classes)
     chunk_size = count(chunk_size, "chunk_size")
     choice(units, UNIT_CHOICES, "units")
-    keep = _attribute_names(attributes)
+    keep = attribute_names(attributes)
     suffix = path.suffix.lower()
     try:
         if suffix in LAS_SUFFIXES:
-            xyz, attrs, crs, found = _read_las(path, flt, keep, chunk_size, progress, units, parallel)
+            xyz, attrs, crs, found = read_las(path, flt, keep, chunk_size, progress, units, parallel)
         elif suffix in ASCII_SUFFIXES:
-            xyz, attrs, crs = _read_ascii(path, flt, keep, chunk_size, progress)
+            xyz, attrs, crs = read_ascii(path, flt, keep, chunk_size, progress)
             found = Units()
         elif suffix in NUMPY_SUFFIXES:
-            xyz, attrs, crs, found = _read_numpy(path, flt, keep, chunk_size, units)
+            xyz, attrs, crs, found = read_numpy(path, flt, keep, chunk_size, units)
         elif suffix in PLY_SUFFIXES:
-            xyz, attrs, crs = _read_ply(path, flt, keep, chunk_size)
+            xyz, attrs, crs = read_ply(path, flt, keep, chunk_size)
             found = Units()
         else:
-            raise CloudFileError(_unsupported(path))
+            raise CloudFileError(unsupported_format(path))
     except (LabkitError, MemoryError, KeyboardInterrupt):
         raise
     except Exception as exc:  # laspy, lazrs, numpy and OS errors of a bad file
@@ -123,7 +123,7 @@ def read_cloud(
         bad = int((~np.isfinite(xyz)).any(axis=1).sum())
         raise CloudFileError(f"{path} has {bad} point(s) with NaN or infinite coordinates")
     missing = set() if keep is None else keep - set(attrs)
-    if missing and missing <= _SCAN_ANGLE_NAMES and set(attrs) & _SCAN_ANGLE_NAMES:
+    if missing and missing <= SCAN_ANGLE_NAMES and set(attrs) & SCAN_ANGLE_NAMES:
         missing = set()  # a text scan-angle column, read under the name its values need
     if missing:
         raise LabkitError(f"{path} has no attribute {', '.join(sorted(missing))}")

@@ -13,10 +13,10 @@ from .._atomic import atomic_path
 from .._checks import count
 from ..cloud import PointCloud
 from ..errors import CloudFileError, LabkitError
-from .ascii import _write_ascii
-from .common import ASCII_SUFFIXES, DEFAULT_CHUNK, LAS_SUFFIXES, _unsupported
-from .las_write import _write_las
-from .npy import _write_npz
+from .ascii import write_ascii
+from .common import ASCII_SUFFIXES, DEFAULT_CHUNK, LAS_SUFFIXES, unsupported_format
+from .las_write import write_las
+from .npy import write_npz
 
 
 DEFAULT_SCALE = 0.001  # metres (or the file's linear unit)
@@ -92,7 +92,7 @@ def write_cloud(cloud: PointCloud, path, *, scale=DEFAULT_SCALE, point_format: i
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in LAS_SUFFIXES + ASCII_SUFFIXES + (".npz",):
-        raise CloudFileError(_unsupported(path) + " (writing: .las .laz .csv .txt .xyz .asc .npz)")
+        raise CloudFileError(unsupported_format(path) + " (writing: .las .laz .csv .txt .xyz .asc .npz)")
     if not path.parent.is_dir():
         raise CloudFileError(f"cannot write {path}: folder {path.parent} does not exist")
     if suffix in LAS_SUFFIXES + (".npz",):
@@ -102,11 +102,11 @@ def write_cloud(cloud: PointCloud, path, *, scale=DEFAULT_SCALE, point_format: i
     scales = _choose_scale(cloud.xyz, scale)
     with _atomic(path) as tmp:
         if suffix in LAS_SUFFIXES:
-            _write_las(cloud, tmp, suffix == ".laz", scales, point_format, chunk_size, progress, parallel, path.name)
+            write_las(cloud, tmp, suffix == ".laz", scales, point_format, chunk_size, progress, parallel, path.name)
         elif suffix == ".npz":
-            _write_npz(cloud, tmp)
+            write_npz(cloud, tmp)
         else:
-            _write_ascii(cloud, tmp, "," if suffix == ".csv" else " ", scales, chunk_size, progress, path.name)
+            write_ascii(cloud, tmp, "," if suffix == ".csv" else " ", scales, chunk_size, progress, path.name)
     return path
 
 
