@@ -24,7 +24,7 @@ _EXPORTS = {
     "write_cloud": "labkit.io",
     # sphere (issues 2, 3)
     "gauss_helmert_model": "labkit.adjustment",
-    "SphereFit": "labkit.adjustment",
+    "SphereFit": "labkit.sphere_fit",
     "ransac_sphere": "labkit.ransac",
     # local geometry (issue 4)
     "local_pca": "labkit.features",
@@ -71,8 +71,8 @@ _EXPORTS = {
 
 #: Sub-modules reachable as attributes (``labkit.registration.icp``) without an explicit import.
 _SUBMODULES = {
-    "adjustment", "change", "compare", "distances", "errors", "features", "io", "plotting", "ransac",
-    "references", "regions", "registration", "sphere", "synthetic", "tiles", "transforms", "widgets",
+    "adjustment", "change", "compare", "distances", "errors", "features", "io", "masks", "plotting", "ransac",
+    "references", "regions", "registration", "sphere", "sphere_fit", "synthetic", "tiles", "transforms", "widgets",
 }
 
 __all__ = sorted(_EXPORTS) + ["__version__"]

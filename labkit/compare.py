@@ -30,13 +30,13 @@ from .distances import (  # noqa: F401  (re-exported)
 )
 from .errors import LabkitError
 from .io import read_cloud
+from .masks import STABLE_CLASSES
 from .synthetic import REGIONS, als_epochs
 from .transforms import check_transform, skew
 from .references import (  # noqa: F401  (re-exported)
     Reference, average_references, load_references, manual_reference, reference_from_pairs,
     reference_from_targets, save_references, truth_reference,
 )
-from .regions import STABLE_CLASSES
 
 AXES = ("X", "Y", "Z")
 

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import regions
+from .. import masks
 
 
 @dataclass(frozen=True)
@@ -20,9 +20,9 @@ class ReadFilter:
     @classmethod
     def build(cls, bbox, polygon, classes) -> "ReadFilter":
         return cls(
-            box=None if bbox is None else regions.as_bbox(bbox),
-            rings=None if polygon is None else regions.as_rings(polygon),
-            classes=None if classes is None else regions.as_classes(classes),
+            box=None if bbox is None else masks.as_bbox(bbox),
+            rings=None if polygon is None else masks.as_rings(polygon),
+            classes=None if classes is None else masks.as_classes(classes),
         )
 
     @property
@@ -57,10 +57,10 @@ class ReadFilter:
             return None
         keep = np.ones(len(xyz), dtype=bool)
         if self.classes is not None:
-            keep &= regions.class_mask(classification, self.classes)
+            keep &= masks.class_mask(classification, self.classes)
         if self.box is not None:
-            keep &= regions.box_mask(xyz, self.box)
+            keep &= masks.box_mask(xyz, self.box)
         if self.rings is not None and keep.any():
             idx = np.flatnonzero(keep)
-            keep[idx] = regions.polygon_mask(xyz[idx], self.rings)
+            keep[idx] = masks.polygon_mask(xyz[idx], self.rings)
         return keep

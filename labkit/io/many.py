@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import regions
+from .. import masks
 from ..cloud import PointCloud, UnitsError
 from ..errors import CloudFileError, EmptyRegionError
 from .common import DEFAULT_CHUNK, LAS_SUFFIXES, existing_file
@@ -93,7 +93,7 @@ def files_in_box(paths, bbox) -> list[Path]:
     >>> [p.name for p in files_in_box(folder, (12, 0, 25, 5))]
     ['t1.laz', 't2.laz']
     """
-    box = regions.as_bbox(bbox)
+    box = masks.as_bbox(bbox)
     return [p for p in cloud_files(paths) if _header_meets(p, box, None)]
 
 

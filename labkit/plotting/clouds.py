@@ -13,7 +13,8 @@ import numpy as np
 
 from ..cloud import PointCloud
 from ..errors import LabkitError
-from ..regions import ASPRS_NAMES, as_bbox, as_rings, density_grid
+from ..masks import ASPRS_NAMES, as_bbox, as_rings
+from ..regions import density_grid
 from ._style import CMAP_SEQUENTIAL, POINT_SIZE, new_plotter, scalar_bar
 
 # ASPRS LAS 1.4 standard classes: name and display colour (close to common viewer palettes)
