@@ -17,6 +17,7 @@ import numpy as np
 from .._checks import as_rng, count, non_negative, positive
 from .._report import ReportMixin, fmt
 from ..errors import LabkitError
+from ._geometry import sphere_cap, unit
 
 LABEL_NAMES = ("sphere", "tripod legs", "base plate", "ground", "clutter")
 SPHERE, LEGS, BASE, GROUND, CLUTTER = range(5)
@@ -99,7 +100,7 @@ class TripodScene(ReportMixin):
         ``range_noise**2``: ``Sigma_i = noise^2 I + (range_noise^2 - noise^2) u u^T``.
         """
         pts = self.points if mask is None else self.points[mask]
-        u = _unit(pts - self.station)
+        u = unit(pts - self.station)
         extra = self.range_noise**2 - self.noise**2
         return self.noise**2 * np.eye(3) + extra * u[:, :, None] * u[:, None, :]
 
@@ -182,7 +183,7 @@ def sphere_on_tripod(
 
     # Noise-free samples per part
     parts = [
-        _sphere_cap(rng, counts[SPHERE], centre, radius, station),
+        sphere_cap(rng, counts[SPHERE], centre, radius, station, _MAX_INCIDENCE),
         _legs(rng, counts[LEGS], station),
         _base(rng, counts[BASE], station),
         _ground(rng, counts[GROUND]),
@@ -245,45 +246,14 @@ def _counts(n_sphere, n_clutter, outlier_ratio):
 
 
 # ----------------------------------------------------------------- geometry
-def _unit(v):
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def _basis(axis):
-    """Two unit vectors perpendicular to ``axis`` (3,) and to each other."""
-    a = _unit(np.asarray(axis, dtype=np.float64))
-    helper = np.array([1.0, 0.0, 0.0]) if abs(a[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = _unit(np.cross(a, helper))
-    return e1, np.cross(a, e1)
-
-
-def _sphere_cap(rng, n, centre, radius, station):
-    """Points on the cap seen from the station, uniform in the scanner's view.
-
-    A scanner samples on an angular grid, so from afar the points are uniform
-    over the projected disc: sin(theta) = sqrt(U) sin(theta_max), with theta the
-    angle between the surface normal and the direction to the station.
-    """
-    to_station = station - centre
-    dist = np.linalg.norm(to_station)
-    u = to_station / dist
-    e1, e2 = _basis(u)
-    theta_max = min(np.arccos(radius / dist), _MAX_INCIDENCE)
-    sin_t = np.sqrt(rng.random(n)) * np.sin(theta_max)
-    cos_t = np.sqrt(1.0 - sin_t**2)
-    phi = rng.uniform(0.0, 2.0 * np.pi, n)
-    normal = cos_t[:, None] * u + sin_t[:, None] * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
-    return centre + radius * normal
-
-
 def _cylinder_side(rng, n, bottom, top, r, station):
     """Points on the half of a cylinder's mantle that faces the station."""
     if n == 0:
         return np.empty((0, 3))
     axis = top - bottom
-    a = _unit(axis)
+    a = unit(axis)
     look = station - 0.5 * (bottom + top)
-    look = _unit(look - (look @ a) * a)  # the visible half is centred on this direction
+    look = unit(look - (look @ a) * a)  # the visible half is centred on this direction
     side = np.cross(a, look)
     t = rng.random(n)
     phi = rng.uniform(-0.5 * np.pi, 0.5 * np.pi, n)
@@ -344,7 +314,7 @@ def _scanner_noise(rng, clean, station, noise, range_noise):
     """Gaussian noise: ``noise`` across the beam, ``range_noise`` along it."""
     eps = rng.normal(0.0, noise, size=clean.shape)
     if range_noise != noise:
-        u = _unit(clean - station)
+        u = unit(clean - station)
         along = np.einsum("ij,ij->i", eps, u)
         eps += ((range_noise / noise - 1.0) * along if noise > 0 else rng.normal(0.0, range_noise, len(u)))[:, None] * u
     return eps
