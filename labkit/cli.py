@@ -29,6 +29,8 @@ from .demo import run_demo
 from .distances import distances_before_after
 from .errors import LabkitError
 from .io import read_cloud, write_cloud
+from .plotting.change import plot_change_figure
+from .plotting.compare import plot_distance_map, plot_shift_field, symmetric_limits
 from .progress import from_cli
 from .ransac import ransac_sphere
 from .references import load_references
@@ -141,7 +143,6 @@ def _cmd_compare(args) -> int:
 
 
 def _cmd_tiles(args) -> int:
-    from .plotting.compare import plot_shift_field  # (matplotlib: loaded when needed)
 
     _check_dof([args.method], args.dof)
     method = compare.standard_methods([args.method], dof=args.dof, extent=args.extent, max_points=args.max_points,
@@ -193,8 +194,7 @@ def _scheduler_option(text: str) -> str:
 
 def _cmd_change(args) -> int:
     """M3C2 change REFERENCE -> COMPARED with a LoD carrying the registration's covariance (issue 15)."""
-    from .change import load_registration, m3c2  # (numba: loaded when needed)
-    from .plotting.change import plot_change_figure
+    from .change import load_registration, m3c2  # (numba, about 0.5 s: loaded when needed)
 
     ref, cmp_ = read_cloud(args.reference), read_cloud(args.compared)
     print(f"reference {args.reference}: {len(ref)} points; compared {args.compared}: {len(cmp_)} points")
@@ -277,8 +277,6 @@ def _print_tiles(field, test) -> None:
 def _distance_figure(source, change, title, seed):
     """Top views of the source coloured by its point-to-plane distance, before and after (same colour scale)."""
     import matplotlib.pyplot as plt
-
-    from .plotting.compare import plot_distance_map, symmetric_limits
 
     n = len(source)
     sel = np.sort(np.random.default_rng(seed).choice(n, PLOT_POINTS, replace=False)) if n > PLOT_POINTS else slice(None)

@@ -21,6 +21,11 @@ from .compare import compare_methods, standard_methods, synthetic_cases
 from .distances import point_to_plane_distance
 from .errors import LabkitError
 from .notebook import setup_headless
+from .plotting import compare as PC
+from .plotting import ransac as PR
+from .plotting import screenshot
+from .plotting import sphere as PS
+from .plotting.compare import plot_distance_cloud
 from .ransac import ransac_sphere
 from .synthetic import sphere_on_tripod
 
@@ -72,9 +77,6 @@ def run_demo(out_dir: Path, quick: bool = False) -> list[Path]:
 
 # --------------------------------------------------------------------------- (a) sphere
 def _sphere_step(out: Path, quick: bool) -> list[Path]:
-    from .plotting import ransac as PR  # (plotting loads matplotlib and pyvista: when needed)
-    from .plotting import sphere as PS
-
     # A TLS scan in UTM-sized coordinates with 1 mm noise per coordinate
     scene = sphere_on_tripod(n_sphere=600 if quick else 2000, noise=0.001, utm=True, rng=SEED)
     print(f"Scene: {scene.n} points, {scene.outlier_ratio:.0%} of them not on the sphere "
@@ -164,9 +166,6 @@ def _distance_panels(pair, dists, path: Path) -> Path:
     """The source coloured by its point-to-plane distance: before and after each method (pyvista renders)."""
     import matplotlib.pyplot as plt
 
-    from .plotting import screenshot
-    from .plotting.compare import plot_distance_cloud
-
     a = max(2.5 * float(np.nanmedian(np.abs(dists["before"]))), 0.05)
     ncols = 2 if len(dists) > 2 else len(dists)
     nrows = -(-len(dists) // ncols)
@@ -187,8 +186,6 @@ def _distance_panels(pair, dists, path: Path) -> Path:
 
 # --------------------------------------------------------------------------- (c) comparison
 def _comparison_step(out: Path, quick: bool, shared: dict) -> list[Path]:
-    from .plotting import compare as PC
-
     if not shared:
         print("No registration results to compare.")
         return []

@@ -14,6 +14,8 @@ import numpy as np
 
 from ._checks import as_rng
 from .adjustment import gauss_helmert_model
+from .plotting.ransac import plot_adaptive_trace, plot_section
+from .plotting.sphere import plot_confidence_ellipsoid
 from .ransac import ransac_sphere
 from .tiles import neighbour_test
 
@@ -96,8 +98,6 @@ def _error_html(result, truth) -> str:
 
 def _explorer_figure(pts, result, truth):
     from matplotlib.figure import Figure
-
-    from .plotting.ransac import plot_adaptive_trace, plot_section
 
     fig = Figure(figsize=(10, 4))
     ax1, ax2 = fig.subplots(1, 2)
@@ -234,8 +234,6 @@ def _cap_html(fit, cap_deg):
 
 def _cap_figure(pts, fit, radius):
     from matplotlib.figure import Figure
-
-    from .plotting.sphere import plot_confidence_ellipsoid
 
     fig = Figure(figsize=(12, 3.6), layout="constrained")
     ax0, *axes = fig.subplots(1, 4)
