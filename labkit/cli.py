@@ -28,7 +28,7 @@ from ._outputs import save_figure, staged_outputs
 from .demo import run_demo
 from .distances import distances_before_after
 from .errors import LabkitError
-from .io import read_cloud, write_cloud
+from .io import LAS_SUFFIXES, read_cloud, write_cloud
 from .plotting.change import plot_change_figure
 from .plotting.compare import plot_distance_map, plot_shift_field, symmetric_limits
 from .progress import from_cli
@@ -37,7 +37,6 @@ from .references import load_references
 from .tiles import MAX_TILES, check_scheduler, neighbour_test, register_tiles
 from .transforms import angles_from_rotation
 
-LAS_SUFFIXES = (".las", ".laz")
 PLOT_POINTS = 150_000  # at most this many points in a top-view figure
 
 

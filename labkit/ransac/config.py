@@ -32,6 +32,8 @@ VERIFY_MAX = 400  # candidates verified per search at most
 
 @dataclass(frozen=True)
 class Config:
+    """The checked arguments of one :func:`~labkit.ransac.ransac_sphere` call (see its parameters)."""
+
     threshold: float
     p: float
     r_min: float
