@@ -15,7 +15,6 @@ _EXPORTS = {
     # errors
     "LabkitError": "labkit.errors",
     "DegenerateGeometryError": "labkit.errors",
-    "ConvergenceError": "labkit.errors",
     "EmptyRegionError": "labkit.errors",
     "CloudFileError": "labkit.errors",
     "precision_tolerance": "labkit._checks",
@@ -25,7 +24,7 @@ _EXPORTS = {
     "write_cloud": "labkit.io",
     # sphere (issues 2, 3)
     "gauss_helmert_model": "labkit.adjustment",
-    "SphereFit": "labkit.adjustment",
+    "SphereFit": "labkit.sphere_fit",
     "ransac_sphere": "labkit.ransac",
     # local geometry (issue 4)
     "local_pca": "labkit.features",
@@ -72,8 +71,8 @@ _EXPORTS = {
 
 #: Sub-modules reachable as attributes (``labkit.registration.icp``) without an explicit import.
 _SUBMODULES = {
-    "adjustment", "change", "compare", "distances", "errors", "features", "io", "plotting", "ransac",
-    "references", "regions", "registration", "sphere", "synthetic", "tiles", "transforms", "widgets",
+    "adjustment", "change", "compare", "distances", "errors", "features", "io", "masks", "plotting", "ransac",
+    "references", "regions", "registration", "sphere", "sphere_fit", "synthetic", "tiles", "transforms", "widgets",
 }
 
 __all__ = sorted(_EXPORTS) + ["__version__"]
@@ -84,6 +83,8 @@ def __getattr__(name: str):
         value = importlib.import_module(f"labkit.{name}")
         globals()[name] = value
         return value
+    if name == "ConvergenceError":  # deprecated: warns on every access, so it is not cached
+        return importlib.import_module("labkit.errors")._deprecated_convergence_error()
     module = _EXPORTS.get(name)
     if module is None:
         raise AttributeError(f"module 'labkit' has no attribute {name!r}")

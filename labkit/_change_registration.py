@@ -13,7 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ._atomic import atomic_write_text
 from .errors import LabkitError
+from .transforms import apply_transform
 
 REGISTRATION_FORMAT = "labkit-registration"
 
@@ -79,8 +81,6 @@ class RegistrationCovariance:
 
     def apply(self, points) -> np.ndarray:
         """Map compared points into the reference frame."""
-        from .transforms import apply_transform
-
         return apply_transform(self.matrix, points)
 
 
@@ -91,8 +91,6 @@ def save_registration(result, path) -> Path:
     ``covariance`` (p x p, m^2 and rad^2; ``null`` for an undetermined (infinite) entry) and
     ``origin`` (the point the angles rotate about). :func:`load_registration` reads it back.
     """
-    from ._atomic import atomic_write_text
-
     cov = np.asarray(result.covariance, dtype=np.float64)
     doc = {"format": REGISTRATION_FORMAT, "version": 1,
            "matrix": np.asarray(result.matrix).tolist(), "parameter_names": list(result.parameter_names),

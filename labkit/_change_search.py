@@ -22,6 +22,8 @@ import itertools
 import numpy as np
 from scipy.spatial import cKDTree
 
+from . import _change_grid as grid_kernels
+from ._change_grid import VoxelGrid, ball_covariances
 from ._eigh3 import HAVE_NUMBA, eigh3
 
 CORE_CHUNK = 20_000  # core points per search batch (bounds the flattened neighbour arrays)
@@ -54,8 +56,6 @@ def pca_normals(local: np.ndarray, cores: np.ndarray, radius: float, *, compiled
     """
     if not compiled:
         return _tree_pca_normals(cKDTree(local), local, cores, radius)
-    from ._change_grid import VoxelGrid, ball_covariances
-
     counts, C = ball_covariances(VoxelGrid(local, radius), cores, radius)
     return _normals_from_covariances(counts, C)
 
@@ -70,8 +70,6 @@ def cylinder_stats(local: np.ndarray, cores: np.ndarray, normals: np.ndarray, ra
     """
     if not compiled:
         return _tree_cylinder_stats(cKDTree(local), local, cores, normals, radius, depth, progress)
-    from . import _change_grid as grid_kernels
-
     grid = grid_kernels.VoxelGrid(local, min(radius, depth))
     out = [np.zeros(len(cores), dtype=np.int64), np.full(len(cores), np.nan), np.full(len(cores), np.nan)]
     step = CORE_CHUNK * 10

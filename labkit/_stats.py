@@ -17,6 +17,9 @@ from scipy import stats
 from ._checks import choice, probability
 from ._report import ReportMixin, fmt
 
+#: sigma of a normal distribution per median absolute deviation: 1 / Phi^-1(3/4) (the robust scale 1.4826 MAD)
+MAD_TO_SIGMA = 1.4826
+
 
 @dataclass(frozen=True, eq=False, repr=False)
 class GlobalTest(ReportMixin):

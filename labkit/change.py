@@ -61,6 +61,7 @@ from ._change_registration import (RegistrationCovariance, load_registration, re
 from ._checks import as_points, choice, positive, probability
 from ._frame import local_origin, reduce
 from ._report import ReportMixin, fmt
+from .cloud import PointCloud
 from .errors import LabkitError
 from .progress import progress_steps
 
@@ -131,8 +132,6 @@ class M3C2Result(ReportMixin):
 
     def to_cloud(self):
         """The core points as a :class:`labkit.PointCloud` with ``m3c2_*`` attributes (for LAS/CSV)."""
-        from .cloud import PointCloud
-
         attrs = {"m3c2_distance": self.distance, "m3c2_lod": self.lod,
                  "m3c2_significant": self.significant.astype(np.uint8),
                  "m3c2_spread1": self.spread1, "m3c2_spread2": self.spread2,

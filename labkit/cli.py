@@ -15,36 +15,40 @@ the command created are removed, so a failure leaves nothing new behind.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
-import shutil
 import sys
-import tempfile
 import warnings
 from pathlib import Path
 
 import numpy as np
 
-from ._atomic import temporary_path
+from . import __version__, compare
 from ._checks import count, finite, non_negative, positive, probability
+from ._outputs import save_figure, staged_outputs
+from ._treecache import forget as forget_tree
+from .demo import run_demo
+from .distances import distances_before_after
 from .errors import LabkitError
+from .io import LAS_SUFFIXES, read_cloud, write_cloud
+from .plotting.change import plot_change_figure
+from .plotting.compare import plot_distance_map, plot_shift_field, symmetric_limits
+from .progress import from_cli
+from .ransac import ransac_sphere
+from .references import load_references
+from .tiles import MAX_TILES, check_scheduler, neighbour_test, register_tiles
+from .transforms import angles_from_rotation
 
-LAS_SUFFIXES = (".las", ".laz")
 PLOT_POINTS = 150_000  # at most this many points in a top-view figure
 
 
 # --------------------------------------------------------------------------- sub-commands
 def _cmd_demo(args) -> int:
-    from .demo import run_demo
-
     run_demo(Path(args.out), quick=args.quick)
     return 0
 
 
 def _cmd_sphere(args) -> int:
-    from .ransac import ransac_sphere
-
-    xyz = _read_sphere_cloud(args.file)  # (a missing or corrupt file is reported first)
+    xyz = read_cloud(args.file).xyz  # (a missing or corrupt file is reported first)
     print(f"{args.file}: {len(xyz)} points")
     station, why = _sphere_station(xyz, args.station, args.no_station)
     print(f"station: {why}")
@@ -66,70 +70,6 @@ def _cmd_sphere(args) -> int:
     return 0
 
 
-def _read_sphere_cloud(path):
-    """Coordinates of a cloud file; ``.ply`` through a small local reader where read_cloud lacks it."""
-    from .io import read_cloud
-
-    try:
-        return read_cloud(path).xyz
-    except LabkitError:
-        if Path(path).suffix.lower() != ".ply" or not Path(path).is_file():
-            raise
-    return _read_ply_xyz(Path(path))
-
-
-_PLY_TYPES = {"char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2", "int": "i4", "uint": "u4",
-              "float": "f4", "double": "f8", "int8": "i1", "uint8": "u1", "int16": "i2", "uint16": "u2",
-              "int32": "i4", "uint32": "u4", "float32": "f4", "float64": "f8"}
-
-
-def _read_ply_xyz(path):
-    """x, y, z of the vertex element of an ASCII or binary PLY file (fallback reader, no list properties)."""
-    with open(path, "rb") as fh:
-        raw = fh.read()
-    end = raw.find(b"end_header")
-    if not raw.startswith(b"ply") or end < 0:
-        raise LabkitError(f"{path}: not a PLY file (no 'ply' magic or no end_header)")
-    header = raw[:end].decode("ascii", "replace").splitlines()
-    body = raw[raw.index(b"\n", end) + 1:]
-    fmt_, n, props, in_vertex, before = None, 0, [], False, 0
-    for line in header:
-        words = line.split()
-        if not words:
-            continue
-        if words[0] == "format":
-            fmt_ = words[1]
-        elif words[0] == "element":
-            in_vertex = words[1] == "vertex"
-            if in_vertex:
-                n = int(words[2])
-            elif not props:
-                before += 1
-        elif words[0] == "property" and in_vertex:
-            if words[1] == "list" or words[1] not in _PLY_TYPES:
-                raise LabkitError(f"{path}: vertex property {' '.join(words[1:])!r} is not supported")
-            props.append((words[2], _PLY_TYPES[words[1]]))
-    names = [p[0] for p in props]
-    if before or not {"x", "y", "z"} <= set(names):
-        raise LabkitError(f"{path}: the PLY file needs a first element 'vertex' with x, y, z")
-    if fmt_ == "ascii":
-        table = np.loadtxt(body.decode("ascii").splitlines()[:n], ndmin=2)
-        cols = [table[:, names.index(k)] for k in "xyz"]
-    elif fmt_ in ("binary_little_endian", "binary_big_endian"):
-        order = "<" if fmt_ == "binary_little_endian" else ">"
-        dtype = np.dtype([(k, order + t) for k, t in props])
-        if len(body) < n * dtype.itemsize:
-            raise LabkitError(f"{path}: the PLY file is truncated ({n} vertices announced)")
-        rec = np.frombuffer(body, dtype=dtype, count=n)
-        cols = [rec[k] for k in "xyz"]
-    else:
-        raise LabkitError(f"{path}: unknown PLY format {fmt_!r}")
-    xyz = np.column_stack(cols).astype(np.float64)
-    if not np.isfinite(xyz).all():
-        raise LabkitError(f"{path}: NaN or infinite coordinates")
-    return xyz
-
-
 def _sphere_station(xyz, given, off):
     """The scanner position for the visibility checks, and a line saying which and why.
 
@@ -148,19 +88,14 @@ def _sphere_station(xyz, given, off):
 
 
 def _cmd_register(args) -> int:
-    from ._treecache import forget as forget_tree
-    from .compare import standard_methods
-    from .distances import distances_before_after
-    from .io import read_cloud, write_cloud
-    from .progress import from_cli
 
     _check_dof([args.method], args.dof)
     progress = from_cli(args.quiet, args.progress)  # on stderr: reading, ICP iterations, distances, writing
     source = read_cloud(args.source, progress=progress)
     target = read_cloud(args.target, progress=progress)
     print(f"source {args.source}: {len(source)} points; target {args.target}: {len(target)} points")
-    method = standard_methods([args.method], dof=args.dof, extent=args.extent, max_points=args.max_points,
-                              rng=args.seed, reach=args.reach)[args.method]
+    method = compare.standard_methods([args.method], dof=args.dof, extent=args.extent, max_points=args.max_points,
+                                      rng=args.seed, reach=args.reach)[args.method]
     result = method(source, target, progress=progress)
     print()
     print(result.summary())
@@ -186,19 +121,17 @@ def _cmd_register(args) -> int:
 
 
 def _cmd_compare(args) -> int:
-    from .compare import compare_methods, load_pairs, standard_methods
-    from .references import load_references
 
     _check_dof(args.methods, args.dof)
-    pairs = load_pairs(args.pairs)
+    pairs = compare.load_pairs(args.pairs)
     refs = load_references(args.references) if args.references else {}
     missing = [f"{r} ({c})" for (r, c), pair in pairs.items() if (r, c) not in refs and pair.truth is None]
     if missing:
         raise LabkitError(f"no reference for {', '.join(missing)}: pass --references REF.json with an entry "
                           "(region, case) for every pair, or give the pair a 'truth' in the pair file")
-    methods = standard_methods(args.methods, dof=args.dof, extent=args.extent, max_points=args.max_points,
+    methods = compare.standard_methods(args.methods, dof=args.dof, extent=args.extent, max_points=args.max_points,
                                rng=args.seed)
-    table = compare_methods(pairs, methods, references=refs, alpha=args.alpha)
+    table = compare.compare_methods(pairs, methods, references=refs, alpha=args.alpha)
     print(table.summary())
     print()
     print(table.text())
@@ -211,13 +144,9 @@ def _cmd_compare(args) -> int:
 
 
 def _cmd_tiles(args) -> int:
-    from .compare import standard_methods
-    from .plotting.compare import plot_shift_field
-    from .progress import from_cli
-    from .tiles import MAX_TILES, neighbour_test, register_tiles
 
     _check_dof([args.method], args.dof)
-    method = standard_methods([args.method], dof=args.dof, extent=args.extent, max_points=args.max_points,
+    method = compare.standard_methods([args.method], dof=args.dof, extent=args.extent, max_points=args.max_points,
                               rng=args.seed)[args.method]
     scheduler = args.scheduler or default_scheduler()
     results = Path(args.results) if args.results else Path(args.out) / "tiles"
@@ -243,15 +172,20 @@ def _cmd_tiles(args) -> int:
 
 
 def default_scheduler() -> str:
-    """``labkit tiles`` runs on a LocalCluster when dask.distributed is installed, else on threads."""
+    """``labkit tiles`` runs on a LocalCluster when dask.distributed is installed, else on threads.
+
+    Examples
+    --------
+    >>> from labkit.cli import default_scheduler
+    >>> default_scheduler() in ("cluster", "threads")
+    True
+    """
     import importlib.util
 
     return "cluster" if importlib.util.find_spec("distributed") is not None else "threads"
 
 
 def _scheduler_option(text: str) -> str:
-    from .tiles import check_scheduler
-
     try:
         return check_scheduler(text)
     except LabkitError:
@@ -261,10 +195,7 @@ def _scheduler_option(text: str) -> str:
 
 def _cmd_change(args) -> int:
     """M3C2 change REFERENCE -> COMPARED with a LoD carrying the registration's covariance (issue 15)."""
-    from .change import load_registration, m3c2
-    from .compare import standard_methods
-    from .io import read_cloud, write_cloud
-    from .plotting.change import plot_change_figure
+    from .change import load_registration, m3c2  # (numba, about 0.5 s: loaded when needed)
 
     ref, cmp_ = read_cloud(args.reference), read_cloud(args.compared)
     print(f"reference {args.reference}: {len(ref)} points; compared {args.compared}: {len(cmp_)} points")
@@ -273,7 +204,7 @@ def _cmd_change(args) -> int:
         registration = load_registration(args.registration)
         print(f"registration {args.registration}: {', '.join(registration.parameter_names)} with covariance")
     elif args.register:
-        method = standard_methods([args.register], dof=args.dof, extent=args.extent, max_points=args.max_points,
+        method = compare.standard_methods([args.register], dof=args.dof, extent=args.extent, max_points=args.max_points,
                                   rng=args.seed)[args.register]
         registration = method(cmp_, ref)
         print()
@@ -315,8 +246,6 @@ def _check_dof(methods, dof: str) -> None:
 # --------------------------------------------------------------------------- text and figures
 def _rotation_text(result) -> str:
     """The 4x4 matrix and, for a rigid result, the angles with standard deviations (arcsec)."""
-    from .transforms import angles_from_rotation
-
     lines = ["4x4 transformation (source -> target, caller's frame):",
              np.array2string(result.matrix, precision=6, suppress_small=True, max_line_width=120)]
     names = tuple(result.parameter_names)
@@ -350,8 +279,6 @@ def _distance_figure(source, change, title, seed):
     """Top views of the source coloured by its point-to-plane distance, before and after (same colour scale)."""
     import matplotlib.pyplot as plt
 
-    from .plotting.compare import plot_distance_map, symmetric_limits
-
     n = len(source)
     sel = np.sort(np.random.default_rng(seed).choice(n, PLOT_POINTS, replace=False)) if n > PLOT_POINTS else slice(None)
     # colour scale: a few times the typical misfit before, so that the shift shows and changes saturate
@@ -364,124 +291,6 @@ def _distance_figure(source, change, title, seed):
         ax.set_title(f"{label}: median |d| {1000 * s['median_abs']:.1f} mm")
     fig.suptitle(title)
     return fig
-
-
-def save_figure(fig, path) -> Path:
-    """Save a matplotlib figure as PNG (to ``path``, which should be a staged path) and close it."""
-    import matplotlib.pyplot as plt
-
-    try:
-        fig.savefig(path, format="png", dpi=110)
-    finally:
-        plt.close(fig)
-    return Path(path)
-
-
-def save_render(plotter, path) -> Path:
-    """Render a pyvista plotter off screen into a PNG and close it."""
-    try:
-        plotter.screenshot(str(path))
-    finally:
-        plotter.close()
-    return Path(path)
-
-
-class _Stage:
-    """Hands out temporary paths next to their destinations; :meth:`commit` moves them all into place.
-
-    The commit is all or nothing: a destination that exists is first set aside;
-    if any move fails, the files already moved are removed, the set-aside files
-    restored, and folders the stage created are deleted again.
-    """
-
-    def __init__(self, folder: Path):
-        self.folder = Path(folder)
-        self.pending: list[tuple[Path, Path]] = []
-        self.written: list[Path] = []
-        self.created: list[Path] = []  # folders made for the outputs, deepest last
-
-    def __call__(self, name: str) -> Path:
-        self._make_folder()
-        final = self.folder / name
-        if final.is_dir():
-            raise LabkitError(f"cannot write {final}: a folder of that name exists")
-        tmp = temporary_path(final)
-        self.pending.append((tmp, final))
-        return tmp
-
-    def _make_folder(self) -> None:
-        if self.folder.exists() and not self.folder.is_dir():
-            raise LabkitError(f"cannot write into {self.folder}: it is a file, not a folder")
-        missing = [p for p in (self.folder, *self.folder.parents) if not p.exists()]
-        for folder in reversed(missing):
-            folder.mkdir()
-            self.created.append(folder)
-
-    def commit(self) -> None:
-        moved: list[tuple[Path, Path | None]] = []  # (final, set-aside old file or None)
-        try:
-            for tmp, final in self.pending:
-                old = None
-                if final.exists() or final.is_symlink():
-                    old = temporary_path(final, ".old")
-                    os.replace(final, old)
-                moved.append((final, old))
-                os.replace(tmp, final)
-        except BaseException:
-            for final, old in reversed(moved):  # roll back: new files out, old files back
-                with contextlib.suppress(OSError):
-                    if old is not None:
-                        os.replace(old, final)
-                    else:
-                        final.unlink(missing_ok=True)
-            raise
-        for final, old in moved:
-            if old is not None:
-                with contextlib.suppress(OSError):
-                    old.unlink()
-            self.written.append(final)
-        self.pending = []
-
-    def discard(self) -> None:
-        for tmp, _ in self.pending:
-            with contextlib.suppress(FileNotFoundError):
-                tmp.unlink()
-        self.pending = []
-        for folder in reversed(self.created):
-            with contextlib.suppress(OSError):  # only empty folders go
-                folder.rmdir()
-        self.created = []
-
-
-@contextlib.contextmanager
-def staged_folder(folder):
-    """``with staged_folder(dir) as work: ...``: files written into the empty folder ``work`` move into
-    ``dir`` together when the block succeeds (all or nothing, as :func:`staged_outputs`)."""
-    stage = _Stage(Path(folder))
-    stage._make_folder()
-    work = Path(tempfile.mkdtemp(dir=stage.folder, prefix=".staging-"))
-    try:
-        yield work
-        stage.pending = [(f, stage.folder / f.name) for f in sorted(work.iterdir()) if f.is_file()]
-        stage.commit()
-    except BaseException:
-        stage.pending = []
-        shutil.rmtree(work, ignore_errors=True)
-        stage.discard()
-        raise
-    shutil.rmtree(work, ignore_errors=True)
-
-
-@contextlib.contextmanager
-def staged_outputs(folder):
-    """``with staged_outputs(dir) as stage: write(stage("a.laz")) ...``: all files appear together or none."""
-    stage = _Stage(Path(folder))
-    try:
-        yield stage
-        stage.commit()
-    except BaseException:
-        stage.discard()
-        raise
 
 
 # --------------------------------------------------------------------------- parser
@@ -527,8 +336,15 @@ def _add_method_options(p) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .compare import METHODS
+    """The argument parser of ``labkit``: one sub-command per job, each checking its numbers with labkit's validators.
 
+    Examples
+    --------
+    >>> from labkit.cli import build_parser
+    >>> args = build_parser().parse_args(["sphere", "scan.laz", "--radius-range", "0.1", "0.2"])
+    >>> args.command, args.file, args.radius_range
+    ('sphere', 'scan.laz', [0.1, 0.2])
+    """
     parser = _Parser(
         prog="labkit", description="labkit: robust adjustment of 3D point clouds for engineering geodesy.",
         epilog="Run 'labkit COMMAND --help' for the options of a command; 'labkit demo' needs no input files.")
@@ -567,7 +383,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      "a distance-coloured PNG.")
     reg.add_argument("source", help="point cloud to move (e.g. the later epoch)")
     reg.add_argument("target", help="reference point cloud")
-    reg.add_argument("--method", choices=METHODS, default="icp",
+    reg.add_argument("--method", choices=compare.METHODS, default="icp",
                      help="registration method; icp is point to plane (converges from shifts within its "
                           "matching distance), consensus a translation by maximum consensus searched globally "
                           "within +-EXTENT, consensus+icp that search followed by ICP: the route for large "
@@ -588,8 +404,8 @@ def build_parser() -> argparse.ArgumentParser:
                           description="Run registration methods on the epoch pairs of a JSON file and compare "
                                       "them with reference transformations.")
     cmp_.add_argument("pairs", help="JSON list of epoch pairs (see labkit.compare.load_pairs)")
-    cmp_.add_argument("--methods", nargs="+", choices=METHODS, default=["icp", "icp-tukey", "consensus"],
-                      metavar="METHOD", help=f"methods among {', '.join(METHODS)} (default: %(default)s)")
+    cmp_.add_argument("--methods", nargs="+", choices=compare.METHODS, default=["icp", "icp-tukey", "consensus"],
+                      metavar="METHOD", help=f"methods among {', '.join(compare.METHODS)} (default: %(default)s)")
     cmp_.add_argument("--references", help="JSON reference file (see labkit.references.load_references)")
     cmp_.add_argument("--alpha", type=_probability, default=0.05, help="test level (default: %(default)s)")
     _add_method_options(cmp_)
@@ -609,7 +425,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="refuse grids of more tiles (default: labkit.tiles.MAX_TILES)")
     tiles.add_argument("--min-points", type=_count, default=200,
                        help="fewer points: tile skipped (default: %(default)s)")
-    tiles.add_argument("--method", choices=METHODS, default="icp", help="registration per tile (default: %(default)s)")
+    tiles.add_argument("--method", choices=compare.METHODS, default="icp", help="registration per tile (default: %(default)s)")
     tiles.add_argument("--alpha", type=_probability, default=0.05, help="test level (default: %(default)s)")
     tiles.add_argument("--extra-std", type=_non_negative_float, default=0.0,
                        help="extra std per tile in m for the neighbour test")
@@ -643,8 +459,8 @@ def build_parser() -> argparse.ArgumentParser:
     how.add_argument("--registration", metavar="RESULT.json",
                      help="registration of COMPARED onto REFERENCE as JSON (labkit.change.save_registration, or "
                           "{'matrix': 4x4, 'covariance': 3x3}); applied, its covariance enters the LoD")
-    how.add_argument("--register", choices=METHODS, metavar="METHOD",
-                     help=f"register COMPARED onto REFERENCE first ({', '.join(METHODS)}) and use its covariance")
+    how.add_argument("--register", choices=compare.METHODS, metavar="METHOD",
+                     help=f"register COMPARED onto REFERENCE first ({', '.join(compare.METHODS)}) and use its covariance")
     change.add_argument("--normal-radius", type=_positive_float, nargs="+", required=True,
                         help="PCA radius for the normals; several: the most planar per core point")
     change.add_argument("--cylinder-radius", type=_positive_float, required=True, help="cylinder radius")
@@ -665,8 +481,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _version() -> str:
-    from . import __version__
-
     return f"labkit {__version__}"
 
 
@@ -675,6 +489,16 @@ def _one_line(text) -> str:
 
 
 def main(argv=None) -> int:
+    """Run ``labkit`` with the arguments ``argv`` (default: the command line); return the exit status.
+
+    0: done; 1: ``labkit sphere`` found no sphere; 2: bad input (one line on stderr); 3: an internal error.
+
+    Examples
+    --------
+    >>> from labkit.cli import main
+    >>> main(["sphere", "no-such-file.laz", "--radius", "0.1"])
+    2
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

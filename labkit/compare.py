@@ -23,14 +23,17 @@ import numpy as np
 from scipy import stats
 
 from ._atomic import atomic_write_text
-from ._checks import as_points, probability
+from ._checks import as_points, as_rng, choice, probability
 from ._report import ReportMixin
 from ._stats import chi2_test
 from .distances import (  # noqa: F401  (re-exported)
     DistanceChange, as_matrix, check_overlap, cloud_to_cloud, distances_before_after, point_to_plane_distance,
 )
 from .errors import LabkitError
-from .transforms import check_transform
+from .io import read_cloud
+from .masks import STABLE_CLASSES
+from .synthetic import REGIONS, als_epochs
+from .transforms import check_transform, skew
 from .references import (  # noqa: F401  (re-exported)
     Reference, average_references, load_references, manual_reference, reference_from_pairs,
     reference_from_targets, save_references, truth_reference,
@@ -233,10 +236,14 @@ def synthetic_cases(regions=None, cases=CASES, *, size=(60.0, 60.0), density=10.
     or planted); ``"als-dim"``: ALS against dense image matching on the stable
     regions. ``regions`` restricts the regions (default: all of
     :data:`labkit.synthetic.REGIONS`).
-    """
-    from ._checks import as_rng, choice
-    from .synthetic import REGIONS, als_epochs
 
+    Examples
+    --------
+    >>> from labkit.compare import synthetic_cases
+    >>> pairs = synthetic_cases(regions=["xyz"], cases=("als-als",), size=(20.0, 20.0), density=2.0, rng=0)
+    >>> list(pairs)
+    [('xyz', 'als-als')]
+    """
     regions = REGIONS if regions is None else tuple(choice(r, REGIONS, "region") for r in regions)
     gen = as_rng(rng)
     out = {}
@@ -255,7 +262,6 @@ def synthetic_cases(regions=None, cases=CASES, *, size=(60.0, 60.0), density=10.
 
 
 METHODS = ("icp", "icp-point", "icp-huber", "icp-tukey", "icp-classes", "consensus", "consensus+icp")
-STABLE_CLASSES = (2, 6, 11)  # ASPRS ground, building, road surface: what ``icp-classes`` matches on
 
 
 def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "translation", extent: float = 1.0,
@@ -272,9 +278,14 @@ def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "tra
     route for shifts larger than ICP's matching distance). ``reach`` (m, optional) is passed to the ICP
     methods: a reach beyond the matching distance runs ICP's coarse-to-fine pyramid first.
     The callables are picklable (for Dask workers in other processes).
-    """
-    from ._checks import choice
 
+    Examples
+    --------
+    >>> from labkit.compare import standard_methods
+    >>> methods = standard_methods(("icp", "consensus"), dof="translation")
+    >>> sorted(methods), callable(methods["icp"])
+    (['consensus', 'icp'], True)
+    """
     choice(dof, ("translation", "rigid"), "dof")
     out = {}
     for name in names:
@@ -285,7 +296,7 @@ def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "tra
 
 
 def _standard(source, target, *, name, dof, extent, max_points, rng, progress=False, reach=None):
-    from .registration import icp, max_consensus
+    from .registration import icp, max_consensus  # (numba: loaded when a registration runs)
 
     if name.startswith("icp"):
         kind = name.partition("-")[2]
@@ -322,10 +333,26 @@ def load_pairs(path) -> dict:
     source -> target (a known transformation, e.g. of synthetic data; used as the
     reference when no other is given). Relative file names are taken relative to
     the JSON file.
+
+    Examples
+    --------
+    >>> import json, tempfile
+    >>> from pathlib import Path
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.compare import load_pairs
+    >>> from labkit.io import write_cloud
+    >>> folder = Path(tempfile.mkdtemp())
+    >>> for name in ("e1.laz", "e2.laz"):
+    ...     _ = write_cloud(PointCloud(np.random.default_rng(0).uniform(0, 10, (50, 3))), folder / name)
+    >>> _ = (folder / "pairs.json").write_text(json.dumps(
+    ...     [{"region": "tile", "case": "epochs", "source": "e2.laz", "target": "e1.laz"}]))
+    >>> pairs = load_pairs(folder / "pairs.json")
+    >>> pair = pairs[("tile", "epochs")]
+    >>> list(pairs), len(pair.source), len(pair.target)
+    ([('tile', 'epochs')], 50, 50)
     """
     import json
-
-    from .io import read_cloud
 
     path = Path(path)
     if not path.is_file():
@@ -375,6 +402,17 @@ def compare_methods(pairs, methods, *, references=None, alpha: float = 0.05) -> 
     ComparisonTable
         One row per method and pair. A method that raises a labkit error gets
         a row with NaN numbers and the error in ``message``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.compare import compare_methods, standard_methods, synthetic_cases
+    >>> pairs = synthetic_cases(regions=["xyz"], cases=("als-als",), size=(30.0, 30.0), density=4.0, rng=0)
+    >>> table = compare_methods(pairs, standard_methods(["icp"], max_points=2000))
+    >>> len(table.rows), table.rows[0].method
+    (1, 'icp')
+    >>> bool(np.linalg.norm(table.rows[0].error[:3]) < 0.02)
+    True
     """
     alpha = probability(alpha, "alpha")
     if not isinstance(methods, Mapping) or not methods:
@@ -454,19 +492,40 @@ def _row(name, region, case, pair, ref, result, runtime, error, alpha) -> Compar
 
 
 def shift_at(T, c) -> np.ndarray:
-    """Shift of the point c under T: R c + t - c (eq. 5)."""
+    """Shift of the point c under T: R c + t - c (eq. 5).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.compare import shift_at
+    >>> from labkit.transforms import make_transform, rotation_from_angles
+    >>> T = make_transform(rotation_from_angles(0, 0, 0.001), [0.1, 0.0, 0.0])
+    >>> shift_at(T, np.zeros(3)).round(6).tolist(), shift_at(T, np.array([100.0, 0, 0])).round(6).tolist()
+    ([0.1, 0.0, 0.0], [0.09995, 0.1, 0.0])
+    """
     return T[:3, :3] @ c + T[:3, 3] - c
 
 
 def shift_covariance(result, c) -> np.ndarray:
-    """Covariance of the shift at c by propagating the parameter covariance: J Sigma J^T."""
+    """Covariance of the shift at c by propagating the parameter covariance: J Sigma J^T.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from types import SimpleNamespace
+    >>> from labkit.compare import shift_covariance
+    >>> result = SimpleNamespace(parameter_names=("tx", "ty", "tz", "rz"), origin=np.zeros(3),
+    ...                      covariance=np.diag([1e-6, 1e-6, 1e-6, 1e-8]))
+    >>> np.sqrt(np.diag(shift_covariance(result, np.array([100.0, 0, 0])))).round(5).tolist()
+    [0.001, 0.01005, 0.001]
+    """
     names = tuple(getattr(result, "parameter_names", ("tx", "ty", "tz")))
     Sigma = np.asarray(getattr(result, "covariance", np.full((3, 3), np.nan)), dtype=float)
     if Sigma.shape != (len(names), len(names)):
         return np.full((3, 3), np.nan)
     arm = c - np.asarray(getattr(result, "origin", np.zeros(3)), dtype=float)
     # d(shift)/d(angle): a small rotation dtheta moves c by dtheta x arm = -[arm]x dtheta
-    dtheta = -np.array([[0, -arm[2], arm[1]], [arm[2], 0, -arm[0]], [-arm[1], arm[0], 0]])
+    dtheta = -skew(arm)
     cols = {"tx": np.eye(3)[:, 0], "ty": np.eye(3)[:, 1], "tz": np.eye(3)[:, 2],
             "rx": dtheta[:, 0], "ry": dtheta[:, 1], "rz": dtheta[:, 2]}
     J = np.column_stack([cols.get(n, np.zeros(3)) for n in names])

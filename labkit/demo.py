@@ -15,6 +15,20 @@ from pathlib import Path
 
 import numpy as np
 
+from ._outputs import save_figure, save_render, staged_folder, staged_outputs
+from .adjustment import gauss_helmert_model
+from .compare import compare_methods, standard_methods, synthetic_cases
+from .distances import point_to_plane_distance
+from .errors import LabkitError
+from .notebook import setup_headless
+from .plotting import compare as PC
+from .plotting import ransac as PR
+from .plotting import screenshot
+from .plotting import sphere as PS
+from .plotting.compare import plot_distance_cloud
+from .ransac import ransac_sphere
+from .synthetic import sphere_on_tripod
+
 SEED = 2026
 # (region, case): a stable village, a village with a demolished building, halls seen by image matching
 REGIONS = (("xyz", "als-als"), ("demolished", "changes"), ("xz", "als-dim"))
@@ -36,10 +50,14 @@ def run_demo(out_dir: Path, quick: bool = False) -> list[Path]:
 
     The figures are written into a staging folder and moved into ``out_dir``
     together at the end: a step that fails leaves nothing new behind.
-    """
-    from .cli import staged_folder
-    from .notebook import setup_headless
 
+    Examples
+    --------
+    The whole demo takes a minute (``tests/test_demo.py`` runs it), so it is not run here:
+
+    >>> from labkit.demo import run_demo
+    >>> files = run_demo("labkit-demo", quick=True)  # doctest: +SKIP
+    """
     setup_headless()
     out_dir = Path(out_dir)
     names: list[str] = []
@@ -59,12 +77,6 @@ def run_demo(out_dir: Path, quick: bool = False) -> list[Path]:
 
 # --------------------------------------------------------------------------- (a) sphere
 def _sphere_step(out: Path, quick: bool) -> list[Path]:
-    from .adjustment import gauss_helmert_model
-    from .plotting import ransac as PR
-    from .plotting import sphere as PS
-    from .ransac import ransac_sphere
-    from .synthetic import sphere_on_tripod
-
     # A TLS scan in UTM-sized coordinates with 1 mm noise per coordinate
     scene = sphere_on_tripod(n_sphere=600 if quick else 2000, noise=0.001, utm=True, rng=SEED)
     print(f"Scene: {scene.n} points, {scene.outlier_ratio:.0%} of them not on the sphere "
@@ -102,9 +114,7 @@ def _sphere_step(out: Path, quick: bool) -> list[Path]:
 
 # --------------------------------------------------------------------------- (b) registration
 def _registration_step(out: Path, quick: bool, shared: dict) -> list[Path]:
-    from .compare import standard_methods, synthetic_cases
-    from .errors import LabkitError
-    from .features import normals
+    from .features import normals  # (numba: loaded when needed)
 
     size, density = ((30.0, 30.0), 4.0) if quick else ((60.0, 60.0), 8.0)
     pairs = {}
@@ -138,8 +148,6 @@ def _registration_step(out: Path, quick: bool, shared: dict) -> list[Path]:
 
 
 def _distances(pair, result, nrm) -> np.ndarray:
-    from .distances import point_to_plane_distance
-
     return point_to_plane_distance(pair.source, pair.target, nrm, transform=None if result is None else result)
 
 
@@ -157,9 +165,6 @@ def _result_line(name, res, truth, before, after) -> str:
 def _distance_panels(pair, dists, path: Path) -> Path:
     """The source coloured by its point-to-plane distance: before and after each method (pyvista renders)."""
     import matplotlib.pyplot as plt
-
-    from .plotting import screenshot
-    from .plotting.compare import plot_distance_cloud
 
     a = max(2.5 * float(np.nanmedian(np.abs(dists["before"]))), 0.05)
     ncols = 2 if len(dists) > 2 else len(dists)
@@ -181,10 +186,6 @@ def _distance_panels(pair, dists, path: Path) -> Path:
 
 # --------------------------------------------------------------------------- (c) comparison
 def _comparison_step(out: Path, quick: bool, shared: dict) -> list[Path]:
-    from .cli import staged_outputs
-    from .compare import compare_methods
-    from .plotting import compare as PC
-
     if not shared:
         print("No registration results to compare.")
         return []
@@ -218,8 +219,6 @@ def _replay(source, target, *, results, name):
 # --------------------------------------------------------------------------- output
 def _save(figure_or_plotter, path: Path) -> Path:
     """Write a matplotlib figure or a pyvista plotter to ``path`` atomically and close it."""
-    from .cli import save_figure, save_render, staged_outputs
-
     save = save_render if hasattr(figure_or_plotter, "screenshot") else save_figure
     with staged_outputs(path.parent) as stage:
         save(figure_or_plotter, stage(path.name))

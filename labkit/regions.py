@@ -9,8 +9,9 @@ an axis-parallel box (optionally bounded in z too), a circle, or a polygon
 (even-odd rule, so a list of rings describes holes). All geometry runs on
 coordinates reduced to a local origin, so 7-digit UTM values lose nothing.
 
-The box, polygon and class masks are shared with :func:`labkit.io.read_cloud`,
-which applies them chunk by chunk while reading a large file.
+The box, polygon and class masks live in :mod:`labkit.masks` (re-exported
+here); :func:`labkit.io.read_cloud` applies them chunk by chunk while reading a
+large file.
 """
 
 from __future__ import annotations
@@ -23,6 +24,9 @@ from ._checks import as_points, as_rng, choice, count, positive
 from ._report import ReportMixin, fmt
 from .cloud import PointCloud
 from .errors import EmptyRegionError, LabkitError
+from .masks import (  # noqa: F401  (ASPRS_NAMES, STABLE_CLASSES and the masks are re-exported)
+    ASPRS_NAMES, STABLE_CLASSES, as_bbox, as_classes, as_rings, box_mask, circle_mask, class_mask, polygon_mask,
+)
 
 #: Most grid cells a density grid may have (a cell typed in mm instead of m would exhaust the memory).
 MAX_CELLS = 50_000_000
@@ -43,123 +47,20 @@ __all__ = [
 
 
 # ----------------------------------------------------------------------------- region checks
-def as_bbox(bbox) -> np.ndarray:
-    """Return a box as a (2, d) array [[min...], [max...]] with d = 2 (xy) or 3 (xyz).
-
-    Accepted: ``(xmin, ymin, xmax, ymax)``, ``(xmin, ymin, zmin, xmax, ymax, zmax)``
-    or a (2, 2) / (2, 3) array such as :attr:`PointCloud.bounds`.
-    """
-    try:
-        arr = np.asarray(bbox, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise LabkitError(f"bbox must be numbers (xmin, ymin, xmax, ymax), got {bbox!r}") from None
-    if arr.shape in ((4,), (6,)):
-        arr = arr.reshape(2, -1)
-    if arr.shape not in ((2, 2), (2, 3)):
-        raise LabkitError(
-            "bbox must be (xmin, ymin, xmax, ymax), (xmin, ymin, zmin, xmax, ymax, zmax) "
-            f"or a (2, 2)/(2, 3) [min, max] array; got shape {np.shape(bbox)}"
-        )
-    if not np.isfinite(arr).all() or (arr[0] > arr[1]).any():
-        raise LabkitError(f"bbox needs finite values with min <= max in every axis, got {arr.ravel().tolist()}")
-    return arr
-
-
-def as_rings(polygon) -> list[np.ndarray]:
-    """Return a polygon as a list of (m, 2) float64 rings (each with m >= 3 vertices).
-
-    ``polygon`` is one ring ((m, 2) or (m, 3) array-like; z is ignored) or a list of
-    rings (outer boundary and holes; the even-odd rule decides what is inside).
-    A closing vertex equal to the first one may be given or omitted.
-    """
-    try:
-        single = np.asarray(polygon, dtype=np.float64)
-        rings = [single] if single.ndim == 2 else None
-    except (TypeError, ValueError):
-        rings = None
-    if rings is None:
-        try:
-            rings = [np.asarray(r, dtype=np.float64) for r in polygon]
-        except (TypeError, ValueError):
-            raise LabkitError("polygon must be an (m, 2) array of vertices or a list of such rings") from None
-    out = []
-    for ring in rings:
-        if ring.ndim != 2 or ring.shape[1] not in (2, 3) or len(ring) < 3:
-            raise LabkitError(f"each polygon ring must be an (m, 2) vertex array with m >= 3, got shape {ring.shape}")
-        if not np.isfinite(ring).all():
-            raise LabkitError("polygon vertices must be finite numbers")
-        out.append(ring[:, :2])
-    return out
-
-
-def as_classes(classes) -> np.ndarray:
-    """Return class codes as a sorted int array (a single int is accepted); codes lie in 0..255 (LAS)."""
-    if isinstance(classes, (str, bytes)):
-        raise LabkitError(f"classes must be one or more integer class codes (ASPRS), got the string {classes!r}")
-    arr = np.unique(np.atleast_1d(np.asarray(classes)))
-    if arr.size == 0 or not np.issubdtype(arr.dtype, np.integer):
-        raise LabkitError(f"classes must be one or more integer class codes (ASPRS), got {classes!r}")
-    if arr.min() < 0 or arr.max() > 255:
-        raise LabkitError(f"class codes lie in 0..255 (LAS classification), got {arr.tolist()}")
-    return arr.astype(np.int64)
-
-
 def as_cloud(cloud, name: str = "cloud") -> PointCloud:
-    """A PointCloud as is; an (n, 3) array-like wrapped into one (checked by ``as_points``)."""
+    """A PointCloud as is; an (n, 3) array-like wrapped into one (checked by ``as_points``).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.regions import as_cloud
+    >>> cloud = as_cloud(np.zeros((5, 3)))
+    >>> type(cloud).__name__, len(cloud), as_cloud(cloud) is cloud
+    ('PointCloud', 5, True)
+    """
     if isinstance(cloud, PointCloud):
         return cloud
     return PointCloud(as_points(cloud, min_points=0, name=name))
-
-
-# ----------------------------------------------------------------------------- masks
-def box_mask(xyz: np.ndarray, box: np.ndarray) -> np.ndarray:
-    """True for points inside the closed box ``box`` (from :func:`as_bbox`)."""
-    d = box.shape[1]
-    return np.all((xyz[:, :d] >= box[0]) & (xyz[:, :d] <= box[1]), axis=1)
-
-
-def circle_mask(xyz: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
-    """True for points whose horizontal distance to ``centre`` (x, y) is at most ``radius``."""
-    dx = xyz[:, 0] - centre[0]
-    dy = xyz[:, 1] - centre[1]
-    return dx * dx + dy * dy <= radius * radius
-
-
-def polygon_mask(xyz: np.ndarray, rings: list[np.ndarray]) -> np.ndarray:
-    """True for points inside the polygon by the even-odd rule (crossing number).
-
-    A horizontal ray from each point towards +x crosses an edge (a, b) when the
-    edge straddles the point's y (half-open: ``(a_y > y) != (b_y > y)``) and the
-    crossing abscissa lies right of the point. The loop runs over edges, the
-    test over all points at once. Coordinates are reduced to the polygon's first
-    vertex so UTM values keep their precision.
-    """
-    origin = rings[0][0]
-    lo = np.min([r.min(axis=0) for r in rings], axis=0)
-    hi = np.max([r.max(axis=0) for r in rings], axis=0)
-    inside = np.zeros(len(xyz), dtype=bool)
-    near = np.flatnonzero(np.all((xyz[:, :2] >= lo) & (xyz[:, :2] <= hi), axis=1))
-    if near.size == 0:
-        return inside
-    px = xyz[near, 0] - origin[0]
-    py = xyz[near, 1] - origin[1]
-    odd = np.zeros(near.size, dtype=bool)
-    for ring in rings:
-        a = ring - origin
-        b = np.roll(a, -1, axis=0)
-        for (ax, ay), (bx, by) in zip(a, b):
-            if ay == by:
-                continue  # horizontal edges never cross a horizontal ray
-            straddle = (ay > py) != (by > py)
-            x_cross = ax + (py - ay) * (bx - ax) / (by - ay)
-            odd ^= straddle & (px < x_cross)
-    inside[near] = odd
-    return inside
-
-
-def class_mask(classification: np.ndarray, classes: np.ndarray) -> np.ndarray:
-    """True for points whose class is one of ``classes``."""
-    return np.isin(classification, classes)
 
 
 # ----------------------------------------------------------------------------- crops
@@ -188,6 +89,16 @@ def crop_box(cloud: PointCloud, bbox) -> PointCloud:
     ------
     EmptyRegionError
         If no point lies inside the box.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.regions import crop_box
+    >>> cloud = PointCloud(np.random.default_rng(0).uniform(0, 10, (1000, 3)))
+    >>> part = crop_box(cloud, (0, 0, 5, 5))
+    >>> bool(np.all(part.xyz[:, :2] <= 5)), len(part) < len(cloud)
+    (True, True)
     """
     box = as_bbox(bbox)
     cloud = as_cloud(cloud)
@@ -195,7 +106,18 @@ def crop_box(cloud: PointCloud, bbox) -> PointCloud:
 
 
 def crop_circle(cloud: PointCloud, centre, radius: float) -> PointCloud:
-    """Points within horizontal distance ``radius`` (m) of ``centre`` = (x, y) (a vertical cylinder)."""
+    """Points within horizontal distance ``radius`` (m) of ``centre`` = (x, y) (a vertical cylinder).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.regions import crop_circle
+    >>> cloud = PointCloud(np.random.default_rng(0).uniform(0, 10, (1000, 3)))
+    >>> part = crop_circle(cloud, (5, 5), 2.0)
+    >>> bool(np.all(np.hypot(part.xyz[:, 0] - 5, part.xyz[:, 1] - 5) <= 2.0))
+    True
+    """
     c = np.asarray(centre, dtype=np.float64).ravel()
     if c.size not in (2, 3) or not np.isfinite(c).all():
         raise LabkitError(f"centre must be (x, y) in the cloud's frame, got {centre!r}")
@@ -209,6 +131,16 @@ def crop_polygon(cloud: PointCloud, polygon) -> PointCloud:
 
     Points exactly on an edge may fall on either side (half-open crossing rule),
     as in every crossing-number implementation.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.regions import crop_polygon
+    >>> cloud = PointCloud(np.random.default_rng(0).uniform(0, 10, (1000, 3)))
+    >>> part = crop_polygon(cloud, [(0, 0), (10, 0), (0, 10)])
+    >>> bool(np.all(part.xyz[:, 0] + part.xyz[:, 1] <= 10))
+    True
     """
     rings = as_rings(polygon)
     cloud = as_cloud(cloud)
@@ -217,7 +149,19 @@ def crop_polygon(cloud: PointCloud, polygon) -> PointCloud:
 
 
 def crop_classes(cloud: PointCloud, classes, *, exclude: bool = False) -> PointCloud:
-    """Points of the given ASPRS classes (or all others with ``exclude=True``)."""
+    """Points of the given ASPRS classes (or all others with ``exclude=True``).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.regions import crop_classes
+    >>> cloud = PointCloud(np.zeros((4, 3)), {"classification": np.array([2, 5, 6, 2], dtype=np.uint8)})
+    >>> crop_classes(cloud, [2, 6])["classification"].tolist()
+    [2, 6, 2]
+    >>> crop_classes(cloud, 2, exclude=True)["classification"].tolist()
+    [5, 6]
+    """
     cloud = as_cloud(cloud)
     if "classification" not in cloud:
         raise LabkitError(f"{_label(cloud)} has no 'classification' attribute to select classes from")
@@ -232,6 +176,15 @@ def thin_random(cloud: PointCloud, fraction: float | None = None, *, n: int | No
     """A random subset without replacement: a ``fraction`` of the points or exactly ``n`` of them.
 
     The kept points stay in their original order.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.regions import thin_random
+    >>> cloud = PointCloud(np.random.default_rng(0).uniform(0, 10, (1000, 3)))
+    >>> len(thin_random(cloud, 0.1, rng=0)), len(thin_random(cloud, n=50, rng=0))
+    (100, 50)
     """
     if (fraction is None) == (n is None):
         raise LabkitError("give exactly one of fraction (0 < f <= 1) or n (number of points to keep)")
@@ -283,6 +236,15 @@ def thin_voxel(cloud: PointCloud, size: float, *, keep: str = "centre") -> Point
     -------
     PointCloud
         The surviving points in their original order.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.regions import thin_voxel
+    >>> cloud = PointCloud(np.random.default_rng(0).uniform(0, 4, (5000, 3)))
+    >>> len(thin_voxel(cloud, 1.0))
+    64
     """
     choice(keep, ("centre", "first"), "keep")
     size = positive(size, "size")
@@ -342,7 +304,18 @@ class DensityGrid(ReportMixin):
 
 
 def density_grid(cloud: PointCloud, cell: float = 1.0) -> DensityGrid:
-    """Count points per horizontal grid cell of edge ``cell`` metres."""
+    """Count points per horizontal grid cell of edge ``cell`` metres.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.regions import density_grid
+    >>> cloud = PointCloud(np.random.default_rng(0).uniform(0, 10, (2000, 3)))
+    >>> grid = density_grid(cloud, cell=2.0)
+    >>> grid.counts.shape, int(grid.counts.sum())
+    ((5, 5), 2000)
+    """
     cell = positive(cell, "cell")
     cloud = as_cloud(cloud)
     if len(cloud) == 0:
@@ -373,6 +346,15 @@ def point_density(cloud: PointCloud, cell: float | None = None) -> float:
     -----
     Counting occupied cells follows the cloud's real footprint (gaps such as
     water or data holes do not dilute the density), unlike ``n / hull area``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.regions import point_density
+    >>> cloud = PointCloud(np.random.default_rng(0).uniform(0, 10, (2000, 3)))
+    >>> round(point_density(cloud, cell=1.0), 1)
+    20.0
     """
     cloud = as_cloud(cloud)
     if len(cloud) < 3:
@@ -414,6 +396,16 @@ def equalize_density(cloud: PointCloud, target, *, cell: float = 1.0, rng=None) 
     -------
     PointCloud
         The kept points in their original order.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.regions import equalize_density, point_density
+    >>> cloud = PointCloud(np.random.default_rng(0).uniform(0, 10, (2000, 3)))
+    >>> even = equalize_density(cloud, 5.0, rng=0)
+    >>> len(even), round(point_density(even, cell=1.0), 1)
+    (500, 5.0)
     """
     density = point_density(target) if isinstance(target, PointCloud) else positive(target, "target density")
     cell = positive(cell, "cell")
@@ -444,6 +436,16 @@ def merge(*clouds: PointCloud, name: str = "") -> PointCloud:
     ------
     LabkitError
         If no cloud is given or the clouds carry different CRS texts.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.regions import merge
+    >>> a, b = PointCloud(np.zeros((3, 3)), name="a"), PointCloud(np.ones((2, 3)), name="b")
+    >>> both = merge(a, b, name="ab")
+    >>> len(both), both.name
+    (5, 'ab')
     """
     if not clouds:
         raise LabkitError("merge needs at least one PointCloud")

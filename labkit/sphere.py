@@ -12,7 +12,15 @@ from .errors import DegenerateGeometryError
 
 
 def sphere_residuals(points, x) -> np.ndarray:
-    """Orthogonal distances d_i = |p_i - c| - r of eq. (25), shape (n,)."""
+    """Orthogonal distances d_i = |p_i - c| - r of eq. (25), shape (n,).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.sphere import sphere_residuals
+    >>> sphere_residuals(np.array([[2.0, 0, 0], [0, 0.5, 0], [0, 0, -1.0]]), [0, 0, 0, 1.0]).tolist()
+    [1.0, -0.5, 0.0]
+    """
     xyz = np.asarray(points, dtype=np.float64)
     x = np.asarray(x, dtype=np.float64)
     return np.linalg.norm(xyz - x[:3], axis=1) - x[3]
@@ -33,6 +41,22 @@ def algebraic_sphere(points) -> np.ndarray:
     ------
     DegenerateGeometryError
         If the points lie on a plane or line (no unique sphere).
+
+    References
+    ----------
+    .. [1] I. Kasa (1976): A circle fitting procedure and its error analysis.
+       IEEE Transactions on Instrumentation and Measurement 25(1), 8-14 (the
+       same linear fit, here in three dimensions).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.sphere import algebraic_sphere
+    >>> rng = np.random.default_rng(0)
+    >>> u = rng.normal(size=(50, 3))
+    >>> points = [1.0, 2.0, 3.0] + 0.5 * u / np.linalg.norm(u, axis=1, keepdims=True)
+    >>> algebraic_sphere(points).round(9).tolist()
+    [1.0, 2.0, 3.0, 0.5]
     """
     xyz = as_points(points, min_points=4)
     mean = xyz.mean(axis=0)
@@ -79,6 +103,16 @@ def circumspheres(samples, *, min_volume_ratio: float = 1e-6):
     -----
     With p0 as origin and e_j = p_j - p0, the centre c' = c - p0 solves
     ``2 e_j . c' = |e_j|^2`` (j = 1..3), a 3x3 system per sample.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.sphere import circumspheres
+    >>> samples = np.array([[[1.0, 0, 0], [-1, 0, 0], [0, 1, 0], [0, 0, 1]],
+    ...                 [[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]]])
+    >>> centers, radii, valid = circumspheres(samples)
+    >>> radii[valid].tolist(), valid.tolist()
+    ([1.0], [True, False])
     """
     s = np.asarray(samples, dtype=np.float64)
     p0 = s[:, 0, :]

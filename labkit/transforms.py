@@ -14,7 +14,16 @@ from .errors import LabkitError
 
 
 def make_transform(rotation=None, translation=None) -> np.ndarray:
-    """Build a 4x4 matrix from a 3x3 rotation (default identity) and a translation (3,)."""
+    """Build a 4x4 matrix from a 3x3 rotation (default identity) and a translation (3,).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.transforms import make_transform
+    >>> T = make_transform(np.eye(3), [1.0, 2.0, 3.0])
+    >>> T[:3, 3].tolist(), T[3].tolist()
+    ([1.0, 2.0, 3.0], [0.0, 0.0, 0.0, 1.0])
+    """
     T = np.eye(4)
     if rotation is not None:
         R = np.asarray(rotation, dtype=np.float64)
@@ -30,7 +39,19 @@ def make_transform(rotation=None, translation=None) -> np.ndarray:
 
 
 def check_transform(T) -> np.ndarray:
-    """Return ``T`` as a float64 4x4 rigid-body matrix or raise a clear error."""
+    """Return ``T`` as a float64 4x4 rigid-body matrix or raise a clear error.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.transforms import check_transform
+    >>> check_transform(np.eye(4)).shape
+    (4, 4)
+    >>> check_transform(np.ones((4, 4)))
+    Traceback (most recent call last):
+        ...
+    labkit.errors.LabkitError: the last row of a homogeneous transformation must be [0, 0, 0, 1]
+    """
     T = np.asarray(T, dtype=np.float64)
     if T.shape != (4, 4):
         raise LabkitError(f"a transformation must be a 4x4 matrix, got shape {T.shape}")
@@ -45,7 +66,15 @@ def check_transform(T) -> np.ndarray:
 
 
 def compose(*transforms) -> np.ndarray:
-    """Compose transforms so that ``compose(A, B)`` applies ``B`` first, then ``A``."""
+    """Compose transforms so that ``compose(A, B)`` applies ``B`` first, then ``A``.
+
+    Examples
+    --------
+    >>> from labkit.transforms import compose, make_transform
+    >>> a, b = make_transform(translation=[1.0, 0, 0]), make_transform(translation=[0, 2.0, 0])
+    >>> compose(a, b)[:3, 3].tolist()
+    [1.0, 2.0, 0.0]
+    """
     out = np.eye(4)
     for T in transforms:
         out = out @ check_transform(T)
@@ -53,7 +82,16 @@ def compose(*transforms) -> np.ndarray:
 
 
 def invert(T) -> np.ndarray:
-    """Inverse of a rigid-body transform (uses R^T, no general inversion)."""
+    """Inverse of a rigid-body transform (uses R^T, no general inversion).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.transforms import invert, make_transform, rotation_from_angles
+    >>> T = make_transform(rotation_from_angles(0.1, -0.2, 0.3), [5.0, -1.0, 2.0])
+    >>> bool(np.allclose(invert(T) @ T, np.eye(4)))
+    True
+    """
     T = check_transform(T)
     R, t = T[:3, :3], T[:3, 3]
     return make_transform(R.T, -R.T @ t)
@@ -65,6 +103,16 @@ def apply_transform(T, points, *, origin=None) -> np.ndarray:
     With ``origin`` given, ``T`` is understood in the frame reduced to that
     origin: ``p' = R (p - o) + t + o``. This keeps rotations about a local point
     numerically sound for UTM coordinates.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.transforms import apply_transform, make_transform, rotation_from_angles
+    >>> T = make_transform(rotation_from_angles(0, 0, np.pi / 2), [10.0, 0, 0])
+    >>> apply_transform(T, [[1.0, 0, 0]]).round(12).tolist()
+    [[10.0, 1.0, 0.0]]
+    >>> apply_transform(T, [[1.0, 0, 0]], origin=[1.0, 0, 0]).round(12).tolist()
+    [[11.0, 0.0, 0.0]]
     """
     T = check_transform(T)
     xyz = as_points(points)
@@ -76,7 +124,16 @@ def apply_transform(T, points, *, origin=None) -> np.ndarray:
 
 
 def rotation_from_angles(rx: float, ry: float, rz: float) -> np.ndarray:
-    """Rotation matrix R = Rz(rz) Ry(ry) Rx(rx) from angles in radians."""
+    """Rotation matrix R = Rz(rz) Ry(ry) Rx(rx) from angles in radians.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.transforms import rotation_from_angles
+    >>> R = rotation_from_angles(0.0, 0.0, np.pi / 2)
+    >>> (R @ [1.0, 0.0, 0.0]).round(12).tolist()
+    [0.0, 1.0, 0.0]
+    """
     cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
     Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
     Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
@@ -85,9 +142,45 @@ def rotation_from_angles(rx: float, ry: float, rz: float) -> np.ndarray:
 
 
 def angles_from_rotation(R) -> np.ndarray:
-    """Angles (rx, ry, rz) in radians with R = Rz Ry Rx (inverse of :func:`rotation_from_angles`)."""
+    """Angles (rx, ry, rz) in radians with R = Rz Ry Rx (inverse of :func:`rotation_from_angles`).
+
+    Examples
+    --------
+    >>> from labkit.transforms import angles_from_rotation, rotation_from_angles
+    >>> angles_from_rotation(rotation_from_angles(0.01, -0.02, 0.3)).round(6).tolist()
+    [0.01, -0.02, 0.3]
+    """
     R = np.asarray(R, dtype=np.float64)
     ry = -np.arcsin(np.clip(R[2, 0], -1.0, 1.0))
     rx = np.arctan2(R[2, 1], R[2, 2])
     rz = np.arctan2(R[1, 0], R[0, 0])
     return np.array([rx, ry, rz])
+
+
+def skew(v) -> np.ndarray:
+    """The cross-product matrix [v]x with [v]x w = v x w, for one vector (3,) or a stack (n, 3).
+
+    Parameters
+    ----------
+    v : array_like (3,) or (n, 3)
+
+    Returns
+    -------
+    ndarray (3, 3) or (n, 3, 3)
+        ``[[0, -v3, v2], [v3, 0, -v1], [-v2, v1, 0]]`` for each vector.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> v, w = np.array([1.0, 2.0, 3.0]), np.array([0.5, -1.0, 2.0])
+    >>> bool(np.allclose(skew(v) @ w, np.cross(v, w)))
+    True
+    >>> skew(np.zeros((4, 3))).shape
+    (4, 3, 3)
+    """
+    v = np.asarray(v, dtype=np.float64)
+    if v.shape[-1:] != (3,) or v.ndim not in (1, 2):
+        raise LabkitError(f"skew needs a vector (3,) or a stack (n, 3), got shape {v.shape}")
+    z = np.zeros(v.shape[:-1])
+    x, y, w = v[..., 0], v[..., 1], v[..., 2]
+    return np.stack([np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2)

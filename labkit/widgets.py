@@ -12,6 +12,13 @@ import io
 
 import numpy as np
 
+from ._checks import as_rng, choice
+from .adjustment import gauss_helmert_model
+from .plotting.ransac import plot_adaptive_trace, plot_section
+from .plotting.sphere import plot_confidence_ellipsoid
+from .ransac import ransac_sphere
+from .tiles import CORRECTIONS, neighbour_test
+
 _P_OPTIONS = (0.5, 0.8, 0.9, 0.95, 0.99, 0.999, 0.9999)
 
 
@@ -54,8 +61,6 @@ def ransac_explorer(points, threshold=0.003, p=0.99, truth=None, rng=0, **ransac
     """
     import ipywidgets as widgets
 
-    from .ransac import ransac_sphere
-
     pts = np.asarray(points, dtype=np.float64)
     t_mm = float(threshold) * 1e3
     t_slider = widgets.FloatLogSlider(
@@ -93,8 +98,6 @@ def _error_html(result, truth) -> str:
 
 def _explorer_figure(pts, result, truth):
     from matplotlib.figure import Figure
-
-    from .plotting.ransac import plot_adaptive_trace, plot_section
 
     fig = Figure(figsize=(10, 4))
     ax1, ax2 = fig.subplots(1, 2)
@@ -169,8 +172,6 @@ def sphere_cap_points(n=500, cap_deg=60.0, noise=0.001, radius=0.0725, rng=0):
     the direction to the station (+x); its area is sampled uniformly. The
     centre is the origin. Returns the (n, 3) points.
     """
-    from ._checks import as_rng
-
     gen = as_rng(rng)
     # uniform on the cap: cos(angle from +x) uniform in [cos(cap), 1]
     c = gen.uniform(np.cos(np.radians(cap_deg)), 1.0, n)
@@ -196,8 +197,6 @@ def sphere_cap_explorer(noise=0.001, cap_deg=60.0, n=500, radius=0.0725, rng=0):
         (HTML), ``figure`` (Image), ``last_fit`` and ``update()``.
     """
     import ipywidgets as widgets
-
-    from .adjustment import gauss_helmert_model
 
     noise_slider = widgets.FloatSlider(value=noise * 1e3, min=0.1, max=5.0, step=0.1, description="noise (mm)",
                                        continuous_update=False)
@@ -235,8 +234,6 @@ def _cap_html(fit, cap_deg):
 
 def _cap_figure(pts, fit, radius):
     from matplotlib.figure import Figure
-
-    from .plotting.sphere import plot_confidence_ellipsoid
 
     fig = Figure(figsize=(12, 3.6), layout="constrained")
     ax0, *axes = fig.subplots(1, 4)
@@ -329,9 +326,6 @@ def neighbour_test_explorer(field, alpha=0.05, extra_std=0.0, max_extra_mm=20.0,
         ``report`` (HTML), ``figure`` (Image), ``last_test`` and ``update()``.
     """
     import ipywidgets as widgets
-
-    from ._checks import choice
-    from .tiles import CORRECTIONS, neighbour_test
 
     a0 = min(_ALPHA_OPTIONS, key=lambda v: abs(np.log(v) - np.log(alpha)))
     alpha_slider = widgets.SelectionSlider(options=_ALPHA_OPTIONS, value=a0, description="alpha",

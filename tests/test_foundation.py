@@ -71,6 +71,25 @@ def test_point_cloud_is_immutable_and_keeps_attributes():
         cloud["gps_time"]
 
 
+def test_convergence_error_is_deprecated_and_not_exported():
+    """labkit never raised ConvergenceError (non-convergence is reported in the result): accessing it warns."""
+    assert "ConvergenceError" not in labkit.__all__
+    with pytest.warns(DeprecationWarning, match="never raises it"):
+        cls = labkit.ConvergenceError
+    assert issubclass(cls, LabkitError)
+    with pytest.warns(DeprecationWarning):
+        from labkit.errors import ConvergenceError  # noqa: F401
+
+
+def test_skew_is_the_cross_product_matrix():
+    rng = np.random.default_rng(3)
+    v, w = rng.normal(size=(5, 3)), rng.normal(size=(5, 3))
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", tf.skew(v), w), np.cross(v, w), atol=1e-15)
+    np.testing.assert_allclose(tf.skew(v[0]), -tf.skew(v[0]).T)
+    with pytest.raises(LabkitError, match="shape"):
+        tf.skew(np.ones(4))
+
+
 def test_lazy_exports_resolve():
     assert labkit.PointCloud is PointCloud
     with pytest.raises(AttributeError):

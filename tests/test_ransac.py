@@ -9,7 +9,9 @@ from scipy.spatial import cKDTree
 
 from labkit.cloud import PointCloud
 from labkit.errors import LabkitError
-from labkit.ransac import _LocalSampler, _hypotheses, ransac_sphere, required_iterations
+from labkit.ransac import ransac_sphere, required_iterations
+from labkit.ransac.hypotheses import spheres_through_samples
+from labkit.ransac.sampling import LocalSampler
 from labkit.synthetic.room import room_scene
 from labkit.synthetic.tripod import sphere_on_tripod
 
@@ -72,7 +74,7 @@ def test_local_sampling_N_matches_a_monte_carlo_estimate():
     W = np.concatenate([_on_sphere(rng, 150, [0, 0, 0], 0.3), rng.uniform(-1.5, 1.5, size=(850, 3))])
     inl = np.zeros(len(W), dtype=bool)
     inl[:150] = True
-    sampler = _LocalSampler(W, 0.6)
+    sampler = LocalSampler(W, 0.6)
     N = sampler.required(inl, 0.99)
     idx = sampler.draw(rng, 200_000)
     assert np.all(np.sort(idx, axis=1)[:, 1:] != np.sort(idx, axis=1)[:, :-1])  # distinct points
@@ -140,7 +142,7 @@ def test_degenerate_samples_are_rejected_and_do_not_count():
     dup = np.array([[[0, 0, 0], [0, 0, 0], [0, 1, 0], [1, 1, 1]]], dtype=float)
     good = np.array([[[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, 0, 1]]], dtype=float)
     for solver in ("closed_form", "ghm"):
-        X, valid = _hypotheses(np.concatenate([flat, dup, good]), solver)
+        X, valid = spheres_through_samples(np.concatenate([flat, dup, good]), solver)
         assert valid.tolist() == [False, False, True]
         np.testing.assert_allclose(X[2], [0, 0, 0, 1], atol=1e-9)
     # a noise-free plane: every sample is coplanar
@@ -303,12 +305,13 @@ def test_report_and_plots_and_headless_widget():
 def test_auto_sampling_is_local_only_where_neighbourhoods_are_small():
     """A compact scan (a neighbourhood of radius r_max + t holds a third of the scene) gains nothing from local
     sampling and would pay O(m^2) pairs for it: 'auto' samples uniformly there, locally in a room."""
-    from labkit.ransac import _LOCAL_MAX_SHARE, _mean_neighbourhood_share
+    from labkit.ransac.config import LOCAL_MAX_SHARE
+    from labkit.ransac.sampling import mean_neighbourhood_share
 
     scene = sphere_on_tripod(n_sphere=2000, outlier_ratio=0.5, noise=0.001, rng=3)
     res = ransac_sphere(scene.points, 0.003, radius_range=(0.05, 0.2), rng=3)
     assert res.found and res.sampling == "uniform"
-    assert _mean_neighbourhood_share(scene.points - scene.points.mean(axis=0), 0.203) > _LOCAL_MAX_SHARE
+    assert mean_neighbourhood_share(scene.points - scene.points.mean(axis=0), 0.203) > LOCAL_MAX_SHARE
     forced = ransac_sphere(scene.points, 0.003, radius_range=(0.05, 0.2), sampling="local", rng=3)
     assert forced.found and forced.sampling == "local"
     assert np.allclose(forced.fit.x, res.fit.x, atol=2e-4)  # same sphere either way
@@ -374,15 +377,16 @@ def test_real_16_beam_scans_meet_the_reference(name, station):
 def test_real_scan_reference_that_was_a_wall_is_rejected():
     """The replaced reference of ex2_L1_S1 (a flat surface 0.5 m in front of the scanner, the scanner inside
     the 'sphere') fails the verification; the detection finds the ball at 2.5 m instead."""
-    from labkit.ransac import _Config, _Verifier
+    from labkit.ransac.config import Config
+    from labkit.ransac.verify import Verifier
 
     P, _, ref = _real_scan("spherecalib_ex2_L1_S1.xyz")
     old = np.append(ref["replaced"]["center"], ref["replaced"]["radius"])
     assert np.linalg.norm(old[:3]) < old[3]  # the scanner (origin) inside the old sphere
     for station in (None, np.zeros(3)):
-        cfg = _Config(0.02, 0.99, 0.2, 0.4, True, "ransac", "closed_form", "auto", 1000, True, 10, True, None,
+        cfg = Config(0.02, 0.99, 0.2, 0.4, True, "ransac", "closed_form", "auto", 1000, True, 10, True, None,
                       0.001, None, station)
-        assert _Verifier(P, station, cfg).reasons(old, 0.02)  # a reason to reject it
+        assert Verifier(P, station, cfg).reasons(old, 0.02)  # a reason to reject it
     q = P[np.abs(np.linalg.norm(P - old[:3], axis=1) - old[3]) < 0.02]
     q = q - q.mean(axis=0)
     assert np.sqrt(np.linalg.eigvalsh(q.T @ q / len(q))[0]) < 0.012  # its inliers are flat

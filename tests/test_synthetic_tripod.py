@@ -108,6 +108,8 @@ def test_range_noise_is_along_the_beam():
         {"n_sphere": "many"},
         {"noise": "1 mm"},
         {"outlier_ratio": "half"},
+        {"noise": "0.001"},  # text is refused, not converted (the shared validator of labkit._checks)
+        {"noise": True},
     ],
 )
 def test_bad_arguments_raise(kwargs):

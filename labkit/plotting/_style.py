@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from ..notebook import setup_headless
+
 COLORS = {
     "inlier": "#1b9e77",
     "outlier": "#d95f02",
@@ -32,8 +34,6 @@ def new_plotter(plotter=None, window_size=WINDOW_SIZE):
     """Return ``plotter`` or a new off-screen ``pyvista.Plotter``."""
     if plotter is not None:
         return plotter
-    from ..notebook import setup_headless
-
     setup_headless()
     import pyvista as pv
 

@@ -13,32 +13,33 @@ import numpy as np
 
 from ..cloud import PointCloud
 from ..errors import LabkitError
+from ..masks import ASPRS_NAMES, as_bbox, as_rings
+from ..regions import density_grid
 from ._style import CMAP_SEQUENTIAL, POINT_SIZE, new_plotter, scalar_bar
 
 # ASPRS LAS 1.4 standard classes: name and display colour (close to common viewer palettes)
-ASPRS_CLASSES = {
-    0: ("never classified", "#a0a0a0"),
-    1: ("unclassified", "#c8c8c8"),
-    2: ("ground", "#a0522d"),
-    3: ("low vegetation", "#b5e61d"),
-    4: ("medium vegetation", "#5cb85c"),
-    5: ("high vegetation", "#1e6b1e"),
-    6: ("building", "#d7301f"),
-    7: ("low point (noise)", "#ff00ff"),
-    8: ("model key point", "#ffd700"),
-    9: ("water", "#1f78b4"),
-    10: ("rail", "#6a3d9a"),
-    11: ("road surface", "#4d4d4d"),
-    12: ("overlap", "#fdbf6f"),
-    13: ("wire guard", "#e0e000"),
-    14: ("wire conductor", "#ffaa00"),
-    15: ("transmission tower", "#8c510a"),
-    16: ("wire connector", "#b15928"),
-    17: ("bridge deck", "#8dd3c7"),
-    18: ("high noise", "#ff1493"),
+ASPRS_COLORS = {
+    0: "#a0a0a0",  # never classified
+    1: "#c8c8c8",  # unclassified
+    2: "#a0522d",  # ground
+    3: "#b5e61d",  # low vegetation
+    4: "#5cb85c",  # medium vegetation
+    5: "#1e6b1e",  # high vegetation
+    6: "#d7301f",  # building
+    7: "#ff00ff",  # low point (noise)
+    8: "#ffd700",  # model key point
+    9: "#1f78b4",  # water
+    10: "#6a3d9a",  # rail
+    11: "#4d4d4d",  # road surface
+    12: "#fdbf6f",  # overlap
+    13: "#e0e000",  # wire guard
+    14: "#ffaa00",  # wire conductor
+    15: "#8c510a",  # transmission tower
+    16: "#b15928",  # wire connector
+    17: "#8dd3c7",  # bridge deck
+    18: "#ff1493",  # high noise
 }
-ASPRS_COLORS = {code: color for code, (_, color) in ASPRS_CLASSES.items()}
-ASPRS_NAMES = {code: name for code, (name, _) in ASPRS_CLASSES.items()}
+ASPRS_CLASSES = {code: (ASPRS_NAMES[code], color) for code, color in ASPRS_COLORS.items()}
 OTHER_CLASS_COLOR = "#000000"
 
 
@@ -178,8 +179,6 @@ def plot_outline(*, bbox=None, polygon=None, circle=None, ax=None, label: str | 
 
     Uses the origin that :func:`plot_top_view` stored on the axes (zero otherwise).
     """
-    from ..regions import as_bbox, as_rings
-
     ax = _axes(ax)
     o = np.asarray(getattr(ax, "labkit_origin", np.zeros(3)))[:2]
     if sum(v is not None for v in (bbox, polygon, circle)) != 1:
@@ -204,8 +203,6 @@ def plot_outline(*, bbox=None, polygon=None, circle=None, ax=None, label: str | 
 
 def plot_density(grid, *, ax=None, vmax=None, cmap: str = "magma", origin=None):
     """Map of points per m^2 from a :class:`labkit.regions.DensityGrid` (or a cloud, with 1 m cells)."""
-    from ..regions import density_grid
-
     if isinstance(grid, PointCloud):
         grid = density_grid(grid, 1.0)
     ax = _axes(ax)

@@ -10,10 +10,10 @@ import numpy as np
 from .._checks import as_points
 from .._frame import local_origin
 from ..errors import LabkitError
+from ..masks import ASPRS_NAMES  # noqa: F401  (plotting.features imports it from here)
+from .clouds import class_name
 from ._style import CMAP_DIVERGING, CMAP_SEQUENTIAL, COLORS, POINT_SIZE, new_plotter, scalar_bar
 
-ASPRS_NAMES = {0: "never classified", 1: "unclassified", 2: "ground", 3: "low vegetation", 4: "medium vegetation",
-               5: "high vegetation", 6: "building", 7: "low point", 9: "water", 11: "road surface", 17: "bridge"}
 AXES = ("X", "Y", "Z")
 
 
@@ -135,7 +135,7 @@ def plot_class_histograms(distances, classes, *, ax=None, bins=60, limits=None, 
         sel = cls == code
         if sel.sum() < min_count:
             continue
-        name = ASPRS_NAMES.get(int(code), f"class {int(code)}")
+        name = class_name(code)
         ax.hist(d[sel], bins=edges, density=True, histtype="step", lw=1.5,
                 label=f"{name} (n={sel.sum()}, median {np.median(d[sel]):+.3f} m)")
     ax.axvline(0, color=COLORS["reference"], lw=0.8)

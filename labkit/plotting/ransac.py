@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..ransac import required_iterations
 from ._style import COLORS, POINT_SIZE, new_plotter
 
 
@@ -20,8 +21,6 @@ def _axes(ax):
 
 def plot_required_iterations(ax=None, p_values=(0.9, 0.99, 0.999), s=4, max_ratio=0.9):
     """N(eps, p) of eq. (27) over the outlier ratio eps, one curve per p, log scale."""
-    from ..ransac import required_iterations
-
     ax = _axes(ax)
     eps = np.linspace(0.0, max_ratio, 181)
     for p in p_values:

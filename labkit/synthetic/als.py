@@ -170,6 +170,13 @@ def als_scene(region: str = "xyz", *, size=(60.0, 60.0), density=20.0, rng=None,
     rng : int or numpy.random.Generator, optional
     origin : (3,) float
         South-west corner of the area; coordinates are ``origin + local``.
+
+    Examples
+    --------
+    >>> from labkit.synthetic import als_scene
+    >>> cloud = als_scene("xyz", size=(20.0, 20.0), density=2.0, rng=0)
+    >>> len(cloud) > 500, sorted(cloud.attributes)[:3]
+    (True, ['classification', 'gps_time', 'intensity'])
     """
     return als_epochs(region, size=size, density=density, rng=rng, origin=origin).target
 
@@ -209,6 +216,13 @@ def als_epochs(region: str = "xyz", *, shift=(0.23, -0.17, 0.11), rotation_deg=N
     EpochPair
         ``truth`` maps ``source`` onto ``target``: ``apply_transform(pair.truth, pair.source.xyz)``
         lies on the target surface.
+
+    Examples
+    --------
+    >>> from labkit.synthetic import als_epochs
+    >>> pair = als_epochs("xyz", size=(20.0, 20.0), density=2.0, rng=0)
+    >>> pair.translation.round(2).tolist(), pair.truth.shape
+    ([0.23, -0.17, 0.11], (4, 4))
     """
     region = choice(region, REGIONS + SPARSE_REGIONS, "region")
     size, density, origin, shift, angles = _check_args(size, density, origin, shift, rotation_deg)

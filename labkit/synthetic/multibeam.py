@@ -131,6 +131,13 @@ def multibeam_room(
     Returns
     -------
     MultibeamScene
+
+    Examples
+    --------
+    >>> from labkit.synthetic import multibeam_room
+    >>> scene = multibeam_room(rng=0)
+    >>> scene.points.shape[1], scene.has_sphere, scene.n_sphere_rings >= 3
+    (3, True, True)
     """
     gen = as_rng(rng)
     r_lo, r_hi = _pair(radius_range, "radius_range")

@@ -20,6 +20,7 @@ import numpy as np
 from .._checks import as_rng, positive
 from .._report import ReportMixin, fmt
 from ..errors import LabkitError
+from ._geometry import sphere_cap
 
 LABEL_NAMES = ("sphere", "walls", "floor", "ceiling", "furniture", "stand", "clutter")
 SPHERE, WALLS, FLOOR, CEILING, FURNITURE, STAND, CLUTTER = range(7)
@@ -118,6 +119,13 @@ def room_scene(
     Returns
     -------
     RoomScene
+
+    Examples
+    --------
+    >>> from labkit.synthetic import room_scene
+    >>> scene = room_scene(n_points=5000, rng=0)
+    >>> scene.points.shape
+    (5000, 3)
     """
     rng = as_rng(rng)
     n_sphere, n_clutter, n_surface = _counts(n_points, sphere_share)
@@ -136,7 +144,7 @@ def room_scene(
     rects, rect_labels = _rectangles(station, centre, radius)
     per_rect = _split(n_surface, [_area(r) for r in rects])
     parts = [_on_rectangle(rng, m, r) for m, r in zip(per_rect, rects)]
-    parts += [_sphere_cap(rng, n_sphere, centre, radius, station), rng.uniform(0.0, _ROOM, size=(n_clutter, 3))]
+    parts += [sphere_cap(rng, n_sphere, centre, radius, station, _MAX_INCIDENCE), rng.uniform(0.0, _ROOM, size=(n_clutter, 3))]
     labels = np.concatenate([np.repeat(rect_labels, per_rect), np.full(n_sphere, SPHERE), np.full(n_clutter, CLUTTER)])
     clean = np.concatenate(parts, axis=0)
 
@@ -227,20 +235,3 @@ def _rectangles(station, centre, radius):
     stand_hi = np.array([centre[0] + _STAND_R, centre[1] + _STAND_R, centre[2] - radius])
     stand = _box_faces(stand_lo, stand_hi, station)
     return rects + stand, np.array(labels + [STAND] * len(stand))
-
-
-def _sphere_cap(rng, n, centre, radius, station):
-    """Points on the cap seen from the station, uniform over the projected disc."""
-    u = station - centre
-    dist = np.linalg.norm(u)
-    u = u / dist
-    helper = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = np.cross(u, helper)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(u, e1)
-    theta_max = min(np.arccos(radius / dist), _MAX_INCIDENCE)
-    sin_t = np.sqrt(rng.random(n)) * np.sin(theta_max)
-    cos_t = np.sqrt(1.0 - sin_t**2)
-    phi = rng.uniform(0.0, 2.0 * np.pi, n)
-    normal = cos_t[:, None] * u + sin_t[:, None] * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
-    return centre + radius * normal

@@ -14,9 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._checks import as_rng, positive
+from .._checks import as_rng, count, non_negative, positive
 from .._report import ReportMixin, fmt
 from ..errors import LabkitError
+from ._geometry import sphere_cap, unit
 
 LABEL_NAMES = ("sphere", "tripod legs", "base plate", "ground", "clutter")
 SPHERE, LEGS, BASE, GROUND, CLUTTER = range(5)
@@ -99,7 +100,7 @@ class TripodScene(ReportMixin):
         ``range_noise**2``: ``Sigma_i = noise^2 I + (range_noise^2 - noise^2) u u^T``.
         """
         pts = self.points if mask is None else self.points[mask]
-        u = _unit(pts - self.station)
+        u = unit(pts - self.station)
         extra = self.range_noise**2 - self.noise**2
         return self.noise**2 * np.eye(3) + extra * u[:, :, None] * u[:, None, :]
 
@@ -161,12 +162,19 @@ def sphere_on_tripod(
     Returns
     -------
     TripodScene
+
+    Examples
+    --------
+    >>> from labkit.synthetic import sphere_on_tripod
+    >>> scene = sphere_on_tripod(n_sphere=500, rng=0)
+    >>> scene.points.shape[1], int(scene.is_sphere.sum()), scene.sphere.tolist()
+    (3, 500, [0.0, 0.0, 1.4525000000000001, 0.0725])
     """
     rng = as_rng(rng)
     counts = _counts(n_sphere, n_clutter, outlier_ratio)
     radius = positive(radius, "radius")
-    noise = _non_negative(noise, "noise")
-    range_noise = noise if range_noise is None else _non_negative(range_noise, "range_noise")
+    noise = non_negative(noise, "noise")
+    range_noise = noise if range_noise is None else non_negative(range_noise, "range_noise")
     offset = _offset(utm)
 
     # True geometry, local frame
@@ -175,7 +183,7 @@ def sphere_on_tripod(
 
     # Noise-free samples per part
     parts = [
-        _sphere_cap(rng, counts[SPHERE], centre, radius, station),
+        sphere_cap(rng, counts[SPHERE], centre, radius, station, _MAX_INCIDENCE),
         _legs(rng, counts[LEGS], station),
         _base(rng, counts[BASE], station),
         _ground(rng, counts[GROUND]),
@@ -202,26 +210,6 @@ def sphere_on_tripod(
 
 
 # ----------------------------------------------------------------- arguments
-def _non_negative(value, name):
-    try:
-        val = float(value)
-    except (TypeError, ValueError):
-        val = np.nan
-    if not np.isfinite(val) or val < 0:
-        raise LabkitError(f"{name} must be a finite number >= 0, got {value!r}")
-    return val
-
-
-def _count(value, name):
-    try:
-        ok = not isinstance(value, bool) and int(value) == value and value >= 0
-    except (TypeError, ValueError, OverflowError):
-        ok = False
-    if not ok:
-        raise LabkitError(f"{name} must be a whole number >= 0, got {value!r}")
-    return int(value)
-
-
 def _offset(utm):
     if utm is True:
         return UTM_OFFSET.copy()
@@ -235,17 +223,17 @@ def _offset(utm):
 
 def _counts(n_sphere, n_clutter, outlier_ratio):
     """Number of points per label: [sphere, legs, base, ground, clutter]."""
-    n_sphere = _count(n_sphere, "n_sphere")
+    n_sphere = count(n_sphere, "n_sphere", minimum=0)
     if outlier_ratio is None:
         n_structure = {k: int(round(s * n_sphere)) for k, s in _STRUCTURE_SHARE.items()}
         n_out = sum(n_structure.values())
-        n_clutter = int(round(0.1 * n_out / 0.9)) if n_clutter is None else _count(n_clutter, "n_clutter")
+        n_clutter = int(round(0.1 * n_out / 0.9)) if n_clutter is None else count(n_clutter, "n_clutter", minimum=0)
         return [n_sphere, n_structure[LEGS], n_structure[BASE], n_structure[GROUND], n_clutter]
-    ratio = _non_negative(outlier_ratio, "outlier_ratio")
+    ratio = non_negative(outlier_ratio, "outlier_ratio")
     if not (0.0 <= ratio < 1.0):
         raise LabkitError(f"outlier_ratio must lie in [0, 1), got {outlier_ratio!r}")
     n_out = int(round(n_sphere * ratio / (1.0 - ratio)))
-    n_clutter = int(round(0.1 * n_out)) if n_clutter is None else _count(n_clutter, "n_clutter")
+    n_clutter = int(round(0.1 * n_out)) if n_clutter is None else count(n_clutter, "n_clutter", minimum=0)
     if n_clutter > n_out:
         raise LabkitError(
             f"n_clutter={n_clutter} exceeds the {n_out} non-sphere points that outlier_ratio={ratio} allows"
@@ -258,45 +246,14 @@ def _counts(n_sphere, n_clutter, outlier_ratio):
 
 
 # ----------------------------------------------------------------- geometry
-def _unit(v):
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def _basis(axis):
-    """Two unit vectors perpendicular to ``axis`` (3,) and to each other."""
-    a = _unit(np.asarray(axis, dtype=np.float64))
-    helper = np.array([1.0, 0.0, 0.0]) if abs(a[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = _unit(np.cross(a, helper))
-    return e1, np.cross(a, e1)
-
-
-def _sphere_cap(rng, n, centre, radius, station):
-    """Points on the cap seen from the station, uniform in the scanner's view.
-
-    A scanner samples on an angular grid, so from afar the points are uniform
-    over the projected disc: sin(theta) = sqrt(U) sin(theta_max), with theta the
-    angle between the surface normal and the direction to the station.
-    """
-    to_station = station - centre
-    dist = np.linalg.norm(to_station)
-    u = to_station / dist
-    e1, e2 = _basis(u)
-    theta_max = min(np.arccos(radius / dist), _MAX_INCIDENCE)
-    sin_t = np.sqrt(rng.random(n)) * np.sin(theta_max)
-    cos_t = np.sqrt(1.0 - sin_t**2)
-    phi = rng.uniform(0.0, 2.0 * np.pi, n)
-    normal = cos_t[:, None] * u + sin_t[:, None] * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
-    return centre + radius * normal
-
-
 def _cylinder_side(rng, n, bottom, top, r, station):
     """Points on the half of a cylinder's mantle that faces the station."""
     if n == 0:
         return np.empty((0, 3))
     axis = top - bottom
-    a = _unit(axis)
+    a = unit(axis)
     look = station - 0.5 * (bottom + top)
-    look = _unit(look - (look @ a) * a)  # the visible half is centred on this direction
+    look = unit(look - (look @ a) * a)  # the visible half is centred on this direction
     side = np.cross(a, look)
     t = rng.random(n)
     phi = rng.uniform(-0.5 * np.pi, 0.5 * np.pi, n)
@@ -357,7 +314,7 @@ def _scanner_noise(rng, clean, station, noise, range_noise):
     """Gaussian noise: ``noise`` across the beam, ``range_noise`` along it."""
     eps = rng.normal(0.0, noise, size=clean.shape)
     if range_noise != noise:
-        u = _unit(clean - station)
+        u = unit(clean - station)
         along = np.einsum("ij,ij->i", eps, u)
         eps += ((range_noise / noise - 1.0) * along if noise > 0 else rng.normal(0.0, range_noise, len(u)))[:, None] * u
     return eps

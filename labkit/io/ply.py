@@ -16,7 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import CloudFileError
+from ..errors import CloudFileError
+from .ascii import text_columns, wanted_column
+from .chunks import ChunkCollector
+from .common import canonical_name, require_classification
+from .filter import ReadFilter
 
 PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -37,7 +41,17 @@ class Element:
 
 
 def read_header(f, path: Path):
-    """(format, elements, byte offset of the data) from an open binary file."""
+    """(format, elements, byte offset of the data) from an open binary file.
+
+    Examples
+    --------
+    >>> import io
+    >>> from labkit.io.ply import read_header
+    >>> f = io.BytesIO(b"ply\\nformat binary_little_endian 1.0\\nelement vertex 2\\nproperty double x\\nend_header\\n")
+    >>> fmt, elements, start = read_header(f, "in-memory.ply")
+    >>> fmt, elements[0].name, elements[0].count, elements[0].properties, start
+    ('binary_little_endian', 'vertex', 2, (('x', 'f8'),), 82)
+    """
     if f.readline().strip() != b"ply":
         raise CloudFileError(f"{path} is not a PLY file (no 'ply' magic line)")
     fmt, elements = None, []
@@ -76,6 +90,18 @@ def ply_vertex_blocks(path: Path, chunk_size: int):
     """(property names, format, iterator of blocks); a block is one array per vertex property.
 
     The file stays open while the iterator runs.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> from labkit.io.ply import ply_vertex_blocks
+    >>> path = Path(tempfile.mkdtemp()) / "tri.ply"
+    >>> _ = path.write_text("ply\\nformat ascii 1.0\\nelement vertex 3\\nproperty float x\\nproperty float y\\n"
+    ...                 "property float z\\nend_header\\n0 0 0\\n1 0 0\\n0 1 0\\n")
+    >>> names, fmt, blocks = ply_vertex_blocks(path, chunk_size=2)
+    >>> names, fmt, [len(block[0]) for block in blocks]
+    (['x', 'y', 'z'], 'ascii', [2, 1])
     """
     f = open(path, "rb")
     try:
@@ -135,3 +161,28 @@ def _binary_blocks(f, offset: int, dtype: np.dtype, count: int, chunk_size: int,
         for start in range(0, count, chunk_size):
             rec = np.fromfile(f, dtype=dtype, count=min(chunk_size, count - start))
             yield [rec[name].astype(rec.dtype[name].newbyteorder("=")) for name in dtype.names]
+
+
+def read_ply(path: Path, flt: ReadFilter, keep, chunk_size: int):
+    """Vertex x, y, z and scalar properties of an ASCII or binary PLY file (see :func:`ply_vertex_blocks`)."""
+    names, fmt, blocks = ply_vertex_blocks(path, chunk_size)
+    columns = [canonical_name(n) for n in names]
+    if len(set(columns)) != len(columns):
+        raise CloudFileError(f"{path}: the PLY vertex element repeats a property ({names})")
+    missing = [c for c in "xyz" if c not in columns]
+    if missing:
+        raise CloudFileError(f"{path}: the PLY vertex element has no property {', '.join(missing)}")
+    ix = [columns.index(c) for c in "xyz"]
+    extra = [(i, c) for i, c in enumerate(columns) if c not in "xyz" and wanted_column(c, keep)]
+    require_classification(flt, columns, path)
+    gather = ChunkCollector(None)
+    for block in blocks:  # one array per property
+        xyz = np.column_stack([block[i].astype(np.float64) for i in ix])
+        cls = block[columns.index("classification")] if flt.classes is not None else None
+        mask = flt.mask(xyz, cls)
+        sel = slice(None) if mask is None else mask
+        gather.add(xyz[sel], {c: block[i][sel] for i, c in extra})
+    xyz, attrs = gather.result()
+    if fmt == "ascii":  # text: typed like the columns of an ASCII file
+        attrs = text_columns(attrs, path)
+    return xyz, attrs, None

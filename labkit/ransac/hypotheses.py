@@ -1,0 +1,104 @@
+"""Spheres through minimal samples, their scores (eqs. 25-26) and the local optimization (LO-RANSAC)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..adjustment import gauss_helmert_model
+from ..errors import LabkitError
+from ..sphere import algebraic_sphere, circumspheres
+from .config import LO_STEPS, S
+
+
+def spheres_through_samples(samples, solver):
+    """Spheres [xc, yc, zc, r] (B, 4) through samples (B, 4, 3) and a validity mask."""
+    if solver == "closed_form":
+        centers, radii, valid = circumspheres(samples)
+        return np.column_stack([centers, radii]), valid
+    return _ghm_hypotheses(samples)
+
+
+def _ghm_hypotheses(samples):
+    """The seed's way: a Gauss-Helmert adjustment of each 4-point sample (a Python loop)."""
+    X = np.full((len(samples), 4), np.nan)
+    valid = np.zeros(len(samples), dtype=bool)
+    for j, sample in enumerate(samples):
+        try:
+            fit = gauss_helmert_model(sample)
+        except LabkitError:  # singular N (the seed's det test), coplanar or duplicate points
+            continue
+        if fit.converged and np.all(np.isfinite(fit.x)):
+            X[j], valid[j] = fit.x, True
+    return X, valid
+
+
+def squared_center_distances(W, Wsq, C):
+    """|w_i - c_b|^2 for all points and hypotheses, (m, B), via one matrix product."""
+    return Wsq[:, None] - 2.0 * (W @ C.T) + np.einsum("ij,ij->i", C, C)[None, :]
+
+
+def score_hypotheses(W, Wsq, X, t, scoring):
+    """Score (higher is better) and inlier count of each hypothesis X (B, 4) on W (eqs. 25-26)."""
+    D2 = squared_center_distances(W, Wsq, X[:, :3])
+    r = X[:, 3]
+    if scoring == "ransac":
+        # d_i^2 < t^2  <=>  (r - t)^2 < |w_i - c|^2 < (r + t)^2   (eq. 26)
+        inside = (D2 > np.maximum(r - t, 0.0) ** 2) & (D2 < (r + t) ** 2)
+        count = inside.sum(axis=0)
+        return count.astype(np.float64), count
+    d2 = (np.sqrt(np.maximum(D2, 0.0)) - r) ** 2  # (eq. 25)
+    gain = np.maximum(t * t - d2, 0.0)  # MSAC: t^2 - min(d_i^2, t^2)
+    return gain.sum(axis=0), (gain > 0).sum(axis=0)
+
+
+def shell_mask(W, x, t):
+    diff = W - x[:3]
+    d = np.sqrt(np.einsum("ij,ij->i", diff, diff)) - x[3]  # (eq. 25)
+    return d * d < t * t  # (eq. 26)
+
+
+def local_optimization_step(W, Wsq, x, score, cfg):
+    """LO-RANSAC: iterate (inliers -> orthogonal least-squares sphere) while the score improves."""
+    improved = False
+    for _ in range(LO_STEPS):
+        mask = shell_mask(W, x, cfg.threshold)
+        if mask.sum() <= S:
+            break
+        x_new = orthogonal_fit(W[mask], x)
+        if x_new is None or not cfg.r_min <= x_new[3] <= cfg.r_max:
+            break
+        s_new, _ = score_hypotheses(W, Wsq, x_new[None, :], cfg.threshold, cfg.scoring)
+        if s_new[0] <= score:
+            break
+        x, score, improved = x_new, s_new[0], True
+    return x, score, improved
+
+
+def orthogonal_fit(P, x, steps=3):
+    """A few Gauss-Newton steps of the orthogonal-distance sphere fit, from x; None if it fails."""
+    try:
+        x = algebraic_sphere(P) if x is None else np.array(x, dtype=np.float64)
+    except LabkitError:
+        return None
+    P = P - x[:3]  # work relative to the current centre (UTM-safe)
+    shift, x = x[:3].copy(), np.array([0.0, 0.0, 0.0, x[3]])
+    n = len(P)
+    for _ in range(steps):
+        diff = P - x[:3]
+        dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+        if np.any(dist == 0):
+            return None
+        # Jacobian rows J_i = -[u_i, 1] (u_i the unit radial vector); J^T J and J^T d
+        # in blocks, without forming the n x 4 matrix J
+        u = diff / dist[:, None]
+        d = dist - x[3]
+        su = u.sum(axis=0)
+        JtJ = np.empty((4, 4))
+        JtJ[:3, :3], JtJ[:3, 3], JtJ[3, :3], JtJ[3, 3] = u.T @ u, su, su, n
+        Jtd = -np.append(u.T @ d, d.sum())
+        eig = np.linalg.eigvalsh(JtJ)
+        if eig[0] <= 1e-12 * eig[-1]:
+            return None
+        x = x + np.linalg.solve(JtJ, -Jtd)
+    x[:3] += shift
+    return x if np.all(np.isfinite(x)) and x[3] > 0 else None

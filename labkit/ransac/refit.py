@@ -1,0 +1,167 @@
+"""The final refit on the full cloud: robust inlier band, Gauss-Helmert adjustment, data snooping."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.optimize import brentq
+from scipy.special import ndtr
+
+from ..adjustment import gauss_helmert_model
+from ..errors import LabkitError
+from ..sphere import sphere_residuals
+from .config import BAND_K, SNOOP_ROUNDS, S
+from .hypotheses import orthogonal_fit, shell_mask
+
+
+@dataclass(frozen=True)
+class _Final:
+    fit: object
+    inliers: np.ndarray
+    n_snooped: int
+    sigma: float | None
+    reason: str
+    band: float = float("nan")
+
+
+def refit_sphere(xyz, x0, cfg):
+    """Final inliers from a robust band on the full cloud, Gauss-Helmert refit, then data snooping.
+
+    The band |d| < k sigma_hat (k = 3) replaces the search threshold t: sigma_hat
+    is the truncation-consistent MAD of the residuals inside the band (or the
+    given sigma), band and sphere are iterated to a fixed point. Inliers cut
+    at t ~ sigma would have residuals that understate sigma0 (and so every
+    standard deviation) by a factor of up to 4-5. The refit is repeated (at
+    most 3 times) only while more than 1 % of the inliers change with the
+    adjusted sphere; the returned fit always belongs to exactly the returned inliers.
+    """
+    sigma, min_inliers = cfg.sigma, cfg.min_inliers
+
+    def adjust(mask, x_start, sig):
+        sig = sig[mask] if isinstance(sig, np.ndarray) else sig
+        return gauss_helmert_model(xyz[mask], x0=x_start, sigma=sig, radius=cfg.hold_radius, alpha_w=cfg.alpha)
+
+    # Robust band and sphere at their fixed point (eqs. 25-26 with t -> k sigma_hat); with a
+    # per-point sigma the band is k sigma_i for each point
+    unit = _point_sigma(sigma)
+    x0, band, sigma_hat = _robust_band(xyz, x0, cfg, unit)
+    if unit is not None:
+        band = BAND_K * unit
+    inliers = shell_mask(xyz, x0, band)
+    if sigma is None:  # a priori sigma for the adjustment and the w-test: the robust scale
+        sigma = sigma_hat
+    fit = None
+    for round_ in range(3):
+        if inliers.sum() < min_inliers:
+            return _Final(None, inliers, 0, None, f"only {inliers.sum()} inliers (< min_inliers = {min_inliers})", band)
+        try:
+            fit = adjust(inliers, x0 if fit is None else fit.x, sigma)
+        except LabkitError as exc:
+            return _Final(None, inliers, 0, None, f"Gauss-Helmert refit failed: {exc}", band)
+        if not fit.converged:
+            return _Final(None, inliers, 0, None, f"Gauss-Helmert refit did not converge: {fit.reason}", band)
+        new = shell_mask(xyz, fit.x, band)
+        if np.count_nonzero(new != inliers) <= 0.01 * inliers.sum() or round_ == 2:
+            break  # (the fit always belongs to exactly these inliers)
+        inliers = new
+    band = float(band) if np.ndim(band) == 0 else float(np.median(band))  # reported: the typical band
+    if not cfg.snooping:
+        return _Final(fit, inliers, 0, _sigma_scalar(sigma), "", band)
+    return replace(_snoop(fit, inliers, sigma, min_inliers, adjust), band=band)
+
+
+def _point_sigma(sigma):
+    """Per-point standard deviation (n,) for a per-point band, or None for a scalar / no sigma."""
+    if sigma is None or np.ndim(sigma) == 0:
+        return None
+    s = np.asarray(sigma, dtype=np.float64)
+    return s if s.ndim == 1 else np.sqrt(np.trace(s, axis1=1, axis2=2) / 3.0)
+
+
+def _robust_band(xyz, x, cfg, unit=None, max_rounds=12):
+    """Fixed point of (band -> inliers -> orthogonal fit -> sigma_hat -> band = k sigma_hat), from t.
+
+    Returns the sphere, the band half-width and sigma_hat. With an a priori
+    sigma the band is k sigma at once (k sigma_i per point for ``unit``, the
+    per-point sigma); only the sphere is iterated.
+    """
+    t = cfg.threshold
+    known = cfg.sigma if cfg.sigma is not None and np.ndim(cfg.sigma) == 0 else None
+    band = BAND_K * known if known is not None else t
+    sigma_hat = known if known is not None else t / BAND_K
+    # only points that can ever be in a band matter: a generous neighbourhood of the hypothesis
+    reach = max(8.0 * t, 8.0 * band) if unit is None else max(8.0 * t, 3.0 * BAND_K * float(unit.max()))
+    d = sphere_residuals(xyz, x)
+    near = np.flatnonzero(np.abs(d) < reach)
+    P = xyz[near]
+    if unit is not None:
+        known, band = True, BAND_K * unit[near]
+        sigma_hat = float(np.median(unit))
+    d = sphere_residuals(P, x)
+    for _ in range(max_rounds):
+        inl = np.abs(d) < band
+        if inl.sum() <= S:
+            break
+        x_new = orthogonal_fit(P[inl], x, steps=2)
+        x = x if x_new is None else x_new
+        d = sphere_residuals(P, x)
+        inl_new = np.abs(d) < band
+        if known is not None:  # band fixed by the given sigma: iterate the sphere until the inliers settle
+            if np.array_equal(inl_new, inl):
+                break
+            continue
+        if inl_new.sum() <= S:
+            break
+        sigma_hat = truncated_mad_scale(np.abs(d[inl_new]), band)
+        new_band = min(BAND_K * sigma_hat, 2.0 * band, reach)  # grow at most 2x per round
+        converged = abs(new_band - band) <= 0.005 * band
+        band = new_band
+        if converged:
+            break
+    return x, (float(band) if np.ndim(band) == 0 else band), float(sigma_hat)
+
+
+def truncated_mad_scale(abs_d, band):
+    """sigma of N(0, sigma^2) whose |d|, truncated at ``band``, has the observed median.
+
+    Solves (2 Phi(m / sigma) - 1) / (2 Phi(b / sigma) - 1) = 1/2 for sigma. A
+    median of b/2 or more means no peak inside the band (flat): returns 2 b / k,
+    which doubles the band.
+    """
+    m = float(np.median(abs_d))
+    q = m / band
+    if q >= 0.499:
+        return 2.0 * band / BAND_K
+    if q <= 1e-9:
+        return max(m, 1e-12)
+    g = lambda z: 2.0 * (2.0 * ndtr(q * z) - 1.0) - (2.0 * ndtr(z) - 1.0)  # noqa: E731  (z = b / sigma)
+    hi = 1.0
+    while g(hi) < 0 and hi < 1e6:
+        hi *= 2.0
+    z = brentq(g, 1e-6, hi, xtol=1e-10)
+    return band / z
+
+
+def _snoop(fit, inliers, sigma, min_inliers, adjust):
+    """Data snooping: drop points whose |w| exceeds the critical value, refit, repeat."""
+    n_removed = 0
+    for _ in range(SNOOP_ROUNDS):
+        flagged = fit.flagged  # |w_i| > critical value of level alpha (two-sided)
+        if not flagged.any():
+            break
+        idx = np.flatnonzero(inliers)
+        inliers = inliers.copy()
+        inliers[idx[flagged]] = False
+        n_removed += int(flagged.sum())
+        if inliers.sum() < min_inliers:
+            return _Final(None, inliers, n_removed, _sigma_scalar(sigma), "too few inliers left after data snooping")
+        try:
+            fit = adjust(inliers, fit.x, sigma)
+        except LabkitError as exc:
+            return _Final(None, inliers, n_removed, _sigma_scalar(sigma), f"refit after data snooping failed: {exc}")
+    return _Final(fit, inliers, n_removed, _sigma_scalar(sigma), "")
+
+
+def _sigma_scalar(sigma):
+    return float(sigma) if np.ndim(sigma) == 0 else None

@@ -1,0 +1,273 @@
+"""Is a candidate sphere a sphere cap the scanner saw? The checks of ransac_sphere's Notes."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .config import (
+    BACKFACE_SHARE, BAND_K, CONTRAST, INTERIOR_SHARE, MIN_LEVELS, MIN_SPREAD, PLANE_RATIO,
+    SHADOW_SHARE, TWO_PLANES_SHARE, VERIFY_MAX, S,
+)
+from .hypotheses import orthogonal_fit, squared_center_distances
+from .refit import truncated_mad_scale
+
+
+class Verifier:
+    """Is a hypothesis a sphere cap seen by the scanner? Checks on the full cloud (reduced frame).
+
+    ``accepts(x)`` is asked for every hypothesis that would become the best:
+    it polishes x on its inliers of the full cloud (two rounds of inliers ->
+    orthogonal fit) and runs :meth:`reasons`. Rejected spheres are remembered,
+    and hypotheses close to one of them are rejected without a new check.
+    """
+
+    def __init__(self, X, station, cfg):
+        self.X, self.station, self.cfg = X, station, cfg
+        self._tree = None
+        self.n_rejected, self.n_checked = 0, 0
+        self.best_rejection = ""
+        self._best_rejected_score = -np.inf
+        self._rejected = []  # polished spheres that failed
+        self._R = None  # the same as an array (cached)
+
+    @property
+    def tree(self):
+        if self._tree is None:
+            self._tree = cKDTree(self.X)
+        return self._tree
+
+    def start(self, cfg):
+        self.cfg = cfg
+        self.n_checked = 0  # the budget is per search (working set)
+
+    @property
+    def exhausted(self):
+        return self.n_checked >= VERIFY_MAX
+
+    def accepts(self, x, score=0.0):
+        cfg = self.cfg
+        if self.near_rejected(x[None, :])[0] or self.exhausted:
+            return False
+        self.n_checked += 1
+        coarse = self._coarse_reason(x, cfg.threshold)
+        if coarse:  # clearly not a sphere (counted in C, no polishing): most large spheres end here
+            self._remember(coarse, x, score)
+            return False
+        x_pol = self._polish(x, cfg.threshold)
+        reason = "its inliers do not determine a sphere" if x_pol is None else self.reasons(x_pol, cfg.threshold)
+        if reason:
+            self._remember(reason, x if x_pol is None else x_pol, score)
+        return not reason
+
+    def _remember(self, reason, x, score=0.0):
+        if not self.best_rejection or score > self._best_rejected_score:
+            self.best_rejection, self._best_rejected_score = reason, score
+        self.n_rejected += 1
+        self._rejected.append(np.asarray(x, dtype=np.float64))
+
+    def _coarse_reason(self, x, t):
+        """A quick interior test on the raw hypothesis: many points deep inside (beyond 5 t)."""
+        c, r = x[:3], float(x[3])
+        if r <= 5.0 * t:
+            return ""
+        shell = self.tree.query_ball_point(c, r + t, return_length=True) - self.tree.query_ball_point(
+            c, r - t, return_length=True)
+        deep = self.tree.query_ball_point(c, r - 5.0 * t, return_length=True)
+        if deep > max(5.0 * INTERIOR_SHARE * shell, 20):
+            return (f"{deep} points lie deep inside it (for {shell} on its shell): a solid sphere hides its "
+                    "interior, so this is a cut through other surfaces or a volume of points, not a sphere")
+        return ""
+
+    def reject(self, *spheres):
+        """Remember spheres that failed (e.g. in the final refit): hypotheses near them are not tried again."""
+        self._rejected += [np.asarray(x, dtype=np.float64) for x in spheres if x is not None]
+        self.n_rejected += 1
+
+    def final_check(self, x, band):
+        """Reasons to reject the final adjusted sphere (with the final band as shell half-width)."""
+        return self.reasons(np.asarray(x, dtype=np.float64), max(band, self.cfg.threshold))
+
+    def near_rejected(self, X):
+        """For hypotheses X (B, 4): close to a sphere that already failed (centre and radius within
+        max(t, 10 % of r))?"""
+        if not self._rejected:
+            return np.zeros(len(X), dtype=bool)
+        if self._R is None or len(self._R) != len(self._rejected):
+            self._R = np.array(self._rejected)
+        R = self._R
+        tol = np.maximum(self.cfg.threshold, 0.1 * R[:, 3])[None, :]
+        dc2 = squared_center_distances(X[:, :3], np.einsum("ij,ij->i", X[:, :3], X[:, :3]), R[:, :3])
+        return ((dc2 < tol * tol) & (np.abs(X[:, None, 3] - R[None, :, 3]) < tol)).any(axis=1)
+
+    def _local(self, x, reach):
+        """Indices and residuals d (eq. 25) of the points within r + reach of the centre."""
+        idx = np.asarray(self.tree.query_ball_point(x[:3], x[3] + reach), dtype=np.int64)
+        diff = self.X[idx] - x[:3]
+        return idx, np.sqrt(np.einsum("ij,ij->i", diff, diff)) - x[3]
+
+    def _polish(self, x, t):
+        """Inliers -> orthogonal fit, three rounds; the band widens to k sigma_hat when t is below the noise."""
+        band = t
+        for _ in range(3):
+            idx, d = self._local(x, band)
+            on = np.abs(d) < band
+            if on.sum() <= S:
+                return None
+            x_new = orthogonal_fit(self.X[idx[on]], x, steps=2)
+            if x_new is None:
+                return None
+            x = x_new
+            if not 0.5 * self.cfg.r_min <= x[3] <= 2.0 * self.cfg.r_max:
+                return x  # far outside the radius range: more rounds will not bring it back (reasons() rejects)
+            _, d = self._local(x, band)
+            d = d[np.abs(d) < band]
+            if len(d) > S:
+                band = max(t, min(BAND_K * truncated_mad_scale(np.abs(d), band), 3.0 * t))
+        return x
+
+    def reasons(self, x, t):
+        """'' for a plausible sphere cap, else why not (checks of ransac_sphere's Notes)."""
+        cfg = self.cfg
+        c, r = x[:3], float(x[3])
+        if not cfg.r_min <= r <= cfg.r_max:
+            return f"the adjusted radius {r:.5g} m lies outside [{cfg.r_min:.5g}, {cfg.r_max:.5g}] m"
+        idx, d = self._local(x, 3.0 * max(t, 2.0 * BAND_K * t))
+        on = np.abs(d) < t
+        n_in = int(on.sum())
+        if n_in < cfg.min_inliers:
+            return f"only {n_in} points on its shell |d| < {t:.3g} m in the full cloud (< min_inliers = {cfg.min_inliers})"
+        sigma_hat = truncated_mad_scale(np.abs(d[on]), t)  # robust, and consistent for the cut at t
+        margin = max(t, 3.5 * sigma_hat)
+        # the shell: at least the noise band k sigma_hat (a t below the noise must not thin it out)
+        t = max(t, min(BAND_K * sigma_hat, 2.0 * t))
+        on = np.abs(d) < t
+        n_in = int(on.sum())
+        inside = int(np.count_nonzero(d < -margin))
+        if inside > INTERIOR_SHARE * n_in:
+            return (f"{inside} points lie inside it (for {n_in} on its shell): a solid sphere hides its interior, "
+                    "so this is a cut through other surfaces or a volume of points, not a sphere")
+        outside = int(np.count_nonzero((d >= t) & (d < 3.0 * t)))
+        if n_in < CONTRAST * outside:
+            return (f"too many points just outside the shell ({outside}, for {n_in} on it): no spherical surface "
+                    "stands out, the points only pass through the shell (a cylinder, plane pieces, clutter)")
+        P = self.X[idx[on]]
+        q = P - P.mean(axis=0)
+        rms_plane = np.sqrt(max(np.linalg.eigvalsh(q.T @ q / len(q))[0], 0.0))
+        rms_sphere = np.sqrt(np.mean(d[on] ** 2))
+        if rms_plane < PLANE_RATIO * rms_sphere:
+            return (f"the inliers are nearly flat (plane rms {rms_plane * 1e3:.3g} mm vs sphere rms "
+                    f"{rms_sphere * 1e3:.3g} mm): a plane patch, not a sphere")
+        planes = _two_plane_share(P, t)
+        if planes >= TWO_PLANES_SHARE:
+            return (f"{planes:.0%} of its inliers lie on one or two planes: pieces of planes (a floor, a wall, "
+                    "an edge) cut by the sphere, not a sphere")
+        normals = (P - c) / np.linalg.norm(P - c, axis=1, keepdims=True)  # from the model, not from neighbours
+        spread = _cap_spread(normals, None if self.station is None else self.station - c)
+        if spread < MIN_SPREAD:
+            return (f"the inliers cover no cap (their normals spread over {np.degrees(np.sqrt(max(spread, 0))):.1f} deg "
+                    "across): a ring or a strip, e.g. one scan line on a round object")
+        if self.station is None:
+            return ""
+        return self._visibility(c, r, margin, normals, P, n_in)
+
+    def _visibility(self, c, r, margin, normals, P, n_in):
+        s = self.station
+        if np.linalg.norm(s - c) <= r:
+            return "the station lies inside it: a scanner cannot see a solid sphere from inside"
+        view = s - P
+        view /= np.linalg.norm(view, axis=1, keepdims=True)
+        back = float(np.mean(np.einsum("ij,ij->i", normals, view) < -0.1))
+        if back > BACKFACE_SHARE:
+            return (f"{back:.0%} of its inliers lie on the side turned away from the station: "
+                    "they cannot be a sphere the scanner saw")
+        lines = _elevation_levels(P - s, 2.0 * np.arcsin(min(r / np.linalg.norm(s - c), 1.0)))
+        if lines < MIN_LEVELS:
+            return (f"its inliers lie on only {lines} scan line(s) (elevation levels seen from the station): "
+                    "two rings on a round object such as a cylinder fit such a sphere as well")
+        shadow = _points_behind(self.X, s, c, r - margin, margin)
+        if shadow > SHADOW_SHARE * n_in:
+            return (f"{shadow} points lie behind it seen from the station (for {n_in} on its shell): "
+                    "the scanner looked through it, free space where a solid sphere would be")
+        return ""
+
+
+def _cap_spread(normals, axis):
+    """Smallest variance of the unit normals across the viewing axis (1/4 for a full hemisphere).
+
+    The normals are projected onto the plane normal to ``axis`` (the direction
+    to the station, or their mean direction when no station is known); a cap
+    spreads in both directions, a ring or strip of one scan line in one only.
+    """
+    if axis is None:
+        axis = normals.mean(axis=0)
+        if np.linalg.norm(axis) < 0.2:
+            return 1.0  # normals all round the sphere (several stations): no single cap to check
+    a = axis / np.linalg.norm(axis)
+    helper = np.array([0.0, 0.0, 1.0]) if abs(a[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    e1 = np.cross(a, helper)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(a, e1)
+    uv = np.column_stack([normals @ e1, normals @ e2])
+    return float(np.linalg.eigvalsh(np.cov(uv.T))[0]) if len(uv) > 2 else 0.0
+
+
+def _two_plane_share(P, t, trials=256):
+    """Largest share of the points P within t of one plane plus a second plane (greedy, sampled planes).
+
+    A true cap puts at most one or two scan lines on any plane; a sphere
+    through a floor and a wall (an edge) has nearly all its inliers on two.
+    Planes through random point triples of a fixed-seed generator (deterministic).
+    """
+    n = len(P)
+    if n < 6:
+        return 1.0
+    gen = np.random.default_rng(0)
+    left = np.ones(n, dtype=bool)
+    held = 0
+    for _ in range(2):
+        Q = P[left]
+        if len(Q) < 3:
+            held += len(Q)
+            break
+        tri = Q[gen.integers(0, len(Q), size=(trials, 3))]
+        nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        norm = np.linalg.norm(nrm, axis=1)
+        ok = norm > 1e-12
+        if not ok.any():
+            break
+        nrm = nrm[ok] / norm[ok, None]
+        dist = np.abs(Q @ nrm.T - np.einsum("bk,bk->b", tri[ok][:, 0], nrm)[None, :])  # (m, b)
+        on = dist < t
+        best = int(np.argmax(on.sum(axis=0)))
+        idx = np.flatnonzero(left)
+        left[idx[on[:, best]]] = False
+        held += int(on[:, best].sum())
+    return held / n
+
+
+def _elevation_levels(V, diameter):
+    """Distinct elevation levels (z up) of the directions V from the station, in bins of 1/8 of the
+    sphere's angular diameter: the scan lines of a multi-beam scanner, many for a TLS."""
+    el = np.arcsin(np.clip(V[:, 2] / np.linalg.norm(V, axis=1), -1.0, 1.0))
+    width = max(diameter / 8.0, 1e-9)
+    return int(np.unique(np.floor(el / width)).size)
+
+
+def _points_behind(X, s, c, r_inner, margin):
+    """Points whose ray from the station s crosses the ball (c, r_inner) and ends beyond its entry."""
+    if r_inner <= 0:
+        return 0
+    sc = c - s
+    dist_c = np.linalg.norm(sc)
+    # only rays within the cone that the ball subtends can cross it
+    V = X - s
+    rng_ = np.sqrt(np.einsum("ij,ij->i", V, V))
+    cos_cone = np.sqrt(max(1.0 - (r_inner / dist_c) ** 2, 0.0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        tc = (V @ sc) / rng_  # distance along the ray to the foot of the centre
+        in_cone = tc > cos_cone * dist_c  # cos(angle between ray and centre) > cos(half cone)
+    tc, rng_ = tc[in_cone], rng_[in_cone]
+    h2 = r_inner**2 - (dist_c**2 - tc**2)
+    entry = tc - np.sqrt(np.maximum(h2, 0.0))
+    return int(np.count_nonzero((h2 > 0) & (rng_ > entry + margin)))
