@@ -53,16 +53,16 @@ _PER_THREAD = 4000  # queries per thread at least; below, one thread is faster t
 
 
 @_njit
-def _build(P, leafsize, inplace=False):  # pragma: no cover - compiled
+def _build(P, leafsize):  # pragma: no cover - compiled
     """Median kd-tree: permutation (leaf order), node ranges, children, boxes, depth, leaf-order points.
 
     The coordinates are moved along with the permutation (W), so every pass over a
     node reads its points sequentially instead of gathering them through ``perm``.
-    ``inplace``: P is a private copy and becomes W (one copy less of a large cloud).
+    P must be a private, writeable float64 copy: it becomes W (one copy less of a large cloud).
     """
     n = P.shape[0]
     perm = np.arange(n)
-    W = P if inplace else P.copy()
+    W = P
     wbuf = np.empty((n, 3))
     cap = max(16, 4 * (n // max(1, leafsize // 2)) + 16)
     start = np.empty(cap, np.int64)
@@ -413,7 +413,7 @@ def _build_two(P, leafsize):
     releases the GIL); the same tree as one call, up to the numbering of the nodes."""
     n = len(P)
     if n < 100_000 or _threads(-1) < 2 or not HAVE_NUMBA:
-        return _build(P, leafsize)
+        return _build(np.array(P, np.float64, order="C"), leafsize)  # private, writeable copy
     lo, hi = P.min(axis=0), P.max(axis=0)
     d = int(np.argmax(hi - lo))
     keys = P[:, d]
@@ -422,11 +422,11 @@ def _build_two(P, leafsize):
     if not left.any():  # v is the minimum: split after all points equal to it (ties stay together)
         left = keys <= v
         if left.all():
-            return _build(P, leafsize)
+            return _build(np.array(P, np.float64, order="C"), leafsize)  # private, writeable copy
         v = keys[~left].min()
     iL, iR = np.flatnonzero(left), np.flatnonzero(~left)
     with ThreadPoolExecutor(2) as pool:
-        jobs = [pool.submit(_build, np.ascontiguousarray(P[i]), leafsize, True) for i in (iL, iR)]  # private halves
+        jobs = [pool.submit(_build, np.ascontiguousarray(P[i]), leafsize) for i in (iL, iR)]  # private halves
         (pL, nL, bL, dL, wL), (pR, nR, bR, dR, wR) = (job.result() for job in jobs)
     mL = len(nL)
     nodes = np.empty((1 + mL + len(nR), 4), np.int64)

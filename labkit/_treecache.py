@@ -16,8 +16,6 @@ import weakref
 
 import numpy as np
 
-from ._kdtree import KDTree
-
 _lock = threading.Lock()
 _last = None  # (weak reference to the caller's array, key, tree)
 
@@ -27,7 +25,7 @@ def _key(points, origin, merge_duplicates):
     return points.shape, np.asarray(origin, dtype=np.float64).tobytes(), bool(merge_duplicates), hash(sub.tobytes())
 
 
-def local_tree(points: np.ndarray, origin, merge_duplicates: bool) -> KDTree:
+def local_tree(points: np.ndarray, origin, merge_duplicates: bool):
     """KDTree of ``points - origin`` (reused when the same array, origin and rule came last)."""
     global _last
     key = _key(points, origin, merge_duplicates)
@@ -35,6 +33,8 @@ def local_tree(points: np.ndarray, origin, merge_duplicates: bool) -> KDTree:
         last = _last
     if last is not None and last[0]() is points and last[1] == key:
         return last[2]
+    from ._kdtree import KDTree  # here, not at the top: `labkit.cli` imports this module and stays free of numba
+
     tree = KDTree(np.asarray(points, dtype=np.float64) - origin, merge_duplicates=merge_duplicates)
     try:
         ref = weakref.ref(points)
