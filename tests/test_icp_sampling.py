@@ -134,11 +134,11 @@ def test_distances_of_every_point_equal_the_plain_route():
 
 
 def test_distances_reuse_the_tree_icp_built_on_the_same_target(monkeypatch):
-    from labkit import _treecache
+    from labkit import _kdtree, _treecache
 
     builds = []
-    real = _treecache.KDTree
-    monkeypatch.setattr(_treecache, "KDTree", lambda *a, **kw: builds.append(len(a[0])) or real(*a, **kw))
+    real = _kdtree.KDTree
+    monkeypatch.setattr(_kdtree, "KDTree", lambda *a, **kw: builds.append(len(a[0])) or real(*a, **kw))
     _treecache.forget()
     pair = _village(5, size=30.0)
     res = icp(pair.source, pair.target, rng=0)
