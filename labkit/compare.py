@@ -308,8 +308,12 @@ def _standard(source, target, *, name, dof, extent, max_points, rng, progress=Fa
     if name == "consensus":
         return result
     refined = icp(source, target, dof=dof, robust="tukey", initial=result.matrix, rng=rng, progress=progress)
+    bb = result.history[0]  # the branch-and-bound outcome: how far the start is certified
+    start = (f"started at max_consensus: consensus {bb.lower:.0f}, certified gap {bb.gap:.0f}, {bb.reason}, "
+             f"shift {np.array2string(result.translation, precision=4)} m")
     return replace(refined, method=f"max_consensus + {refined.method}",
-                   runtime_s=result.runtime_s + refined.runtime_s)
+                   runtime_s=result.runtime_s + refined.runtime_s,
+                   message="; ".join(m for m in (refined.message, start) if m))
 
 
 @dataclass(frozen=True, eq=False)
