@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 from ._checks import as_points, choice, count
 from ._frame import local_origin, reduce
 from ._report import ReportMixin
+from ._treecache import local_tree
 from .errors import DegenerateGeometryError, EmptyRegionError, LabkitError
 from .progress import progress_steps
 from .transforms import apply_transform, check_transform
@@ -168,8 +169,6 @@ def distances_before_after(source, target, transform, *, kind: str = "point_to_p
             nrm = _unit_normals(target_normals, tgt.shape)
         elif k > len(tgt):
             raise LabkitError(f"k must lie between 3 and the number of target points ({len(tgt)}), got {k}")
-    from ._treecache import local_tree
-
     origin = local_origin(tgt)
     # the tree ICP built on this target is reused (labkit register: no second build, no second copy)
     tree = local_tree(tgt, origin, merge_duplicates=nrm is None and kind == "point_to_plane")

@@ -239,7 +239,7 @@ def test_distributed_worker_processes_equal_serial():
 @pytest.mark.parametrize("buffer", [0.0, 2.5, 7.0])
 def test_binned_cut_equals_masking_every_tile(buffer):
     """The cells-first cut gives every tile exactly the points Tile.contains selects (edges included)."""
-    from labkit.tiles import _cut_all, _for_tile
+    from labkit.tiles.survey import _cut_all, _for_tile
 
     rng = np.random.default_rng(8)
     xyz = np.r_[rng.uniform(-3, 33, (3000, 3)), np.round(rng.uniform(0, 30, (500, 3)))]  # many on tile edges
@@ -317,7 +317,7 @@ def test_folders_and_globs_of_tiles_read_only_what_a_tile_needs(tmp_path):
                                   size=50.0, buffer=5.0, scheduler="serial")
     np.testing.assert_array_equal(by_folder.translations, listed.translations)
     # a tile task receives only the files whose header meets its buffered box
-    survey = tiles._survey(str(tmp_path / "s"))
+    survey = tiles.survey._survey(str(tmp_path / "s"))
     tile = tiles.tile_grid(survey.bounds(), 50.0, buffer=5.0)[0]
     near = survey.for_tile(tile)
     want = io.files_in_box(str(tmp_path / "s"), tile.read_bounds)
