@@ -160,6 +160,17 @@ class PointCloud:
         Units of the coordinates and of the file (set by :func:`labkit.io.read_cloud`).
         By default they are derived from ``crs`` with the coordinates taken in
         the CRS's own units; without a CRS they are unknown (taken as metres).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> cloud = PointCloud(np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 5]]), {"classification": np.array([2, 2, 6])},
+    ...                    crs="EPSG:25832", name="demo")
+    >>> len(cloud), cloud["classification"].tolist(), cloud.crs
+    (3, [2, 2, 6], 'EPSG:25832')
+    >>> cloud.subset(cloud["classification"] == 2).xyz.tolist()
+    [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]
     """
 
     xyz: np.ndarray

@@ -275,6 +275,15 @@ class DensityGrid(ReportMixin):
         Cell edge length (m).
     origin : ndarray (2,)
         x, y of the lower-left corner of cell [0, 0].
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.regions import density_grid
+    >>> grid = density_grid(PointCloud(np.array([[0.2, 0.2, 0], [0.7, 0.4, 0], [1.5, 0.5, 0]])), cell=1.0)
+    >>> type(grid).__name__, grid.counts.tolist(), [float(v) for v in grid.extent]
+    ('DensityGrid', [[2, 1]], [0.0, 2.0, 0.0, 1.0])
     """
 
     counts: np.ndarray

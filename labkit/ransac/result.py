@@ -54,6 +54,15 @@ class RansacResult(ReportMixin):
         robust scale of the residuals, not by the threshold t.
     station : ndarray (3,) or None
         Scanner position used by the visibility checks (None: not used).
+
+    Examples
+    --------
+    >>> from labkit.ransac import ransac_sphere
+    >>> from labkit.synthetic import sphere_on_tripod
+    >>> scene = sphere_on_tripod(n_sphere=300, rng=3)
+    >>> result = ransac_sphere(scene.points, threshold=0.003, rng=0, radius_range=(0.05, 0.1))
+    >>> type(result).__name__, result.found, int(result.inliers.sum()) >= 250
+    ('RansacResult', True, True)
     """
 
     fit: object

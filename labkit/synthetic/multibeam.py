@@ -60,6 +60,13 @@ class MultibeamScene(ReportMixin):
         Scanner position (the origin).
     noise : float
         Standard deviation of the range noise (m).
+
+    Examples
+    --------
+    >>> from labkit.synthetic import multibeam_room
+    >>> scene = multibeam_room(rng=0)
+    >>> type(scene).__name__, scene.points.shape[1], bool(scene.is_sphere.any())
+    ('MultibeamScene', 3, True)
     """
 
     points: np.ndarray

@@ -63,6 +63,13 @@ class TripodScene(ReportMixin):
         for isotropic noise.
     offset : ndarray (3,)
         Shift added to the local scene (zero unless UTM coordinates were asked for).
+
+    Examples
+    --------
+    >>> from labkit.synthetic import sphere_on_tripod
+    >>> scene = sphere_on_tripod(n_sphere=200, rng=0)
+    >>> type(scene).__name__, int(scene.is_sphere.sum()), scene.points.shape[1]
+    ('TripodScene', 200, 3)
     """
 
     points: np.ndarray
