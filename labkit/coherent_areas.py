@@ -66,17 +66,16 @@ class NeighbourTest(ReportMixin):
 
     Examples
     --------
-    Three tiles in a row with 1 mm std; the third moved 5 cm more than the others:
+    Four tiles in a square (1 mm std each); the right column moved 5 cm more in X:
 
     >>> import numpy as np
-    >>> from labkit.tiles import ShiftField, TileShift, tile_grid
-    >>> grid = tile_grid((0, 0, 299, 99), 100.0)
-    >>> field = ShiftField(tuple(TileShift(t, np.array([dx, 0.0, 0.0]), np.eye(3) * 1e-6, np.ones(3, bool),
-    ...                                    900, 900, 800, 1.0, True, 0.1, "ok")
-    ...                          for t, dx in zip(grid, [0.010, 0.011, 0.060])), 100.0)
-    >>> test = field.neighbour_test()
-    >>> type(test).__name__, test.pairs.tolist(), test.agree.tolist(), test.n_areas
-    ('NeighbourTest', [[0, 1], [1, 2]], [True, False], 2)
+    >>> from labkit.coherent_areas import neighbour_areas
+    >>> t = np.array([[0.01, 0, 0], [0.06, 0, 0], [0.01, 0, 0], [0.06, 0, 0]])  # tiles (0,0) (0,1) (1,0) (1,1)
+    >>> pairs = np.array([[0, 1], [0, 2], [1, 3], [2, 3]])
+    >>> test = neighbour_areas(pairs, t, np.tile(np.eye(3) * 1e-6, (4, 1, 1)), np.ones((4, 3), bool),
+    ...                        np.ones(4, bool), alpha=0.05)
+    >>> test.agree.tolist(), test.areas.tolist(), test.area_shift[:, 0].round(3).tolist()
+    ([False, True, True, False], [0, 1, 0, 1], [0.01, 0.06])
     """
 
     pairs: np.ndarray

@@ -64,18 +64,19 @@ class ShiftField(ReportMixin):
 
     Examples
     --------
-    Three tiles in a row; the third moved 5 cm more than the others (1 mm std each):
+    Two tiles; the second (a flat field) determines only Z:
 
     >>> import numpy as np
     >>> from labkit.tiles import ShiftField, TileShift, tile_grid
-    >>> grid = tile_grid((0, 0, 299, 99), 100.0)
-    >>> field = ShiftField(tuple(TileShift(t, np.array([dx, 0.0, 0.0]), np.eye(3) * 1e-6, np.ones(3, bool),
-    ...                                    900, 900, 800, 1.0, True, 0.1, "ok")
-    ...                          for t, dx in zip(grid, [0.010, 0.011, 0.060])), 100.0)
-    >>> len(field), field.centres[:, 0].tolist(), field.std[:, 0].round(4).tolist()
-    (3, [50.0, 150.0, 250.0], [0.001, 0.001, 0.001])
-    >>> field.neighbour_test().areas.tolist()
-    [0, 0, 1]
+    >>> a, b = tile_grid((0, 0, 199, 99), 100.0)
+    >>> field = ShiftField((TileShift(a, np.array([0.02, 0.01, 0.03]), np.eye(3) * 4e-6, np.ones(3, bool),
+    ...                               900, 900, 800, 1.0, True, 0.1, "ok"),
+    ...                     TileShift(b, np.array([0.0, 0.0, 0.03]), np.eye(3) * 4e-6, np.array([False, False, True]),
+    ...                               900, 900, 800, 1.0, True, 0.1, "ok")), 100.0)
+    >>> field.centres.tolist(), field.std[0].tolist()
+    ([[50.0, 50.0], [150.0, 50.0]], [0.002, 0.002, 0.002])
+    >>> field.determined_translations.tolist()  # what the data do not determine is NaN
+    [[0.02, 0.01, 0.03], [nan, nan, 0.03]]
     """
 
     tiles: tuple
