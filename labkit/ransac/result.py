@@ -57,12 +57,16 @@ class RansacResult(ReportMixin):
 
     Examples
     --------
+    A search that finds nothing says why instead of returning a sphere (points on a plane):
+
+    >>> import numpy as np
     >>> from labkit.ransac import ransac_sphere
-    >>> from labkit.synthetic import sphere_on_tripod
-    >>> scene = sphere_on_tripod(n_sphere=300, rng=3)
-    >>> result = ransac_sphere(scene.points, threshold=0.003, rng=0, radius_range=(0.05, 0.1))
-    >>> type(result).__name__, result.found, int(result.inliers.sum()) >= 250
-    ('RansacResult', True, True)
+    >>> plane = np.c_[np.random.default_rng(0).uniform(0, 1, (300, 2)), np.zeros(300)]
+    >>> result = ransac_sphere(plane, threshold=0.003, rng=0, radius_range=(0.05, 0.1))
+    >>> result.found, result.fit, int(result.inliers.sum())
+    (False, None, 0)
+    >>> result.reason
+    'every one of the 2048 samples was degenerate (coplanar or repeated points)'
     """
 
     fit: object
