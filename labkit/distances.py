@@ -183,8 +183,9 @@ def distances_before_after(source, target, transform, *, kind: str = "point_to_p
     >>> from labkit.transforms import make_transform
     >>> g = np.arange(20.0)
     >>> target = np.c_[np.repeat(g, 20), np.tile(g, 20), np.zeros(400)]
-    >>> change = distances_before_after(target[::3] + [0.5, 0.5, 0.03], target, make_transform(np.eye(3), [0, 0, -0.03]))
-    >>> float(np.median(np.abs(change.before))).__round__(3), float(np.max(np.abs(change.after))) < 1e-9
+    >>> down = make_transform(np.eye(3), [0, 0, -0.03])
+    >>> change = distances_before_after(target[::3] + [0.5, 0.5, 0.03], target, down)
+    >>> round(float(np.median(np.abs(change.before))), 3), float(np.max(np.abs(change.after))) < 1e-9
     (0.03, True)
     """
     T = as_matrix(transform)

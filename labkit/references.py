@@ -322,7 +322,8 @@ def load_references(path) -> dict:
     >>> from labkit.references import load_references
     >>> path = Path(tempfile.mkdtemp()) / "references.json"
     >>> _ = path.write_text(json.dumps({"references": [
-    ...     {"region": "roof", "case": "als-als", "repeats": [[0.10, 0, 0], [0.12, 0, 0]], "std": [0.01, 0.01, 0.01]}]}))
+    ...     {"region": "roof", "case": "als-als", "repeats": [[0.10, 0, 0], [0.12, 0, 0]],
+    ...      "std": [0.01, 0.01, 0.01]}]}))
     >>> ref = load_references(path)[("roof", "als-als")]
     >>> ref.kind, ref.n, ref.translation.round(3).tolist()
     ('mean of manual', 2, [0.11, 0.0, 0.0])

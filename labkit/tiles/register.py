@@ -161,7 +161,7 @@ def _method_name(method) -> str:
 
 
 def _default_method():
-    from ..registration import icp  # here, not at the top: ICP's matching loads numba (``import labkit.cli`` stays light)
+    from ..registration import icp  # not at the top: ICP's matching loads numba (import labkit.cli stays light)
 
     return partial(icp, dof="translation", rng=0)
 
