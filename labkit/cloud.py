@@ -220,6 +220,31 @@ class PointCloud:
         object.__setattr__(cloud, "attributes", dict(attributes))
         return cloud
 
+    @classmethod
+    def concatenate(cls, clouds, *, name: str = "", crs: str | None = None, units=None) -> "PointCloud":
+        """The points of several clouds in one, with the attributes all of them have (in the first one's order).
+
+        CRS and units are not compared here: :func:`labkit.regions.merge` and
+        :func:`labkit.io.read_clouds` refuse clouds that differ, each by its own rule
+        (files must agree exactly; a cloud without a CRS may join others in memory),
+        and pass the ``crs`` and ``units`` of the result.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from labkit.cloud import PointCloud
+        >>> a = PointCloud(np.zeros((2, 3)), {"intensity": np.array([1, 2]), "flag": np.array([0, 1])})
+        >>> b = PointCloud(np.ones((1, 3)), {"intensity": np.array([3])})
+        >>> both = PointCloud.concatenate([a, b], name="ab")
+        >>> len(both), both["intensity"].tolist(), sorted(both.attributes)
+        (3, [1, 2, 3], ['intensity'])
+        """
+        first = clouds[0]
+        common = [k for k in first.attributes if all(k in c.attributes for c in clouds[1:])]
+        xyz = np.concatenate([c.xyz for c in clouds])
+        attrs = {k: np.concatenate([c.attributes[k] for c in clouds]) for k in common}  # dtypes promoted alike
+        return cls._adopt(xyz, attrs, crs=crs, name=name, units=units)
+
     def __len__(self) -> int:
         return self.xyz.shape[0]
 
