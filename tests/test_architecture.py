@@ -196,3 +196,57 @@ def test_every_public_function_and_class_has_a_runnable_example():
     without = sorted({f"{where}.{name}" for where, name, obj in objects
                       if not ("Examples\n--------" in (inspect.getdoc(obj) or "") and ">>>" in inspect.getdoc(obj))})
     assert without == []
+
+
+# --------------------------------------------------------------------------- imports inside functions
+#: Modules whose in-function imports are reworked by the registration/features/neighbourhood/comparison work.
+IMPORTS_ELSEWHERE = ("labkit.registration", "labkit.features", "labkit.neighbours", "labkit._kdtree",
+                     "labkit.compare")
+#: In-function imports of labkit's own modules, (importer, imported module) -> why it is not at the top.
+LAZY_IMPORTS = {
+    ("labkit.cloud", "labkit._units"): "cycle",  # _units imports cloud.Units at its top
+    ("labkit._treecache", "labkit._kdtree"): "heavy",
+    ("labkit.cli", "labkit.change"): "heavy",
+    ("labkit.demo", "labkit.features"): "heavy",  # demo is imported by cli
+    ("labkit.distances", "labkit.features"): "heavy",
+    ("labkit.distances", "labkit.registration.matching"): "heavy",
+    ("labkit.plotting.registration", "labkit.registration.matching"): "heavy",
+    ("labkit.tiles.register", "labkit.registration"): "heavy",  # the icp function loads matching
+    ("labkit.widgets", "labkit.plotting.consensus"): "heavy",
+    ("labkit.widgets", "labkit.features"): "heavy",
+    ("labkit.widgets", "labkit.registration"): "heavy",
+    ("labkit.widgets", "labkit.registration.matching"): "heavy",
+}
+
+
+def _lazy_imports():
+    """(importer, imported module) of every ``from labkit... import`` inside a function."""
+    modules = _modules()
+    found = set()
+    for name, path in modules.items():
+        if name.startswith(IMPORTS_ELSEWHERE):
+            continue
+        package = _package_of(name, modules)
+        for func in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(func, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            for node in ast.walk(func):
+                if isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith("labkit")):
+                    base = package.split(".")[: len(package.split(".")) - node.level + 1] if node.level else []
+                    found.add((name, ".".join(base + ([node.module] if node.module else []))))
+    return found
+
+
+def test_labkit_modules_are_imported_inside_functions_only_to_stay_light_or_to_break_a_cycle():
+    assert _lazy_imports() == set(LAZY_IMPORTS)
+    # "heavy" is true: importing (and using) the target loads numba; "cycle" is true: the target imports the importer
+    modules = _modules()
+    for (importer, target), why in LAZY_IMPORTS.items():
+        if why == "cycle":
+            assert importer in _top_level_imports(target, modules[target], modules)
+    heavy = sorted({t for (_, t), why in LAZY_IMPORTS.items() if why == "heavy"})
+    code = ("import sys, importlib; m = importlib.import_module({!r}); "
+            "getattr(m, 'icp', None); print('numba' in sys.modules)")
+    runs = {t: subprocess.Popen([sys.executable, "-c", code.format(t)], stdout=subprocess.PIPE, text=True)
+            for t in heavy}  # fresh interpreters, side by side
+    assert {t: run.communicate()[0].strip() for t, run in runs.items()} == {t: "True" for t in heavy}
