@@ -30,7 +30,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from ._report import ReportMixin
-from ._stats import CORRECTIONS, _cholesky, adjusted_p_values, quadratic_form  # noqa: F401  (CORRECTIONS re-exported)
+from ._stats import CORRECTIONS  # noqa: F401  (re-exported)
+from ._stats import adjusted_p_values, cholesky_factors, quadratic_form
 
 
 @dataclass(frozen=True, eq=False, repr=False)
@@ -200,7 +201,7 @@ def _weights(t, Ce, determined, ok):
         rows = np.flatnonzero(ok & (determined == mask).all(axis=1))
         ax = np.flatnonzero(mask)
         sub = Ce[rows][:, ax][:, :, ax]
-        L, fine = _cholesky(np.where(np.isfinite(sub).all(axis=(1, 2))[:, None, None], sub, 0.0))
+        L, fine = cholesky_factors(np.where(np.isfinite(sub).all(axis=(1, 2))[:, None, None], sub, 0.0))
         rows, L = rows[fine], L[fine]  # a tile without a positive definite covariance gets no weight
         Linv = np.linalg.solve(L, np.broadcast_to(np.eye(len(ax)), L.shape))
         W[np.ix_(rows, ax, ax)] = np.einsum("nki,nkj->nij", Linv, Linv)  # C^-1 = L^-T L^-1
