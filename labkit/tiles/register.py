@@ -68,7 +68,8 @@ def register_tiles(source, target, method=None, *, size: float = 100.0, buffer: 
     source, target : PointCloud, array (n, 3), path, folder, glob, or a list of paths/folders/globs
         The two epochs. LAS/LAZ files are read lazily per tile: their header extents
         decide which files a tile touches, and only the points in the tile's box (with
-        buffer) are kept while reading, so no process holds more than its tile.
+        buffer) are kept while reading, so no process holds more than its tile. The files
+        of one epoch must name one CRS in their headers (mixed ones are refused at once).
     method : callable(source, target) -> RegistrationResult, or str, optional
         Default: ``labkit.icp`` with ``dof="translation"``. A name among
         :data:`labkit.compare.METHODS` (``'icp'``, ``'consensus'``, ...) means that

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from .._checks import as_points
-from ..errors import EmptyRegionError, LabkitError
+from ..errors import CloudFileError, EmptyRegionError, LabkitError
 from ..io import LAS_SUFFIXES, cloud_files, cloud_info, read_cloud
 from ..regions import merge
 from .grid import Tile
@@ -49,13 +49,19 @@ def _survey(data, classes=None, name: str = "survey"):
     """PointCloud/array -> itself; path, folder, glob or a list of these -> _Files (LAS/LAZ lazily, others read now).
 
     A class filter on points without a ``classification`` attribute (an array, or a
-    cloud read from a format without classes) is refused rather than ignored.
+    cloud read from a format without classes) is refused rather than ignored, and so
+    are LAS/LAZ files whose headers name different CRS (a tile would join them).
     """
     if isinstance(data, (str, Path)) or (isinstance(data, (list, tuple)) and data
                                          and all(isinstance(p, (str, Path)) for p in data)):
         paths = cloud_files(data)  # files, folders (their LAS/LAZ files) and globs
         if all(p.suffix.lower() in LAS_SUFFIXES for p in paths):
-            return _Files(tuple(str(p) for p in paths), np.array([_las_extent(p) for p in paths]),
+            infos = [cloud_info(p) for p in paths]  # headers only
+            crs = sorted({i.crs for i in infos if i.crs})
+            if len(crs) > 1:
+                raise CloudFileError(f"the {name} files are in different reference systems: {crs}; "
+                                     "reproject them to one CRS first")
+            return _Files(tuple(str(p) for p in paths), np.array([_extent(i) for i in infos]),
                           None if classes is None else tuple(classes))
         return _concat([read_cloud(p, classes=classes) for p in paths])
     if classes is None:
@@ -67,9 +73,8 @@ def _survey(data, classes=None, name: str = "survey"):
     return data.subset(np.isin(data["classification"], list(classes)))
 
 
-def _las_extent(path: Path) -> tuple:
-    """(xmin, ymin, xmax, ymax) from the LAS header (:func:`labkit.io.cloud_info`), without reading points."""
-    info = cloud_info(path)
+def _extent(info) -> tuple:
+    """(xmin, ymin, xmax, ymax) from a LAS header (:func:`labkit.io.cloud_info`)."""
     return (float(info.mins[0]), float(info.mins[1]), float(info.maxs[0]), float(info.maxs[1]))
 
 
