@@ -44,6 +44,16 @@ def precision_tolerance(tolerance: float):
 
     ``with precision_tolerance(0.5): icp(a32, b32)`` accepts float32 coordinates at
     UTM size (rounded to 0.25 m); ``precision_tolerance(np.inf)`` switches the guard off.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit import precision_tolerance
+    >>> from labkit._checks import as_points
+    >>> utm32 = np.array([[612_345.25, 5_701_234.5, 80.0]], dtype=np.float32)  # float32 rounds to 0.25-0.5 m here
+    >>> with precision_tolerance(0.5):
+    ...     as_points(utm32).dtype
+    dtype('float64')
     """
     tol = _number(tolerance, "the precision tolerance", "a number > 0 (m)")
     if not tol > 0:

@@ -198,7 +198,7 @@ def quadratic_form(e, C):
     T = np.full(len(E), np.nan)
     if len(E):
         idx = np.flatnonzero(np.isfinite(E).all(axis=1) & np.isfinite(Cs).all(axis=(1, 2)))
-        L, factored = _cholesky(Cs[idx])
+        L, factored = cholesky_factors(Cs[idx])
         if factored.any():
             # z = L^-1 e, T = z^T z
             z = np.linalg.solve(L[factored], E[idx[factored], :, None])[..., 0]
@@ -206,8 +206,15 @@ def quadratic_form(e, C):
     return float(T[0]) if e.ndim == 1 else T.reshape(e.shape[:-1])
 
 
-def _cholesky(C: np.ndarray):
-    """Lower Cholesky factors of a stack of matrices and a mask of those that have one (positive definite)."""
+def cholesky_factors(C: np.ndarray):
+    """Lower Cholesky factors of a stack of matrices and a mask of those that have one (positive definite).
+
+    Examples
+    --------
+    >>> L, ok = cholesky_factors(np.array([np.eye(2) * 4.0, [[1.0, 2.0], [2.0, 1.0]]]))
+    >>> ok.tolist(), L[0].tolist()
+    ([True, False], [[2.0, 0.0], [0.0, 2.0]])
+    """
     try:
         return np.linalg.cholesky(C), np.ones(len(C), bool)
     except np.linalg.LinAlgError:  # at least one is not positive definite: factor one by one

@@ -160,6 +160,17 @@ class PointCloud:
         Units of the coordinates and of the file (set by :func:`labkit.io.read_cloud`).
         By default they are derived from ``crs`` with the coordinates taken in
         the CRS's own units; without a CRS they are unknown (taken as metres).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> cloud = PointCloud(np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 5]]), {"classification": np.array([2, 2, 6])},
+    ...                    crs="EPSG:25832", name="demo")
+    >>> len(cloud), cloud["classification"].tolist(), cloud.crs
+    (3, [2, 2, 6], 'EPSG:25832')
+    >>> cloud.subset(cloud["classification"] == 2).xyz.tolist()
+    [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]
     """
 
     xyz: np.ndarray
@@ -208,6 +219,31 @@ class PointCloud:
         object.__setattr__(cloud, "xyz", xyz)
         object.__setattr__(cloud, "attributes", dict(attributes))
         return cloud
+
+    @classmethod
+    def concatenate(cls, clouds, *, name: str = "", crs: str | None = None, units=None) -> "PointCloud":
+        """The points of several clouds in one, with the attributes all of them have (in the first one's order).
+
+        CRS and units are not compared here: :func:`labkit.regions.merge` and
+        :func:`labkit.io.read_clouds` refuse clouds that differ, each by its own rule
+        (files must agree exactly; a cloud without a CRS may join others in memory),
+        and pass the ``crs`` and ``units`` of the result.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from labkit.cloud import PointCloud
+        >>> a = PointCloud(np.zeros((2, 3)), {"intensity": np.array([1, 2]), "flag": np.array([0, 1])})
+        >>> b = PointCloud(np.ones((1, 3)), {"intensity": np.array([3])})
+        >>> both = PointCloud.concatenate([a, b], name="ab")
+        >>> len(both), both["intensity"].tolist(), sorted(both.attributes)
+        (3, [1, 2, 3], ['intensity'])
+        """
+        first = clouds[0]
+        common = [k for k in first.attributes if all(k in c.attributes for c in clouds[1:])]
+        xyz = np.concatenate([c.xyz for c in clouds])
+        attrs = {k: np.concatenate([c.attributes[k] for c in clouds]) for k in common}  # dtypes promoted alike
+        return cls._adopt(xyz, attrs, crs=crs, name=name, units=units)
 
     def __len__(self) -> int:
         return self.xyz.shape[0]

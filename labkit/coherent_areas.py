@@ -30,7 +30,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from ._report import ReportMixin
-from ._stats import CORRECTIONS, _cholesky, adjusted_p_values, quadratic_form  # noqa: F401  (CORRECTIONS re-exported)
+from ._stats import CORRECTIONS  # noqa: F401  (re-exported)
+from ._stats import adjusted_p_values, cholesky_factors, quadratic_form
 
 
 @dataclass(frozen=True, eq=False, repr=False)
@@ -63,6 +64,19 @@ class NeighbourTest(ReportMixin):
         How many areas the agreeing neighbour pairs alone would give (before splitting).
     n_tests : int
         Size of the family: pair tests plus tile tests.
+
+    Examples
+    --------
+    Four tiles in a square (1 mm std each); the right column moved 5 cm more in X:
+
+    >>> import numpy as np
+    >>> from labkit.coherent_areas import neighbour_areas
+    >>> t = np.array([[0.01, 0, 0], [0.06, 0, 0], [0.01, 0, 0], [0.06, 0, 0]])  # tiles (0,0) (0,1) (1,0) (1,1)
+    >>> pairs = np.array([[0, 1], [0, 2], [1, 3], [2, 3]])
+    >>> test = neighbour_areas(pairs, t, np.tile(np.eye(3) * 1e-6, (4, 1, 1)), np.ones((4, 3), bool),
+    ...                        np.ones(4, bool), alpha=0.05)
+    >>> test.agree.tolist(), test.areas.tolist(), test.area_shift[:, 0].round(3).tolist()
+    ([False, True, True, False], [0, 1, 0, 1], [0.01, 0.06])
     """
 
     pairs: np.ndarray
@@ -187,7 +201,7 @@ def _weights(t, Ce, determined, ok):
         rows = np.flatnonzero(ok & (determined == mask).all(axis=1))
         ax = np.flatnonzero(mask)
         sub = Ce[rows][:, ax][:, :, ax]
-        L, fine = _cholesky(np.where(np.isfinite(sub).all(axis=(1, 2))[:, None, None], sub, 0.0))
+        L, fine = cholesky_factors(np.where(np.isfinite(sub).all(axis=(1, 2))[:, None, None], sub, 0.0))
         rows, L = rows[fine], L[fine]  # a tile without a positive definite covariance gets no weight
         Linv = np.linalg.solve(L, np.broadcast_to(np.eye(len(ax)), L.shape))
         W[np.ix_(rows, ax, ax)] = np.einsum("nki,nkj->nij", Linv, Linv)  # C^-1 = L^-T L^-1

@@ -17,11 +17,37 @@ import warnings
 
 
 class LabkitError(ValueError):
-    """Base class of every input or estimation error raised by labkit."""
+    """Base class of every input or estimation error raised by labkit.
+
+    Examples
+    --------
+    >>> from labkit.errors import LabkitError
+    >>> issubclass(LabkitError, ValueError)  # callers catching ValueError keep working
+    True
+    >>> from labkit.tiles import tile_grid
+    >>> try:
+    ...     tile_grid((0, 0, 10, 10), size=-1)
+    ... except LabkitError as exc:
+    ...     print(exc)
+    size must be a finite number > 0, got -1
+    """
 
 
 class DegenerateGeometryError(LabkitError):
-    """The points cannot determine the model (coplanar, duplicate, singular N)."""
+    """The points cannot determine the model (coplanar, duplicate, singular N).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.adjustment import gauss_helmert_model
+    >>> from labkit.errors import DegenerateGeometryError
+    >>> flat = np.c_[np.random.default_rng(0).uniform(-1, 1, (20, 2)), np.zeros(20)]  # a plane fixes no sphere
+    >>> try:
+    ...     gauss_helmert_model(flat)
+    ... except DegenerateGeometryError:
+    ...     print("degenerate")
+    degenerate
+    """
 
 
 class _ConvergenceError(LabkitError):
@@ -29,11 +55,35 @@ class _ConvergenceError(LabkitError):
 
 
 class EmptyRegionError(LabkitError):
-    """A crop, filter or overlap left no (or too few) points."""
+    """A crop, filter or overlap left no (or too few) points.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.errors import EmptyRegionError
+    >>> from labkit.regions import crop_box
+    >>> try:
+    ...     crop_box(PointCloud(np.zeros((3, 3))), (5, 5, 6, 6))
+    ... except EmptyRegionError:
+    ...     print("nothing inside")
+    nothing inside
+    """
 
 
 class CloudFileError(LabkitError):
-    """A point-cloud file is missing, unreadable, corrupt or of an unknown format."""
+    """A point-cloud file is missing, unreadable, corrupt or of an unknown format.
+
+    Examples
+    --------
+    >>> from labkit.errors import CloudFileError
+    >>> from labkit.io import read_cloud
+    >>> try:
+    ...     read_cloud("no/such/file.laz")
+    ... except CloudFileError:
+    ...     print("no file")
+    no file
+    """
 
 
 def _deprecated_convergence_error(stacklevel: int = 3):

@@ -34,6 +34,13 @@ def setup_notebook(seed: int = 2026) -> "np.random.Generator":  # noqa: F821
 
     Headless rendering (see :func:`setup_headless`), numpy print options, and
     matplotlib figure defaults in one call.
+
+    Examples
+    --------
+    >>> from labkit.notebook import setup_notebook
+    >>> rng = setup_notebook(seed=7)
+    >>> int(rng.integers(100)) == int(__import__("numpy").random.default_rng(7).integers(100))
+    True
     """
     import matplotlib.pyplot as plt
     import numpy as np

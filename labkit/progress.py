@@ -60,6 +60,13 @@ class ProgressEvent:
     None, ``n`` the size of this step, ``info`` an optional text (e.g. the
     current shift and number of pairs), ``finished`` is True on the last event
     (sent when the task ends, with ``n == 0``).
+
+    Examples
+    --------
+    >>> from labkit.progress import ProgressEvent
+    >>> event = ProgressEvent("reading a.laz", done=250, total=1000, n=250, unit="pts")
+    >>> event.fraction, event.finished
+    (0.25, False)
     """
 
     desc: str
@@ -82,6 +89,18 @@ class Reporter:
     """Counts the steps of one task and passes them to a sink (bar, lines, callback or nothing).
 
     Made by :func:`progress_steps`; call it as ``step(n, info="...")``.
+
+    Examples
+    --------
+    A Reporter is what :func:`progress_steps` yields: call it with the size of each step.
+
+    >>> from labkit.progress import progress_steps
+    >>> events = []
+    >>> with progress_steps(events.append, total=10, desc="chunks") as step:
+    ...     step(4)
+    ...     step(6, info="last")
+    >>> type(step).__name__, [(e.done, e.info, e.finished) for e in events]
+    ('Reporter', [(4, '', False), (10, 'last', False), (10, 'last', True)])
     """
 
     def __init__(self, sink, desc: str, total: int | None, unit: str):
@@ -130,6 +149,18 @@ def progress_steps(progress, total: int | None = None, desc: str = "", unit: str
     ------
     LabkitError
         ``progress`` is none of the accepted values.
+
+    Examples
+    --------
+    >>> from labkit.progress import progress_steps
+    >>> events = []
+    >>> with progress_steps(events.append, total=3, desc="tiles", unit="tiles") as step:
+    ...     for _ in range(3):
+    ...         step(1)
+    >>> [e.done for e in events], events[-1].finished
+    ([1, 2, 3, 3], True)
+    >>> with progress_steps(False, total=3) as step:  # silent: the steps cost nothing
+    ...     step(3)
     """
     total = None if total is None else max(int(total), 0)
     reporter = Reporter(_sink(progress, interval), desc, total, unit)
@@ -152,6 +183,18 @@ class IterationSteps:
             steps.update(history)
             ...
         steps.close(history)
+
+    Examples
+    --------
+    >>> from types import SimpleNamespace
+    >>> from labkit.progress import IterationSteps
+    >>> events = []
+    >>> steps = IterationSteps(events.append, total=5, desc="ICP")
+    >>> history = [SimpleNamespace(translation=[0.01 * k, 0, 0], n_used=900) for k in range(3)]
+    >>> steps.update(history[:2])
+    >>> steps.close(history)
+    >>> [e.done for e in events], events[-1].finished
+    ([1, 2, 3, 3], True)
     """
 
     def __init__(self, progress, total: int | None, desc: str = "ICP", *, interval: float = INTERVAL):
@@ -181,6 +224,13 @@ def from_cli(quiet: bool, force: bool = False, stream=None) -> bool:
     ``--quiet`` silences it; ``--progress`` forces it (plain lines in logs and pipes);
     otherwise it is shown when stderr is a terminal, so that a script or a log that
     only reads errors sees exactly one line when a command fails.
+
+    Examples
+    --------
+    >>> import io
+    >>> from labkit.progress import from_cli
+    >>> from_cli(quiet=True, force=True), from_cli(quiet=False, force=True), from_cli(False, stream=io.StringIO())
+    (False, True, False)
     """
     if quiet:
         return False

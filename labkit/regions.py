@@ -275,6 +275,15 @@ class DensityGrid(ReportMixin):
         Cell edge length (m).
     origin : ndarray (2,)
         x, y of the lower-left corner of cell [0, 0].
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.regions import density_grid
+    >>> grid = density_grid(PointCloud(np.array([[0.2, 0.2, 0], [0.7, 0.4, 0], [1.5, 0.5, 0]])), cell=1.0)
+    >>> type(grid).__name__, grid.counts.tolist(), [float(v) for v in grid.extent]
+    ('DensityGrid', [[2, 1]], [0.0, 2.0, 0.0, 1.0])
     """
 
     counts: np.ndarray
@@ -458,8 +467,5 @@ def merge(*clouds: PointCloud, name: str = "") -> PointCloud:
     units = [c.units for c in clouds if c.units.known]
     if len({u.coordinates for u in units}) > 1:  # e.g. one read in metres, one in native feet
         raise LabkitError(f"cannot merge clouds in different units: {sorted({u.label() for u in units})}")
-    common = set.intersection(*(set(c.attributes) for c in clouds))
-    attrs = {k: np.concatenate([c[k] for c in clouds]) for k in clouds[0].attributes if k in common}
-    xyz = np.concatenate([c.xyz for c in clouds])
-    return PointCloud(xyz, attrs, crs=crs.pop() if crs else None, name=name or clouds[0].name,
-                      units=units[0] if units else None)
+    return PointCloud.concatenate(clouds, name=name or clouds[0].name, crs=crs.pop() if crs else None,
+                                  units=units[0] if units else None)

@@ -75,6 +75,16 @@ class SphereFit(ReportMixin):
         global test, Pope's tau test on the estimated sigma0.
     reason : str
         Empty when everything is fine; otherwise why the result must not be trusted.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.adjustment import gauss_helmert_model
+    >>> u = np.random.default_rng(0).normal(size=(200, 3))
+    >>> u /= np.linalg.norm(u, axis=1, keepdims=True)
+    >>> fit = gauss_helmert_model(np.array([1.0, 2.0, 0.5]) + 0.2 * u, sigma=0.001)
+    >>> type(fit).__name__, fit.converged, fit.x.round(4).tolist()
+    ('SphereFit', True, [1.0, 2.0, 0.5, 0.2])
     """
 
     x: np.ndarray

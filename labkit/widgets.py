@@ -14,10 +14,13 @@ import numpy as np
 
 from ._checks import as_rng, choice
 from .adjustment import gauss_helmert_model
+from .coherent_areas import CORRECTIONS
+from .plotting.compare import plot_shift_field
 from .plotting.ransac import plot_adaptive_trace, plot_section
+from .plotting.registration import plot_correspondences
 from .plotting.sphere import plot_confidence_ellipsoid
 from .ransac import ransac_sphere
-from .tiles import CORRECTIONS, neighbour_test
+from .tiles import neighbour_test
 
 _P_OPTIONS = (0.5, 0.8, 0.9, 0.95, 0.99, 0.999, 0.9999)
 
@@ -361,7 +364,6 @@ def neighbour_test_explorer(field, alpha=0.05, extra_std=0.0, max_extra_mm=20.0,
 def _field_figure(field, test):
     from matplotlib.figure import Figure
 
-    from .plotting.compare import plot_shift_field
 
     fig = Figure(figsize=(7, 5.5), layout="constrained")
     plot_shift_field(field, test=test, ax=fig.subplots())
@@ -461,7 +463,6 @@ def _gates_html(corr, result, truth, kw):
 def _gates_figure(corr):
     from matplotlib.figure import Figure
 
-    from .plotting.registration import plot_correspondences
 
     fig = Figure(figsize=(12, 4.6), layout="constrained")
     ax0, ax1 = fig.subplots(1, 2)

@@ -193,6 +193,24 @@ def test_write_tiles_partitions_the_cloud(tmp_path):
         tiles.write_tiles(src, tmp_path, 50.0, suffix=".csv")
 
 
+def test_files_in_two_reference_systems_are_refused_before_any_tile_runs(tmp_path, monkeypatch):
+    """A tile would join its files (regions.merge refuses mixed CRS): the headers are compared first."""
+    import labkit.tiles.register as R
+
+    src, tgt, _ = _survey(n=6000, extent=(100.0, 50.0), seed=7)
+    (tmp_path / "s").mkdir(), (tmp_path / "t").mkdir()
+    left = src.xyz[:, 0] < ORIGIN[0] + 50
+    tiles.write_tiles(PointCloud(src.xyz[left], crs="EPSG:25832"), tmp_path / "s", 50.0, prefix="a")
+    tiles.write_tiles(PointCloud(src.xyz[~left], crs="EPSG:25833"), tmp_path / "s", 50.0, prefix="b")
+    tiles.write_tiles(PointCloud(tgt.xyz, crs="EPSG:25832"), tmp_path / "t", 50.0)
+    monkeypatch.setattr(R, "register_tile", lambda *a, **k: pytest.fail("work started"))
+    with pytest.raises(CloudFileError, match=r"source files are in different reference systems: \['EPSG:25832'"):
+        tiles.register_tiles(tmp_path / "s", tmp_path / "t", plane_translation, size=50.0, scheduler="serial")
+    monkeypatch.undo()
+    same = tiles.register_tiles(tmp_path / "t", tmp_path / "t", plane_translation, size=50.0, scheduler="serial")
+    assert [s.status for s in same.tiles] == ["ok", "ok"]  # one CRS: runs
+
+
 def test_undetermined_components_stay_out_of_statistics_and_arrows():
     import matplotlib
 
@@ -239,7 +257,7 @@ def test_distributed_worker_processes_equal_serial():
 @pytest.mark.parametrize("buffer", [0.0, 2.5, 7.0])
 def test_binned_cut_equals_masking_every_tile(buffer):
     """The cells-first cut gives every tile exactly the points Tile.contains selects (edges included)."""
-    from labkit.tiles import _cut_all, _for_tile
+    from labkit.tiles.survey import _cut_all, _for_tile
 
     rng = np.random.default_rng(8)
     xyz = np.r_[rng.uniform(-3, 33, (3000, 3)), np.round(rng.uniform(0, 30, (500, 3)))]  # many on tile edges
@@ -317,7 +335,7 @@ def test_folders_and_globs_of_tiles_read_only_what_a_tile_needs(tmp_path):
                                   size=50.0, buffer=5.0, scheduler="serial")
     np.testing.assert_array_equal(by_folder.translations, listed.translations)
     # a tile task receives only the files whose header meets its buffered box
-    survey = tiles._survey(str(tmp_path / "s"))
+    survey = tiles.survey._survey(str(tmp_path / "s"))
     tile = tiles.tile_grid(survey.bounds(), 50.0, buffer=5.0)[0]
     near = survey.for_tile(tile)
     want = io.files_in_box(str(tmp_path / "s"), tile.read_bounds)

@@ -289,7 +289,20 @@ def las_units(header) -> tuple[Units, str | None]:
 # ---------------------------------------------------------------------------- header summary
 @dataclass(frozen=True, eq=False, repr=False)
 class CloudInfo(ReportMixin):
-    """What a LAS/LAZ header says, read without loading the points."""
+    """What a LAS/LAZ header says, read without loading the points.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.io import cloud_info, write_cloud
+    >>> path = write_cloud(PointCloud(np.array([[0.0, 0, 0], [4, 3, 1]])), Path(tempfile.mkdtemp()) / "a.laz")
+    >>> info = cloud_info(path)
+    >>> info.point_count, info.mins.tolist(), info.compressed
+    (2, [0.0, 0.0, 0.0], True)
+    """
 
     path: Path
     version: str

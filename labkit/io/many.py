@@ -203,10 +203,4 @@ def _merge(clouds: list, name: str) -> PointCloud:
                                  f"({first.units.label()} vs {c.units.label()})")
     if len(clouds) == 1:
         return PointCloud._adopt(first.xyz, dict(first.attributes), crs=first.crs, name=name, units=first.units)
-    common = [k for k in first.attributes if all(k in c.attributes for c in clouds[1:])]
-    xyz = np.concatenate([c.xyz for c in clouds])
-    attrs = {}
-    for k in common:
-        dtype = np.result_type(*(c.attributes[k].dtype for c in clouds))
-        attrs[k] = np.concatenate([c.attributes[k].astype(dtype, copy=False) for c in clouds])
-    return PointCloud._adopt(xyz, attrs, crs=first.crs, name=name, units=first.units)
+    return PointCloud.concatenate(clouds, name=name, crs=first.crs, units=first.units)

@@ -31,7 +31,16 @@ def scalar_bar(title: str, **extra) -> dict:
 
 
 def new_plotter(plotter=None, window_size=WINDOW_SIZE):
-    """Return ``plotter`` or a new off-screen ``pyvista.Plotter``."""
+    """Return ``plotter`` or a new off-screen ``pyvista.Plotter``.
+
+    Examples
+    --------
+    >>> from labkit.plotting import new_plotter
+    >>> plotter = new_plotter(window_size=(64, 48))  # off screen
+    >>> new_plotter(plotter) is plotter, list(plotter.window_size)
+    (True, [64, 48])
+    >>> plotter.close()
+    """
     if plotter is not None:
         return plotter
     setup_headless()
@@ -41,5 +50,15 @@ def new_plotter(plotter=None, window_size=WINDOW_SIZE):
 
 
 def screenshot(plotter, path=None):
-    """Render off screen; write a PNG to ``path`` if given and return the image array."""
+    """Render off screen; write a PNG to ``path`` if given and return the image array.
+
+    Examples
+    --------
+    >>> import pyvista as pv
+    >>> from labkit.plotting import new_plotter, screenshot
+    >>> plotter = new_plotter(window_size=(64, 48))
+    >>> _ = plotter.add_mesh(pv.Sphere())
+    >>> screenshot(plotter).shape
+    (48, 64, 3)
+    """
     return plotter.screenshot(str(path) if path is not None else None, return_img=True)

@@ -10,7 +10,7 @@ import numpy as np
 from .._checks import as_points
 from .._frame import local_origin
 from ..errors import LabkitError
-from ..masks import ASPRS_NAMES  # noqa: F401  (plotting.features imports it from here)
+from ..masks import ASPRS_NAMES  # noqa: F401  (re-exported: the one table lives in labkit.masks)
 from .clouds import class_name
 from ._style import CMAP_DIVERGING, CMAP_SEQUENTIAL, COLORS, POINT_SIZE, new_plotter, scalar_bar
 

@@ -9,8 +9,8 @@ import numpy as np
 
 from .._checks import as_points, as_rng
 from .._frame import local_origin
+from ..masks import ASPRS_NAMES
 from ._style import CMAP_SEQUENTIAL, COLORS, POINT_SIZE, new_plotter, scalar_bar
-from .compare import ASPRS_NAMES
 
 FEATURE_LABELS = {
     "linearity": "linearity $(e_1-e_2)/e_1$",

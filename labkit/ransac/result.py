@@ -54,6 +54,19 @@ class RansacResult(ReportMixin):
         robust scale of the residuals, not by the threshold t.
     station : ndarray (3,) or None
         Scanner position used by the visibility checks (None: not used).
+
+    Examples
+    --------
+    A search that finds nothing says why instead of returning a sphere (points on a plane):
+
+    >>> import numpy as np
+    >>> from labkit.ransac import ransac_sphere
+    >>> plane = np.c_[np.random.default_rng(0).uniform(0, 1, (300, 2)), np.zeros(300)]
+    >>> result = ransac_sphere(plane, threshold=0.003, rng=0, radius_range=(0.05, 0.1))
+    >>> result.found, result.fit, int(result.inliers.sum())
+    (False, None, 0)
+    >>> result.reason
+    'every one of the 2048 samples was degenerate (coplanar or repeated points)'
     """
 
     fit: object

@@ -117,6 +117,13 @@ class EpochPair(ReportMixin):
     centre : ndarray (3,)
         The rotation centre (origin + centre of the area); ``translation`` and
         ``rotation`` refer to it: ``p' = R (p - centre) + centre + translation``.
+
+    Examples
+    --------
+    >>> from labkit.synthetic import als_epochs
+    >>> pair = als_epochs("xyz", size=(20.0, 20.0), density=2.0, rng=0)
+    >>> type(pair).__name__, pair.region, pair.truth.shape, len(pair.source) > 0
+    ('EpochPair', 'xyz', (4, 4), True)
     """
 
     source: PointCloud

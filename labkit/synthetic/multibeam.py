@@ -24,8 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._checks import as_rng, positive
-from .._report import ReportMixin, fmt
+from .._report import fmt
 from ..errors import LabkitError
+from ._scene import SphereScanMixin
 
 LABEL_NAMES = ("sphere", "walls", "floor", "ceiling", "table", "person", "stand")
 SPHERE, WALLS, FLOOR, CEILING, TABLE, PERSON, STAND = range(7)
@@ -39,7 +40,7 @@ _LEG = 0.05
 
 
 @dataclass(frozen=True, eq=False, repr=False)
-class MultibeamScene(ReportMixin):
+class MultibeamScene(SphereScanMixin):
     """A synthetic 16-beam scan of a room with (or without) a sphere target.
 
     Attributes
@@ -60,6 +61,13 @@ class MultibeamScene(ReportMixin):
         Scanner position (the origin).
     noise : float
         Standard deviation of the range noise (m).
+
+    Examples
+    --------
+    >>> from labkit.synthetic import multibeam_room
+    >>> scene = multibeam_room(rng=0)
+    >>> type(scene).__name__, scene.points.shape[1], bool(scene.is_sphere.any())
+    ('MultibeamScene', 3, True)
     """
 
     points: np.ndarray
@@ -71,14 +79,6 @@ class MultibeamScene(ReportMixin):
     ring: np.ndarray
     station: np.ndarray
     noise: float
-
-    @property
-    def n(self) -> int:
-        return self.points.shape[0]
-
-    @property
-    def sphere_points(self) -> np.ndarray:
-        return self.points[self.is_sphere]
 
     @property
     def n_sphere_rings(self) -> int:

@@ -18,9 +18,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._checks import as_rng, positive
-from .._report import ReportMixin, fmt
+from .._report import fmt
 from ..errors import LabkitError
 from ._geometry import sphere_cap
+from ._scene import SphereScanMixin
 
 LABEL_NAMES = ("sphere", "walls", "floor", "ceiling", "furniture", "stand", "clutter")
 SPHERE, WALLS, FLOOR, CEILING, FURNITURE, STAND, CLUTTER = range(7)
@@ -38,7 +39,7 @@ _CRATE = (np.array([2.9, 0.3, 0.0]), np.array([3.5, 0.9, 0.5]))
 
 
 @dataclass(frozen=True, eq=False, repr=False)
-class RoomScene(ReportMixin):
+class RoomScene(SphereScanMixin):
     """A synthetic TLS scan of a room with one sphere target.
 
     Attributes
@@ -65,19 +66,6 @@ class RoomScene(ReportMixin):
     label_names: tuple
     station: np.ndarray
     noise: float
-
-    @property
-    def n(self) -> int:
-        return self.points.shape[0]
-
-    @property
-    def sphere_points(self) -> np.ndarray:
-        return self.points[self.is_sphere]
-
-    @property
-    def outlier_ratio(self) -> float:
-        """Share of points that are not on the sphere."""
-        return float(1.0 - self.is_sphere.mean())
 
     def _report(self):
         counts = np.bincount(self.labels, minlength=len(self.label_names))

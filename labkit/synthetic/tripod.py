@@ -15,9 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._checks import as_rng, count, non_negative, positive
-from .._report import ReportMixin, fmt
+from .._report import fmt
 from ..errors import LabkitError
 from ._geometry import sphere_cap, unit
+from ._scene import SphereScanMixin
 
 LABEL_NAMES = ("sphere", "tripod legs", "base plate", "ground", "clutter")
 SPHERE, LEGS, BASE, GROUND, CLUTTER = range(5)
@@ -39,7 +40,7 @@ _STRUCTURE_SHARE = {LEGS: 1.2, BASE: 0.5, GROUND: 1.5}
 
 
 @dataclass(frozen=True, eq=False, repr=False)
-class TripodScene(ReportMixin):
+class TripodScene(SphereScanMixin):
     """A synthetic TLS scan of a sphere target on a tripod.
 
     Attributes
@@ -63,6 +64,13 @@ class TripodScene(ReportMixin):
         for isotropic noise.
     offset : ndarray (3,)
         Shift added to the local scene (zero unless UTM coordinates were asked for).
+
+    Examples
+    --------
+    >>> from labkit.synthetic import sphere_on_tripod
+    >>> scene = sphere_on_tripod(n_sphere=200, rng=0)
+    >>> type(scene).__name__, int(scene.is_sphere.sum()), scene.points.shape[1]
+    ('TripodScene', 200, 3)
     """
 
     points: np.ndarray
@@ -75,23 +83,9 @@ class TripodScene(ReportMixin):
     range_noise: float
     offset: np.ndarray
 
-    @property
-    def n(self) -> int:
-        return self.points.shape[0]
-
     def __repr__(self) -> str:
         return (f"TripodScene(n={self.n}, sphere={fmt(self.sphere, 4)}, "
                 f"outlier_ratio={self.outlier_ratio:.3f}, noise={self.noise:g}, range_noise={self.range_noise:g})")
-
-    @property
-    def sphere_points(self) -> np.ndarray:
-        """The points scanned on the sphere, (m, 3)."""
-        return self.points[self.is_sphere]
-
-    @property
-    def outlier_ratio(self) -> float:
-        """Share of points that are not on the sphere."""
-        return float(1.0 - self.is_sphere.mean()) if self.n else 0.0
 
     def covariances(self, mask=None) -> np.ndarray:
         """The noise covariance of each point, (n, 3, 3) (or of ``points[mask]``).

@@ -1,0 +1,229 @@
+"""The shift field: one shift per tile, and the test whether neighbouring tiles shift alike (notebook 08, eqs. 2-7)."""
+
+from __future__ import annotations
+
+import csv
+import io
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .._atomic import atomic_write_text
+from .._checks import choice, flag, non_negative, probability
+from .._report import ReportMixin
+from ..coherent_areas import CORRECTIONS, NeighbourTest, neighbour_areas
+from ..errors import LabkitError
+from .grid import Tile
+
+__all__ = ["NeighbourTest", "ShiftField", "TileShift", "neighbour_test"]
+
+
+@dataclass(frozen=True, eq=False)
+class TileShift:
+    """The registration of one tile, reduced to what the shift field needs.
+
+    ``translation`` is the shift at the centroid of the tile's source points
+    (eq. 1) with its 3x3 ``covariance``; ``status`` is ``"ok"``,
+    ``"too few points"`` or ``"failed"`` (then the numbers are NaN and
+    ``message`` says why).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.tiles import Tile, TileShift
+    >>> tile = Tile(0, 0, (0.0, 0.0, 100.0, 100.0))
+    >>> s = TileShift(tile, np.array([0.01, 0.0, 0.0]), np.eye(3) * 1e-6, np.ones(3, bool),
+    ...               900, 950, 800, 1.0, True, 0.1, "ok")
+    >>> s.ok, s.translation.tolist()
+    (True, [0.01, 0.0, 0.0])
+    """
+
+    tile: Tile
+    translation: np.ndarray
+    covariance: np.ndarray
+    axis_determined: np.ndarray
+    n_source: int
+    n_target: int
+    n_used: int
+    sigma0: float
+    converged: bool
+    runtime_s: float
+    status: str
+    message: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+
+@dataclass(frozen=True, eq=False, repr=False)
+class ShiftField(ReportMixin):
+    """The shift of every tile of a survey (from :func:`register_tiles`).
+
+    Examples
+    --------
+    Two tiles; the second (a flat field) determines only Z:
+
+    >>> import numpy as np
+    >>> from labkit.tiles import ShiftField, TileShift, tile_grid
+    >>> a, b = tile_grid((0, 0, 199, 99), 100.0)
+    >>> field = ShiftField((TileShift(a, np.array([0.02, 0.01, 0.03]), np.eye(3) * 4e-6, np.ones(3, bool),
+    ...                               900, 900, 800, 1.0, True, 0.1, "ok"),
+    ...                     TileShift(b, np.array([0.0, 0.0, 0.03]), np.eye(3) * 4e-6, np.array([False, False, True]),
+    ...                               900, 900, 800, 1.0, True, 0.1, "ok")), 100.0)
+    >>> field.centres.tolist(), field.std[0].tolist()
+    ([[50.0, 50.0], [150.0, 50.0]], [0.002, 0.002, 0.002])
+    >>> field.determined_translations.tolist()  # what the data do not determine is NaN
+    [[0.02, 0.01, 0.03], [nan, nan, 0.03]]
+    """
+
+    tiles: tuple
+    size: float
+    method: str = ""
+    n_reused: int = 0  # tiles read back from an earlier run's results (register_tiles(results=...))
+
+    def __len__(self) -> int:
+        return len(self.tiles)
+
+    @property
+    def ok(self) -> np.ndarray:
+        return np.array([t.ok for t in self.tiles], bool)
+
+    @property
+    def centres(self) -> np.ndarray:
+        return np.array([t.tile.centre for t in self.tiles]).reshape(-1, 2)
+
+    @property
+    def translations(self) -> np.ndarray:
+        return np.array([t.translation for t in self.tiles]).reshape(-1, 3)
+
+    @property
+    def covariances(self) -> np.ndarray:
+        return np.array([t.covariance for t in self.tiles]).reshape(-1, 3, 3)
+
+    @property
+    def determined(self) -> np.ndarray:
+        """(n, 3) bool: which components of each tile's shift its data determine."""
+        return np.array([t.axis_determined for t in self.tiles], bool).reshape(-1, 3)
+
+    @property
+    def determined_translations(self) -> np.ndarray:
+        """The translations with undetermined components (held at 0 by the method) set to NaN."""
+        return np.where(self.determined, self.translations, np.nan)
+
+    @property
+    def std(self) -> np.ndarray:
+        return np.sqrt(np.clip(np.einsum("nii->ni", self.covariances), 0, None))
+
+    def neighbour_test(self, alpha: float = 0.05, *, extra_std: float = 0.0, diagonal: bool = False,
+                       correction: str = "holm") -> NeighbourTest:
+        """Test whether neighbouring tiles shift alike and find the coherent areas; see :func:`neighbour_test`."""
+        return neighbour_test(self, alpha, extra_std=extra_std, diagonal=diagonal, correction=correction)
+
+    def to_csv(self, path) -> Path:
+        """One line per tile: index, bounds, shift, standard deviations, counts, status (atomic write)."""
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(["row", "col", "xmin", "ymin", "xmax", "ymax", "dx", "dy", "dz", "sx", "sy", "sz",
+                    "n_source", "n_target", "n_used", "sigma0", "converged", "runtime_s", "status", "message"])
+        for t, s in zip(self.tiles, self.std):
+            w.writerow([t.tile.row, t.tile.col, *t.tile.bounds, *(f"{v:.6g}" for v in (*t.translation, *s)),
+                        t.n_source, t.n_target, t.n_used, f"{t.sigma0:.6g}", t.converged, f"{t.runtime_s:.3f}",
+                        t.status, t.message])
+        return atomic_write_text(path, buf.getvalue())
+
+    def _report(self):
+        ok = self.ok
+        tr = self.determined_translations[ok]  # undetermined components do not enter the statistics
+        rows = [("tiles", f"{len(self)} of {self.size:g} m; {int(ok.sum())} registered"),
+                ("method", self.method or "?")]
+        if ok.any():
+            with np.errstate(all="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # an axis no tile determines gives nan
+                med, spread = np.nanmedian(tr, axis=0), np.nanstd(tr, axis=0)
+            rows += [("median shift", "[" + ", ".join(f"{v:+.4f}" for v in med) + "] m"),
+                     ("spread (std) of shifts", "[" + ", ".join(f"{v:.4f}" for v in spread) + "] m")]
+            undet = (~self.determined[ok]).sum(axis=0)
+            if undet.any():
+                rows.append(("undetermined (tiles per axis)", ", ".join(f"{a} {k}" for a, k in zip("XYZ", undet))))
+        for status in ("too few points", "failed"):
+            n = sum(t.status == status for t in self.tiles)
+            if n:
+                rows.append((status, f"{n} tiles"))
+        return "Shift field", [("", rows)]
+
+
+def neighbour_test(field: ShiftField, alpha: float = 0.05, *, extra_std: float = 0.0, diagonal: bool = False,
+                   correction: str = "holm") -> NeighbourTest:
+    """Do neighbouring tiles agree within their uncertainty, and which areas move as one? (notebook 08, eqs. 2-7)
+
+    For tiles i, j sharing an edge (or a corner with ``diagonal``) the
+    difference d = t_i - t_j has covariance C = Sigma_i + Sigma_j + 2 s^2 I
+    (eq. 2; s = ``extra_std``, an uncertainty per tile beyond the formal one,
+    e.g. for systematic effects the covariance of ICP does not see). On the
+    axes both tiles determine, T = d^T C^-1 d is chi-square distributed with as
+    many degrees of freedom (eq. 3). Tiles linked by agreeing pairs are a first
+    guess of the coherent areas; each tile is then tested against its area's
+    common weighted shift (eqs. 5, 6), and an area with a tile that disagrees
+    is split, so that a chain of small steps is not one area (see
+    :mod:`labkit.coherent_areas`).
+
+    Parameters
+    ----------
+    field : ShiftField
+    alpha : float
+        Level of the tests; with ``correction='holm'`` the family-wise level: the
+        chance that a survey whose tiles all shift alike shows any disagreeing
+        border or more than one area.
+    extra_std : float
+        Extra standard deviation per tile (m).
+    diagonal : bool
+        Also test tiles that share only a corner.
+    correction : {'holm', 'fdr', 'none'}
+        Control of the many tests (about three per tile) (eq. 7). ``'holm'`` (default)
+        keeps the family-wise error at alpha under any dependence (pairs sharing a
+        tile are correlated): a flagged border is then evidence about the survey,
+        not the expected few percent of false alarms among hundreds of borders -
+        without correction a stable survey of 100 tiles shows about ten. ``'fdr'``
+        (Benjamini-Hochberg) bounds the expected share of false alarms among the
+        flagged ones instead; it finds more where much has moved (a campaign after
+        a landslide). ``'none'`` tests each pair at alpha (as notebook 08 does first).
+
+    Returns
+    -------
+    NeighbourTest
+
+    Examples
+    --------
+    Three tiles in a row with 1 mm std; the third moved 5 cm more:
+
+    >>> import numpy as np
+    >>> from labkit.tiles import ShiftField, TileShift, neighbour_test, tile_grid
+    >>> grid = tile_grid((0, 0, 299, 99), 100.0)
+    >>> field = ShiftField(tuple(TileShift(t, np.array([dx, 0.0, 0.0]), np.eye(3) * 1e-6, np.ones(3, bool),
+    ...                                    900, 900, 800, 1.0, True, 0.1, "ok")
+    ...                          for t, dx in zip(grid, [0.010, 0.011, 0.060])), 100.0)
+    >>> test = neighbour_test(field, alpha=0.05)
+    >>> test.agree.tolist(), test.areas.tolist(), test.n_areas
+    ([True, False], [0, 0, 1], 2)
+    >>> neighbour_test(field, extra_std=0.05).n_areas  # 5 cm more uncertainty per tile: one area
+    1
+    """
+    alpha = probability(alpha, "alpha")
+    extra_std = non_negative(extra_std, "extra_std")
+    diagonal = flag(diagonal, "diagonal")
+    correction = choice(correction, CORRECTIONS, "correction")
+    if not isinstance(field, ShiftField):
+        raise LabkitError(f"neighbour_test needs a ShiftField (from register_tiles), got {type(field).__name__}")
+    return neighbour_areas(_neighbour_pairs(field, diagonal), field.translations, field.covariances,
+                           field.determined, field.ok, alpha=alpha, extra_std=extra_std, correction=correction)
+
+
+def _neighbour_pairs(field: ShiftField, diagonal: bool) -> np.ndarray:
+    index = {(s.tile.row, s.tile.col): n for n, s in enumerate(field.tiles) if s.ok}
+    steps = [(0, 1), (1, 0)] + ([(1, 1), (1, -1)] if diagonal else [])
+    pairs = [(n, index[(r + dr, c + dc)]) for (r, c), n in index.items() for dr, dc in steps
+             if (r + dr, c + dc) in index]
+    return np.array(sorted(pairs), int).reshape(-1, 2)
