@@ -163,7 +163,7 @@ def _cmd_tiles(args) -> int:
           f"(scheduler: {scheduler})")
     ax = plot_shift_field(field, test=test)
     with staged_outputs(args.out) as stage:
-        field.to_csv(stage("shift_field.csv"))
+        field.to_csv(stage("shift_field.csv"), test)
         save_figure(ax.figure, stage("shift_field.png"))
     print()
     for path in stage.written:

@@ -182,6 +182,15 @@ def test_tiles_writes_field_png_and_csv(files, tmp_path, capsys):
         std = np.array([float(r[k]) for k in ("sx", "sy", "sz")])
         assert np.all(np.abs(err) < 3 * std + 0.005), (err, std)
     assert (tmp_path / "shift_field.png").read_bytes()[:8] == PNG_MAGIC
+    # the neighbour test's verdict is in the file: the area per tile (one stable area here) and the
+    # area's common shift, a weighted mean in which the tiles that determine an axis dominate it
+    areas = np.array([int(r["area"]) for r in rows])
+    assert ((areas >= 0) == np.array([r["status"] == "ok" for r in rows])).all()
+    for a in set(areas[areas >= 0]):
+        members = [r for r in rows if int(r["area"]) == a]
+        common = np.array([[float(r[k]) for k in ("area_dx", "area_dy", "area_dz")] for r in members])
+        assert (common == common[0]).all() and np.all(np.abs(common[0] - files["truth"]) < 0.02), common[0]
+        assert all(0.0 <= float(r["tile_p"]) <= 1.0 for r in members)
 
 
 def test_tiles_on_a_cluster_by_address_resumes_a_killed_run(files, tmp_path, capsys):

@@ -122,16 +122,29 @@ class ShiftField(ReportMixin):
         """Test whether neighbouring tiles shift alike and find the coherent areas; see :func:`neighbour_test`."""
         return neighbour_test(self, alpha, extra_std=extra_std, diagonal=diagonal, correction=correction)
 
-    def to_csv(self, path) -> Path:
-        """One line per tile: index, bounds, shift, standard deviations, counts, status (atomic write)."""
+    def to_csv(self, path, test=None) -> Path:
+        """One line per tile: index, bounds, shift, standard deviations, counts, status (atomic write).
+
+        With ``test`` (the :class:`NeighbourTest` of this field) three columns follow: the
+        tile's coherent ``area`` (-1: no shift), the p-value of its test against the area's
+        common shift (``tile_p``, eq. 7) and ``area_dx, area_dy, area_dz``, that common shift.
+        """
+        if test is not None and len(test.areas) != len(self.tiles):
+            raise LabkitError(f"the neighbour test has {len(test.areas)} tiles, the field {len(self.tiles)}")
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
-        w.writerow(["row", "col", "xmin", "ymin", "xmax", "ymax", "dx", "dy", "dz", "sx", "sy", "sz",
-                    "n_source", "n_target", "n_used", "sigma0", "converged", "runtime_s", "status", "message"])
-        for t, s in zip(self.tiles, self.std):
-            w.writerow([t.tile.row, t.tile.col, *t.tile.bounds, *(f"{v:.6g}" for v in (*t.translation, *s)),
-                        t.n_source, t.n_target, t.n_used, f"{t.sigma0:.6g}", t.converged, f"{t.runtime_s:.3f}",
-                        t.status, t.message])
+        head = ["row", "col", "xmin", "ymin", "xmax", "ymax", "dx", "dy", "dz", "sx", "sy", "sz",
+                "n_source", "n_target", "n_used", "sigma0", "converged", "runtime_s", "status", "message"]
+        w.writerow(head + (["area", "tile_p", "area_dx", "area_dy", "area_dz"] if test is not None else []))
+        for i, (t, s) in enumerate(zip(self.tiles, self.std)):
+            row = [t.tile.row, t.tile.col, *t.tile.bounds, *(f"{v:.6g}" for v in (*t.translation, *s)),
+                   t.n_source, t.n_target, t.n_used, f"{t.sigma0:.6g}", t.converged, f"{t.runtime_s:.3f}",
+                   t.status, t.message]
+            if test is not None:
+                a = int(test.areas[i])
+                common = test.area_shift[a] if a >= 0 else np.full(3, np.nan)
+                row += [a, f"{test.tile_p_value[i]:.6g}", *(f"{v:.6g}" for v in common)]
+            w.writerow(row)
         return atomic_write_text(path, buf.getvalue())
 
     def _report(self):
