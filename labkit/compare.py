@@ -128,7 +128,19 @@ _TEXT_COLUMNS = (("method", "{}"), ("region", "{}"), ("case", "{}"), ("dx", "{:+
 
 @dataclass(frozen=True, eq=False, repr=False)
 class ComparisonTable(ReportMixin):
-    """Rows method x region x case with CSV export and a text rendering."""
+    """Rows method x region x case with CSV export and a text rendering.
+
+    Examples
+    --------
+    >>> from labkit.compare import compare_methods, standard_methods, synthetic_cases
+    >>> pairs = synthetic_cases(regions=["xyz"], cases=("als-als",), size=(20.0, 20.0), density=2.0, rng=0)
+    >>> table = compare_methods(pairs, standard_methods(["icp"], max_points=2000))
+    >>> len(table), table.methods, table.cases
+    (1, ('icp',), ('als-als',))
+    >>> print(table.pivot("converged"))
+    region         case          icp
+    xyz            als-als      True
+    """
 
     rows: tuple
     alpha: float = 0.05
