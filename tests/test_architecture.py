@@ -162,8 +162,7 @@ def test_no_module_imports_a_private_name_of_another_package():
 
 
 # --------------------------------------------------------------------------- runnable examples
-#: Owned by the registration/features/neighbourhood and comparison work of issue 13 (their examples are added
-#: there; ``labkit.compare.ComparisonTable`` is the one public name of labkit.compare still without one).
+#: Owned by the registration/features/neighbourhood work of issue 13 (their examples are added there).
 EXAMPLES_ELSEWHERE = ("labkit.registration", "labkit.features", "labkit.neighbours")
 
 
