@@ -115,6 +115,23 @@ def consensus_cube(
     ------
     LabkitError
         Grid too large, eps <= 0, bad weights or normals; EmptyRegionError if the clouds do not overlap.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(1)
+    >>> def wavy(n):  # a surface with slopes in X and Y, measured with 2 mm noise
+    ...     xy = rng.uniform(0, 6, (n, 2))
+    ...     z = 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])
+    ...     return np.column_stack([xy, z]) + rng.normal(0, 0.002, (n, 3))
+    >>> target = wavy(1500)
+    >>> source = wavy(300) - [0.05, 0.02, 0.03]  # another sampling, moved
+    >>> cube = consensus_cube(source[::2], target, extent=0.06, step=0.02, eps=0.01, center=[0.04, 0.02, 0.04],
+    ...                       use_numba=False)
+    >>> cube.counts.shape, cube.peak.kind
+    ((7, 7, 7), 'point')
+    >>> bool(np.allclose(cube.best_translation, [0.05, 0.02, 0.03], atol=0.02))  # within one grid step
+    True
     """
     t0 = time.perf_counter()
     # Grid, reduced coordinates, normals, weights
@@ -280,6 +297,20 @@ def max_consensus(
         gap_tol < 0; reject_sigma <= 0; max_points < 3), bad weights or normals;
         DegenerateGeometryError when no target normal is determined; EmptyRegionError
         when the clouds do not overlap within the box.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(1)
+    >>> def wavy(n):  # a surface with slopes in X and Y, measured with 2 mm noise
+    ...     xy = rng.uniform(0, 6, (n, 2))
+    ...     z = 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])
+    ...     return np.column_stack([xy, z]) + rng.normal(0, 0.002, (n, 3))
+    >>> target = wavy(1500)
+    >>> source = wavy(300) - [0.05, 0.02, 0.03]  # another sampling, moved
+    >>> res = max_consensus(source, target, extent=0.08, eps=0.01, tol=0.02, max_points=100, use_numba=False)
+    >>> bool(np.allclose(res.translation, [0.05, 0.02, 0.03], atol=0.01))
+    True
     """
     t0 = time.perf_counter()
     # Parameters of the search and of the adjustment

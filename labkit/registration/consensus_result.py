@@ -210,6 +210,18 @@ def peak_shape(counts, axes, eps: float, level: float = 0.07) -> PeakShape:
 
     A principal direction is free when the top region spreads along it by at
     least 14 % of the box width (a top region filling the box has 29 %).
+
+    Examples
+    --------
+    A peak narrow in X and Z but long in Y (a ridge: Y is not determined):
+
+    >>> import numpy as np
+    >>> axes = (np.linspace(-0.1, 0.1, 11),) * 3
+    >>> X, Y, Z = np.meshgrid(*axes, indexing="ij")
+    >>> counts = np.rint(1000 * np.exp(-(X**2 + Z**2) / (2 * 0.01**2)))
+    >>> shape = peak_shape(counts, axes, eps=0.01)
+    >>> shape.kind, shape.constrained_axes
+    ('ridge', ('X', 'Z'))
     """
     c = np.asarray(counts, dtype=np.float64)
     top, med = c.max(), np.median(c)
