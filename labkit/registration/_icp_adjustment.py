@@ -47,7 +47,7 @@ def adjust(corr, R, t, opts):
     """One weighted LS step on the current correspondences (eqs. 5.7-5.12)."""
     check_count(corr, opts)
     A, l, w = design(corr, R, t, opts)
-    keep, factor, scale, u, centred = robust_weights(l, w, opts["k"], opts["robust"])
+    keep, factor, scale, u, centred = robust_weights(l, w, opts["reject_sigma"], opts["robust"])
     ok_rows = np.flatnonzero(corr.accepted)
     corr = corr.with_outliers(np.isin(np.arange(len(corr)), ok_rows[~keep]))
     weights = np.zeros(len(corr))

@@ -39,9 +39,9 @@ def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, opts):
     dpsi = psi_prime(u, opts["robust"])  # factor = psi(u) / u
     inner = factor[:, None, None] * AA + ((dpsi - factor)[:, None, None] * np.einsum("mu,mv->muv", Ae, Ae))
     J = np.einsum("m,muv->uv", (w * keep), inner)
-    if opts["k"] is not None:  # rows crossing the deletion limit as x changes
+    if opts["reject_sigma"] is not None:  # rows crossing the deletion limit as x changes
         r = A.shape[1]
-        limit = deletion_limit(opts["k"], r)
+        limit = deletion_limit(opts["reject_sigma"], r)
         h = 0.1 * limit
         near = np.abs(u - limit) < h
         psi_limit = limit * (np.median(factor[keep & near]) if (keep & near).any() else 1.0)

@@ -317,7 +317,7 @@ def icp(
     held_rotation_std = np.radians(non_negative(held_rotation_std_deg, "held_rotation_std_deg"))
     if consistency_alpha is not None and not 0 < consistency_alpha < 1:
         raise LabkitError(f"consistency_alpha must lie in (0, 1) or be None, got {consistency_alpha!r}")
-    kval = None if reject_sigma is None else positive(reject_sigma, "reject_sigma")
+    reject_sigma = None if reject_sigma is None else positive(reject_sigma, "reject_sigma")
     if max_std is not None:
         max_std = positive(max_std, "max_std")
     k = count(k, "k", minimum=1)  # 3 <= k <= target size: checked by the matching
@@ -336,7 +336,7 @@ def icp(
     )  # fmt: skip
     L = max(float(np.sqrt((matcher.source**2).sum(axis=1).mean())), 1.0)
     opts = dict(
-        origin=origin, dof=dof, metric=metric, robust=robust, k=kval, L=L, rel=rel_threshold,
+        origin=origin, dof=dof, metric=metric, robust=robust, reject_sigma=reject_sigma, L=L, rel=rel_threshold,
         min_n=min_correspondences, covariance=covariance, block_size=block_size,
         held_rotation_std=held_rotation_std, alpha=consistency_alpha,
         max_std=default_max_std(max_std, matcher.options["max_distance"]),
@@ -344,7 +344,7 @@ def icp(
         tilt=TiltVariance(matcher), sample=sample,
     )  # fmt: skip
     opts["cascade"] = True
-    plain = dict(opts, robust=None, k=None, cascade=False)  # warm-up stage: no robust measures, no cascade
+    plain = dict(opts, robust=None, reject_sigma=None, cascade=False)  # warm-up stage: no robust measures, no cascade
     history, converged, adj, step, robust_stage = [], False, None, np.inf, False
     damping, previous = 1.0, None  # step length factor, halved when a step reverses the last one
     # 3. iterate: match, clean, adjust, update (progress: one step per iteration, shift and pairs)
@@ -359,7 +359,7 @@ def icp(
         damping, previous = step_damping(adj.dx, previous, damping, L, tol)
         R, t, step = update_transform(R, t, damping * adj.dx, dof, L)
         history.append(_record(it, R, t, adj, step))
-        final_stage = robust_stage or (robust is None and kval is None)
+        final_stage = robust_stage or (robust is None and reject_sigma is None)
         cycle = cycle_period(history, 0.1 * tol)
         small = step < tol or within_precision(adj)
         settled = len(history) >= 4 and cycle_converged(history[-4:], adj, tol, share=0.05)  # damped chatter
