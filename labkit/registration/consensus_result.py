@@ -71,6 +71,14 @@ class PeakShape(ReportMixin):
 
         A free direction within 10 degrees of a coordinate axis is named by that axis ("free along ty"),
         otherwise by its azimuth and elevation; a plane of free directions by its normal.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> axes = (np.linspace(-0.1, 0.1, 11),) * 3
+        >>> X, Y, Z = np.meshgrid(*axes, indexing="ij")
+        >>> peak_shape(np.rint(1000 * np.exp(-(X**2 + Z**2) / 2e-4)), axes, eps=0.01).describe()
+        'ridge: free along ty'
         """
         if self.kind == "flat":
             return "flat: no peak, the translation is undetermined"
@@ -175,7 +183,20 @@ class ConsensusCube(ReportMixin):
         return self.peak.kind == "flat"
 
     def count_at(self, translation) -> float:
-        """Count of the cell nearest to ``translation`` (3,)."""
+        """Count of the cell nearest to ``translation`` (3,).
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from labkit.registration import consensus_cube
+        >>> rng = np.random.default_rng(1)
+        >>> xy = rng.uniform(0, 6, (1500, 2))
+        >>> target = np.column_stack([xy, 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])])
+        >>> source = target[::10] - [0.0, 0.0, 0.02]
+        >>> cube = consensus_cube(source, target, extent=0.04, step=0.02, eps=0.005, use_numba=False)
+        >>> cube.count_at([0.0, 0.0, 0.02]) == cube.best_count == len(source)
+        True
+        """
         idx = [int(np.clip(np.rint((t - a[0]) / self.step), 0, a.size - 1)) for t, a in zip(translation, self.axes)]
         return float(self.counts[tuple(idx)])
 
