@@ -12,7 +12,7 @@ import numpy as np
 
 from .._report import ReportMixin, fmt
 from ..transforms import angles_from_rotation, apply_transform, make_transform
-from .consistency import Consistency, group_consistency  # noqa: F401  (re-exported: icp imports them from here)
+from .consistency import Consistency, group_consistency  # noqa: F401  (re-exported: their former home)
 from .degeneracy import AXES, Degeneracy, degeneracy_report  # noqa: F401  (re-exported)
 
 
