@@ -111,9 +111,12 @@ def prepare_problem(source, target, metric, eps, radius, max_angle_deg, weights,
     else:
         radius = eps
     spacing = median_spacing(src[keep_s])
-    return Problem(src[keep_s], tgt, origin, w[keep_s], n_tgt, n_src, metric, float(eps), float(radius),
-                   max_angle_deg, tgt_full, noise, len(src), spacing,
-                   None if keep_r is None else src[keep_r], None if keep_r is None else w[keep_r])
+    return Problem(
+        src=src[keep_s], tgt=tgt, origin=origin, w=w[keep_s], tgt_normals=n_tgt, src_normals=n_src, metric=metric,
+        eps=float(eps), radius=float(radius), max_angle_deg=max_angle_deg, tgt_full=tgt_full, noise=noise,
+        n_source=len(src), spacing=spacing, src_ref=None if keep_r is None else src[keep_r],
+        w_ref=None if keep_r is None else w[keep_r],
+    )
 
 
 def even_subset(xyz, n: int) -> np.ndarray:

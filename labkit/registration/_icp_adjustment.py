@@ -26,6 +26,35 @@ HELD_SHARE = 0.05
 
 
 @dataclass(frozen=True, eq=False)
+class IcpSettings:
+    """The checked options of one ICP run that its steps read (private; built once by :func:`icp`).
+
+    The names are those of the keywords of :func:`labkit.registration.icp`; besides them the shared local
+    ``origin``, the source radius ``L`` that scales rotations to metres, the prior std of a held rotation
+    (radians) and of a held shift (m), the tilt covariance of the target normals (``tilt``, eq. 5.12b), and
+    ``cascade``: whether parameters left imprecise by held shifts are held too (the robust stage only).
+    """
+
+    origin: np.ndarray
+    dof: str
+    metric: str
+    robust: str | None
+    reject_sigma: float | None
+    L: float
+    rel_threshold: float
+    min_correspondences: int
+    covariance: str
+    block_size: float
+    held_rotation_std: float
+    consistency_alpha: float | None
+    max_std: float
+    held_shift_std: float
+    tilt: object
+    sample: object
+    cascade: bool = True
+
+
+@dataclass(frozen=True, eq=False)
 class Adjustment:
     """One weighted least-squares step (private)."""
 
@@ -47,7 +76,7 @@ def adjust(corr, R, t, opts):
     """One weighted LS step on the current correspondences (eqs. 5.7-5.12)."""
     check_count(corr, opts)
     A, l, w = design(corr, R, t, opts)
-    keep, factor, scale, u, centred = robust_weights(l, w, opts["reject_sigma"], opts["robust"])
+    keep, factor, scale, u, centred = robust_weights(l, w, opts.reject_sigma, opts.robust)
     ok_rows = np.flatnonzero(corr.accepted)
     corr = corr.with_outliers(np.isin(np.arange(len(corr)), ok_rows[~keep]))
     weights = np.zeros(len(corr))
@@ -59,23 +88,23 @@ def adjust(corr, R, t, opts):
     A, l = A[keep], l[keep]
     N = np.einsum("mru,m,mrv->uv", A, P, A)  # N = A^T P A  (eq. 5.7)
     nvec = np.einsum("mru,m,mr->u", A, P, l)  # n = A^T P l
-    names = NAMES[opts["dof"]]
+    names = NAMES[opts.dof]
     N_eps = tilt_information(corr, ok_rows[keep], P, opts)
     N_sig = normal_information(A, P, corr.target_normal[ok_rows[keep]], N, opts) - N_eps  # (eq. 5.12b)
     deg = degeneracy_report(
-        sandwich_precision(N, N_sig), names, opts["rel"], slice(len(names) - 3, None), share_threshold=HELD_SHARE,
-        hold_first=names[:-3], sigma0=scale, max_std=opts["max_std"],
+        sandwich_precision(N, N_sig), names, opts.rel_threshold, slice(len(names) - 3, None), share_threshold=HELD_SHARE,
+        hold_first=names[:-3], sigma0=scale, max_std=opts.max_std,
     )  # rotations are given up before translations; precision limit (eq. 5.12a)  # fmt: skip
     dx_s, Q_s, step_s = solve(N, nvec, deg, N_sig)
-    shift_prior_only = {**opts, "held_rotation_std": 0.0}
-    for _ in range(len(names) if opts["cascade"] else 0):  # once settled: a parameter left imprecise by
+    shift_prior_only = replace(opts, held_rotation_std=0.0)
+    for _ in range(len(names) if opts.cascade else 0):  # once settled: a parameter left imprecise by
         # held shifts (prior: max_distance) is held too
         if deg.parameter_determined[-3:].all():  # no shift held: nothing spreads its prior
             break
         held_s = held_rotation_covariance(N_sig, deg, shift_prior_only)
         with np.errstate(invalid="ignore"):
             std_s = np.sqrt(np.clip(scale**2 * np.diag(Q_s) + np.diag(held_s), 0, None))
-        worse = deg.parameter_determined & (std_s > opts["max_std"])
+        worse = deg.parameter_determined & (std_s > opts.max_std)
         if not worse.any():
             break
         keep_det = deg.parameter_determined & ~worse
@@ -87,36 +116,39 @@ def adjust(corr, R, t, opts):
     sigma0 = np.sqrt(vPv / r) if r > 0 else np.nan  # (eq. 5.10)
     rms = float(np.sqrt(np.einsum("mr,m,mr->", l, P, l) / max(P.sum(), 1e-300)))
     S = np.ones(len(names))
-    S[: len(names) - 3] = opts["L"]  # rotation columns were divided by L
+    S[: len(names) - 3] = opts.L  # rotation columns were divided by L
     dx = step_s / S  # the update: Newton on the fixed point, whose slope is N_sig (eq. 5.12b)
     Qxx = Q_s / np.outer(S, S)
     held_cov = held_rotation_covariance(N_sig, deg, opts) / np.outer(S, S)
     block = None
-    if opts["covariance"] == "block":
-        xy = corr.source_xyz[ok_rows, :2] - opts["origin"][:2]
+    if opts.covariance == "block":
+        xy = corr.source_xyz[ok_rows, :2] - opts.origin[:2]
         free = np.isinf(np.diag(Q_s))
-        args = (A_all, l_all, w, u, centred, keep, factor, dx_s, free, {**opts, "xy": xy, "N_eps": N - N_sig})
+        args = (A_all, l_all, w, u, centred, keep, factor, dx_s, free, xy, N - N_sig, opts)
         block = lambda: block_covariance(*args) / np.outer(S, S)  # noqa: E731 - evaluated for the last step only
-    return Adjustment(dx, N, Qxx, block, held_cov, float(sigma0), rms, r, deg, corr, float(scale), int((~keep).sum()))
+    return Adjustment(
+        dx=dx, N=N, Qxx=Qxx, block_cov=block, held_cov=held_cov, sigma0=float(sigma0), rms=rms, redundancy=r,
+        degeneracy=deg, corr=corr, scale=float(scale), n_deleted=int((~keep).sum()),
+    )
 
 
 def design(corr, R, t, opts):
     """Design rows A (m, r, u), observations l (m, r) and weights of the accepted rows."""
     ok = corr.accepted
-    p = corr.source_xyz[ok] - opts["origin"]  # current source points, local frame
+    p = corr.source_xyz[ok] - opts.origin  # current source points, local frame
     d = corr.d[ok]
     n = corr.target_normal[ok]
-    rigid = opts["dof"] == "rigid"
-    if opts["metric"] == "point_to_plane":
+    rigid = opts.dof == "rigid"
+    if opts.metric == "point_to_plane":
         l = np.einsum("ij,ij->i", n, d)[:, None]  # l_i = n . (q - p)  (eq. 5.2)
         A = n[:, None, :]
         if rigid:  # n . (omega x p) = omega . (p x n)  (eq. 5.4)
-            A = np.concatenate([np.cross(p, n)[:, None, :] / opts["L"], A], axis=2)
+            A = np.concatenate([np.cross(p, n)[:, None, :] / opts.L, A], axis=2)
     else:
         l = d  # three components per correspondence (eq. 5.1)
         A = np.broadcast_to(np.eye(3), (len(d), 3, 3))
         if rigid:  # omega x p = -[p]x omega  (eq. 5.5)
-            A = np.concatenate([-skew(p) / opts["L"], A], axis=2)
+            A = np.concatenate([-skew(p) / opts.L, A], axis=2)
     return A, l, corr.weight[ok]
 
 
@@ -169,10 +201,10 @@ def solve(N, nvec, deg, N_sig=None):
 
 def check_count(corr, opts):
     n = corr.n_accepted
-    if n < max(opts["min_n"], 6):
+    if n < max(opts.min_correspondences, 6):
         counts = ", ".join(f"{name}: {c}" for name, c in corr.rejected if c)
         raise EmptyRegionError(
-            f"only {n} correspondences left after rejection (needed: {max(opts['min_n'], 6)}; "
+            f"only {n} correspondences left after rejection (needed: {max(opts.min_correspondences, 6)}; "
             f"rejected - {counts or 'none'}); do the clouds overlap? Check the frames, give an "
             "initial transformation or relax max_distance / max_angle_deg"
         )

@@ -10,7 +10,7 @@ from scipy.linalg import cho_factor, cho_solve
 from ._icp_weights import deletion_limit, psi_prime
 
 
-def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, opts):
+def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, xy, N_eps, opts):
     """Cluster-robust sandwich J^-1 M J^-1 in the scaled parameters (eq. 5.13); inf where held.
 
     M = sum over cells c of g_c g_c^T with g_c = sum_(i in c) A_i^T p_i v_i (scores of the kept
@@ -25,7 +25,7 @@ def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, opts):
     P = w * factor
     v = np.einsum("mru,u->mr", A, dx_s) - l
     g = np.einsum("mru,m,mr->mu", A, P, v)[keep][:, fixed]  # score of each kept correspondence
-    cells = np.floor(opts["xy"][keep] / opts["block_size"]).astype(np.int64)
+    cells = np.floor(xy[keep] / opts.block_size).astype(np.int64)
     _, cell = np.unique(cells, axis=0, return_inverse=True)
     G = np.zeros((cell.max() + 1, g.shape[1]))
     np.add.at(G, cell.ravel(), g)
@@ -36,17 +36,17 @@ def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, opts):
     e = centred / np.maximum(np.linalg.norm(centred, axis=1, keepdims=True), 1e-300)
     Ae = np.einsum("mru,mr->mu", A, e)  # A^T e per row
     AA = np.einsum("mru,mrv->muv", A, A)
-    dpsi = psi_prime(u, opts["robust"])  # factor = psi(u) / u
+    dpsi = psi_prime(u, opts.robust)  # factor = psi(u) / u
     inner = factor[:, None, None] * AA + ((dpsi - factor)[:, None, None] * np.einsum("mu,mv->muv", Ae, Ae))
     J = np.einsum("m,muv->uv", (w * keep), inner)
-    if opts["reject_sigma"] is not None:  # rows crossing the deletion limit as x changes
+    if opts.reject_sigma is not None:  # rows crossing the deletion limit as x changes
         r = A.shape[1]
-        limit = deletion_limit(opts["reject_sigma"], r)
+        limit = deletion_limit(opts.reject_sigma, r)
         h = 0.1 * limit
         near = np.abs(u - limit) < h
         psi_limit = limit * (np.median(factor[keep & near]) if (keep & near).any() else 1.0)
         J -= psi_limit / (2 * h) * np.einsum("m,mu,mv->uv", w * near, Ae, Ae)
-    J = (J - opts["N_eps"])[np.ix_(fixed, fixed)]  # the bread: what survives re-matching (eq. 5.12b)
+    J = (J - N_eps)[np.ix_(fixed, fixed)]  # the bread: what survives re-matching (eq. 5.12b)
     try:
         c = cho_factor(0.5 * (J + J.T))
     except np.linalg.LinAlgError:
@@ -74,7 +74,7 @@ def held_rotation_covariance(N, deg, opts):
     held = ~free
     if not held.any() or not free.any():
         return out
-    prior = np.where(is_rot, opts["held_rotation_std"] * opts["L"], opts["held_shift_std"])[held]
+    prior = np.where(is_rot, opts.held_rotation_std * opts.L, opts.held_shift_std)[held]
     B = np.linalg.lstsq(N[np.ix_(free, free)], N[np.ix_(free, held)], rcond=None)[0]
     out[np.ix_(free, free)] = (B * prior**2) @ B.T
     return out

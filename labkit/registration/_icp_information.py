@@ -73,7 +73,7 @@ def normal_information(A, P, n, N, opts):
     A^T n, carry information. Without this, point-to-point ICP on two samplings of one surface
     claimed millimetres in X and Y while 10-100 stated sigma off.
     """
-    if opts["metric"] == "point_to_plane":
+    if opts.metric == "point_to_plane":
         return N
     a = np.einsum("mru,mr->mu", A, np.nan_to_num(n))  # A^T n per row
     return np.einsum("m,mu,mv->uv", P, a, a)
@@ -88,7 +88,7 @@ def tilt_information(corr, rows, P, opts):
     re-matching, a random tilt points elsewhere. On a flat field it is all that N contains, and it
     would make X and Y look determined to centimetres.
     """
-    u = 6 if opts["dof"] == "rigid" else 3
+    u = 6 if opts.dof == "rigid" else 3
     if len(rows) == 0:
         return np.zeros((u, u))
     if len(rows) > TILT_ROWS:  # an even subset estimates the sum (the tilts are computed once per point)
@@ -96,10 +96,10 @@ def tilt_information(corr, rows, P, opts):
         total = P.sum()
         rows, P = rows[::stride], P[::stride]
         P = P * (total / max(P.sum(), 1e-300))
-    C = opts["tilt"](corr.target_index[rows])  # (m, 3, 3) tilt covariance of each target normal
-    if opts["dof"] == "rigid":
-        p = corr.source_xyz[rows] - opts["origin"]
-        G = np.concatenate([skew(p) / opts["L"], np.broadcast_to(np.eye(3), (len(p), 3, 3))], axis=1)
+    C = opts.tilt(corr.target_index[rows])  # (m, 3, 3) tilt covariance of each target normal
+    if opts.dof == "rigid":
+        p = corr.source_xyz[rows] - opts.origin
+        G = np.concatenate([skew(p) / opts.L, np.broadcast_to(np.eye(3), (len(p), 3, 3))], axis=1)
         return np.einsum("m,mai,mij,mbj->ab", P, G, C, G)
     return np.einsum("m,mij->ij", P, C)
 

@@ -38,23 +38,23 @@ def icp_result(R, t, origin, adj, history, converged, matcher, opts, runtime):
             f"; rotations {', '.join(rotations)} undetermined (held at their initial value, see the degeneracy "
             "report): the other parameters are conditional on that value"
             + (
-                f", their covariance includes a prior std of {np.degrees(opts['held_rotation_std']):g} deg for it"
-                if opts["held_rotation_std"] > 0
+                f", their covariance includes a prior std of {np.degrees(opts.held_rotation_std):g} deg for it"
+                if opts.held_rotation_std > 0
                 else " and so is their covariance (held_rotation_std_deg=0)"
             )
         )
     elif not deg.well_posed:
         msg += "; some directions are weak (see the degeneracy report)"
-    if opts["metric"] == "point_to_point" and (undetermined or not converged):
+    if opts.metric == "point_to_point" and (undetermined or not converged):
         msg += (
             "; point_to_point: the offsets between the two samplings along the surface carry no "
             "information about the shift (only the components along the normals do), consider "
             "metric='point_to_plane'"
         )
-    test = None if opts["alpha"] is None else consistency_test(adj, matcher, opts)
+    test = None if opts.consistency_alpha is None else consistency_test(adj, matcher, opts)
     if test is not None and not test.agree:  # the groups' spread enters the stated precision (eq. 5.17)
         free = deg.parameter_determined
-        S = np.where([n.startswith("r") for n in NAMES[opts["dof"]]], opts["L"], 1.0)[free]
+        S = np.where([n.startswith("r") for n in NAMES[opts.dof]], opts.L, 1.0)[free]
         before = translation_std(cov, opts)
         cov = cov.copy()
         cov[np.ix_(free, free)] += test.between / np.outer(S, S)
@@ -65,12 +65,12 @@ def icp_result(R, t, origin, adj, history, converged, matcher, opts, runtime):
     n_used = adj.corr.n_accepted
     if len(adj.corr) < adj.corr.n_source:  # the shift from a sample of the source (sample=)
         msg += (f"; pairs from a sample of {len(adj.corr):,} of {adj.corr.n_source:,} source points "
-                f"(sample={opts['sample']!r}), {n_used:,} used")
+                f"(sample={opts.sample!r}), {n_used:,} used")
     return RegistrationResult(
         translation=t.copy(), rotation=R.copy(), origin=origin, covariance=cov,
-        parameter_names=NAMES[opts["dof"]], sigma0=adj.sigma0, n_used=n_used,
+        parameter_names=NAMES[opts.dof], sigma0=adj.sigma0, n_used=n_used,
         share_used=n_used / max(len(adj.corr), 1), converged=converged, iterations=len(history),
-        degeneracy=deg, method=f"icp ({opts['dof']}, {opts['metric']}, robust={opts['robust']}, surface={matcher.options.get('surface', 'plane')})",
+        degeneracy=deg, method=f"icp ({opts.dof}, {opts.metric}, robust={opts.robust}, surface={matcher.options.get('surface', 'plane')})",
         history=tuple(history), runtime_s=runtime, message=msg, correspondences=adj.corr,
         consistency=test,
     )  # fmt: skip
@@ -83,8 +83,8 @@ def consistency_test(adj, matcher, opts):
     A, l, P = design(corr, None, None, opts)
     free = adj.degeneracy.parameter_determined
     A = A[:, :, free]  # held parameters stay out of the test
-    xy = corr.source_xyz[ok, :2] - opts["origin"][:2]
-    cells = np.floor(xy / opts["block_size"]).astype(np.int64)
+    xy = corr.source_xyz[ok, :2] - opts.origin[:2]
+    cells = np.floor(xy / opts.block_size).astype(np.int64)
     _, cells = np.unique(cells, axis=0, return_inverse=True)
     if matcher.target_class is not None and matcher.source_class is not None:
         # a correspondence belongs to the first group that either of its points belongs to: a
@@ -104,11 +104,11 @@ def consistency_test(adj, matcher, opts):
         above = (xy > np.median(xy, axis=0)).astype(int)
         labels = above[:, 0] + 2 * above[:, 1]
         names, grouping = ["block SW", "block SE", "block NW", "block NE"], "block"
-    names_free = [n for n, f in zip(NAMES[opts["dof"]], free) if f]
+    names_free = [n for n, f in zip(NAMES[opts.dof], free) if f]
     translation = [names_free.index(n) for n in ("tx", "ty", "tz") if n in names_free]
     test = group_consistency(
-        A, l, P, labels, names, cells.ravel(), translation=translation, rel_threshold=opts["rel"],
-        alpha=opts["alpha"], grouping=grouping,
+        A, l, P, labels, names, cells.ravel(), translation=translation, rel_threshold=opts.rel_threshold,
+        alpha=opts.consistency_alpha, grouping=grouping,
     )  # fmt: skip
     if test is not None and len(translation) < 3:  # report offsets on all three axes (NaN where held)
         full = np.full((len(test.groups), 3), np.nan)
@@ -120,7 +120,7 @@ def consistency_test(adj, matcher, opts):
 
 
 def translation_std(cov, opts):
-    idx = [NAMES[opts["dof"]].index(n) for n in ("tx", "ty", "tz")]
+    idx = [NAMES[opts.dof].index(n) for n in ("tx", "ty", "tz")]
     return np.sqrt(np.clip(np.diag(cov)[idx], 0, None))
 
 

@@ -153,8 +153,9 @@ def consensus_cube(
     t_max = np.array([a[i] for a, i in zip(axes, idx)])
     best = np.where(peak.axis_constrained, peak.summit, np.nan) if peak.kind != "flat" else np.full(3, np.nan)
     return ConsensusCube(
-        counts, axes, best, t_max, float(counts[idx]), peak, pb.metric, pb.eps, pb.radius, pb.max_angle_deg,
-        len(pb.src), int(D.shape[0]), step, kernel, time.perf_counter() - t0,
+        counts=counts, axes=axes, best_translation=best, argmax_translation=t_max, best_count=float(counts[idx]),
+        peak=peak, metric=pb.metric, eps=pb.eps, radius=pb.radius, max_angle_deg=pb.max_angle_deg,
+        n_source=len(pb.src), n_pairs=int(D.shape[0]), step=step, kernel=kernel, runtime_s=time.perf_counter() - t0,
     )
 
 

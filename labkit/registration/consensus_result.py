@@ -252,8 +252,9 @@ def peak_shape(counts, axes, eps: float, level: float = 0.07) -> PeakShape:
     # no peak: the best cells are hardly better than the typical one (counting noise of the peak)
     noise = 3.0 * np.sqrt(max(top, 1.0)) if np.allclose(c, np.rint(c)) else 0.01 * top
     if top <= 0 or top - med <= noise:
-        return PeakShape("flat", np.full(3, np.nan), np.eye(3), np.ones(3, bool), np.zeros(3, bool),
-                         float(contrast), int(c.size), free_spread, np.full(3, np.nan), int(c.size))
+        return PeakShape(kind="flat", spreads=np.full(3, np.nan), directions=np.eye(3), free=np.ones(3, bool),
+                         axis_constrained=np.zeros(3, bool), contrast=float(contrast), n_top=int(c.size),
+                         free_spread=free_spread, summit=np.full(3, np.nan), n_summit=int(c.size))
     # top region and summit: cells connected to the peak above two thresholds
     region = _connected_to_peak(c >= top - max(level * (top - med), noise), c)
     summit = _connected_to_peak(c >= top - noise, c)
@@ -265,8 +266,9 @@ def peak_shape(counts, axes, eps: float, level: float = 0.07) -> PeakShape:
     free = spreads >= free_spread
     share = (vec[:, free] ** 2).sum(axis=1)
     kind = ("point", "ridge", "plane", "flat")[int(free.sum())]
-    return PeakShape(kind, spreads, vec, free, share < 0.5, float(contrast), int(region.sum()), free_spread,
-                     centre, int(summit.sum()))
+    return PeakShape(kind=kind, spreads=spreads, directions=vec, free=free, axis_constrained=share < 0.5,
+                     contrast=float(contrast), n_top=int(region.sum()), free_spread=free_spread, summit=centre,
+                     n_summit=int(summit.sum()))
 
 
 def _connected_to_peak(mask, c):

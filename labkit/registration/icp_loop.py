@@ -32,7 +32,7 @@ from .._report import ReportMixin, fmt
 from ..errors import LabkitError
 from ..progress import IterationSteps
 from ..transforms import angles_from_rotation, check_transform
-from ._icp_adjustment import NAMES, adjust, default_max_std, held_shift_std
+from ._icp_adjustment import NAMES, IcpSettings, adjust, default_max_std, held_shift_std
 from ._icp_information import TiltVariance
 from ._icp_iteration import cycle_converged, cycle_period, step_damping, update_transform, within_precision
 from ._icp_result import icp_result
@@ -335,16 +335,15 @@ def icp(
         max_noise=max_noise, sample=sample, unique=unique, k=k, rng=rng, origin=origin, surface=surface,
     )  # fmt: skip
     L = max(float(np.sqrt((matcher.source**2).sum(axis=1).mean())), 1.0)
-    opts = dict(
-        origin=origin, dof=dof, metric=metric, robust=robust, reject_sigma=reject_sigma, L=L, rel=rel_threshold,
-        min_n=min_correspondences, covariance=covariance, block_size=block_size,
-        held_rotation_std=held_rotation_std, alpha=consistency_alpha,
+    opts = IcpSettings(
+        origin=origin, dof=dof, metric=metric, robust=robust, reject_sigma=reject_sigma, L=L,
+        rel_threshold=rel_threshold, min_correspondences=min_correspondences, covariance=covariance,
+        block_size=block_size, held_rotation_std=held_rotation_std, consistency_alpha=consistency_alpha,
         max_std=default_max_std(max_std, matcher.options["max_distance"]),
         held_shift_std=held_shift_std(matcher.options["max_distance"]),
         tilt=TiltVariance(matcher), sample=sample,
     )  # fmt: skip
-    opts["cascade"] = True
-    plain = dict(opts, robust=None, reject_sigma=None, cascade=False)  # warm-up stage: no robust measures, no cascade
+    plain = replace(opts, robust=None, reject_sigma=None, cascade=False)  # warm-up stage: no robust measures, no cascade
     history, converged, adj, step, robust_stage = [], False, None, np.inf, False
     damping, previous = 1.0, None  # step length factor, halved when a step reverses the last one
     # 3. iterate: match, clean, adjust, update (progress: one step per iteration, shift and pairs)
@@ -396,6 +395,6 @@ def _initial_local(initial, origin):
 
 def _record(it, R, t, adj, step):
     return IterationRecord(
-        it, t.copy(), adj.rms, adj.corr.n_accepted, step,
-        np.degrees(angles_from_rotation(R)), adj.scale, adj.n_deleted,
-    )  # fmt: skip
+        iteration=it, translation=t.copy(), rms=adj.rms, n_used=adj.corr.n_accepted, step=step,
+        rotation_deg=np.degrees(angles_from_rotation(R)), scale=adj.scale, n_deleted=adj.n_deleted,
+    )
