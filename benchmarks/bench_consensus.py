@@ -80,7 +80,7 @@ def brute_force_cells(cube, pb, cells):
     tree, counts = cKDTree(pb.tgt), []
     for cell in cells:
         x = pb.src + np.array([a[i] for a, i in zip(cube.axes, cell)])
-        if cube.criterion == "point_to_point":
+        if cube.metric == "point_to_point":
             d, _ = tree.query(x, distance_upper_bound=cube.eps, workers=-1)
             counts.append(int((d < cube.eps).sum()))
             continue
@@ -109,7 +109,7 @@ def main(quick=False):
     # Consensus cube, both criteria
     cubes = {}
     for crit in ("point_to_plane", "point_to_point"):
-        cube, wall, cpu = timed(consensus_cube, src, tgt, extent=1.0, step=step, criterion=crit)
+        cube, wall, cpu = timed(consensus_cube, src, tgt, extent=1.0, step=step, metric=crit)
         cubes[crit] = cube
         rows.append((f"consensus_cube {crit}", wall, cpu, f"{cube.counts.size:,} cells, {cube.n_pairs:,} pairs, "
                      f"peak {cube.best_count:.0f}/{len(src)} ({cube.peak.kind}), "
@@ -117,7 +117,7 @@ def main(quick=False):
                      f"highest cell err {np.round(err_mm(cube.argmax_translation, pair)).astype(int)} mm"))
     # Maximum consensus by branch and bound
     for crit in ("point_to_plane", "point_to_point"):
-        res, wall, cpu = timed(max_consensus, src, tgt, extent=1.0, criterion=crit, tol=0.001, eps=0.05)
+        res, wall, cpu = timed(max_consensus, src, tgt, extent=1.0, metric=crit, tol=0.001, eps=0.05)
         bb = res.history[0]
         rows.append((f"max_consensus {crit}", wall, cpu,
                      f"C = {bb.lower:.0f}, bound {bb.upper:.0f} (gap {bb.gap:.0f}), {bb.splits} splits, "

@@ -69,7 +69,7 @@ _EXPORTS = {
     "setup_notebook": "labkit.notebook",
 }
 
-#: Sub-modules reachable as attributes (``labkit.registration.icp``) without an explicit import.
+#: Sub-modules reachable as attributes (``labkit.registration``) without an explicit import.
 _SUBMODULES = {
     "adjustment", "change", "compare", "distances", "errors", "features", "io", "masks", "plotting", "ransac",
     "references", "regions", "registration", "sphere", "sphere_fit", "synthetic", "tiles", "transforms", "widgets",

@@ -28,10 +28,10 @@ FAST = {"extent": 0.1, "tol": 0.02, "max_time": 5.0}
 
 # (keyword, value, message fragment)
 BAD_OPTIONS = [
-    ("deletion_k", 0, "deletion_k"),
-    ("deletion_k", -3, "deletion_k"),
-    ("deletion_k", np.nan, "deletion_k"),
-    ("deletion_k", "three", "deletion_k"),
+    ("reject_sigma", 0, "reject_sigma"),
+    ("reject_sigma", -3, "reject_sigma"),
+    ("reject_sigma", np.nan, "reject_sigma"),
+    ("reject_sigma", "three", "reject_sigma"),
     ("max_boxes", -1, "max_boxes"),
     ("max_boxes", 2.5, "max_boxes"),
     ("max_boxes", np.nan, "max_boxes"),
@@ -61,11 +61,11 @@ BAD_OPTIONS = [
     ("extent", np.nan, "extent"),
     ("extent", (1.0, 2.0), "extent"),
     ("center", (np.nan, 0.0, 0.0), "center"),
-    ("criterion", "nearest", "criterion"),
-    ("normal_k", 2, "normal_k"),
-    ("normal_k", 12.5, "normal_k"),
-    ("max_angle", 0.0, "max_angle"),
-    ("max_angle", -10.0, "max_angle"),
+    ("metric", "nearest", "metric"),
+    ("k", 2, "k must"),
+    ("k", 12.5, "k must"),
+    ("max_angle_deg", 0.0, "max_angle_deg"),
+    ("max_angle_deg", -10.0, "max_angle_deg"),
 ]
 
 
@@ -103,7 +103,7 @@ BAD_WEIGHTS_AND_NORMALS = [
     ("all weights zero", {"weights": "zero"}, "weights"),
     ("weights with NaN", {"weights": "nan"}, "weights"),
     ("weights per class without classes", {"weights": {2: 1.0}}, "classification"),
-    ("target normals of wrong shape", {"normals": (None, np.ones((5, 3)))}, "normals"),
+    ("target normals of wrong shape", {"target_normals": np.ones((5, 3))}, "normals"),
 ]
 
 
@@ -126,8 +126,8 @@ BAD_CUBE = [
     ({"step": -0.01}, "step"),
     ({"extent": 3.0, "step": 0.01}, "cells"),
     ({"eps": 0.0, "step": 0.05}, "eps"),
-    ({"criterion": "closest", "step": 0.05}, "criterion"),
-    ({"normal_k": 1, "step": 0.05}, "normal_k"),
+    ({"metric": "closest", "step": 0.05}, "metric"),
+    ({"k": 1, "step": 0.05}, "k must"),
 ]
 
 

@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 from labkit.errors import EmptyRegionError, LabkitError
 from labkit.registration import _consensus_kernels as K
 from labkit.registration import consensus_cube, max_consensus
-from labkit.registration.consensus import _prepare
+from labkit.registration._consensus_inputs import prepare_problem
 from labkit.synthetic import REGIONS, als_epochs
 
 STEP = 0.02
@@ -36,10 +36,10 @@ def brute_force(cube, pb, cells):
                 continue
             e = xi - pb.tgt[nb]
             ok = np.einsum("ij,ij->i", e, e) < cube.radius**2
-            if cube.criterion == "point_to_plane":
+            if cube.metric == "point_to_plane":
                 ok &= np.abs(np.einsum("ij,ij->i", e, pb.tgt_normals[nb])) < cube.eps
-            if pb.max_angle is not None:
-                ok &= np.abs(pb.tgt_normals[nb] @ pb.src_normals[j]) > np.cos(np.radians(pb.max_angle))
+            if pb.max_angle_deg is not None:
+                ok &= np.abs(pb.tgt_normals[nb] @ pb.src_normals[j]) > np.cos(np.radians(pb.max_angle_deg))
             total += pb.w[j] * ok.any()
         out.append(total)
     return np.array(out)
@@ -57,8 +57,8 @@ def small_pair():
 def test_counts_equal_brute_force(small_pair, criterion, max_angle, weighted):
     src, tgt = small_pair.source.xyz[::3], small_pair.target.xyz
     w = np.random.default_rng(0).uniform(0.2, 2.0, len(src)) if weighted else None
-    cube = consensus_cube(src, tgt, extent=0.2, step=0.02, criterion=criterion, max_angle=max_angle, weights=w)
-    pb = _prepare(src, tgt, criterion, 0.05, None, max_angle, w, None, 12)
+    cube = consensus_cube(src, tgt, extent=0.2, step=0.02, metric=criterion, max_angle_deg=max_angle, weights=w)
+    pb = prepare_problem(src, tgt, criterion, 0.05, None, max_angle, w, None, 12)
     rng = np.random.default_rng(1)
     cells = [tuple(int(rng.integers(0, n)) for n in cube.counts.shape) for _ in range(12)] + [cube.peak_index]
     expected = brute_force(cube, pb, cells)
@@ -71,8 +71,8 @@ def test_counts_equal_brute_force(small_pair, criterion, max_angle, weighted):
 @pytest.mark.parametrize("criterion", ["point_to_plane", "point_to_point"])
 def test_numpy_and_compiled_kernels_agree(small_pair, criterion):
     src, tgt = small_pair.source.xyz[::15], small_pair.target.xyz
-    a = consensus_cube(src, tgt, extent=0.1, step=0.02, criterion=criterion, use_numba=True)
-    b = consensus_cube(src, tgt, extent=0.1, step=0.02, criterion=criterion, use_numba=False)
+    a = consensus_cube(src, tgt, extent=0.1, step=0.02, metric=criterion, use_numba=True)
+    b = consensus_cube(src, tgt, extent=0.1, step=0.02, metric=criterion, use_numba=False)
     assert (a.kernel, b.kernel) == ("numba", "numpy")
     np.testing.assert_array_equal(a.counts, b.counts)
 
@@ -132,7 +132,7 @@ def test_point_to_point_barely_distinguishes_at_als_density():
     share, margin = {}, {}
     for crit in ("point_to_point", "point_to_plane"):
         # grid centred on the truth, so that the truth is a cell
-        cube = consensus_cube(src, tgt, extent=0.2, step=0.02, criterion=crit, center=pair.translation)
+        cube = consensus_cube(src, tgt, extent=0.2, step=0.02, metric=crit, center=pair.translation)
         right = cube.count_at(pair.translation)
         grid = np.stack(np.meshgrid(*cube.axes, indexing="ij"), axis=-1)
         away = np.linalg.norm(grid - pair.translation, axis=-1) >= 0.06 - 1e-9
@@ -155,7 +155,7 @@ def test_max_consensus_optimum_and_refinement():
     assert bb.lower >= cube.best_count  # continuous optimum at least the grid optimum
     assert bb.upper >= bb.lower and bb.gap == pytest.approx(bb.upper - bb.lower)
     # the branch-and-bound count is exact: recount by brute force at its translation
-    pb = _prepare(src, tgt, "point_to_plane", 0.05, None, None, None, None, 12)
+    pb = prepare_problem(src, tgt, "point_to_plane", 0.05, None, None, None, None, 12)
     shifted = consensus_cube(src, tgt, extent=0.001, step=0.001, center=bb.translation)
     assert shifted.counts[1, 1, 1] == bb.lower
     assert brute_force(shifted, pb, [(1, 1, 1)])[0] == bb.lower
@@ -179,7 +179,7 @@ def test_flat_consensus_is_undetermined():
     rng = np.random.default_rng(4)
     src = rng.uniform(0, 20, (400, 3))
     tgt = rng.uniform(0, 20, (400, 3))
-    cube = consensus_cube(src, tgt, extent=0.2, step=0.04, criterion="point_to_point", eps=0.05)
+    cube = consensus_cube(src, tgt, extent=0.2, step=0.04, metric="point_to_point", eps=0.05)
     assert cube.undetermined and np.isnan(cube.best_translation).all()
     assert "undetermined" in cube.summary()
 
@@ -192,8 +192,8 @@ def test_bad_input(small_pair):
         consensus_cube(src, tgt, eps=0.0, step=0.05)
     with pytest.raises(EmptyRegionError, match="overlap"):
         consensus_cube(src + 500.0, tgt, extent=0.2, step=0.05)
-    with pytest.raises(LabkitError, match="criterion"):
-        consensus_cube(src, tgt, criterion="nearest", step=0.05)
+    with pytest.raises(LabkitError, match="metric"):
+        consensus_cube(src, tgt, metric="nearest", step=0.05)
     with pytest.raises(LabkitError, match="weights"):
         consensus_cube(src, tgt, step=0.05, weights=np.ones(3))
     with pytest.raises(LabkitError, match="tol"):

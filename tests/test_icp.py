@@ -1,4 +1,4 @@
-"""Tests of labkit.registration.icp: synthetic regions, dof, each rule on a case built for it,
+"""Tests of labkit.registration.icp (module icp_loop): synthetic regions, dof, each rule on a case built for it,
 covariance against Monte Carlo, degeneracy, bad input."""
 
 import numpy as np
@@ -7,7 +7,7 @@ import pytest
 from labkit import PointCloud
 from labkit.errors import EmptyRegionError, LabkitError
 from labkit.registration import icp
-from labkit.registration.icp import IterationRecord
+from labkit.registration import IterationRecord
 from labkit.synthetic import REGIONS, als_epochs
 from labkit.transforms import apply_transform, make_transform
 
@@ -570,9 +570,9 @@ def test_tilt_variance_of_pca_normals_matches_monte_carlo():
     normals of many noisy samplings of one plane (independent route: repeated sampling)."""
     from scipy.spatial import cKDTree
 
-    from labkit.registration.icp import _TiltVariance
+    from labkit.registration._icp_information import TiltVariance
 
-    class _M:  # the two things _TiltVariance reads from a matcher
+    class _M:  # the two things TiltVariance reads from a matcher
         pass
 
     rng = np.random.default_rng(4)
@@ -585,7 +585,7 @@ def test_tilt_variance_of_pca_normals_matches_monte_carlo():
         m.target, m.options = pts, {"k": k}
         m.tree = cKDTree(pts)
         j = np.array([int(np.argmin((xy**2).sum(axis=1)))])
-        predicted.append(_TiltVariance(m)(j)[0])
+        predicted.append(TiltVariance(m)(j)[0])
         nb = m.tree.query(pts[j], k=k)[1][0]
         X = pts[nb] - pts[nb].mean(axis=0)
         n = np.linalg.eigh(X.T @ X)[1][:, 0]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..registration.consensus import PeakShape
+from ..registration.consensus_result import PeakShape
 from ._style import CMAP_SEQUENTIAL, COLORS, new_plotter, scalar_bar
 
 PLANES = {"XY": (0, 1, 2), "XZ": (0, 2, 1), "YZ": (1, 2, 0)}

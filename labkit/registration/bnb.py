@@ -14,8 +14,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .._report import ReportMixin, fmt
+from .._stats import MAD_TO_SIGMA
 from . import _consensus_kernels as K
-from .result import RegistrationResult, degeneracy_report
+from .degeneracy import degeneracy_report
+from .result import RegistrationResult
 
 NAMES = ("tx", "ty", "tz")
 OCTANTS = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], dtype=np.float64)
@@ -95,6 +97,26 @@ def branch_and_bound(ptr, src_of, D, nrm, pb, center, ext, tol, max_boxes, init_
     the pairs that passed its parent's enlarged test. The search stops early when
     ``max_boxes`` splits or ``max_time`` seconds are spent; the bound of every box
     still open then enters the certified upper bound.
+
+    Examples
+    --------
+    The steps of :func:`labkit.registration.max_consensus`, one by one:
+
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(1)
+    >>> def wavy(n):  # a surface with slopes in X and Y, measured with 2 mm noise
+    ...     xy = rng.uniform(0, 6, (n, 2))
+    ...     z = 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])
+    ...     return np.column_stack([xy, z]) + rng.normal(0, 0.002, (n, 3))
+    >>> target = wavy(1500)
+    >>> source = wavy(300) - [0.05, 0.02, 0.03]  # another sampling, moved
+    >>> from labkit.registration._consensus_inputs import candidate_pairs, prepare_problem
+    >>> pb = prepare_problem(source, target, "point_to_plane", 0.01, None, None, None, None, 12, max_points=100)
+    >>> center, ext = np.zeros(3), np.full(3, 0.08)
+    >>> ptr, src_of, D, nrm = candidate_pairs(pb, center - ext, center + ext, pb.radius + 0.08)
+    >>> bb = branch_and_bound(ptr, src_of, D, nrm, pb, center, ext, 0.02, 1000, 0.04, use_numba=False)
+    >>> bb.lower <= bb.upper, bool(np.allclose(bb.translation, [0.05, 0.02, 0.03], atol=0.02))
+    (True, True)
     """
     t0 = time.perf_counter()
     R, E, w = pb.radius, pb.eps, pb.w
@@ -265,7 +287,7 @@ def _fit_with_deletion(A, l, p, tilt, t, t_ref, box_var, k_del, max_std, max_rou
     if used.sum() < 3:
         return None
     z = (A @ t - l) * np.sqrt(p)
-    keep = used & (np.abs(z) <= k_del * max(1.4826 * float(np.median(np.abs(z[used]))), 1e-12))
+    keep = used & (np.abs(z) <= k_del * max(MAD_TO_SIGMA * float(np.median(np.abs(z[used]))), 1e-12))
     for _ in range(max_rounds):
         if keep.sum() < 3:
             return None
@@ -316,7 +338,7 @@ def _sandwich(A, l, p, x, deg, cells, box_var):
     return Vc @ cov_c @ Vc.T + box_var * (Vu @ Vu.T)
 
 
-def _held_effect(t, deg, box_var, members, src, w, tgt, tree, k, deletion_k, max_std):
+def _held_effect(t, deg, box_var, members, src, w, tgt, tree, k, reject_sigma, max_std):
     """Covariance that the held (undetermined) directions pass on to the determined ones.
 
     A held component keeps the branch-and-bound value, anywhere within the search box. On
@@ -335,7 +357,7 @@ def _held_effect(t, deg, box_var, members, src, w, tgt, tree, k, deletion_k, max
     for j in range(Vu.shape[1]):
         tj = t + step * Vu[:, j]
         A, l, p, tilt = _design(members, src[members] + tj, tgt, tree, k, w, src)
-        fit = _fit_with_deletion(A, l, p, tilt, tj, tj, box_var, deletion_k, max_std)
+        fit = _fit_with_deletion(A, l, p, tilt, tj, tj, box_var, reject_sigma, max_std)
         if fit is None:
             continue
         s_j = Vc @ (Vc.T @ (fit[0] - t)) / step  # change of the determined part per metre of the held one
@@ -343,7 +365,7 @@ def _held_effect(t, deg, box_var, members, src, w, tgt, tree, k, deletion_k, max
     return extra
 
 
-def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: int = 50, k: int = 12,
+def refine(bb, src_of, D, nrm, pb, reject_sigma, ext, runtime_bb, t0, max_outer: int = 50, k: int = 12,
            block_size: float | None = None, max_std: float | None = None):
     """Least squares on the consensus set with weights and iterative deletion (eq. 6.10-6.14).
 
@@ -360,6 +382,27 @@ def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: i
     target points within the search radius they are the one whose plane fits best
     at the branch-and-bound translation, and residuals truncated at eps both pull the
     estimate towards that translation and make sigma0 far too small (notebook 06).
+
+    Examples
+    --------
+    After the branch and bound (see :func:`branch_and_bound`), the adjustment of its consensus set:
+
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(1)
+    >>> def wavy(n):  # a surface with slopes in X and Y, measured with 2 mm noise
+    ...     xy = rng.uniform(0, 6, (n, 2))
+    ...     z = 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])
+    ...     return np.column_stack([xy, z]) + rng.normal(0, 0.002, (n, 3))
+    >>> target = wavy(1500)
+    >>> source = wavy(300) - [0.05, 0.02, 0.03]  # another sampling, moved
+    >>> from labkit.registration._consensus_inputs import candidate_pairs, prepare_problem
+    >>> pb = prepare_problem(source, target, "point_to_plane", 0.01, None, None, None, None, 12, max_points=100)
+    >>> center, ext = np.zeros(3), np.full(3, 0.08)
+    >>> ptr, src_of, D, nrm = candidate_pairs(pb, center - ext, center + ext, pb.radius + 0.08)
+    >>> bb = branch_and_bound(ptr, src_of, D, nrm, pb, center, ext, 0.02, 1000, 0.04, use_numba=False)
+    >>> res = refine(bb, src_of, D, nrm, pb, 3.0, ext, 0.0, 0.0)
+    >>> bool(np.allclose(res.translation, [0.05, 0.02, 0.03], atol=0.01)), res.covariance.shape
+    (True, (3, 3))
     """
     R, E = pb.radius, pb.eps
     tgt = pb.tgt if pb.tgt_full is None else pb.tgt_full
@@ -379,7 +422,7 @@ def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: i
     for _ in range(max_outer if members.size >= 3 else 0):
         # Associate every member with its local target plane at t, then adjust
         A, l, p, tilt = _design(members, src[members] + t, tgt, tree, k, w, src)
-        fit = _fit_with_deletion(A, l, p, tilt, t, bb.translation, box_var, deletion_k, max_std or E / 2)
+        fit = _fit_with_deletion(A, l, p, tilt, t, bb.translation, box_var, reject_sigma, max_std or E / 2)
         if fit is None:
             deg = None
             break
@@ -397,7 +440,7 @@ def refine(bb, src_of, D, nrm, pb, deletion_k, ext, runtime_bb, t0, max_outer: i
         robust = _sandwich(A[keep], l[keep], p[keep], t, deg, cells, box_var)
         cov, kind = (cov, "sigma0^2 N^-1 (too few blocks for the jackknife)") if robust is None else (
             robust, f"delete-a-block jackknife over {block_size:.3g} m blocks")
-        cov = cov + _held_effect(t, deg, box_var, members, src, w, tgt, tree, k, deletion_k, max_std or E / 2)
+        cov = cov + _held_effect(t, deg, box_var, members, src, w, tgt, tree, k, reject_sigma, max_std or E / 2)
     undetermined = deg.undetermined_axes if deg is not None else NAMES
     msg = (f"branch and bound: consensus {bb.lower:.6g}, certified upper bound {bb.upper:.6g} "
            f"(gap {bb.gap:.6g}) after {bb.splits} splits, {bb.reason}; eps {E * 1000:.1f} mm, "

@@ -798,6 +798,16 @@ def prepare(
     The arguments are those of :func:`match`; ``origin`` is the shared local
     origin (default: from the target). ICP calls this once and the returned
     matcher in every iteration.
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(1)
+    >>> xy = rng.uniform(0, 6, (1500, 2))
+    >>> target = np.column_stack([xy, 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])])
+    >>> matcher = prepare(target[::5] + [0.0, 0.0, 0.02], target)
+    >>> corr = matcher(np.eye(3), np.array([0.0, 0.0, -0.02]))  # pairs after moving the source back
+    >>> len(corr), bool(np.abs(corr.dz[corr.accepted]).max() < 0.01)
+    (300, True)
     """
     src = as_points(source, min_points=3, name="source")
     tgt = as_points(target, min_points=3, name="target")
@@ -1007,6 +1017,15 @@ def match(
     Weights follow eq. (5.6), p_i = 1 / (sigma_s,i^2 + sigma_t,j^2): the variance of
     a point-to-plane residual between two independently measured points. Without
     ``class_sigma`` and ``noise_weighting`` all weights are 1.
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(1)
+    >>> xy = rng.uniform(0, 6, (1500, 2))
+    >>> target = np.column_stack([xy, 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])])
+    >>> corr = match(target[::5] + [0.0, 0.0, 0.02], target, max_distance=0.5)
+    >>> corr.n_accepted > 250, bool(np.allclose(np.median(corr.dz[corr.accepted]), -0.02, atol=0.005))
+    (True, True)
     """
     matcher = prepare(
         source, target, target_normals=target_normals, source_normals=source_normals,

@@ -57,6 +57,13 @@ def coarse_to_fine_levels(max_distance, reach=None, spacing=0.0):
     -------
     list of (float, float)
         (matching distance, voxel edge) per coarse level; empty when no level is needed.
+
+    Examples
+    --------
+    >>> coarse_to_fine_levels(0.5, reach=1.5)
+    [(4.0, 1.0), (2.0, 0.5), (1.0, 0.25)]
+    >>> coarse_to_fine_levels(0.5)  # reach = the gate: one coarse level with twice the gate
+    [(1.0, 0.25)]
     """
     max_distance = positive(max_distance, "max_distance")
     reach = max_distance if reach is None else positive(reach, "reach")
@@ -69,7 +76,16 @@ def coarse_to_fine_levels(max_distance, reach=None, spacing=0.0):
 
 
 def point_spacing(points, sample=2000):
-    """Median distance to the nearest other point over an even subset of at most ``sample`` points (m)."""
+    """Median distance to the nearest other point over an even subset of at most ``sample`` points (m).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> g = np.arange(10) * 0.25
+    >>> grid = np.column_stack([np.repeat(g, 10), np.tile(g, 10), np.zeros(100)])
+    >>> point_spacing(grid)
+    0.25
+    """
     pts = as_points(points, min_points=2)
     tree = KDTree(pts, merge_duplicates=True)
     if tree.n < 2:
@@ -87,6 +103,11 @@ def use_pyramid(max_distance, reach):
     time, and on most of them even from 3 m. The pyramid pays where the gate leaves too few pairs at the
     start: Autzen halves moved by 2-3 m (single level: X and Y undetermined, 1.5-2.7 m off; pyramid with
     reach=3: the same fixed point as from 0.3 m).
+
+    Examples
+    --------
+    >>> use_pyramid(1.0, None), use_pyramid(1.0, 0.5), use_pyramid(1.0, 3.0)
+    (False, False, True)
     """
     if reach is None or max_distance is None:
         return False
@@ -102,6 +123,19 @@ def retry_with_pyramid(result, max_distance):
     spacing near it, a large share of the searched points has no partner within the gate (Autzen ground
     halves, 0.6 pts/m^2, moved by 1.5-2.5 m: 28-39 %), and the single level may hold X and Y at a start
     metres off. The pyramid's own full-cloud level decides again.
+
+    Examples
+    --------
+    A result with every axis determined is never retried:
+
+    >>> import numpy as np
+    >>> from labkit.registration import icp
+    >>> rng = np.random.default_rng(1)
+    >>> xy = rng.uniform(0, 6, (1500, 2))
+    >>> target = np.column_stack([xy, 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])])
+    >>> res = icp(target[::5] + [0.02, 0.0, 0.0], target, coarse_to_fine=False)
+    >>> retry_with_pyramid(res, max_distance=1.0)
+    False
     """
     if max_distance is None or not np.isfinite(max_distance) or not result.degeneracy.undetermined_axes:
         return False
@@ -151,6 +185,21 @@ def pyramid_icp(source, target, *, icp_function, reach=None, **options):
         The fine level's result (covariance, degeneracy, message from the full clouds only), with
         ``history`` and ``iterations`` over all levels, ``runtime_s`` of the whole pyramid, the levels
         named in ``method`` and ``message``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(1)
+    >>> def wavy(n):  # a surface with slopes in X and Y, measured with 2 mm noise
+    ...     xy = rng.uniform(0, 6, (n, 2))
+    ...     z = 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])
+    ...     return np.column_stack([xy, z]) + rng.normal(0, 0.002, (n, 3))
+    >>> target = wavy(1500)
+    >>> source = wavy(600) - [0.6, -0.4, 0.05]  # moved beyond the gate
+    >>> from labkit.registration import icp
+    >>> res = pyramid_icp(source, target, icp_function=icp, reach=1.0, max_distance=0.25)
+    >>> "coarse_to_fine" in res.method, bool(np.allclose(res.translation, [0.6, -0.4, 0.05], atol=0.01))
+    (True, True)
     """
     t0 = time.perf_counter()
     max_distance = options.get("max_distance", 1.0)

@@ -12,7 +12,7 @@ import numpy as np
 
 from .._report import ReportMixin, fmt
 from ..transforms import angles_from_rotation, apply_transform, make_transform
-from .consistency import Consistency, group_consistency  # noqa: F401  (re-exported: icp imports them from here)
+from .consistency import Consistency, group_consistency  # noqa: F401  (re-exported: their former home)
 from .degeneracy import AXES, Degeneracy, degeneracy_report  # noqa: F401  (re-exported)
 
 
@@ -103,7 +103,18 @@ class RegistrationResult(ReportMixin):
         return self.std[idx]
 
     def apply(self, points) -> np.ndarray:
-        """Map source points (n, 3) into the target frame."""
+        """Map source points (n, 3) into the target frame.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> res = RegistrationResult(translation=np.array([0.1, 0.0, -0.2]), rotation=np.eye(3),
+        ...                          origin=np.array([500000.0, 5400000.0, 0.0]), covariance=np.zeros((3, 3)),
+        ...                          parameter_names=("tx", "ty", "tz"), sigma0=1.0, n_used=10, share_used=1.0,
+        ...                          converged=True, iterations=3)
+        >>> np.round(res.apply(np.array([[500010.0, 5400020.0, 30.0]])), 3).tolist()
+        [[500010.1, 5400020.0, 29.8]]
+        """
         return apply_transform(self.matrix, points)
 
     def _report(self):
