@@ -16,6 +16,7 @@ from ._checks import as_rng, choice
 from .adjustment import gauss_helmert_model
 from .coherent_areas import CORRECTIONS
 from .plotting.compare import plot_shift_field
+from .plotting.consensus import PLANES, plot_consensus_slice
 from .plotting.ransac import plot_adaptive_trace, plot_section
 from .plotting.registration import plot_correspondences
 from .plotting.sphere import plot_confidence_ellipsoid
@@ -137,8 +138,6 @@ def consensus_slices_widget(cube, truth=None):
     """
     import ipywidgets as widgets
     from matplotlib.figure import Figure
-
-    from .plotting.consensus import PLANES, plot_consensus_slice
 
     plane = widgets.ToggleButtons(options=list(PLANES), value="XY", description="slice")
     slider = widgets.IntSlider(description="cell", continuous_update=False)

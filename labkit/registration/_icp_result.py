@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from ..masks import STABLE_CLASSES
 from ._icp_adjustment import NAMES, design
 from .consistency import group_consistency
 from .result import RegistrationResult
@@ -13,8 +14,6 @@ from .result import RegistrationResult
 #: Groups of the consistency test by the classes (ASPRS) of a correspondence's two points, in order of
 #: precedence (vegetation at either end makes it 'vegetation'); the rest is 'other'.
 CLASS_GROUPS = (("vegetation", (3, 4, 5)), ("buildings", (6,)), ("ground/road", (2, 11)))
-#: The stable classes suggested when the class groups disagree.
-STABLE = (2, 6, 11)
 
 
 def icp_result(R, t, origin, adj, history, converged, matcher, opts, runtime):
@@ -141,5 +140,5 @@ def disagreement_text(test, classes):
         "the groups"
     )
     if test.grouping == "class" and classes is None:
-        return text + f"; consider classes={STABLE} (ground, buildings, roads)"
+        return text + f"; consider classes={STABLE_CLASSES} (ground, buildings, roads)"
     return text + "; consider robust='tukey', classes= of stable surfaces, or leaving out the changed area"
