@@ -19,6 +19,7 @@ from scipy import stats
 from scipy.linalg import cho_factor, cho_solve
 
 from ._checks import as_points, positive, probability
+from ._deprecation import renamed_keywords
 from ._frame import local_origin
 from ._stats import GlobalTest, global_test, w_critical
 from .errors import DegenerateGeometryError, LabkitError
@@ -32,6 +33,7 @@ _X0_SAMPLE = 20_000  # points used for the algebraic initial values
 _FLAT_RATIO = 100.0  # radius above this many times the extent of the points: no curvature
 
 
+@renamed_keywords(max_iter="max_iterations")
 def gauss_helmert_model(
     points,
     x0=None,
@@ -39,7 +41,7 @@ def gauss_helmert_model(
     *,
     radius: float | None = None,
     tol: float = 1e-10,
-    max_iter: int = 50,
+    max_iterations: int = 50,
     alpha: float = 0.05,
     sigma0_apriori: float | None = None,
     alpha_w: float = 0.001,
@@ -61,8 +63,9 @@ def gauss_helmert_model(
         Hold the radius fixed at this nominal value; only the centre is estimated.
     tol : float
         Convergence threshold on max|dx| (m); also the main-check tolerance.
-    max_iter : int
-        Maximum number of iterations.
+    max_iterations : int
+        Maximum number of iterations (the name ICP uses; the old ``max_iter`` still works for one
+        release, with a DeprecationWarning).
     alpha : float
         Significance level of the global test.
     sigma0_apriori : float, optional
@@ -135,12 +138,12 @@ def gauss_helmert_model(
     sigma0_apriori = 1.0 if sigma0_apriori is None else positive(sigma0_apriori, "sigma0_apriori")
     tol = positive(tol, "tol")
     alpha, alpha_w = probability(alpha, "alpha"), probability(alpha_w, "alpha_w")
-    if int(max_iter) != max_iter or max_iter < 1:
-        raise LabkitError(f"max_iter must be a whole number >= 1, got {max_iter!r}")
+    if int(max_iterations) != max_iterations or max_iterations < 1:
+        raise LabkitError(f"max_iterations must be a whole number >= 1, got {max_iterations!r}")
     x_start = _initial_values(l, x0, origin, r_fix)
 
     # Iterate (eqs. 6-22)
-    it = _iterate(L, x_start, cov, r_fix is not None, tol, int(max_iter))
+    it = _iterate(L, x_start, cov, r_fix is not None, tol, int(max_iterations))
 
     # Main check and statistics
     return _result(L, it, cov, origin, r_fix is not None, tol, alpha, alpha_w, sigma0_apriori, sigma_known)

@@ -354,7 +354,8 @@ def test_singular_N_raises_with_given_initial_values(points):
         {"x0": [0.0, 0.0, np.nan, 1.0]},
         {"radius": -0.1},
         {"tol": 0.0},
-        {"max_iter": 0},
+        {"max_iterations": 0},
+        {"max_iterations": 2.5},
         {"alpha": 1.5},
     ],
 )
@@ -366,10 +367,16 @@ def test_bad_options_raise_labkit_error(kwargs):
 
 def test_non_convergence_is_reported_not_raised():
     pts = _cap(100, rng=16).sphere_points
-    fit = gauss_helmert_model(pts, x0=np.r_[pts.mean(axis=0), 0.5], max_iter=2)
+    fit = gauss_helmert_model(pts, x0=np.r_[pts.mean(axis=0), 0.5], max_iterations=2)
     assert not fit.converged and not fit.ok
     assert "no convergence" in fit.reason
     assert "WARNING" in fit.summary()
+    # the old keyword name (before ICP and the GHM shared one) still works for one release, with a warning
+    with pytest.warns(DeprecationWarning, match="'max_iter' is deprecated.*'max_iterations'"):
+        old = gauss_helmert_model(pts, x0=np.r_[pts.mean(axis=0), 0.5], max_iter=2)
+    np.testing.assert_array_equal(old.x, fit.x)
+    with pytest.raises(LabkitError, match="give 'max_iterations' only"):
+        gauss_helmert_model(pts, max_iter=2, max_iterations=2)
 
 
 def test_nearly_flat_points_are_flagged():
