@@ -34,6 +34,7 @@ list and a branch-free two-pass leaf scan were tried and gave no further gain.
 from __future__ import annotations
 
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -425,9 +426,9 @@ def _build_two(P, leafsize):
             return _build(np.array(P, np.float64, order="C"), leafsize)  # private, writeable copy
         v = keys[~left].min()
     iL, iR = np.flatnonzero(left), np.flatnonzero(~left)
-    with ThreadPoolExecutor(2) as pool:
-        jobs = [pool.submit(_build, np.ascontiguousarray(P[i]), leafsize) for i in (iL, iR)]  # private halves
-        (pL, nL, bL, dL, wL), (pR, nR, bR, dR, wR) = (job.result() for job in jobs)
+    pool = _pool(2)
+    jobs = [pool.submit(_build, np.ascontiguousarray(P[i]), leafsize) for i in (iL, iR)]  # private halves
+    (pL, nL, bL, dL, wL), (pR, nR, bR, dR, wR) = (job.result() for job in jobs)
     mL = len(nL)
     nodes = np.empty((1 + mL + len(nR), 4), np.int64)
     nodes[0] = (0, n, 1, 1 + mL)
@@ -439,6 +440,33 @@ def _build_two(P, leafsize):
     root = np.concatenate([lo, hi, [v, d]])
     box = np.vstack([root[None, :], bL, bR])
     return np.concatenate([iL[pL], iR[pR]]), nodes, box, max(dL, dR) + 1, np.vstack([wL, wR])
+
+
+_pool_lock = threading.Lock()
+_pool_state = {"pool": None, "size": 0}
+
+
+def _pool(threads):
+    """A thread pool kept for the compiled kernels of this module (ICP queries the tree ~10 times per
+    call, and starting threads cost 5-10 ms each on a loaded machine). Only kernels run on it, which
+    never submit work themselves, so callers on any thread can share it without deadlock."""
+    with _pool_lock:
+        if _pool_state["pool"] is None or _pool_state["size"] < threads:
+            old = _pool_state["pool"]
+            _pool_state["pool"], _pool_state["size"] = ThreadPoolExecutor(threads, "labkit-kdtree"), threads
+            if old is not None:
+                old.shutdown(wait=False)
+        return _pool_state["pool"]
+
+
+def _forget_pool():  # a forked child has none of the parent's threads: start afresh
+    global _pool_lock
+    _pool_lock = threading.Lock()
+    _pool_state["pool"], _pool_state["size"] = None, 0
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)
 
 
 def _threads(workers):
@@ -547,11 +575,11 @@ class KDTree:
             _knn(self.data, *args, Q, k, bound2, idx, d2)
             return d2, idx
         bounds = np.linspace(0, len(Q), threads + 1).astype(int)
-        with ThreadPoolExecutor(threads) as pool:
-            jobs = [
-                pool.submit(_knn, self.data, *args, Q[a:b], k, bound2, idx[a:b], d2[a:b])
-                for a, b in zip(bounds[:-1], bounds[1:])
-            ]
-            for job in jobs:
-                job.result()
+        pool = _pool(threads)
+        jobs = [
+            pool.submit(_knn, self.data, *args, Q[a:b], k, bound2, idx[a:b], d2[a:b])
+            for a, b in zip(bounds[:-1], bounds[1:])
+        ]
+        for job in jobs:
+            job.result()
         return d2, idx
