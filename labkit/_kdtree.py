@@ -80,21 +80,22 @@ def _build(P, leafsize):  # pragma: no cover - compiled
     start[0], end[0] = 0, n
     count, sp, depth_max = 1, 1, 1
     stack[0, 0], stack[0, 1] = 0, 1
+    for d in range(3):  # the root's box; every other node's box comes from its parent's partition pass
+        lo[0, d] = np.inf
+        hi[0, d] = -np.inf
+    for i in range(n):
+        for d in range(3):
+            v = W[i, d]
+            if v < lo[0, d]:
+                lo[0, d] = v
+            if v > hi[0, d]:
+                hi[0, d] = v
+    cbox = np.empty((2, 6))  # boxes of the two children (lo, hi), filled while the points are moved
     while sp > 0:
         sp -= 1
         node, depth = stack[sp, 0], stack[sp, 1]
         depth_max = max(depth_max, depth)
         a, b = start[node], end[node]
-        for d in range(3):
-            lo[node, d] = np.inf
-            hi[node, d] = -np.inf
-        for i in range(a, b):
-            for d in range(3):
-                v = W[i, d]
-                if v < lo[node, d]:
-                    lo[node, d] = v
-                if v > hi[node, d]:
-                    hi[node, d] = v
         if b - a <= leafsize:
             continue
         # try the dimensions from the widest down; split at the median with ties kept together
@@ -108,7 +109,7 @@ def _build(P, leafsize):  # pragma: no cover - compiled
             m = b - a
             for i in range(m):
                 keys[i] = W[a + i, d]
-            v = np.partition(keys[:m], m // 2)[m // 2]
+            v = _select(keys, m, m // 2)  # the median (keys reordered; the counts below need no order)
             below = 0
             for i in range(m):
                 if keys[i] < v:
@@ -123,19 +124,31 @@ def _build(P, leafsize):  # pragma: no cover - compiled
                 for i in range(m):
                     if keys[i] < v:
                         below += 1
-            # stable partition of perm[a:b] into keys < v and keys >= v
+            # stable partition of perm[a:b] into coordinate < v and >= v
             j0, j1 = 0, below
             for i in range(m):
-                j = j0 if keys[i] < v else j1
+                lower_side = W[a + i, d] < v
+                j = j0 if lower_side else j1
                 buf[j] = perm[a + i]
                 wbuf[j, 0], wbuf[j, 1], wbuf[j, 2] = W[a + i, 0], W[a + i, 1], W[a + i, 2]
-                if keys[i] < v:
+                if lower_side:
                     j0 += 1
                 else:
                     j1 += 1
+            for c in range(2):
+                for e in range(3):
+                    cbox[c, e] = np.inf
+                    cbox[c, 3 + e] = -np.inf
             for i in range(m):
                 perm[a + i] = buf[i]
-                W[a + i, 0], W[a + i, 1], W[a + i, 2] = wbuf[i, 0], wbuf[i, 1], wbuf[i, 2]
+                c = 0 if i < below else 1
+                for e in range(3):
+                    x = wbuf[i, e]
+                    W[a + i, e] = x
+                    if x < cbox[c, e]:
+                        cbox[c, e] = x
+                    if x > cbox[c, 3 + e]:
+                        cbox[c, 3 + e] = x
             split = a + below
             sval[node], sdim[node] = v, d
             break
@@ -155,6 +168,9 @@ def _build(P, leafsize):  # pragma: no cover - compiled
         count += 2
         left[node], right[node] = l, r
         start[l], end[l], start[r], end[r] = a, split, split, b
+        for e in range(3):
+            lo[l, e], hi[l, e] = cbox[0, e], cbox[0, 3 + e]
+            lo[r, e], hi[r, e] = cbox[1, e], cbox[1, 3 + e]
         stack[sp, 0], stack[sp, 1] = r, depth + 1
         stack[sp + 1, 0], stack[sp + 1, 1] = l, depth + 1
         sp += 2
@@ -168,6 +184,38 @@ def _build(P, leafsize):  # pragma: no cover - compiled
     nodes[:, 0], nodes[:, 1] = start[:count], end[:count]
     nodes[:, 2], nodes[:, 3] = left[:count], right[:count]
     return perm, nodes, box, depth_max, W
+
+
+@_njit
+def _select(x, n, kth):  # pragma: no cover - compiled
+    """The kth smallest of x[:n], in place (Hoare's selection with a median-of-three pivot)."""
+    lo, hi = 0, n - 1
+    while hi > lo:
+        mid = (lo + hi) // 2
+        if x[mid] < x[lo]:
+            x[mid], x[lo] = x[lo], x[mid]
+        if x[hi] < x[lo]:
+            x[hi], x[lo] = x[lo], x[hi]
+        if x[hi] < x[mid]:
+            x[hi], x[mid] = x[mid], x[hi]
+        pivot = x[mid]
+        i, j = lo, hi
+        while i <= j:
+            while x[i] < pivot:
+                i += 1
+            while x[j] > pivot:
+                j -= 1
+            if i <= j:
+                x[i], x[j] = x[j], x[i]
+                i += 1
+                j -= 1
+        if kth <= j:
+            hi = j
+        elif kth >= i:
+            lo = i
+        else:
+            break
+    return x[kth]
 
 
 @_njit
@@ -299,7 +347,7 @@ def _knn(X, nodes, box, depth, Q, k, bound2, idx, dist2):  # pragma: no cover - 
 
 
 @_njit
-def _knn_leaves(X, nodes, box, depth, leaves, k, idx):  # pragma: no cover - compiled
+def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragma: no cover - compiled
     """k nearest tree points of every point of the given leaves (self-queries, leaf order).
 
     The points of one leaf are searched together: first among themselves, then the
@@ -309,6 +357,11 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx):  # pragma: no cover - com
     k-th distance. Same neighbours as :func:`_knn` (sorted ascending, ties in any
     order); the walk from the root is no longer paid per point. Row ``pos - start`` of
     ``idx`` belongs to leaf-order position ``pos``, ``start`` the first leaf's start.
+
+    With ``moments`` the neighbours are not written: row ``pos - start`` of ``cen`` and ``C``
+    gets the centroid (eq. 1) and covariance (eq. 2, divided by k) of the point's k neighbours,
+    summed while they are in cache, in the order and arithmetic of
+    :func:`labkit.neighbours.covariances` (the same numbers); ``idx`` is then not touched.
     """
     most = 1
     for t in range(len(leaves)):
@@ -394,9 +447,35 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx):  # pragma: no cover - com
             stack[sp] = near
             lower[sp] = g
             sp += 1
-        for qi in range(m):
+        if not moments:
+            for qi in range(m):
+                for j in range(k):
+                    idx[a + qi - start, j] = bi[qi, j]
+            continue
+        for qi in range(m):  # centroid, then the mean outer product of the deviations (two passes)
+            r = a + qi - start
+            sx = sy = sz = 0.0
             for j in range(k):
-                idx[a + qi - start, j] = bi[qi, j]
+                q = bi[qi, j]
+                sx += X[q, 0]
+                sy += X[q, 1]
+                sz += X[q, 2]
+            cx, cy, cz = sx / k, sy / k, sz / k
+            xx = xy = xz = yy = yz = zz = 0.0
+            for j in range(k):
+                q = bi[qi, j]
+                dx, dy, dz = X[q, 0] - cx, X[q, 1] - cy, X[q, 2] - cz
+                xx += dx * dx
+                xy += dx * dy
+                xz += dx * dz
+                yy += dy * dy
+                yz += dy * dz
+                zz += dz * dz
+            cen[r, 0], cen[r, 1], cen[r, 2] = cx, cy, cz
+            C[r, 0, 0], C[r, 1, 1], C[r, 2, 2] = xx / k, yy / k, zz / k
+            C[r, 0, 1] = C[r, 1, 0] = xy / k
+            C[r, 0, 2] = C[r, 2, 0] = xz / k
+            C[r, 1, 2] = C[r, 2, 1] = yz / k
 
 
 @_njit
@@ -467,6 +546,9 @@ def _forget_pool():  # a forked child has none of the parent's threads: start af
 
 if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_forget_pool)
+
+
+_NO_IDX, _NO_CEN, _NO_C = np.empty((0, 1), np.intp), np.empty((0, 3)), np.empty((0, 3, 3))  # unused outputs
 
 
 def _threads(workers):
@@ -542,10 +624,28 @@ class KDTree:
         idx = np.empty((b - a, k), dtype=np.intp)
         if b > a:
             if HAVE_NUMBA:
-                _knn_leaves(self.data, *self._nodes, self._leaves[j0:j1], k, idx)
+                _knn_leaves(self.data, *self._nodes, self._leaves[j0:j1], k, idx, _NO_CEN, _NO_C, False)
             else:  # pragma: no cover - depends on the environment
                 idx[:] = self._run(self.data[a:b], k, np.inf, 1)[1]
         return idx
+
+    def knn_moments_of_leaves(self, a: int, b: int, k: int):
+        """Centroids (b - a, 3) and covariances (b - a, 3, 3) of the k nearest tree points of the
+        tree's points a..b-1 (leaf bounds), as :meth:`knn_of_leaves` followed by
+        :func:`labkit.neighbours.covariances` (the same numbers), without the (b - a, k) index array:
+        the moments are summed in the search kernel while the neighbours are in cache."""
+        if not HAVE_NUMBA:  # pragma: no cover - depends on the environment
+            from .neighbours import covariances
+
+            return covariances(self.data, None, self.knn_of_leaves(a, b, k), np.ascontiguousarray(self.data.T))
+        bounds = self.leaf_bounds
+        j0, j1 = np.searchsorted(bounds, [a, b])
+        if bounds[j0] != a or bounds[j1] != b:
+            raise ValueError(f"{a}:{b} does not start and end at leaf bounds")
+        cen, C = np.empty((b - a, 3)), np.empty((b - a, 3, 3))
+        if b > a:
+            _knn_leaves(self.data, *self._nodes, self._leaves[j0:j1], k, _NO_IDX, cen, C, True)
+        return cen, C
 
     def query(self, q, k: int = 1, distance_upper_bound: float = np.inf, workers: int = 1):
         """Like ``cKDTree.query``: (distance, input index); k = 1 gives 1-D arrays.

@@ -28,7 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._report import ReportMixin, fmt
-from ..neighbours import CHUNK_SIZE, SearchPlan, check_chunk_size, check_scale, covariances, reduced, run_chunks, scale_text
+from ..neighbours import CHUNK_SIZE, SearchPlan, check_chunk_size, check_scale, covariances, reduced, run_chunks
+from ..neighbours import run_moment_chunks, scale_text
 from ..progress import progress_steps
 from ._steps import check_at, check_duplicates, check_orientation, determined, mark_undetermined, orient_normals
 from ._steps import plane_noise, sorted_eigh
@@ -169,16 +170,20 @@ def local_pca(
     lam, vec = np.empty((n, 3)), np.empty((n, 3, 3))
     cen, counts = np.empty((n, 3)), np.empty(n, dtype=np.intp)
     pts = plan.points
-    cols = pts.T.copy()  # coordinate columns: contiguous gathers (see covariances)
 
-    def work(rows, per_scale, _):
-        seg_counts, flat = per_scale[0]
-        c, C = covariances(pts, seg_counts, flat, cols)
+    def moments(rows, seg_counts, c, C):
         lam[rows], vec[rows] = sorted_eigh(C)
         cen[rows], counts[rows] = c, seg_counts
 
+    def work(rows, per_scale, _):
+        seg_counts, flat = per_scale[0]
+        moments(rows, seg_counts, *covariances(pts, seg_counts, flat))  # ragged radius neighbourhoods
+
     with progress_steps(progress, plan.n_query, "normals", "pts") as step:
-        run_chunks(plan, [(k, radius)], check_chunk_size(chunk_size), work, step=step)
+        if radius is None:  # kNN: the moments summed in the search kernel (no neighbour array)
+            run_moment_chunks(plan, k, check_chunk_size(chunk_size), moments, step=step)
+        else:
+            run_chunks(plan, [(k, radius)], check_chunk_size(chunk_size), work, step=step)
     lam, vec, cen, counts = plan.out(lam), plan.out(vec), plan.out(cen), plan.out(counts)
     # Degenerate neighbourhoods (a point, a line) have no normal: NaN, valid=False
     mark_undetermined(lam, vec, counts)

@@ -571,7 +571,7 @@ def _auto_sample(points, geometry, m, rng):
     ext = np.sort(hi - lo)[::-1]
     h = max(float(np.sqrt(ext[0] * max(ext[1], 1e-9) / (2 * m))), 1e-6)  # a horizontal surface's guess
     for _ in range(2):  # the subset has >= 2 points per voxel at this size: nearly all voxels occupied
-        h *= float(np.sqrt(max(len(np.unique(_voxel_keys(sub, h))), 1) / (2 * m)))
+        h *= float(np.sqrt(max(_n_distinct(_voxel_keys(sub, h)), 1) / (2 * m)))
     pool = _voxel_sample(points, h, rng)
     if len(pool) <= m:
         return pool
@@ -582,6 +582,15 @@ def _auto_sample(points, geometry, m, rng):
         pool, coarse = pool[planar], coarse[planar]
     coarse = np.where(np.isfinite(coarse[:, :1]), coarse, [0.0, 0.0, 1.0])
     return pool[_normal_space_sample(coarse, m, rng)]
+
+
+def _n_distinct(keys):
+    """Number of distinct values, by a sort (``len(np.unique(keys))`` hashes in numpy 2.x: 0.46 s
+    against 9 ms on 523,000 distinct int64 keys)."""
+    if len(keys) == 0:
+        return 0
+    s = np.sort(keys)
+    return int(np.count_nonzero(s[1:] != s[:-1])) + 1
 
 
 def _normal_space_sample(normals, m, rng, bins=8):
