@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .._checks import as_points, as_rng, choice, positive
-from .._eigh3 import HAVE_NUMBA, eigh3
+from .._eigh3 import HAVE_NUMBA, eigh3_analytic
 from .._kdtree import KDTree
 from .._treecache import local_tree
 from ..features import _covariances  # shared kNN covariance kernel (compiled)
@@ -228,7 +228,7 @@ def _leaf_geometry(tree, cols, pos, k, quadric=False):
     nb = tree.query_leaf_positions(pos, k, workers=threads)
     _, cov = _covariances(tree.data, None, nb, cols)  # the local PCA's kernel (notebook 04, eqs. 1-2)
     cov *= k / (k - 3) if k > 3 else np.nan  # redundancy k - 3 of the plane (eq. 5): lambda_min is sigma_n^2
-    lam, vecs = eigh3(cov, workers=threads)  # as np.linalg.eigh, ascending: normal = eigenvector of lambda_min
+    lam, vecs = eigh3_analytic(cov)  # as np.linalg.eigh (closed form), ascending: normal = eigenvector of lambda_min
     lam = np.clip(lam, 0, None)
     with np.errstate(invalid="ignore"):
         ok = lam[:, 1] > 1e-12 * lam[:, 2]  # not a point, not a line (features._determined)
