@@ -15,7 +15,9 @@ rejected it, so a plot can colour the points by rule and the report can count th
 Speed (issue 11): the target's compiled kd-tree (``labkit._kdtree``, exact
 duplicates merged) and its local geometry are built once per call and cached per
 distinct target point (the target does not move); the source is queried in its own
-leaf order; the one-source-per-target rule is one O(m) pass, not a sort of all pairs.
+leaf order; the one-source-per-target rule is one O(m) pass, not a sort of all pairs; the
+covariance of each target normal's random tilt (ICP's eq. 5.12b) is kept with the normal
+instead of being searched and decomposed again.
 Points whose neighbourhood is a point or a line have no normal and are rejected
 by the rule 'degenerate' (issue 16).
 
