@@ -511,9 +511,13 @@ def _build_two(P, leafsize):
             return _build(np.array(P, np.float64, order="C"), leafsize)  # private, writeable copy
         v = keys[~left].min()
     iL, iR = np.flatnonzero(left), np.flatnonzero(~left)
+    cut = len(iL)
+    W = np.empty((n, 3))  # both halves built in place in one array: no stacking of the results
+    np.take(P, iL, axis=0, out=W[:cut])
+    np.take(P, iR, axis=0, out=W[cut:])
     pool = _pool(2)
-    jobs = [pool.submit(_build, np.ascontiguousarray(P[i]), leafsize) for i in (iL, iR)]  # private halves
-    (pL, nL, bL, dL, wL), (pR, nR, bR, dR, wR) = (job.result() for job in jobs)
+    jobs = [pool.submit(_build, half, leafsize) for half in (W[:cut], W[cut:])]  # private, contiguous halves
+    (pL, nL, bL, dL, _), (pR, nR, bR, dR, _) = (job.result() for job in jobs)
     mL = len(nL)
     nodes = np.empty((1 + mL + len(nR), 4), np.int64)
     nodes[0] = (0, n, 1, 1 + mL)
@@ -524,7 +528,10 @@ def _build_two(P, leafsize):
     nodes[1 + mL :, 2:] += np.where(nR[:, 2:] >= 0, 1 + mL, 0)
     root = np.concatenate([lo, hi, [v, d]])
     box = np.vstack([root[None, :], bL, bR])
-    return np.concatenate([iL[pL], iR[pR]]), nodes, box, max(dL, dR) + 1, np.vstack([wL, wR])
+    perm = np.empty(n, np.int64)
+    np.take(iL, pL, out=perm[:cut])
+    np.take(iR, pR, out=perm[cut:])
+    return perm, nodes, box, max(dL, dR) + 1, W
 
 
 _pool_lock = threading.Lock()
@@ -583,26 +590,34 @@ class KDTree:
     def __init__(self, points, leafsize: int = LEAFSIZE, merge_duplicates: bool = False):
         P = np.ascontiguousarray(points, dtype=np.float64)
         perm, nodes, box, depth, X = _build_two(P, int(leafsize))
-        self.representative, self.n_duplicates = None, 0
+        self._representative, self._identity, self.n_duplicates = None, False, 0
         if merge_duplicates:
             keep, first = _duplicates(X, nodes)
             self.n_duplicates = int(len(keep) - keep.sum())
             if self.n_duplicates:
                 new = np.cumsum(keep) - 1  # new leaf-order position of every kept point
                 rep_leaf = new[first]
-                self.representative = np.empty(len(P), dtype=np.intp)
-                self.representative[perm] = rep_leaf
+                self._representative = np.empty(len(P), dtype=np.intp)
+                self._representative[perm] = rep_leaf
                 X, perm = X[keep], perm[keep]
                 bounds = np.concatenate([[0], np.cumsum(keep)])
                 nodes = nodes.copy()
                 nodes[:, 0], nodes[:, 1] = bounds[nodes[:, 0]], bounds[nodes[:, 1]]
-            else:
-                self.representative = np.empty(len(P), dtype=np.intp)
-                self.representative[perm] = np.arange(len(P))
-        self.data, self.indices = np.ascontiguousarray(X), perm.astype(np.intp)
+            else:  # every point is its own representative: the inverse permutation, made when first asked for
+                self._identity = True
+        self.data, self.indices = np.ascontiguousarray(X), perm.astype(np.intp, copy=False)
         self._nodes = (nodes, box, int(depth))
         self._leaves = None  # leaf node ids in leaf order (see leaf_bounds)
         self.n = len(X)
+
+    @property
+    def representative(self):
+        """Leaf-order position of the kept copy of every input point (merge only; else None)."""
+        if self._representative is None and self._identity:
+            rep = np.empty(len(self.indices), dtype=np.intp)
+            rep[self.indices] = np.arange(len(self.indices))
+            self._representative = rep
+        return self._representative
 
     def query_leaf_positions(self, pos, k: int, workers: int = 1):
         """Leaf-order indices (m, k) of the k nearest tree points of the tree's own points ``pos``."""

@@ -201,15 +201,16 @@ class SearchPlan:
         self.tree = KDTree(local, merge_duplicates=merge)
         self.points = self.tree.data  # neighbour indices refer to these (leaf order)
         self.copies = None
-        rep = self.tree.representative  # leaf position of the kept copy of every input point
         if at is None:
             self.n_out, self.n_query = len(local), self.tree.n
             self.query_pos, self.order = None, None
             if self.tree.n_duplicates:
+                rep = self.tree.representative  # leaf position of the kept copy of every input point
                 kept = self.tree.indices[rep]
                 dup = np.flatnonzero(kept != np.arange(len(local)))
                 self.copies = (dup, kept[dup])
         else:
+            rep = self.tree.representative
             if rep is None:
                 rep = np.empty(len(local), dtype=np.intp)
                 rep[self.tree.indices] = np.arange(len(local))
