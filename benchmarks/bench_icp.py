@@ -22,6 +22,30 @@ translation (its default); Open3D's point-to-plane estimator is rigid. ALS rows 
 of the estimated and the true motion of the source's centre, in mm. The machine may be loaded by
 other jobs: compare the two libraries within one row, not across runs.
 
+Fair peers: both libraries get the same points, the same gate (labkit ``max_distance`` = Open3D's
+``max_correspondence_distance`` = 1 m) and k = 20 for the target normals; each time covers all the
+work from the raw arrays (labkit: its target kd-tree - the kept tree is dropped before every run -
+and the normals and noise of both clouds; Open3D: its point clouds, ``estimate_normals`` and the
+ICP). labkit's default pairs a source above 300,000 points from a thinned sample of about 100,000
+(``sample='auto'``); the row 'labkit all pts' uses every source point, as Open3D does. Every time
+is the best of ``--repeats`` (3) runs, the methods taking turns, after a warm-up (numba compiled).
+
+Measured 2026-12-01 (2 shared cores, load 0.4-3 from other jobs; times in s, best of 3):
+
+===================  =====================  ===============  ======
+pair                 labkit icp (default)   labkit all pts   Open3D
+===================  =====================  ===============  ======
+tls halves           1.88 (2.60)            7.65 (8.62)      2.95 (3.79)
+als halves           2.27 (1.83)            6.92 (5.87)      6.65 (3.92)
+faceraster strips    0.10                   -                0.07
+sample_c strips      0.08                   -                0.04
+autzen 2010->2023    0.03                   -                0.01
+===================  =====================  ===============  ======
+
+(in brackets: a second run, 20 minutes earlier). Errors on the TLS halves: labkit 0.07, -0.08,
+-0.06 mm (all points 0.03, 0.01, -0.02 mm), Open3D -0.02, -0.27, 0.04 mm. Before issue 11 labkit
+took 6.2-6.7 s against Open3D's 6.0-7.8 s on the TLS halves (machine load 6-8).
+
 Run:  python benchmarks/bench_icp.py [--quick] [--realdata PATH] [--synthetic]
 """
 
