@@ -32,21 +32,21 @@ is the best of ``--repeats`` (3) runs, the methods taking turns, after a warm-up
 
 Measured 2026-12-01 (2 shared cores, load 0.4-3 from other jobs; times in s, best of 3):
 
-===================  =====================  ===============  ======
+===================  =====================  ===============  ===========
 pair                 labkit icp (default)   labkit all pts   Open3D
-===================  =====================  ===============  ======
+===================  =====================  ===============  ===========
 tls halves           1.88 (2.60)            7.65 (8.62)      2.95 (3.79)
 als halves           2.27 (1.83)            6.92 (5.87)      6.65 (3.92)
 faceraster strips    0.10                   -                0.07
 sample_c strips      0.08                   -                0.04
 autzen 2010->2023    0.03                   -                0.01
-===================  =====================  ===============  ======
+===================  =====================  ===============  ===========
 
-(in brackets: a second run, 20 minutes earlier). Errors on the TLS halves: labkit 0.07, -0.08,
--0.06 mm (all points 0.03, 0.01, -0.02 mm), Open3D -0.02, -0.27, 0.04 mm. Before issue 11 labkit
-took 6.2-6.7 s against Open3D's 6.0-7.8 s on the TLS halves (machine load 6-8).
+(in brackets: an earlier run the same evening). Errors on the TLS halves: labkit 0.07, -0.08, -0.06 mm
+(all points 0.03, 0.01, -0.02 mm), Open3D -0.02, -0.27, 0.04 mm, the same before and after the speed
+work of issue 11; before it labkit took 6.2-6.7 s against Open3D's 5.8-8.0 s (machine load 6-8).
 
-Run:  python benchmarks/bench_icp.py [--quick] [--realdata PATH] [--synthetic]
+Run:  python benchmarks/bench_icp.py [--quick] [--realdata PATH] [--repeats N]
 """
 
 from __future__ import annotations
