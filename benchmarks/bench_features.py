@@ -15,6 +15,14 @@ data (``../shared/realdata`` or ``LABKIT_REALDATA``; skipped with a message wher
 every second point (523,422, scanner-centred, density falling with range squared) and the
 whole scan (1,046,843). Target: labkit no slower than Open3D (ratio <= 1). On a shared,
 loaded machine wall-clock times swing by 2x between runs; compare the ratio within a run.
+Both timings cover the same work: from the raw array to the normals (labkit's kd-tree, Open3D's
+point cloud and its tree); labkit's numpy peak comes from a second, untimed run (tracemalloc's
+hooks slowed the timed run by 10-20 %).
+
+Measured 2026-12-01 (``--real``; 2 shared cores, load about 3; best of 3, wall s, CPU s):
+TLS/2 labkit 1.12 (CPU 1.00) vs Open3D 1.01 (CPU 1.08); TLS 1.98 (2.01) vs 2.09 (2.12);
+ALS 1.02 (1.11) vs 1.35 (1.49). On a nearly idle machine, in one process (after a warm-up):
+TLS/2 0.56 vs 0.62 s, TLS 1.08-1.21 vs 1.20-1.23 s. Before issue 11: TLS/2 1.29 s vs 0.73 s.
 
 Usage::
 
@@ -111,10 +119,12 @@ def run_worker(method: str, path: str, out: str) -> None:
         from labkit.features import normals
 
         normals(xyz[:1000], k=K)  # warm up imports
-        tracemalloc.start()
         t0, c0 = time.perf_counter(), time.process_time()
         N = normals(xyz, k=K, orient="none")
         seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
+        # untimed: the numpy peak in a second run (tracemalloc's hooks would slow the timed one)
+        tracemalloc.start()
+        normals(xyz, k=K, orient="none")
         traced = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
     else:

@@ -28,17 +28,21 @@ core dependency; without it the queries fall back to cKDTree (the build stays sl
 Measured on the real TLS scan (523,422 points, k = 20, one thread, CPU seconds on a
 loaded 2-core machine): this tree's self-kNN 0.9-1.1 s against cKDTree's 1.5-1.8 s in
 leaf order; a warm start from the previous query's neighbours, a per-leaf candidate
-list and a branch-free two-pass leaf scan were tried and gave no further gain.
+list and a branch-free two-pass leaf scan were tried and gave no further gain; the
+leaf-batched search (:meth:`KDTree.knn_of_leaves`) then brought it to 0.66 s. Issue 11
+(2026-12-01): the build reads no node twice for its box (the children's boxes are taken
+while the points are moved) and selects the median in place, 0.20 -> 0.145 s with the same
+tree; local PCA sums each point's moments in the search kernel
+(:meth:`KDTree.knn_moments_of_leaves`) instead of writing and gathering an (n, k) index
+array; an insertion written out on the 2-D buffers (no row views) was tried and gave nothing.
 """
 
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 
 from ._eigh3 import HAVE_NUMBA
+from ._kdtree_build import _build_two, _duplicates, _pool, _threads
 
 if HAVE_NUMBA:
     import numba
@@ -50,155 +54,6 @@ else:  # pragma: no cover - depends on the environment
 
 LEAFSIZE = 24  # measured on the real TLS scan: self-kNN (k = 20) 10-25 % faster than 8-16; k = 1 alike
 _PER_THREAD = 4000  # queries per thread at least; below, one thread is faster than starting more
-
-
-@_njit
-def _build(P, leafsize):  # pragma: no cover - compiled
-    """Median kd-tree: permutation (leaf order), node ranges, children, boxes, depth, leaf-order points.
-
-    The coordinates are moved along with the permutation (W), so every pass over a
-    node reads its points sequentially instead of gathering them through ``perm``.
-    P must be a private, writeable float64 copy: it becomes W (one copy less of a large cloud).
-    """
-    n = P.shape[0]
-    perm = np.arange(n)
-    W = P
-    wbuf = np.empty((n, 3))
-    cap = max(16, 4 * (n // max(1, leafsize // 2)) + 16)
-    start = np.empty(cap, np.int64)
-    end = np.empty(cap, np.int64)
-    left = np.full(cap, -1, np.int64)
-    right = np.full(cap, -1, np.int64)
-    lo = np.empty((cap, 3))
-    hi = np.empty((cap, 3))
-    sval = np.zeros(cap)
-    sdim = np.zeros(cap, np.int64)
-    stack = np.empty((64, 2), np.int64)  # node, depth
-    buf = np.empty(n, np.int64)
-    keys = np.empty(n)
-    start[0], end[0] = 0, n
-    count, sp, depth_max = 1, 1, 1
-    stack[0, 0], stack[0, 1] = 0, 1
-    while sp > 0:
-        sp -= 1
-        node, depth = stack[sp, 0], stack[sp, 1]
-        depth_max = max(depth_max, depth)
-        a, b = start[node], end[node]
-        for d in range(3):
-            lo[node, d] = np.inf
-            hi[node, d] = -np.inf
-        for i in range(a, b):
-            for d in range(3):
-                v = W[i, d]
-                if v < lo[node, d]:
-                    lo[node, d] = v
-                if v > hi[node, d]:
-                    hi[node, d] = v
-        if b - a <= leafsize:
-            continue
-        # try the dimensions from the widest down; split at the median with ties kept together
-        ext = hi[node] - lo[node]
-        dims = np.argsort(-ext)
-        split = -1
-        for t in range(3):
-            d = dims[t]
-            if ext[d] <= 0.0:
-                break
-            m = b - a
-            for i in range(m):
-                keys[i] = W[a + i, d]
-            v = np.partition(keys[:m], m // 2)[m // 2]
-            below = 0
-            for i in range(m):
-                if keys[i] < v:
-                    below += 1
-            if below == 0:  # v is the minimum: split after all points equal to v
-                nxt = np.inf
-                for i in range(m):
-                    if keys[i] > v and keys[i] < nxt:
-                        nxt = keys[i]
-                v = nxt
-                below = 0
-                for i in range(m):
-                    if keys[i] < v:
-                        below += 1
-            # stable partition of perm[a:b] into keys < v and keys >= v
-            j0, j1 = 0, below
-            for i in range(m):
-                j = j0 if keys[i] < v else j1
-                buf[j] = perm[a + i]
-                wbuf[j, 0], wbuf[j, 1], wbuf[j, 2] = W[a + i, 0], W[a + i, 1], W[a + i, 2]
-                if keys[i] < v:
-                    j0 += 1
-                else:
-                    j1 += 1
-            for i in range(m):
-                perm[a + i] = buf[i]
-                W[a + i, 0], W[a + i, 1], W[a + i, 2] = wbuf[i, 0], wbuf[i, 1], wbuf[i, 2]
-            split = a + below
-            sval[node], sdim[node] = v, d
-            break
-        if split < 0:  # all points identical: one leaf, however many
-            continue
-        if count + 2 > cap:  # ties can make more, smaller leaves than median splits alone: grow
-            cap *= 2
-            start, end = _grow(start, cap), _grow(end, cap)
-            left, right = _grow(left, cap, -1), _grow(right, cap, -1)
-            lo, hi = _grow2(lo, cap), _grow2(hi, cap)
-            sval, sdim = _grow(sval, cap), _grow(sdim, cap)
-        if sp + 2 > stack.shape[0]:
-            bigger = np.empty((2 * stack.shape[0], 2), np.int64)
-            bigger[:sp] = stack[:sp]
-            stack = bigger
-        l, r = count, count + 1
-        count += 2
-        left[node], right[node] = l, r
-        start[l], end[l], start[r], end[r] = a, split, split, b
-        stack[sp, 0], stack[sp, 1] = r, depth + 1
-        stack[sp + 1, 0], stack[sp + 1, 1] = l, depth + 1
-        sp += 2
-    # pack what a query reads per node into two rows: box and split (float), range and children (int)
-    box = np.empty((count, 8))
-    box[:, :3] = lo[:count]
-    box[:, 3:6] = hi[:count]
-    box[:, 6] = sval[:count]
-    box[:, 7] = sdim[:count]
-    nodes = np.empty((count, 4), np.int64)
-    nodes[:, 0], nodes[:, 1] = start[:count], end[:count]
-    nodes[:, 2], nodes[:, 3] = left[:count], right[:count]
-    return perm, nodes, box, depth_max, W
-
-
-@_njit
-def _grow(a, cap, fill=0):  # pragma: no cover - compiled
-    out = np.full(cap, fill, a.dtype)
-    out[: len(a)] = a
-    return out
-
-
-@_njit
-def _grow2(a, cap):  # pragma: no cover - compiled
-    out = np.empty((cap, 3))
-    out[: len(a)] = a
-    return out
-
-
-@_njit
-def _duplicates(X, nodes):  # pragma: no cover - compiled
-    """keep[i] False for a leaf-order point equal to an earlier one of its leaf; first[i] its kept copy."""
-    n = X.shape[0]
-    keep = np.ones(n, np.bool_)
-    first = np.arange(n)
-    for node in range(nodes.shape[0]):
-        if nodes[node, 2] >= 0:
-            continue
-        for i in range(nodes[node, 0] + 1, nodes[node, 1]):
-            for j in range(nodes[node, 0], i):
-                if keep[j] and X[i, 0] == X[j, 0] and X[i, 1] == X[j, 1] and X[i, 2] == X[j, 2]:
-                    keep[i] = False
-                    first[i] = j
-                    break
-    return keep, first
 
 
 @_njit
@@ -298,7 +153,7 @@ def _knn(X, nodes, box, depth, Q, k, bound2, idx, dist2):  # pragma: no cover - 
 
 
 @_njit
-def _knn_leaves(X, nodes, box, depth, leaves, k, idx):  # pragma: no cover - compiled
+def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragma: no cover - compiled
     """k nearest tree points of every point of the given leaves (self-queries, leaf order).
 
     The points of one leaf are searched together: first among themselves, then the
@@ -308,6 +163,11 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx):  # pragma: no cover - com
     k-th distance. Same neighbours as :func:`_knn` (sorted ascending, ties in any
     order); the walk from the root is no longer paid per point. Row ``pos - start`` of
     ``idx`` belongs to leaf-order position ``pos``, ``start`` the first leaf's start.
+
+    With ``moments`` the neighbours are not written: row ``pos - start`` of ``cen`` and ``C``
+    gets the centroid (eq. 1) and covariance (eq. 2, divided by k) of the point's k neighbours,
+    summed while they are in cache, in the order and arithmetic of
+    :func:`labkit.neighbours.covariances` (the same numbers); ``idx`` is then not touched.
     """
     most = 1
     for t in range(len(leaves)):
@@ -393,9 +253,35 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx):  # pragma: no cover - com
             stack[sp] = near
             lower[sp] = g
             sp += 1
-        for qi in range(m):
+        if not moments:
+            for qi in range(m):
+                for j in range(k):
+                    idx[a + qi - start, j] = bi[qi, j]
+            continue
+        for qi in range(m):  # centroid, then the mean outer product of the deviations (two passes)
+            r = a + qi - start
+            sx = sy = sz = 0.0
             for j in range(k):
-                idx[a + qi - start, j] = bi[qi, j]
+                q = bi[qi, j]
+                sx += X[q, 0]
+                sy += X[q, 1]
+                sz += X[q, 2]
+            cx, cy, cz = sx / k, sy / k, sz / k
+            xx = xy = xz = yy = yz = zz = 0.0
+            for j in range(k):
+                q = bi[qi, j]
+                dx, dy, dz = X[q, 0] - cx, X[q, 1] - cy, X[q, 2] - cz
+                xx += dx * dx
+                xy += dx * dy
+                xz += dx * dz
+                yy += dy * dy
+                yz += dy * dz
+                zz += dz * dz
+            cen[r, 0], cen[r, 1], cen[r, 2] = cx, cy, cz
+            C[r, 0, 0], C[r, 1, 1], C[r, 2, 2] = xx / k, yy / k, zz / k
+            C[r, 0, 1] = C[r, 1, 0] = xy / k
+            C[r, 0, 2] = C[r, 2, 0] = xz / k
+            C[r, 1, 2] = C[r, 2, 1] = yz / k
 
 
 @_njit
@@ -408,43 +294,7 @@ def _gap2(lo, hi, a, b):  # pragma: no cover - compiled
     return t * t if t > 0.0 else 0.0
 
 
-def _build_two(P, leafsize):
-    """:func:`_build`, with the root split here and its two halves built in two threads (the kernel
-    releases the GIL); the same tree as one call, up to the numbering of the nodes."""
-    n = len(P)
-    if n < 100_000 or _threads(-1) < 2 or not HAVE_NUMBA:
-        return _build(np.array(P, np.float64, order="C"), leafsize)  # private, writeable copy
-    lo, hi = P.min(axis=0), P.max(axis=0)
-    d = int(np.argmax(hi - lo))
-    keys = P[:, d]
-    v = np.partition(keys, n // 2)[n // 2]
-    left = keys < v
-    if not left.any():  # v is the minimum: split after all points equal to it (ties stay together)
-        left = keys <= v
-        if left.all():
-            return _build(np.array(P, np.float64, order="C"), leafsize)  # private, writeable copy
-        v = keys[~left].min()
-    iL, iR = np.flatnonzero(left), np.flatnonzero(~left)
-    with ThreadPoolExecutor(2) as pool:
-        jobs = [pool.submit(_build, np.ascontiguousarray(P[i]), leafsize) for i in (iL, iR)]  # private halves
-        (pL, nL, bL, dL, wL), (pR, nR, bR, dR, wR) = (job.result() for job in jobs)
-    mL = len(nL)
-    nodes = np.empty((1 + mL + len(nR), 4), np.int64)
-    nodes[0] = (0, n, 1, 1 + mL)
-    nodes[1 : 1 + mL] = nL
-    nodes[1 : 1 + mL, 2:] += np.where(nL[:, 2:] >= 0, 1, 0)
-    nodes[1 + mL :] = nR
-    nodes[1 + mL :, :2] += len(iL)
-    nodes[1 + mL :, 2:] += np.where(nR[:, 2:] >= 0, 1 + mL, 0)
-    root = np.concatenate([lo, hi, [v, d]])
-    box = np.vstack([root[None, :], bL, bR])
-    return np.concatenate([iL[pL], iR[pR]]), nodes, box, max(dL, dR) + 1, np.vstack([wL, wR])
-
-
-def _threads(workers):
-    if workers == -1:
-        return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
-    return max(1, int(workers))
+_NO_IDX, _NO_CEN, _NO_C = np.empty((0, 1), np.intp), np.empty((0, 3)), np.empty((0, 3, 3))  # unused outputs
 
 
 class KDTree:
@@ -467,26 +317,34 @@ class KDTree:
     def __init__(self, points, leafsize: int = LEAFSIZE, merge_duplicates: bool = False):
         P = np.ascontiguousarray(points, dtype=np.float64)
         perm, nodes, box, depth, X = _build_two(P, int(leafsize))
-        self.representative, self.n_duplicates = None, 0
+        self._representative, self._identity, self.n_duplicates = None, False, 0
         if merge_duplicates:
             keep, first = _duplicates(X, nodes)
             self.n_duplicates = int(len(keep) - keep.sum())
             if self.n_duplicates:
                 new = np.cumsum(keep) - 1  # new leaf-order position of every kept point
                 rep_leaf = new[first]
-                self.representative = np.empty(len(P), dtype=np.intp)
-                self.representative[perm] = rep_leaf
+                self._representative = np.empty(len(P), dtype=np.intp)
+                self._representative[perm] = rep_leaf
                 X, perm = X[keep], perm[keep]
                 bounds = np.concatenate([[0], np.cumsum(keep)])
                 nodes = nodes.copy()
                 nodes[:, 0], nodes[:, 1] = bounds[nodes[:, 0]], bounds[nodes[:, 1]]
-            else:
-                self.representative = np.empty(len(P), dtype=np.intp)
-                self.representative[perm] = np.arange(len(P))
-        self.data, self.indices = np.ascontiguousarray(X), perm.astype(np.intp)
+            else:  # every point is its own representative: the inverse permutation, made when first asked for
+                self._identity = True
+        self.data, self.indices = np.ascontiguousarray(X), perm.astype(np.intp, copy=False)
         self._nodes = (nodes, box, int(depth))
         self._leaves = None  # leaf node ids in leaf order (see leaf_bounds)
         self.n = len(X)
+
+    @property
+    def representative(self):
+        """Leaf-order position of the kept copy of every input point (merge only; else None)."""
+        if self._representative is None and self._identity:
+            rep = np.empty(len(self.indices), dtype=np.intp)
+            rep[self.indices] = np.arange(len(self.indices))
+            self._representative = rep
+        return self._representative
 
     def query_leaf_positions(self, pos, k: int, workers: int = 1):
         """Leaf-order indices (m, k) of the k nearest tree points of the tree's own points ``pos``."""
@@ -514,10 +372,28 @@ class KDTree:
         idx = np.empty((b - a, k), dtype=np.intp)
         if b > a:
             if HAVE_NUMBA:
-                _knn_leaves(self.data, *self._nodes, self._leaves[j0:j1], k, idx)
+                _knn_leaves(self.data, *self._nodes, self._leaves[j0:j1], k, idx, _NO_CEN, _NO_C, False)
             else:  # pragma: no cover - depends on the environment
                 idx[:] = self._run(self.data[a:b], k, np.inf, 1)[1]
         return idx
+
+    def knn_moments_of_leaves(self, a: int, b: int, k: int):
+        """Centroids (b - a, 3) and covariances (b - a, 3, 3) of the k nearest tree points of the
+        tree's points a..b-1 (leaf bounds), as :meth:`knn_of_leaves` followed by
+        :func:`labkit.neighbours.covariances` (the same numbers), without the (b - a, k) index array:
+        the moments are summed in the search kernel while the neighbours are in cache."""
+        if not HAVE_NUMBA:  # pragma: no cover - depends on the environment
+            from .neighbours import covariances
+
+            return covariances(self.data, None, self.knn_of_leaves(a, b, k), np.ascontiguousarray(self.data.T))
+        bounds = self.leaf_bounds
+        j0, j1 = np.searchsorted(bounds, [a, b])
+        if bounds[j0] != a or bounds[j1] != b:
+            raise ValueError(f"{a}:{b} does not start and end at leaf bounds")
+        cen, C = np.empty((b - a, 3)), np.empty((b - a, 3, 3))
+        if b > a:
+            _knn_leaves(self.data, *self._nodes, self._leaves[j0:j1], k, _NO_IDX, cen, C, True)
+        return cen, C
 
     def query(self, q, k: int = 1, distance_upper_bound: float = np.inf, workers: int = 1):
         """Like ``cKDTree.query``: (distance, input index); k = 1 gives 1-D arrays.
@@ -547,11 +423,11 @@ class KDTree:
             _knn(self.data, *args, Q, k, bound2, idx, d2)
             return d2, idx
         bounds = np.linspace(0, len(Q), threads + 1).astype(int)
-        with ThreadPoolExecutor(threads) as pool:
-            jobs = [
-                pool.submit(_knn, self.data, *args, Q[a:b], k, bound2, idx[a:b], d2[a:b])
-                for a, b in zip(bounds[:-1], bounds[1:])
-            ]
-            for job in jobs:
-                job.result()
+        pool = _pool(threads)
+        jobs = [
+            pool.submit(_knn, self.data, *args, Q[a:b], k, bound2, idx[a:b], d2[a:b])
+            for a, b in zip(bounds[:-1], bounds[1:])
+        ]
+        for job in jobs:
+            job.result()
         return d2, idx

@@ -24,13 +24,15 @@ def small_limits(monkeypatch):
 def computed(monkeypatch):
     """Counts the points at which the matching computed a local geometry (normals, noise)."""
     calls = []
-    real = matching._leaf_geometry
+    from labkit.registration import _local_surface
+
+    real = _local_surface._leaf_geometry
 
     def counting(tree, cols, pos, k, quadric=False):
         calls.append(len(pos))
         return real(tree, cols, pos, k, quadric)
 
-    monkeypatch.setattr(matching, "_leaf_geometry", counting)
+    monkeypatch.setattr(_local_surface, "_leaf_geometry", counting)
     return calls
 
 

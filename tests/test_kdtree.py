@@ -72,3 +72,36 @@ def test_two_thread_build_gives_the_same_neighbours():
     assert np.allclose(d, dc, atol=1e-12)
     d, _ = KDTree(P).query(Q, k=8, workers=2)
     assert np.allclose(d, cKDTree(P).query(Q, k=8)[0], atol=1e-12)
+
+
+@pytest.mark.parametrize("name", list(clouds()))
+def test_leaf_moments_equal_neighbours_then_covariances(name):
+    # the fused search + moments kernel against the two-step route (neighbour array, then eq. 1-2)
+    from labkit.neighbours import covariances
+
+    tree = KDTree(clouds()[name], merge_duplicates=True)
+    bounds = tree.leaf_bounds
+    a, b = int(bounds[3]), int(bounds[-4])  # a run of whole leaves, not the whole cloud
+    cen, C = tree.knn_moments_of_leaves(a, b, 20)
+    nb = tree.knn_of_leaves(a, b, 20)
+    X = tree.data[nb]  # (m, 20, 3)
+    c_ref = X.mean(axis=1)
+    D = X - c_ref[:, None]
+    np.testing.assert_allclose(cen, c_ref, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(C, np.einsum("mki,mkj->mij", D, D) / 20, rtol=0, atol=1e-12)
+    c2, C2 = covariances(tree.data, None, nb, np.ascontiguousarray(tree.data.T))
+    assert np.array_equal(cen, c2) and np.array_equal(C, C2)  # the same arithmetic: the same numbers
+    with pytest.raises(ValueError, match="leaf bounds"):
+        tree.knn_moments_of_leaves(a + 1, b, 20)
+
+
+def test_selection_finds_the_kth_smallest_with_ties():
+    from labkit._kdtree_build import _select
+
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 3, 10, 101, 1000):
+        for x in (rng.normal(size=n), rng.integers(0, 3, n).astype(float), np.zeros(n)):
+            for kth in {0, n // 2, n - 1}:
+                work = x.copy()
+                assert _select(work, n, kth) == np.sort(x)[kth]
+                assert np.array_equal(np.sort(work), np.sort(x))  # reordered, nothing lost

@@ -32,9 +32,7 @@ from .multiscale import MultiScaleFeatures, multiscale_features
 from .pca import LocalPCA, local_noise, local_pca, normals
 from .robust import RobustNormals, robust_normals
 
-# Former private names, kept importable for now: registration.matching imports _covariances
-# (to be repointed at labkit.neighbours.covariances), notebook 04 names _sorted_eigh.
-_covariances = covariances
+# A former private name, kept importable for now: notebook 04 names _sorted_eigh.
 _sorted_eigh = sorted_eigh
 
 __all__ = [

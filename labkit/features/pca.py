@@ -28,7 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._report import ReportMixin, fmt
-from ..neighbours import CHUNK_SIZE, SearchPlan, check_chunk_size, check_scale, covariances, reduced, run_chunks, scale_text
+from ..neighbours import CHUNK_SIZE, SearchPlan, check_chunk_size, check_scale, covariances, reduced, run_chunks
+from ..neighbours import run_moment_chunks, scale_text
 from ..progress import progress_steps
 from ._steps import check_at, check_duplicates, check_orientation, determined, mark_undetermined, orient_normals
 from ._steps import plane_noise, sorted_eigh
@@ -155,6 +156,20 @@ def local_pca(
     LabkitError
         Bad points (NaN, wrong shape), k < 3 or k > n, radius <= 0, bad orientation.
     """
+    origin, here, view, plan, (k, radius), out = _pca(
+        points, k, radius, orient, viewpoint, at, duplicates, chunk_size, progress, full=True
+    )
+    lam, vec, cen, counts = out
+    # Orient the normals; results in the input frame
+    normals = orient_normals(vec[:, :, 2], here, orient, view, origin)
+    vec[:, :, 2] = normals
+    return LocalPCA(lam, vec, normals, cen + origin, counts, k, radius, plan.n_duplicates)
+
+
+def _pca(points, k, radius, orient, viewpoint, at, duplicates, chunk_size, progress, full):
+    """The checks and the chunked PCA of :func:`local_pca`; with ``full=False`` only the normal of
+    every point is kept (NaN where undetermined): :func:`normals` then writes and moves 3 numbers per
+    point instead of 16 (eigenvalues, eigenvectors, centroid, count), the same normals."""
     # Reduce to a local origin and check the arguments
     local, origin = reduced(points)
     k, radius = check_scale(k, radius, len(local))
@@ -166,26 +181,36 @@ def local_pca(
     plan = SearchPlan(local, at, merge)
     # Per chunk (in leaf order): neighbours, centroid, covariance, sorted eigh
     n = plan.n_out
-    lam, vec = np.empty((n, 3)), np.empty((n, 3, 3))
-    cen, counts = np.empty((n, 3)), np.empty(n, dtype=np.intp)
+    if full:
+        lam, vec = np.empty((n, 3)), np.empty((n, 3, 3))
+        cen, counts = np.empty((n, 3)), np.empty(n, dtype=np.intp)
+    else:
+        nrm = np.empty((n, 3))
     pts = plan.points
-    cols = pts.T.copy()  # coordinate columns: contiguous gathers (see covariances)
+
+    def moments(rows, seg_counts, c, C):
+        l, V = sorted_eigh(C)
+        if full:
+            lam[rows], vec[rows] = l, V
+            cen[rows], counts[rows] = c, seg_counts
+        else:  # the normal, NaN where the neighbourhood is a point or a line (as mark_undetermined)
+            nrm[rows] = np.where(determined(l, seg_counts)[:, None], V[:, :, 2], np.nan)
 
     def work(rows, per_scale, _):
         seg_counts, flat = per_scale[0]
-        c, C = covariances(pts, seg_counts, flat, cols)
-        lam[rows], vec[rows] = sorted_eigh(C)
-        cen[rows], counts[rows] = c, seg_counts
+        moments(rows, seg_counts, *covariances(pts, seg_counts, flat))  # ragged radius neighbourhoods
 
     with progress_steps(progress, plan.n_query, "normals", "pts") as step:
-        run_chunks(plan, [(k, radius)], check_chunk_size(chunk_size), work, step=step)
+        if radius is None:  # kNN: the moments summed in the search kernel (no neighbour array)
+            run_moment_chunks(plan, k, check_chunk_size(chunk_size), moments, step=step)
+        else:
+            run_chunks(plan, [(k, radius)], check_chunk_size(chunk_size), work, step=step)
+    if not full:
+        return origin, here, view, plan, (k, radius), plan.out(nrm)
     lam, vec, cen, counts = plan.out(lam), plan.out(vec), plan.out(cen), plan.out(counts)
     # Degenerate neighbourhoods (a point, a line) have no normal: NaN, valid=False
     mark_undetermined(lam, vec, counts)
-    # Orient the normals; results in the input frame
-    normals = orient_normals(vec[:, :, 2], here, orient, view, origin)
-    vec[:, :, 2] = normals
-    return LocalPCA(lam, vec, normals, cen + origin, counts, k, radius, plan.n_duplicates)
+    return origin, here, view, plan, (k, radius), (lam, vec, cen, counts)
 
 
 def normals(
@@ -222,9 +247,10 @@ def normals(
     --------
     local_pca : eigenvalues, centroids and counts as well.
     """
-    pca = local_pca(points, k, radius, orient=orient, viewpoint=viewpoint, at=at, duplicates=duplicates,
-                    chunk_size=chunk_size, progress=progress)
-    return pca.normals
+    origin, here, view, _, _, nrm = _pca(
+        points, k, radius, orient, viewpoint, at, duplicates, chunk_size, progress, full=False
+    )  # as local_pca(...).normals, with less memory
+    return orient_normals(nrm, here, orient, view, origin)
 
 
 def local_noise(points, k: int = 20, radius: float | None = None, *, chunk_size: int = CHUNK_SIZE) -> np.ndarray:

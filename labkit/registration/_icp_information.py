@@ -34,6 +34,7 @@ class TiltVariance:
         self.C = np.empty((0, 3, 3))  # only the points ever asked for (a few of a large target)
         quadric = matcher.options.get("surface") == "quadric"
         self.geometry = matcher.geometry if quadric else None
+        self.stored = getattr(getattr(matcher, "geometry", None), "plane_tilt", None)  # kept with the normals
 
     def __call__(self, j):
         if self.geometry is not None:  # the quadric's slopes (computed with the matching)
@@ -45,6 +46,8 @@ class TiltVariance:
         return self._plane(j)
 
     def _plane(self, j):
+        if self.stored is not None:
+            return self.stored(j)
         todo = np.unique(j[self.slot[j] < 0])
         if todo.size:
             new = [self._compute(todo[a : a + 50000]) for a in range(0, todo.size, 50000)]  # bounded gathers
