@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 from .._checks import as_points, choice, count, positive
 from .._frame import local_origin, reduce
 from ..errors import DegenerateGeometryError, EmptyRegionError, LabkitError
+from ..features import local_pca
 METRICS = ("point_to_plane", "point_to_point")
 MAX_CELLS = 100_000_000
 PAIR_BUDGET = 1_000_000  # candidate pairs of max_consensus before the search target is thinned
@@ -235,8 +236,6 @@ def normals_at(given, xyz, at, k, name):
         ok = np.isfinite(n).all(axis=1) & (length > 1e-12)
         n = np.where(ok[:, None], n / np.where(ok, length, 1.0)[:, None], np.nan)
         return n, ok, np.full(len(at), np.nan)
-    from ..features import local_pca  # numba: loaded when normals are computed
-
     pca = local_pca(xyz, k=min(k, len(xyz)), orient="none", at=at)
     ok = pca.valid & np.isfinite(pca.normals).all(axis=1)
     return pca.normals, ok, np.where(ok, pca.noise, np.nan)
