@@ -23,8 +23,10 @@ import numpy as np
 
 from .._checks import as_rng, positive, probability
 from .._report import ReportMixin, fmt
+from .._stats import MAD_TO_SIGMA
 from ..errors import LabkitError
 from ..neighbours import SearchPlan, check_chunk_size, check_scale, masked_covariances, reduced, run_chunks
+from ..ransac.iterations import required_iterations
 from ._steps import check_at, check_duplicates, check_orientation, orient_normals, plane_noise, sorted_eigh
 
 
@@ -148,9 +150,8 @@ def _iterations(iterations, outlier_ratio, confidence) -> int:
         if not isinstance(iterations, numbers.Integral) or iterations < 1:
             raise LabkitError(f"iterations must be an integer >= 1, got {iterations!r}")
         return int(iterations)
-    eps = probability(outlier_ratio, "outlier_ratio")
-    p = probability(confidence, "confidence")
-    return int(np.ceil(np.log(1 - p) / np.log(1 - (1 - eps) ** 3)))
+    eps = probability(outlier_ratio, "outlier_ratio")  # in (0, 1): T is finite
+    return required_iterations(eps, probability(confidence, "confidence"), s=3)  # eq. 27 with 3-point planes
 
 
 def _best_plane_inliers(X, T, threshold, rng) -> np.ndarray:
@@ -173,7 +174,7 @@ def _best_plane_inliers(X, T, threshold, rng) -> np.ndarray:
     r2_best = r2[np.arange(c), best]  # (c, k)
     if threshold is not None:
         return r2_best < threshold**2
-    s0 = 1.4826 * (1 + 5 / max(k - 3, 1)) * np.sqrt(np.median(r2_best, axis=1, keepdims=True))
+    s0 = MAD_TO_SIGMA * (1 + 5 / max(k - 3, 1)) * np.sqrt(np.median(r2_best, axis=1, keepdims=True))
     spread = np.sqrt(((X - X.mean(axis=1, keepdims=True)) ** 2).sum(axis=2).mean(axis=1, keepdims=True))
     s0 = np.maximum(s0, 1e-9 * spread)  # noise-free planes: a scale of zero keeps only rounding
     return r2_best <= (2.5 * s0) ** 2
