@@ -379,12 +379,14 @@ def run_moment_chunks(plan, k, chunk_size, work, step=None) -> None:
     >>> import numpy as np
     >>> rng = np.random.default_rng(0)
     >>> floor = np.column_stack([rng.uniform(0, 1, (200, 2)), rng.normal(0, 0.001, 200)])  # z = 0
-    >>> var_z = np.empty(len(floor))
+    >>> cen, var_z = np.empty((len(floor), 3)), np.empty(len(floor))
     >>> def work(rows, counts, centroids, C):
-    ...     var_z[rows] = C[:, 2, 2]
+    ...     cen[rows], var_z[rows] = centroids, C[:, 2, 2]
     >>> run_moment_chunks(SearchPlan(floor), 20, 50, work)
-    >>> bool(np.sqrt(var_z.max()) < 0.003)  # the spread across the floor: about the 1 mm noise
-    True
+    >>> from scipy.spatial import cKDTree
+    >>> nearest = floor[cKDTree(floor).query(floor, 20)[1]]  # (n, 20, 3), the same neighbourhoods
+    >>> bool(np.allclose(cen, nearest.mean(axis=1))), bool(np.allclose(var_z, nearest[:, :, 2].var(axis=1)))
+    (True, True)
     """
     tree = plan.tree
     k = min(int(k), tree.n)  # merged duplicates may leave fewer points than k
