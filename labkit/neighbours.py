@@ -73,6 +73,17 @@ class Neighbourhoods(ReportMixin):
     """Neighbour indices of every point in compressed rows: point i owns ``indices[offsets[i]:offsets[i+1]]``.
 
     kNN neighbourhoods include the point itself and are sorted by distance.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.neighbours import neighbourhoods
+    >>> pts = np.random.default_rng(0).uniform(0, 1, (200, 3))
+    >>> nb = neighbourhoods(pts, radius=0.2)  # ragged rows: point i owns indices[offsets[i]:offsets[i + 1]]
+    >>> len(nb), bool((nb.counts == np.diff(nb.offsets)).all()), 0 in nb[0]
+    (200, True, True)
+    >>> neighbourhoods(pts, k=6).dense().shape  # kNN rows all have k entries
+    (200, 6)
     """
 
     indices: np.ndarray
@@ -123,6 +134,17 @@ def neighbourhoods(points, k: int | None = None, radius: float | None = None, *,
     Returns
     -------
     Neighbourhoods
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from scipy.spatial import cKDTree
+    >>> pts = np.random.default_rng(0).uniform(0, 1, (200, 3))
+    >>> nb = neighbourhoods(pts, k=5)
+    >>> nb.dense().shape, int(nb[7][0])  # the point itself comes first
+    ((200, 5), 7)
+    >>> bool((nb.dense() == cKDTree(pts).query(pts, 5)[1]).all())  # the same as scipy's kd-tree
+    True
     """
     local, _ = reduced(points)
     k, radius = check_scale(k, radius, len(local))
@@ -152,18 +174,57 @@ def neighbourhoods(points, k: int | None = None, radius: float | None = None, *,
 
 
 def scale_text(k, radius) -> str:
+    """The neighbourhood size as text for reports: ``k = ...`` or ``radius = ... m``.
+
+    Examples
+    --------
+    >>> scale_text(20, None), scale_text(None, 0.25)
+    ('k = 20', 'radius = 0.250 m')
+    """
     if k is not None:
         return f"k = {k}"
     return f"radius = {fmt(radius, 3, 'm')}" if radius is not None else "k or radius per point (multi-scale)"
 
 
 def reduced(points):
+    """Checked points (n, 3) moved to a local origin near their centre, and that origin.
+
+    Returns
+    -------
+    local : ndarray (n, 3)
+        ``points - origin``: small numbers, so that covariances of UTM coordinates keep their digits.
+    origin : ndarray (3,)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> utm = np.random.default_rng(0).uniform(0, 10, (100, 3)) + [500000.0, 5400000.0, 100.0]
+    >>> local, origin = reduced(utm)
+    >>> bool(np.abs(local).max() < 20), bool(np.allclose(local + origin, utm))
+    (True, True)
+    """
     xyz = as_points(points, min_points=3)
     origin = local_origin(xyz)
     return reduce(xyz, origin), origin
 
 
 def check_scale(k, radius, n):
+    """``(k, None)`` or ``(None, radius)`` after checking them against n points; a radius wins over k.
+
+    Raises
+    ------
+    LabkitError
+        Neither given, k not an integer or outside 3..n, radius <= 0.
+
+    Examples
+    --------
+    >>> check_scale(20, None, 100), check_scale(None, 0.5, 100)
+    ((20, None), (None, 0.5))
+    >>> check_scale(200, None, 100)
+    Traceback (most recent call last):
+    ...
+    labkit.errors.LabkitError: k must be between 3 and the number of points (100), got 200
+    """
     if radius is not None:
         return None, positive(radius, "radius")
     if k is None:
@@ -178,6 +239,17 @@ def check_scale(k, radius, n):
 
 
 def check_chunk_size(chunk_size) -> int:
+    """``chunk_size`` as an int; LabkitError unless it is a positive integer.
+
+    Examples
+    --------
+    >>> check_chunk_size(5000)
+    5000
+    >>> check_chunk_size(0)
+    Traceback (most recent call last):
+    ...
+    labkit.errors.LabkitError: chunk_size must be a positive integer, got 0
+    """
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, numbers.Integral) or chunk_size < 1:
         raise LabkitError(f"chunk_size must be a positive integer, got {chunk_size!r}")
     return int(chunk_size)
@@ -195,6 +267,15 @@ class SearchPlan:
     the result of each kept point to the duplicates merged into it. With ``at`` the
     queries are the requested points in leaf order and the output rows their positions
     in ``at``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> pts = np.random.default_rng(0).uniform(0, 1, (100, 3))
+    >>> pts[1] = pts[0]  # an exact duplicate
+    >>> plan = SearchPlan(pts)  # merge=True: the copy is searched once
+    >>> plan.n_duplicates, plan.n_out, len(plan.points)
+    (1, 100, 99)
     """
 
     def __init__(self, local, at=None, merge=True):
@@ -292,6 +373,20 @@ def run_moment_chunks(plan, k, chunk_size, work, step=None) -> None:
     sums them while the neighbours are in cache (:meth:`labkit._kdtree.KDTree.knn_moments_of_leaves`)
     and no (n, k) neighbour array is written or gathered again; the numbers are those of
     :func:`run_chunks` followed by :func:`covariances`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> floor = np.column_stack([rng.uniform(0, 1, (200, 2)), rng.normal(0, 0.001, 200)])  # z = 0
+    >>> cen, var_z = np.empty((len(floor), 3)), np.empty(len(floor))
+    >>> def work(rows, counts, centroids, C):
+    ...     cen[rows], var_z[rows] = centroids, C[:, 2, 2]
+    >>> run_moment_chunks(SearchPlan(floor), 20, 50, work)
+    >>> from scipy.spatial import cKDTree
+    >>> nearest = floor[cKDTree(floor).query(floor, 20)[1]]  # (n, 20, 3), the same neighbourhoods
+    >>> bool(np.allclose(cen, nearest.mean(axis=1))), bool(np.allclose(var_z, nearest[:, :, 2].var(axis=1)))
+    (True, True)
     """
     tree = plan.tree
     k = min(int(k), tree.n)  # merged duplicates may leave fewer points than k
@@ -382,6 +477,16 @@ def covariances(local, counts, flat, cols=None):
     ``cols`` = ``local.T`` as a contiguous (3, n) array. For kNN the coordinates are then
     gathered per axis into contiguous (c, k) blocks and the six distinct products summed
     along k: measured 4-5x faster than a batched (3 x k) @ (k x 3) matmul on (c, k, 3).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> pts = rng.normal(size=(50, 3))
+    >>> idx = rng.integers(0, 50, (4, 10))  # four kNN neighbourhoods of 10 points
+    >>> cen, C = covariances(pts, None, idx)
+    >>> cen.shape, C.shape, bool(np.allclose(C[0], np.cov(pts[idx[0]].T, bias=True)))
+    ((4, 3), (4, 3, 3), True)
     """
     if flat.ndim == 2:
         if cols is None:
@@ -450,7 +555,17 @@ def _knn_covariances(cols, idx, cen, C):  # pragma: no cover - compiled
 
 
 def masked_covariances(X, w):
-    """Centroids and covariances of neighbourhoods X (c, k, 3), optionally with a 0/1 mask w (c, k)."""
+    """Centroids and covariances of neighbourhoods X (c, k, 3), optionally with a 0/1 mask w (c, k).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> X = np.random.default_rng(0).normal(size=(2, 6, 3))  # two neighbourhoods of 6 points
+    >>> w = np.array([[1, 1, 1, 1, 0, 0], [1] * 6])  # the first uses only its first 4 points
+    >>> cen, C = masked_covariances(X, w)
+    >>> bool(np.allclose(cen[0], X[0, :4].mean(axis=0))), bool(np.allclose(C[0], np.cov(X[0, :4].T, bias=True)))
+    (True, True)
+    """
     if w is None:
         cen = X.mean(axis=1)  # (eq. 1)
         D = X - cen[:, None, :]

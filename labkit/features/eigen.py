@@ -28,6 +28,15 @@ class EigenFeatures(ReportMixin):
     Linearity, planarity and scattering sum to 1; the largest says whether a
     neighbourhood looks like a line, a plane or a volume. Values are NaN where all
     eigenvalues are zero (all neighbours coincide).
+
+    Examples
+    --------
+    >>> from labkit.features import eigen_features
+    >>> f = eigen_features([4.0, 1.0, 0.0])  # a stretched plane
+    >>> round(float(f.linearity), 3), round(float(f.planarity), 3), round(float(f.scattering), 3)
+    (0.75, 0.25, 0.0)
+    >>> f["planarity"] is f.planarity, len(f.keys())
+    (True, 8)
     """
 
     linearity: np.ndarray  # (e1 - e2) / e1
@@ -74,6 +83,14 @@ def eigen_features(eigenvalues) -> EigenFeatures:
     ----------
     Weinmann, Jutzi, Hinz, Mallet (2015): Semantic point cloud interpretation based on
     optimal neighborhoods, relevant features and efficient classifiers. ISPRS J. 105, 286-304.
+
+    Examples
+    --------
+    >>> f = eigen_features([[1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [1.0, 1.0, 1.0]])  # a line, a plane, a ball
+    >>> f.linearity, f.planarity, f.scattering
+    (array([1., 0., 0.]), array([0., 1., 0.]), array([0., 0., 1.]))
+    >>> f.dominant()
+    array([0, 1, 2])
     """
     lam = np.asarray(eigenvalues, dtype=np.float64)
     if lam.shape[-1:] != (3,):

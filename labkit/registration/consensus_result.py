@@ -48,6 +48,22 @@ class PeakShape(ReportMixin):
         Centroid (m) of the summit: the cells connected to the peak within the counting noise of it.
     n_summit : int
         Number of cells in the summit.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.registration import consensus_cube
+    >>> rng = np.random.default_rng(1)
+    >>> def wavy(n):  # a surface with slopes in X and Y, measured with 2 mm noise
+    ...     xy = rng.uniform(0, 6, (n, 2))
+    ...     z = 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])
+    ...     return np.column_stack([xy, z]) + rng.normal(0, 0.002, (n, 3))
+    >>> target = wavy(1500)
+    >>> cube = consensus_cube(wavy(150) - [0.05, 0.02, 0.03], target, extent=0.06, step=0.02, eps=0.01,
+    ...                       center=[0.04, 0.02, 0.04], use_numba=False)
+    >>> peak = cube.peak  # slopes in X and Y: every direction is determined
+    >>> peak.kind, peak.free.tolist(), peak.axis_constrained.tolist()
+    ('point', [False, False, False], [True, True, True])
     """
 
     kind: str
@@ -151,6 +167,23 @@ class ConsensusCube(ReportMixin):
         'numba' or 'numpy'.
     runtime_s : float
         Wall-clock time (s).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.registration import consensus_cube
+    >>> rng = np.random.default_rng(1)
+    >>> def wavy(n):  # a surface with slopes in X and Y, measured with 2 mm noise
+    ...     xy = rng.uniform(0, 6, (n, 2))
+    ...     z = 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])
+    ...     return np.column_stack([xy, z]) + rng.normal(0, 0.002, (n, 3))
+    >>> target = wavy(1500)
+    >>> cube = consensus_cube(wavy(150) - [0.05, 0.02, 0.03], target, extent=0.06, step=0.02, eps=0.01,
+    ...                       center=[0.04, 0.02, 0.04], use_numba=False)
+    >>> cube.counts.shape, [len(a) for a in cube.axes], cube.n_source
+    ((7, 7, 7), [7, 7, 7], 150)
+    >>> bool(cube.best_count == cube.counts.max()), bool(np.allclose(cube.best_translation, [0.05, 0.02, 0.03], atol=0.02))
+    (True, True)
     """
 
     counts: np.ndarray

@@ -51,6 +51,19 @@ class Consistency(ReportMixin):
     std_ratio : ndarray (3,)
         Standard deviation of dX, dY, dZ with ``between`` divided by the one without (1 when the
         groups agree; set by the registration method).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.registration import icp
+    >>> rng = np.random.default_rng(1)
+    >>> xy = rng.uniform(0, 6, (1500, 2))
+    >>> target = np.column_stack([xy, 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])])
+    >>> target += rng.normal(0, 0.001, target.shape)  # 1 mm noise
+    >>> res = icp(target[::5] + [0.02, -0.01, 0.03], target, dof="translation")
+    >>> c = res.consistency  # do the groups of correspondences agree on one shift?
+    >>> c.grouping, len(c.groups), c.agree
+    ('local noise', 3, True)
     """
 
     grouping: str

@@ -48,6 +48,17 @@ class Degeneracy(ReportMixin):
         scaled to metres at the cloud's radius); inf where the eigenvalue is not positive.
     max_std : float or None
         The precision limit: a direction whose standard deviation exceeds it is undetermined.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.registration import icp
+    >>> rng = np.random.default_rng(1)
+    >>> floor = np.column_stack([rng.uniform(0, 6, (1500, 2)), rng.normal(0, 0.001, 1500)])  # a flat floor
+    >>> res = icp(floor[::5] + [0.02, 0.0, 0.03], floor, dof="translation")
+    >>> deg = res.degeneracy  # a floor fixes the height only
+    >>> deg.well_posed, deg.undetermined_axes, round(float(res.translation[2]), 3)
+    (False, ('X', 'Y'), -0.03)
     """
 
     eigenvalues: np.ndarray

@@ -62,6 +62,19 @@ class IterationRecord(ReportMixin):
         Robust scale (1.4826 MAD) of the standardized residuals.
     n_deleted : int
         Correspondences deleted beyond ``reject_sigma`` robust standard deviations.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.registration import icp
+    >>> rng = np.random.default_rng(1)
+    >>> xy = rng.uniform(0, 6, (1500, 2))
+    >>> target = np.column_stack([xy, 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])])
+    >>> target += rng.normal(0, 0.001, target.shape)  # 1 mm noise
+    >>> res = icp(target[::5] + [0.02, -0.01, 0.03], target, dof="translation")
+    >>> last = res.history[-1]  # one IterationRecord per iteration
+    >>> last.iteration == res.iterations, np.round(last.translation, 3)
+    (True, array([-0.02,  0.01, -0.03]))
     """
 
     iteration: int
