@@ -152,10 +152,6 @@ def test_no_module_imports_a_private_name_of_another_package():
 
 
 # --------------------------------------------------------------------------- runnable examples
-#: Packages exempt from the examples test; empty since issue 13 gave every public name a runnable example.
-EXAMPLES_ELSEWHERE = ()
-
-
 def _public_objects():
     """(where, name, object) of every function and class in ``labkit.__all__`` and the public modules' ``__all__``."""
     import importlib
@@ -164,15 +160,14 @@ def _public_objects():
 
     out = []
     names = [n for n, p in _modules().items()
-             if not any(part.startswith("_") for part in n.split(".")[1:]) and not n.startswith(EXAMPLES_ELSEWHERE)]
+             if not any(part.startswith("_") for part in n.split(".")[1:])]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
         for name in ["labkit"] + sorted(set(names) - {"labkit"}):
             module = importlib.import_module(name)
             for attr in getattr(module, "__all__", ()):
                 obj = getattr(module, attr)
-                if (inspect.isfunction(obj) or inspect.isclass(obj)) and \
-                        not getattr(obj, "__module__", "").startswith(EXAMPLES_ELSEWHERE):
+                if inspect.isfunction(obj) or inspect.isclass(obj):
                     out.append((name, attr, obj))
     return out
 
