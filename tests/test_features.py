@@ -337,3 +337,58 @@ def test_real_tls_pca_matches_brute_force(realdata):
         assert np.allclose(pca.eigenvalues[i], lam[::-1], rtol=1e-7, atol=1e-13)
         if lam[1] > 1e-6 * lam[2]:
             assert abs(abs(pca.normals[i] @ V[:, 0]) - 1.0) < 1e-8
+
+
+# --------------------------------------------------------------------------- PCA at points of a kd-tree one has
+def _distinct_brute_force_pca(points, at, k):
+    """Normals (up) and noise at ``at`` from numpy alone: distinct points, cKDTree neighbours, np.linalg.eigh."""
+    from scipy.spatial import cKDTree
+
+    distinct = np.unique(points, axis=0)
+    nb = distinct[cKDTree(distinct).query(points[at], k)[1]]  # (m, k, 3)
+    D = nb - nb.mean(axis=1, keepdims=True)
+    lam, V = np.linalg.eigh(np.einsum("mki,mkj->mij", D, D) / k)  # ascending
+    n = V[:, :, 0] * np.sign(V[:, 2:3, 0])
+    return n, np.sqrt(k * lam[:, 0] / (k - 3))
+
+
+def test_pca_at_equals_local_pca_and_a_numpy_pca_on_a_tree_of_utm_points():
+    from labkit._kdtree import KDTree
+
+    rng = np.random.default_rng(21)
+    xy = rng.uniform(0, 30, (3000, 2))
+    pts = np.c_[xy, 0.3 * np.sin(xy[:, 0] / 3) + rng.normal(0, 0.004, 3000)] + UTM
+    pts[::40] = pts[7::40][: len(pts[::40])]  # exact copies: merged, as local_pca's default
+    at = np.r_[rng.choice(3000, 400, replace=False), -1, 7]
+    origin = pts[0].round()
+    for k in (4, 10, 25):
+        n, noise = F.pca_at(KDTree(pts - origin, merge_duplicates=True), at, k, chunk_size=97)
+        ref = F.local_pca(pts, k=k, at=at)
+        np.testing.assert_allclose(n, ref.normals, atol=1e-9)
+        np.testing.assert_allclose(noise, ref.noise, rtol=1e-9)
+        bn, bnoise = _distinct_brute_force_pca(pts, at, k)
+        np.testing.assert_allclose(n, bn, atol=1e-8)  # the same sign: up
+        assert (n[:, 2] >= 0).all()
+        np.testing.assert_allclose(noise, bnoise, rtol=1e-6)
+    # a tree that keeps the copies equals duplicates='keep'; k = 3 gives a normal but no noise (redundancy 0)
+    n, noise = F.pca_at(KDTree(pts - origin), at, 3)
+    np.testing.assert_allclose(n, F.local_pca(pts, k=3, at=at, duplicates="keep").normals, atol=1e-9)
+    assert np.isfinite(n[:, 0]).mean() > 0.9 and np.isnan(noise).all()
+    assert np.isnan(n[-1]).all()  # point 7: three neighbours, one of them its copy (a line)
+
+
+def test_pca_at_marks_a_line_and_reports_chunks_and_refuses_bad_arguments():
+    from labkit._kdtree import KDTree
+
+    line = np.c_[np.arange(50.0), 2 * np.arange(50.0), np.zeros(50)]
+    plane = np.c_[np.random.default_rng(0).uniform(0, 1, (50, 2)) + 100, np.zeros(50)]
+    tree = KDTree(np.r_[line, plane], merge_duplicates=True)
+    done = []
+    n, noise = F.pca_at(tree, np.arange(100), 5, chunk_size=30, step=done.append)
+    assert done == [30, 30, 30, 10]
+    assert np.isnan(n[:50]).all() and np.isnan(noise[:50]).all()  # a line has no plane
+    np.testing.assert_allclose(n[50:], np.tile([0, 0, 1.0], (50, 1)), atol=1e-12)
+    for at, k, match in (([0, 100], 5, "outside"), ([0.5], 5, "indices"), ([], 5, "empty"), ([0], 2, "k must"),
+                         ([0], 101, "k must"), ([0], 5.0, "integer")):
+        with pytest.raises(LabkitError, match=match):
+            F.pca_at(tree, at, k)

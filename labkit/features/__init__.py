@@ -15,7 +15,8 @@ eigenvalue features used to select and weight correspondences. Notation (noteboo
 
 One module per concept:
 
-- :mod:`~labkit.features.pca`: :func:`local_pca`, :func:`normals`, :func:`local_noise` (eqs. 1-5)
+- :mod:`~labkit.features.pca`: :func:`local_pca`, :func:`normals`, :func:`local_noise` (eqs. 1-5);
+  :func:`pca_at` at chosen points of a kd-tree one already has
 - :mod:`~labkit.features.eigen`: :func:`eigen_features` (eqs. 6-8)
 - :mod:`~labkit.features.multiscale`: :func:`multiscale_features` (least eigenentropy)
 - :mod:`~labkit.features.robust`: :func:`robust_normals` (RANSAC / LMedS planes, eq. 9)
@@ -29,7 +30,7 @@ from ..neighbours import CHUNK_SIZE, LEAFSIZE, Neighbourhoods, covariances, neig
 from ._steps import DUPLICATES, ORIENTATIONS, sorted_eigh
 from .eigen import EigenFeatures, eigen_features
 from .multiscale import MultiScaleFeatures, multiscale_features
-from .pca import LocalPCA, local_noise, local_pca, normals
+from .pca import LocalPCA, local_noise, local_pca, normals, pca_at
 from .robust import RobustNormals, robust_normals
 
 # A former private name, kept importable for now: notebook 04 names _sorted_eigh.
@@ -38,5 +39,5 @@ _sorted_eigh = sorted_eigh
 __all__ = [
     "CHUNK_SIZE", "DUPLICATES", "LEAFSIZE", "ORIENTATIONS", "EigenFeatures", "LocalPCA", "MultiScaleFeatures",
     "Neighbourhoods", "RobustNormals", "eigen_features", "local_noise", "local_pca", "multiscale_features",
-    "neighbourhoods", "normals", "robust_normals",
+    "neighbourhoods", "normals", "pca_at", "robust_normals",
 ]  # fmt: skip

@@ -302,3 +302,69 @@ def local_noise(points, k: int = 20, radius: float | None = None, *, chunk_size:
     pca = points if isinstance(points, LocalPCA) else local_pca(points, k, radius, orient="none", chunk_size=chunk_size)
     return pca.noise
 
+
+def pca_at(tree, at, k: int, *, chunk_size: int = CHUNK_SIZE, step=None):
+    """Normals (oriented up) and local noise of ``k`` neighbours at the points ``at`` of a kd-tree one already has.
+
+    The numbers of ``local_pca(points, k=k, at=at)`` (eqs. 1-5: the normal, and the noise
+    :attr:`LocalPCA.noise`) without building a second tree: for a step that holds the
+    compiled kd-tree of a cloud (the distances of :mod:`labkit.distances` share the one ICP
+    built) and needs the local planes only at some of its points. The queries run chunk by
+    chunk in the tree's leaf order (the visited leaves stay in cache).
+
+    Parameters
+    ----------
+    tree : labkit._kdtree.KDTree
+        Tree of the (reduced) cloud; with ``merge_duplicates=True`` exact copies count once,
+        as ``local_pca``'s default ``duplicates='merge'``.
+    at : array_like of int
+        Rows of the cloud the tree was built from (negative counts from the end).
+    k : int
+        Neighbours including the point, 3 <= k <= number of points (fewer if merged copies leave fewer).
+    chunk_size : int
+        Query points per chunk (memory grows with chunk_size * k).
+    step : callable, optional
+        ``step(n)`` hears of every finished chunk of n points (a progress reporter).
+
+    Returns
+    -------
+    normals : ndarray (len(at), 3)
+        Unit normals with n_z >= 0; NaN where the neighbourhood is a point or a line.
+    noise : ndarray (len(at),)
+        sigma_n = sqrt(k l3 / (k - 3)) in the units of the cloud; NaN where the normal is, or for k = 3.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit._kdtree import KDTree
+    >>> from labkit.features import local_pca, pca_at
+    >>> rng = np.random.default_rng(0)
+    >>> floor = np.column_stack([rng.uniform(0, 1, (500, 2)), rng.normal(0, 0.001, 500)])  # z = 0, 1 mm noise
+    >>> tree = KDTree(floor, merge_duplicates=True)
+    >>> n, sigma = pca_at(tree, [3, 7, 11], k=20)
+    >>> n.shape, bool((n[:, 2] > 0.999).all()), bool(np.allclose(n, local_pca(floor, k=20, at=[3, 7, 11]).normals))
+    ((3, 3), True, True)
+    >>> bool(np.all(abs(sigma - 0.001) < 0.0005))  # about the 1 mm noise
+    True
+    """
+    rep = tree.representative  # leaf position of the kept copy of every input row
+    if rep is None:  # a tree without merging
+        rep = np.empty(len(tree.indices), dtype=np.intp)
+        rep[tree.indices] = np.arange(len(tree.indices))
+    at = check_at(at, len(rep))
+    k = min(check_scale(k, None, len(rep))[0], tree.n)
+    chunk_size = check_chunk_size(chunk_size)
+    pos = rep[at]
+    order = np.argsort(pos, kind="stable")  # leaf order
+    cols = np.ascontiguousarray(tree.data.T)
+    nrm, noise = np.empty((len(at), 3)), np.empty(len(at))
+    for a in range(0, len(at), chunk_size):
+        rows = order[a : a + chunk_size]
+        nb = tree.query_leaf_positions(pos[rows], k, workers=-1 if len(rows) > 2000 else 1)
+        lam, V = sorted_eigh(covariances(tree.data, None, nb, cols)[1])  # (eqs. 1-3)
+        ok = determined(lam, k)
+        nrm[rows] = np.where(ok[:, None], V[:, :, 2], np.nan)  # (eq. 4)
+        noise[rows] = np.where(ok, plane_noise(lam[:, 2], k), np.nan)  # (eq. 5)
+        if step is not None:
+            step(len(rows))
+    return np.where(nrm[:, 2:3] < 0, -nrm, nrm), noise
