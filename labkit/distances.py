@@ -275,14 +275,9 @@ def _nearest(tree, src, order, transform, origin, tgt, kind, report):
 
 def _normals_at(tree, at, k, report):
     """PCA normals (oriented up) of k neighbours at the target points ``at`` (features.normals, chunked)."""
-    from .registration.matching import _local_geometry
+    from .features import pca_at
 
-    cols = np.ascontiguousarray(tree.data.T)
-    out = np.empty((len(at), 3), dtype=np.float32)
-    for a in range(0, len(at), CHUNK):
-        out[a : a + CHUNK] = _local_geometry(tree, cols, at[a : a + CHUNK], k)[0]
-        report(len(out[a : a + CHUNK]))
-    return out
+    return pca_at(tree, at, k, chunk_size=CHUNK, step=report)[0]
 
 
 def _prepared(source, target, transform):

@@ -102,11 +102,7 @@ def test_no_module_is_longer_than_one_reads_in_a_sitting():
 # --------------------------------------------------------------------------- private names across packages
 #: Imports of a private name from a module of another package that are known today, each with its reason.
 #: Every entry is (importing module, imported module, name). Fix the cause, then remove the entry.
-PRIVATE_IMPORTS = {
-    # distances borrows ICP's normals at chosen target points of a tree it already has (no public
-    # "PCA at these points of this tree" yet; issue 13)
-    ("labkit.distances", "labkit.registration.matching", "_local_geometry"),
-}
+PRIVATE_IMPORTS = set()  # empty since distances takes its normals from labkit.features.pca_at (issue 13)
 
 
 def _package_of(name, modules):
@@ -192,7 +188,6 @@ LAZY_IMPORTS = {
     ("labkit.compare", "labkit.registration"): "heavy",  # cli imports compare
     ("labkit.demo", "labkit.features"): "heavy",  # demo is imported by cli
     ("labkit.distances", "labkit.features"): "heavy",
-    ("labkit.distances", "labkit.registration.matching"): "heavy",
     ("labkit.plotting.registration", "labkit.registration.matching"): "heavy",
     ("labkit.tiles.register", "labkit.registration"): "heavy",  # the icp function loads matching
     ("labkit.widgets", "labkit.features"): "heavy",
