@@ -1,4 +1,4 @@
-"""Nothing silent (issue 16): the shared validators, tiles, distances, regions and the command line.
+"""Nothing silent (issue 16): the shared validators at the entry points, tiles, distances, regions, the command line.
 
 Every case states its exact outcome: the value returned, or the error type and a
 fragment of its message. The other modules' cases live in test_bad_input_*.py.
@@ -12,10 +12,6 @@ import pytest
 
 import labkit
 from labkit import cli
-from labkit._checks import (
-    PRECISION_TOLERANCE, as_points, as_rng, as_seed, check_precision, choice, count, finite, flag, non_negative,
-    positive, precision_tolerance, probability,
-)
 from labkit.cli import main
 from labkit.cloud import PointCloud
 from labkit.distances import DistanceChange, point_to_plane_distance
@@ -36,76 +32,8 @@ def _cloud(n=200, seed=0, offset=0.0):
     return np.random.default_rng(seed).uniform(0, 10, (n, 3)) + offset
 
 
-# --------------------------------------------------------------------------- as_points
-@pytest.mark.parametrize("points, fragment", [
-    ("points.xyz", "got a string"),
-    (np.zeros((5, 2)), "shape (n, 3), got (5, 2)"),
-    (np.zeros(3), "shape (n, 3), got (3,)"),
-    (np.zeros((2, 3, 1)), "shape (n, 3), got (2, 3, 1)"),
-    (None, "shape (n, 3), got ()"),
-    ([[0, 0, 0], [1, 2]], "numeric with shape (n, 3)"),
-    ([["a", "b", "c"]], "numeric with shape (n, 3)"),
-    (np.array([[0.0, 0, 0], [np.nan, 1, 1]]), "1 point(s) with NaN or infinite"),
-    (np.array([[np.inf, 0, 0], [1, -np.inf, 1], [0, 0, 0]]), "2 point(s) with NaN or infinite"),
-    (np.zeros((0, 3)), "at least 1 points, got 0"),
-])
-def test_as_points_refuses(points, fragment):
-    with pytest.raises(LabkitError) as exc:
-        as_points(points)
-    assert fragment in str(exc.value)
-
-
-@pytest.mark.parametrize("x", [5.4e6, 5.4e5, 1.3e4, 2048.0])
-def test_float32_coordinates_too_coarse_are_refused(x):
-    pts = (_cloud() + [x, 0, 0]).astype(np.float32)
-    step = _float32_step(x)
-    assert step / 2 > PRECISION_TOLERANCE  # the premise of the case
-    with pytest.raises(LabkitError) as exc:
-        as_points(pts)
-    msg = str(exc.value)
-    assert "float32" in msg and f"steps of {step:.3g} m" in msg and "precision_tolerance" in msg
-
-
-@pytest.mark.parametrize("x", [0.0, 100.0, 1000.0, 2030.0])
-def test_float32_local_coordinates_are_accepted_exactly(x):
-    pts = (_cloud() + [x, -x, 0]).astype(np.float32)
-    out = as_points(pts)
-    assert out.dtype == np.float64
-    np.testing.assert_array_equal(out, pts.astype(np.float64))  # exact: every float32 is a float64
-
-
-def test_float16_is_guarded_too():
-    pts = (_cloud() + 100).astype(np.float16)
-    with pytest.raises(LabkitError, match=r"float16 has steps of 0\.0625 m"):  # 2**(6 - 10)
-        as_points(pts)
-
-
-def test_precision_tolerance_by_argument_and_by_context():
-    pts = (_cloud() + UTM).astype(np.float32)
-    np.testing.assert_array_equal(as_points(pts, tolerance=0.25), pts.astype(np.float64))
-    with labkit.precision_tolerance(0.25):
-        np.testing.assert_array_equal(as_points(pts), pts.astype(np.float64))
-        with pytest.raises(LabkitError, match="0.125 m"):
-            as_points(pts, tolerance=0.125)  # an explicit tolerance wins over the context
-    with pytest.raises(LabkitError, match="tolerance of 0.0001 m"):
-        as_points(pts)  # the context ends with the block
-
-
-@pytest.mark.parametrize("tol, fragment", [(-1, "tolerance must be a number > 0 (m), got -1"),
-                                            (np.nan, "got nan"), ("0.5", "got '0.5' (str)")])
-def test_tolerance_argument_is_checked(tol, fragment):
-    with pytest.raises(LabkitError) as exc:
-        as_points((_cloud() + UTM).astype(np.float32), tolerance=tol)
-    assert fragment in str(exc.value)
-
-
-@pytest.mark.parametrize("tol", [0, -1, np.nan])
-def test_precision_tolerance_must_be_positive(tol):
-    with pytest.raises(LabkitError, match="precision tolerance must be a number > 0"):
-        with precision_tolerance(tol):
-            pass
-
-
+# --------------------------------------------------------------------------- the shared checks at the entry points
+# (the checks themselves, labkit._checks: tests/test_checks.py)
 def test_float32_utm_refused_by_public_functions_and_files(tmp_path):
     pts = (_cloud() + UTM).astype(np.float32)
     with pytest.raises(LabkitError, match="float32"):
@@ -136,100 +64,9 @@ def test_float32_utm_refused_by_every_entry_point(name, call):
         call(b.astype(np.float32), b)
 
 
-def test_float64_and_integers_pass_the_guard():
-    check_precision(_cloud() + UTM)  # float64 at UTM size: steps of 1e-9 m
-    check_precision((_cloud() + UTM).astype(np.int64))  # integers are exact
-    np.testing.assert_array_equal(as_points([[1, 2, 3]]), [[1.0, 2.0, 3.0]])
-
-
-def test_as_points_never_modifies_its_input():
-    pts = _cloud()
-    keep = pts.copy()
-    out = as_points(pts, copy=True)
-    out += 1
-    np.testing.assert_array_equal(pts, keep)
-
-
-# --------------------------------------------------------------------------- numbers
-@pytest.mark.parametrize("check, value, expected", [
-    (positive, 2, 2.0), (positive, np.float32(0.5), 0.5), (positive, 1e-300, 1e-300),
-    (non_negative, 0, 0.0), (non_negative, 3.5, 3.5),
-    (finite, -7.25, -7.25), (finite, 0, 0.0),
-    (probability, 0.05, 0.05),
-    (count, 20, 20), (count, 20.0, 20), (count, np.int64(7), 7),
-    (flag, np.True_, True), (flag, 0, False),
-])
-def test_number_checks_accept(check, value, expected):
-    out = check(value, "v")
-    assert out == expected and type(out) is type(expected)
-
-
-@pytest.mark.parametrize("check, value, fragment", [
-    (positive, 0, "v must be a finite number > 0, got 0"),
-    (positive, -1.0, "got -1.0"),
-    (positive, np.nan, "got nan"),
-    (positive, np.inf, "got inf"),
-    (positive, "1", "v must be a number > 0, got '1' (str)"),
-    (positive, True, "got True (bool)"),
-    (positive, None, "got None (NoneType)"),
-    (positive, [1.0], "got [1.0] (list)"),
-    (non_negative, -1e-12, "v must be a finite number >= 0"),
-    (non_negative, np.nan, "v must be a finite number >= 0, got nan"),
-    (non_negative, "1", "v must be a number >= 0, got '1' (str)"),
-    (finite, np.nan, "v must be a finite number, got nan"),
-    (finite, -np.inf, "got -inf"),
-    (probability, 0, "strictly between 0 and 1, got 0"),
-    (probability, 1.0, "strictly between 0 and 1"),
-    (probability, np.nan, "got nan"),
-    (count, 20.5, "v must be a whole number >= 1, got 20.5"),
-    (count, "20", "got '20' (str)"),
-    (count, True, "got True (bool)"),
-    (count, 0, "whole number >= 1, got 0"),
-    (count, np.nan, "got nan"),
-    (count, np.inf, "got inf"),
-    (flag, "no", "v must be True or False, got 'no'"),
-    (flag, 2, "v must be True or False, got 2"),
-])
-def test_number_checks_refuse(check, value, fragment):
-    with pytest.raises(LabkitError) as exc:
-        check(value, "v")
-    assert fragment in str(exc.value)
-
-
-def test_count_bounds_and_choice():
-    assert count(0, "n", minimum=0) == 0
-    with pytest.raises(LabkitError, match=r"whole number >= 1 and <= 5, got 6"):
-        count(6, "n", maximum=5)
-    assert choice("a", ("a", "b"), "x") == "a"
-    with pytest.raises(LabkitError, match="x must be one of 1, 2; got True"):
-        choice(True, (1, 2), "x")  # True == 1, but a bool is not a choice among numbers
-    with pytest.raises(LabkitError, match=r"x must be one of .*; got \['a'\]"):
-        choice(["a"], {"a", "b"}, "x")  # unhashable against a set: refused, not a TypeError
-
-
-# --------------------------------------------------------------------------- random generators
-@pytest.mark.parametrize("rng, fragment", [
-    (-1, "rng must be a whole number >= 0, got -1"),
-    (1.5, "rng must be an int >= 0, a numpy.random.Generator or None, got float"),
-    ("3", "got str"),
-    (True, "got bool"),
-    (np.random.RandomState(0), "got RandomState"),
-])
-def test_as_rng_refuses(rng, fragment):
-    with pytest.raises(LabkitError) as exc:
-        as_rng(rng)
-    assert fragment in str(exc.value)
-
-
-def test_as_rng_accepts_seeds_and_generators():
-    gen = np.random.default_rng(3)
-    assert as_rng(gen) is gen
-    np.testing.assert_array_equal(as_rng(np.int64(5)).random(4), np.random.default_rng(5).random(4))
-    assert as_seed(None) is None and as_seed(7.0) == 7
-    with pytest.raises(LabkitError, match="seed must be a whole number >= 0, got -2"):
-        as_seed(-2)
+def test_a_bad_rng_is_refused_by_a_public_function():
     with pytest.raises(LabkitError, match="rng must be a whole number >= 0"):
-        thin_random(PointCloud(_cloud()), 0.5, rng=-1)  # through a public function
+        thin_random(PointCloud(_cloud()), 0.5, rng=-1)  # the checks of labkit._checks: tests/test_checks.py
 
 
 # --------------------------------------------------------------------------- tiles
