@@ -287,24 +287,6 @@ def test_regions_accept_arrays_as_clouds():
     assert len(thin_random(pts, n=20, rng=1)) == 20
 
 
-# --------------------------------------------------------------------------- atomic files
-@pytest.mark.parametrize("path, text, fragment", [
-    (None, "x", "must be a file path (str or pathlib.Path), got None"),
-    (3, "x", "must be a file path (str or pathlib.Path), got 3"),
-    ("", "x", "must be a file path"),
-    ("{tmp}/missing/a.txt", "x", "the folder"),
-    ("{tmp}", "x", "a folder of that name exists"),
-])
-def test_atomic_write_refuses(tmp_path, path, text, fragment):
-    from labkit._atomic import atomic_write_text
-
-    path = path.format(tmp=tmp_path) if isinstance(path, str) else path
-    with pytest.raises(LabkitError) as exc:
-        atomic_write_text(path, text)
-    assert fragment in str(exc.value)
-    assert sorted(p.name for p in tmp_path.iterdir()) == []  # no temporary left behind
-
-
 # --------------------------------------------------------------------------- command line
 @pytest.fixture(scope="module")
 def clouds(tmp_path_factory):

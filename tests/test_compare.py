@@ -193,16 +193,6 @@ def test_reference_file_bad_input(tmp_path):
         compare.manual_reference([0, 0, 0], covariance=-np.eye(3))
 
 
-def test_atomic_write_leaves_old_file_on_failure(tmp_path):
-    from labkit._atomic import atomic_write_text
-
-    path = atomic_write_text(tmp_path / "a.csv", "old\n")
-    with pytest.raises(TypeError):
-        atomic_write_text(path, b"bytes are not text")  # fails inside the write
-    assert path.read_text() == "old\n"
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.csv"]
-
-
 # --------------------------------------------------------------------------- the table
 def _pair(region, truth, constrained=(True, True, True), n=400, offset=UTM, seed=0):
     rng = np.random.default_rng(seed)
