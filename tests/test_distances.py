@@ -1,4 +1,4 @@
-"""labkit.distances.distances_before_after against a brute-force route (numpy nearest neighbours, np.linalg.eigh normals).
+"""labkit.distances.distances_before_after against a brute-force route (numpy nearest neighbours, eigh normals).
 
 Agreement with labkit's own plain route (features.normals + point_to_plane_distance) on a larger village, the
 reuse of ICP's tree and the progress reports: tests/test_icp_sampling.py and tests/test_progress.py; bad input:
