@@ -15,6 +15,9 @@ observation of the surface). Degenerate neighbourhoods (fewer than 3 distinct
 points, or all on one line) do not determine a plane: their normal is NaN and
 ``LocalPCA.valid`` is False.
 
+:func:`pca_at` gives the same normals and noise at chosen points of a kd-tree that a
+caller already holds (the distances of :mod:`labkit.distances` reuse ICP's target tree).
+
 References
 ----------
 Hoppe, DeRose, Duchamp, McDonald, Stuetzle (1992): Surface reconstruction from
