@@ -41,6 +41,7 @@ _EXPORTS = {
     # registration (issues 5, 6)
     "RegistrationResult": "labkit.registration",
     "match": "labkit.registration",
+    "MatchOptions": "labkit.registration",
     "icp": "labkit.registration",
     "consensus_cube": "labkit.registration",
     "max_consensus": "labkit.registration",

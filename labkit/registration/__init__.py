@@ -20,6 +20,7 @@ from .result import RegistrationResult
 _EXPORTS = {
     "match": "labkit.registration.matching",
     "Correspondences": "labkit.registration.matching",
+    "MatchOptions": "labkit.registration.options",
     "icp": "labkit.registration.icp_loop",
     "IterationRecord": "labkit.registration.icp_loop",
     "consensus_cube": "labkit.registration.consensus",

@@ -37,6 +37,7 @@ from ._icp_information import TiltVariance
 from ._icp_iteration import cycle_converged, cycle_period, step_damping, update_transform, within_precision
 from ._icp_result import icp_result
 from .matching import prepare
+from .options import FIELDS, MatchOptions, takes_match_options
 from .pyramid import RETRY_REACH, pyramid_icp, retry_with_pyramid, use_pyramid
 from .result import RegistrationResult
 
@@ -96,10 +97,12 @@ class IterationRecord(ReportMixin):
         return f"ICP iteration {self.iteration}", [("", rows)]
 
 
+@takes_match_options
 def icp(
     source,
     target,
     *,
+    options: MatchOptions | None = None,
     dof="translation",
     metric="point_to_plane",
     max_iterations=50,
@@ -200,30 +203,17 @@ def icp(
         confident. None: no test.
     min_correspondences : int
         Fewer correspondences after rejection raise :class:`EmptyRegionError`.
-    surface : {'auto', 'plane', 'quadric'}
-        Local surface model of the matching (:func:`labkit.registration.match`). 'auto' (default):
-        a local quadric through q_j where the target's k-neighbourhoods are wider than 1 m
-        (sparse ALS), the PCA plane through q_j on denser clouds (TLS, dense ALS), where its
-        sagitta is negligible.
-        On the real ALS halves at full density (2.7 pts/m^2, mostly ground) the plane's X was
-        13 mm off at a stated 3.5 mm (3.8 std, the same sign over three random splits: the
-        sagitta on gently curved ground, weighted by the slopes that determine X); the quadric
-        gives -1.5, 3.2, 0.2 mm at a stated 2.9, 2.2, 0.12 mm. Monte Carlo spread / stated with
-        the quadric: 1.16, 0.98, 0.99 on the sparse hills, 1.16, 1.19, 1.08 on the test scene with
-        roofs (the plane's 1.15, 1.02, 0.98 and 1.15, 1.19, 1.08). ``result.method`` names the
-        model used.
-    sample : None, 'auto', int or (method, value)
-        Source points that form pairs (:func:`labkit.registration.match`). Default ``'auto'``: the
-        whole source up to 300,000 points; a larger one is thinned to about 100,000 points spread
-        evenly in space and over the normal directions, so that the shift of a 10-million-point
-        cloud costs what that of a 100,000-point cloud costs. The covariance stays honest (the block
-        covariance, eq. 5.13, takes its variance from the residuals of the pairs used; Monte Carlo
-        spread / stated in tests/test_icp_sampling.py). Distances and the moved cloud are computed
-        for every point by the caller. ``result.message`` states how many pairs were used out of
-        how many source points. None: every source point.
-    max_distance, max_angle_deg, classes, class_sigma, default_sigma, noise_weighting, max_noise, unique, k,
-    target_normals, source_normals, rng
-        Matching options, see :func:`labkit.registration.match`.
+    options : MatchOptions, optional
+        The matching options in one object (:class:`labkit.registration.MatchOptions`, which documents
+        each of them; its defaults are those below). A keyword below given as well overrides its field.
+    max_distance, max_angle_deg, classes, class_sigma, default_sigma, noise_weighting, max_noise, sample,
+    unique, k, target_normals, source_normals, surface
+        The matching options as keywords, see :class:`~labkit.registration.MatchOptions`. ICP matches a
+        thinned source with the default ``sample='auto'`` (sources beyond 300,000 points), chooses the
+        local surface with ``surface='auto'`` (``result.method`` names it; see Notes) and derives the
+        defaults of ``max_std`` and of a held shift's prior from ``max_distance``.
+    rng : int or Generator, optional
+        For the sampling.
     progress : bool, "bar", "lines" or callable
         One step per iteration with the current shift and number of pairs (:mod:`labkit.progress`).
     coarse_to_fine : {'auto', True, False}
@@ -271,6 +261,18 @@ def icp(
 
     Notes
     -----
+    Sampling (``sample='auto'``) keeps the covariance honest: the block covariance (eq. 5.13) takes its
+    variance from the residuals of the pairs used (Monte Carlo spread / stated in
+    tests/test_icp_sampling.py); distances and the moved cloud are computed for every point by the
+    caller, and ``result.message`` states how many pairs were used out of how many source points.
+
+    Local surface (``surface='auto'``): on the real ALS halves at full density (2.7 pts/m^2, mostly
+    ground) the plane's X was 13 mm off at a stated 3.5 mm (3.8 std, the same sign over three random
+    splits: the sagitta on gently curved ground, weighted by the slopes that determine X); the quadric
+    gives -1.5, 3.2, 0.2 mm at a stated 2.9, 2.2, 0.12 mm. Monte Carlo spread / stated with the
+    quadric: 1.16, 0.98, 0.99 on the sparse hills, 1.16, 1.19, 1.08 on the test scene with roofs (the
+    plane's 1.15, 1.02, 0.98 and 1.15, 1.19, 1.08).
+
     Undetermined directions (a flat field leaves X and Y free) are those whose standard deviation
     exceeds ``max_std`` (eq. 5.12a), computed from the information that survives re-matching,
     N_sig = N minus the part faked by the random tilts of the target normals (eq. 5.12b); weak
@@ -304,18 +306,21 @@ def icp(
     village pairs, 1.12, 1.14, 1.0 with Tukey weights. The remaining 10-15 % in X and Y is not
     visible in the residuals of one registration (about 6 % on the village is the re-selection).
     """
+    # the matching keywords arrive checked in `options` (takes_match_options); the body reads only that
     reach = None if reach is None else positive(reach, "reach")
     if reach is not None and coarse_to_fine is False:
         raise LabkitError("reach= sets the coarsest level of the pyramid: give coarse_to_fine=True or 'auto' with it")
     if coarse_to_fine is not False:  # the voxel pyramid runs this function once per level (pyramid.py)
-        options = {k: v for k, v in locals().items() if k not in ("source", "target", "coarse_to_fine", "reach")}
+        settings = {name: v for name, v in locals().items()  # the matching options are in `options`
+                    if name not in ("source", "target", "coarse_to_fine", "reach", *FIELDS)}
         choice(coarse_to_fine, (True, False, "auto"), "coarse_to_fine")
+        max_distance = options.max_distance
         if coarse_to_fine is True or use_pyramid(max_distance, reach):
-            return pyramid_icp(source, target, icp_function=icp, reach=reach, **options)
-        single = icp(source, target, coarse_to_fine=False, **options)  # 'auto': one level, the pyramid if
+            return pyramid_icp(source, target, icp_function=icp, reach=reach, **settings)
+        single = icp(source, target, coarse_to_fine=False, **settings)  # 'auto': one level, the pyramid if
         if not retry_with_pyramid(single, max_distance):  # it left axes undetermined for want of partners
             return single
-        res = pyramid_icp(source, target, icp_function=icp, reach=RETRY_REACH * max_distance, **options)
+        res = pyramid_icp(source, target, icp_function=icp, reach=RETRY_REACH * max_distance, **settings)
         note = f"; retried coarse-to-fine: one level left {', '.join(single.degeneracy.undetermined_axes)} undetermined"
         return replace(res, runtime_s=res.runtime_s + single.runtime_s, message=res.message + note)
     t_start = time.perf_counter()
@@ -333,7 +338,6 @@ def icp(
     reject_sigma = None if reject_sigma is None else positive(reject_sigma, "reject_sigma")
     if max_std is not None:
         max_std = positive(max_std, "max_std")
-    k = count(k, "k", minimum=1)  # 3 <= k <= target size: checked by the matching
     max_iterations = count(max_iterations, "max_iterations")
     # 1. shared local origin, initial transformation in the local frame
     origin = local_origin(as_points(target, min_points=3, name="target"))
@@ -341,12 +345,7 @@ def icp(
         _require_surface(as_points(cloud, min_points=3, name=name), name)
     R, t = _initial_local(initial, origin)
     # 2. kd-tree of the target, sampling and exclusions: once
-    matcher = prepare(
-        source, target, target_normals=target_normals, source_normals=source_normals,
-        max_distance=max_distance, max_angle_deg=max_angle_deg, classes=classes,
-        class_sigma=class_sigma, default_sigma=default_sigma, noise_weighting=noise_weighting,
-        max_noise=max_noise, sample=sample, unique=unique, k=k, rng=rng, origin=origin, surface=surface,
-    )  # fmt: skip
+    matcher = prepare(source, target, options=options, rng=rng, origin=origin)
     L = max(float(np.sqrt((matcher.source**2).sum(axis=1).mean())), 1.0)
     opts = IcpSettings(
         origin=origin, dof=dof, metric=metric, robust=robust, reject_sigma=reject_sigma, L=L,
@@ -354,7 +353,7 @@ def icp(
         block_size=block_size, held_rotation_std=held_rotation_std, consistency_alpha=consistency_alpha,
         max_std=default_max_std(max_std, matcher.options["max_distance"]),
         held_shift_std=held_shift_std(matcher.options["max_distance"]),
-        tilt=TiltVariance(matcher), sample=sample,
+        tilt=TiltVariance(matcher), sample=options.sample,
     )  # fmt: skip
     plain = replace(opts, robust=None, reject_sigma=None, cascade=False)  # warm-up stage: no robust measures, no cascade
     history, converged, adj, step, robust_stage = [], False, None, np.inf, False

@@ -44,15 +44,15 @@ from ._correspondences import _CODE, MIN_SIGMA, RULES, Correspondences, _replace
 from ._local_surface import _Geometry, _leaf_geometry, _local_geometry, _on_quadric, _plane_tilt  # noqa: F401
 from ._matcher import _class_sigma, _classes_of, _Matcher, _reject_duplicates, _require_classes, _TreePoints  # noqa: F401
 from ._sampling import MAX_VARIATION, _auto_sample, _normal_space_sample, _voxel_keys, _voxel_sample  # noqa: F401
+from .options import SURFACES, MatchOptions, takes_match_options
 
 __all__ = [
     "AUTO_LIMIT", "AUTO_PAIRS", "AUTO_QUADRIC_RADIUS", "MAX_VARIATION", "MIN_SIGMA", "RULES", "SURFACES",
     "Correspondences", "match", "prepare",
 ]  # fmt: skip
 
-#: Local surface models of :func:`match`: the PCA plane (default) or a quadric (curved, sparse surfaces);
-#: 'auto' chooses by the size of the target's k-neighbourhoods (:func:`_auto_surface`).
-SURFACES = ("plane", "quadric", "auto")
+# SURFACES (from .options): the local surface models of :func:`match`: the PCA plane (default) or a
+# quadric (curved, sparse surfaces); 'auto' chooses by the size of the target's k-neighbourhoods.
 #: surface='auto' fits quadrics where the median radius of the target's k-neighbourhoods exceeds this (m).
 AUTO_QUADRIC_RADIUS = 1.0
 
@@ -96,10 +96,12 @@ def _sample(points, geometry, spec, rng):
     return pool[_normal_space_sample(coarse, m, rng)]
 
 
+@takes_match_options
 def prepare(
     source,
     target,
     *,
+    options: MatchOptions | None = None,
     target_normals=None,
     source_normals=None,
     max_distance=1.0,
@@ -119,9 +121,11 @@ def prepare(
 ) -> _Matcher:
     """Build the fixed part of the matching once (kd-tree, sampling, exclusions).
 
-    The arguments are those of :func:`match`; ``origin`` is the shared local
+    The arguments are those of :func:`match` (the matching options: see
+    :class:`~labkit.registration.MatchOptions`); ``origin`` is the shared local
     origin (default: from the target). ICP calls this once and the returned
     matcher in every iteration.
+
     Examples
     --------
     >>> import numpy as np
@@ -133,9 +137,11 @@ def prepare(
     >>> len(corr), bool(np.abs(corr.dz[corr.accepted]).max() < 0.01)
     (300, True)
     """
+    opt = options  # checked and complete (takes_match_options); the loose keywords above are not read
+    k = opt.k
     src = as_points(source, min_points=3, name="source")
     tgt = as_points(target, min_points=3, name="target")
-    if not 3 <= int(k) <= len(tgt):
+    if k > len(tgt):
         raise LabkitError(f"k must lie between 3 and the number of target points ({len(tgt)}), got {k}")
     rng = as_rng(rng)
     origin = local_origin(tgt) if origin is None else np.asarray(origin, dtype=np.float64)
@@ -145,19 +151,16 @@ def prepare(
     # the target's compiled kd-tree (exact duplicates merged) and its geometry cache: once per call
     # (kept for the next step on the same target, e.g. the distances of labkit register)
     tree = local_tree(tgt, origin, merge_duplicates=True)
-    choice(surface, SURFACES, "surface")
-    if surface == "auto":
-        surface = _auto_surface(tree, int(k))
+    surface = _auto_surface(tree, k) if opt.surface == "auto" else opt.surface
     quadric = surface == "quadric"
-    if quadric and int(k) < 10:
-        raise LabkitError(f"surface='quadric' fits 6 parameters: k must be at least 10, got {k}")
     tgt_geo = _Geometry(
-        None, int(k), _given_normals(target_normals, len(tgt), "target_normals"), tree, quadric, keep_tilt=True
+        None, k, _given_normals(opt.target_normals, len(tgt), "target_normals"), tree, quadric, keep_tilt=True
     )
     n_tgt = len(tgt)  # the tree holds the target (one copy of a large cloud, read through _TreePoints)
+    sample = opt.sample
     need_src_geo = (
-        max_angle_deg is not None or noise_weighting or max_noise is not None
-        or (isinstance(sample, (tuple, list)) and sample[0] == "normal_space")
+        opt.max_angle_deg is not None or opt.noise_weighting or opt.max_noise is not None
+        or (isinstance(sample, tuple) and sample[0] == "normal_space")
         or (isinstance(sample, str) and sample == "auto" and len(src_l) > AUTO_LIMIT)
     )  # fmt: skip
     src_geo = None
@@ -165,7 +168,7 @@ def prepare(
         if len(src_l) < k:
             raise LabkitError(f"the source needs at least k = {k} points for its normals, got {len(src_l)}")
         src_geo = _Geometry(
-            src_l, int(k), _given_normals(source_normals, len(src_l), "source_normals"), quadric=quadric
+            src_l, k, _given_normals(opt.source_normals, len(src_l), "source_normals"), quadric=quadric
         )
     # (1) sampling
     idx = _sample(src_l, src_geo, sample, rng)
@@ -176,29 +179,29 @@ def prepare(
     else:
         order = np.empty(len(idx), dtype=np.intp)
         order[:] = src_tree.indices
-    options = dict(
-        max_distance=np.inf if max_distance is None else positive(max_distance, "max_distance"),
-        max_angle_deg=None if max_angle_deg is None else positive(max_angle_deg, "max_angle_deg"),
-        classes=None if classes is None else np.asarray(list(classes)),
-        class_sigma=dict(class_sigma or {}),
-        default_sigma=_non_negative(default_sigma, "default_sigma"),
-        noise_weighting=bool(noise_weighting),
-        max_noise=None if max_noise is None else positive(max_noise, "max_noise"),
-        need_noise=bool(noise_weighting or max_noise is not None),
+    settings = dict(  # the matcher's resolved form: no gate is an infinite distance, 'auto' is decided
+        max_distance=np.inf if opt.max_distance is None else opt.max_distance,
+        max_angle_deg=opt.max_angle_deg,
+        classes=None if opt.classes is None else np.asarray(list(opt.classes)),
+        class_sigma=dict(opt.class_sigma or {}),
+        default_sigma=opt.default_sigma,
+        noise_weighting=opt.noise_weighting,
+        max_noise=opt.max_noise,
+        need_noise=bool(opt.noise_weighting or opt.max_noise is not None),
         sample=sample,
-        unique=bool(unique),
-        k=int(k),
+        unique=opt.unique,
+        k=k,
         surface=surface,
     )
     # (2) exclusions on the source side and a priori sigma per source point
     src_cls, tgt_cls = _classes_of(source, len(src)), _classes_of(target, len(tgt))
-    if classes is not None:
+    if opt.classes is not None:
         _require_classes(source, "source")
         _require_classes(target, "target")
     src_normals, src_noise = (None, None) if src_geo is None else src_geo.at(idx, need_noise=True)
-    rule, sigma = _source_rules(src_cls, idx, src_noise, options)
+    rule, sigma = _source_rules(src_cls, idx, src_noise, settings)
     return _Matcher(
-        src_l[idx], idx, src_normals, sigma, rule, _TreePoints(tree, n_tgt), tree, tgt_geo, tgt_cls, options, origin, len(src),
+        src_l[idx], idx, src_normals, sigma, rule, _TreePoints(tree, n_tgt), tree, tgt_geo, tgt_cls, settings, origin, len(src),
         None if src_cls is None else src_cls[idx], order,
     )  # fmt: skip
 
@@ -220,10 +223,6 @@ def _auto_surface(tree, k):
     step = max(1, tree.n // 2000)
     dist = tree.query(tree.data[::step], k=k, workers=1)[0][:, -1]
     return "quadric" if float(np.median(dist)) > AUTO_QUADRIC_RADIUS else "plane"
-
-
-def _non_negative(value, name):
-    return 0.0 if value == 0 else positive(value, name)
 
 
 def _given_normals(normals, n, name):
@@ -258,10 +257,12 @@ def _source_rules(cls, idx, noise, opt):
     return rule, np.sqrt(np.maximum(var, MIN_SIGMA**2))
 
 
+@takes_match_options
 def match(
     source,
     target,
     *,
+    options: MatchOptions | None = None,
     target_normals=None,
     source_normals=None,
     max_distance=1.0,
@@ -285,49 +286,16 @@ def match(
     source, target : array_like (n, 3) or PointCloud
         Clouds in the same (e.g. UTM) frame; a PointCloud's ``classification``
         is used by ``classes`` and ``class_sigma``.
-    target_normals, source_normals : array_like (n, 3), optional
-        Given normals; otherwise PCA normals of k neighbours, computed only where needed.
-    max_distance : float or None
-        Gate on the nearest-neighbour distance in metres (eq. 5.1); None: no gate.
-    max_angle_deg : float or None
-        Gate on the angle between the normals (orientation-free); None: no gate.
-    classes : sequence of int, optional
-        Allowed ASPRS classes (e.g. (2, 6, 11)); others are rejected by rule 'class'.
-        Both clouds need a ``classification`` attribute (else :class:`LabkitError`).
-    class_sigma : dict int -> float, optional
-        A priori standard deviation per class in metres (roof precise, vegetation not);
-        classes not listed get ``default_sigma`` (default 0: only their local noise counts).
-    noise_weighting : bool
-        Add each point's local noise (std along its normal) to its variance.
-    max_noise : float, optional
-        Reject points whose local noise exceeds this (m), e.g. vegetation.
-    sample : None, 'auto', int or (method, value)
-        ``("random", n)``, ``("voxel", size_m)`` or ``("normal_space", n)``; an int means random.
-        ``'auto'``: the whole source up to :data:`AUTO_LIMIT` points, a larger one thinned to about
-        :data:`AUTO_PAIRS` points spread evenly in space and over the normal directions (one per
-        voxel of an edge chosen from the density, then normal-space balance; :func:`_auto_sample`).
-    unique : bool
-        At most one source point per target point (the closest; the others are
-        rejected as 'duplicate'), so that no target point's noise enters two
-        residuals and the residuals stay uncorrelated.
-    k : int
-        Neighbours for normals and local noise.
+    options : MatchOptions, optional
+        The matching options in one object (:class:`labkit.registration.MatchOptions`, which documents
+        each of them); a keyword below given as well overrides its field.
+    max_distance, max_angle_deg, classes, class_sigma, default_sigma, noise_weighting, max_noise, sample, unique, k,
+    target_normals, source_normals, surface
+        The matching options as keywords, see :class:`~labkit.registration.MatchOptions`. Without
+        ``options`` the defaults are those of MatchOptions except ``sample=None`` (every source point)
+        and ``surface='plane'`` (the PCA plane). Normals are computed only where needed.
     rng : int or Generator, optional
         For the sampling.
-    surface : {'plane', 'quadric', 'auto'}
-        Local surface model of both clouds from their k neighbours. 'plane' (default): the
-        PCA plane (notebook 04), right for dense data. 'quadric': a quadric
-        h = a u^2 + b uv + c v^2 + d u + e v + f fitted in the PCA frame at each target
-        point; for sparse curved ground (ALS at 0.5-1 pts/m^2 on hills) the plane's l3
-        holds the curvature, so its noise (and weight, and ``max_noise``) is wrong by
-        that much, and the point-to-plane residual carries the sagitta between p_i and
-        q_j. With 'quadric' the noise is the spread about the quadric (redundancy
-        k - 6), ``d`` runs from p_i to its foot point on the target's quadric, shifted to pass
-        through the measured q_j (its slopes and curvatures kept, so that q_j's noise enters one
-        residual only, as with the plane), and ``target_normal`` is the quadric's normal at
-        the foot point. Needs k >= 10. 'auto': the quadric where the target's k-neighbourhoods are wider
-        than 1 m (median radius; sparse ALS), else the plane; ``settings['surface']`` of the
-        result names the choice.
     tree : optional
         Kept for compatibility: labkit builds its own compiled kd-tree of the target
         (exact duplicates merged) once per call; a given tree is only checked for its size.
@@ -353,10 +321,4 @@ def match(
     >>> corr.n_accepted > 250, bool(np.allclose(np.median(corr.dz[corr.accepted]), -0.02, atol=0.005))
     (True, True)
     """
-    matcher = prepare(
-        source, target, target_normals=target_normals, source_normals=source_normals,
-        max_distance=max_distance, max_angle_deg=max_angle_deg, classes=classes,
-        class_sigma=class_sigma, default_sigma=default_sigma, noise_weighting=noise_weighting,
-        max_noise=max_noise, sample=sample, unique=unique, k=k, rng=rng, tree=tree, surface=surface,
-    )  # fmt: skip
-    return matcher()
+    return prepare(source, target, options=options, rng=rng, tree=tree)()

@@ -25,6 +25,7 @@ import numpy as np
 from .._checks import as_points, positive
 from .._kdtree import KDTree
 from ..errors import EmptyRegionError, LabkitError
+from .options import with_keywords
 
 #: A coarse level's voxel edge is this fraction of its matching distance.
 VOXEL_SHARE = 0.25
@@ -177,7 +178,8 @@ def pyramid_icp(source, target, *, icp_function, reach=None, **options):
         Largest expected shift (m); default the matching distance ``max_distance``. Larger values add
         coarse levels with wider gates (at most four, 16 times ``max_distance``).
     **options
-        The options of :func:`labkit.registration.icp`; the fine level uses all of them unchanged.
+        The options of :func:`labkit.registration.icp` (the matching options as keywords or as
+        ``options=MatchOptions(...)``); the fine level uses all of them unchanged.
 
     Returns
     -------
@@ -202,7 +204,8 @@ def pyramid_icp(source, target, *, icp_function, reach=None, **options):
     (True, True)
     """
     t0 = time.perf_counter()
-    max_distance = options.get("max_distance", 1.0)
+    match_options = with_keywords(options.pop("options", None), options)  # the matching options: one object
+    max_distance = match_options.max_distance
     if max_distance is None:
         raise LabkitError("coarse_to_fine=True needs a finite max_distance (the fine level's gate)")
     levels = coarse_to_fine_levels(max_distance, reach, point_spacing(target))
@@ -211,14 +214,14 @@ def pyramid_icp(source, target, *, icp_function, reach=None, **options):
     coarse = dict(options, consistency_alpha=None, covariance="formal", progress=False,
                   max_iterations=min(COARSE_ITERATIONS, int(options.get("max_iterations", 50))))  # fmt: skip
     for d, voxel in levels:
-        src, src_n, n_src = _thin(source, options.get("source_normals"), voxel)
-        tgt, tgt_n, n_tgt = _thin(target, options.get("target_normals"), voxel)
-        k = int(options.get("k", 20))
+        src, src_n, n_src = _thin(source, match_options.source_normals, voxel)
+        tgt, tgt_n, n_tgt = _thin(target, match_options.target_normals, voxel)
+        k = match_options.k
         if min(n_src, n_tgt) < max(k, 30):  # too coarse for neighbourhoods: skip to the next level
             notes.append(f"{d:g} m skipped ({min(n_src, n_tgt)} voxels)")
             continue
-        level = dict(coarse, max_distance=d, source_normals=src_n, target_normals=tgt_n,
-                     max_std=options.get("max_std"))  # fmt: skip
+        level = dict(coarse, max_std=options.get("max_std"),
+                     options=match_options.replace(max_distance=d, source_normals=src_n, target_normals=tgt_n))  # fmt: skip
         try:
             res = icp_function(src, tgt, initial=initial, coarse_to_fine=False, **level)
         except EmptyRegionError:  # too few pairs at this voxel size: the next level tries
@@ -227,7 +230,7 @@ def pyramid_icp(source, target, *, icp_function, reach=None, **options):
         initial = res.matrix
         history.extend(res.history)
         notes.append(f"{d:g} m / voxel {voxel:.2g} m: {res.iterations} it.")
-    final = icp_function(source, target, initial=initial, coarse_to_fine=False, **options)
+    final = icp_function(source, target, initial=initial, coarse_to_fine=False, options=match_options, **options)
     history.extend(final.history)
     history = tuple(replace(h, iteration=i + 1) for i, h in enumerate(history))
     text = "coarse-to-fine " + ("; ".join(notes) if notes else "(no coarse level needed)")
