@@ -56,8 +56,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from labkit.registration import consensus_cube, max_consensus
-from labkit.registration.consensus import _prepare
+from labkit.registration import consensus_cube, consensus_inputs, max_consensus
 from labkit.synthetic import als_epochs
 
 
@@ -128,7 +127,7 @@ def main(quick=False):
                          f"{bb.lower >= grid_best}"))
     # Brute force at sampled cells: identical counts, extrapolated time
     for crit, cube in cubes.items():
-        pb = _prepare(src, tgt, crit, cube.eps, cube.radius, None, None, None, 12)
+        pb = consensus_inputs(src, tgt, crit, cube.eps, radius=cube.radius)
         gen = np.random.default_rng(5)
         n_cells = 8 if quick else 20
         cells = [tuple(int(gen.integers(0, n)) for n in cube.counts.shape) for _ in range(n_cells)]

@@ -11,8 +11,7 @@ from scipy.spatial import cKDTree
 
 from labkit.errors import EmptyRegionError, LabkitError
 from labkit.registration import _consensus_kernels as K
-from labkit.registration import consensus_cube, max_consensus
-from labkit.registration._consensus_inputs import prepare_problem
+from labkit.registration import consensus_cube, consensus_inputs, max_consensus
 from labkit.synthetic import REGIONS, als_epochs
 
 STEP = 0.02
@@ -58,7 +57,7 @@ def test_counts_equal_brute_force(small_pair, criterion, max_angle, weighted):
     src, tgt = small_pair.source.xyz[::3], small_pair.target.xyz
     w = np.random.default_rng(0).uniform(0.2, 2.0, len(src)) if weighted else None
     cube = consensus_cube(src, tgt, extent=0.2, step=0.02, metric=criterion, max_angle_deg=max_angle, weights=w)
-    pb = prepare_problem(src, tgt, criterion, 0.05, None, max_angle, w, None, 12)
+    pb = consensus_inputs(src, tgt, criterion, 0.05, max_angle, w)  # the public route to the counted points
     rng = np.random.default_rng(1)
     cells = [tuple(int(rng.integers(0, n)) for n in cube.counts.shape) for _ in range(12)] + [cube.peak_index]
     expected = brute_force(cube, pb, cells)
@@ -155,7 +154,7 @@ def test_max_consensus_optimum_and_refinement():
     assert bb.lower >= cube.best_count  # continuous optimum at least the grid optimum
     assert bb.upper >= bb.lower and bb.gap == pytest.approx(bb.upper - bb.lower)
     # the branch-and-bound count is exact: recount by brute force at its translation
-    pb = prepare_problem(src, tgt, "point_to_plane", 0.05, None, None, None, None, 12)
+    pb = consensus_inputs(src, tgt, "point_to_plane", 0.05)
     shifted = consensus_cube(src, tgt, extent=0.001, step=0.001, center=bb.translation)
     assert shifted.counts[1, 1, 1] == bb.lower
     assert brute_force(shifted, pb, [(1, 1, 1)])[0] == bb.lower

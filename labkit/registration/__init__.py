@@ -24,6 +24,7 @@ _EXPORTS = {
     "icp": "labkit.registration.icp_loop",
     "IterationRecord": "labkit.registration.icp_loop",
     "consensus_cube": "labkit.registration.consensus",
+    "consensus_inputs": "labkit.registration.consensus",
     "max_consensus": "labkit.registration.consensus",
     "ConsensusCube": "labkit.registration.consensus_result",
     "PeakShape": "labkit.registration.consensus_result",

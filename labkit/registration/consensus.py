@@ -38,15 +38,48 @@ from ._consensus_inputs import candidate_pairs, even_subset, grid, prepare_probl
 from .bnb import branch_and_bound, refine
 from .consensus_result import AXES, ConsensusCube, PeakShape, peak_shape
 
-__all__ = ["consensus_cube", "max_consensus", "ConsensusCube", "PeakShape", "peak_shape", "even_subset", "AXES"]
-
-#: Former name of :func:`labkit.registration._consensus_inputs.prepare_problem` (notebook 06, benchmarks).
-_prepare = prepare_problem
+__all__ = ["consensus_cube", "consensus_inputs", "max_consensus", "ConsensusCube", "PeakShape", "peak_shape",
+           "even_subset", "AXES"]
 
 #: Old keyword names of the consensus functions (one release, with a DeprecationWarning): one name per
 #: concept with :func:`labkit.registration.icp` and :func:`labkit.registration.match`.
 _RENAMED = dict(criterion="metric", max_angle="max_angle_deg", normals=("source_normals", "target_normals"),
                 normal_k="k")
+
+
+def consensus_inputs(source, target, metric: str = "point_to_plane", eps: float | None = 0.05,
+                     max_angle_deg: float | None = None, weights=None, *, radius: float | None = None,
+                     source_normals=None, target_normals=None, k: int = 12):
+    """The points, normals and tolerances the consensus is counted on, as :func:`consensus_cube` prepares them.
+
+    For checking a count by hand (notebook 06, eq. 6.2-6.4: the consensus at one translation straight
+    from its definition) and for benchmarks against a brute-force count: the same reduced points,
+    the same target normals (the undeterminable ones dropped) and the same search radius.
+
+    Parameters
+    ----------
+    source, target, metric, eps, max_angle_deg, weights, radius, source_normals, target_normals, k
+        As in :func:`consensus_cube`.
+
+    Returns
+    -------
+    Problem
+        A record with ``src`` (n, 3) and ``tgt`` (m, 3) in the local frame (``origin`` added
+        back gives the input frame), ``w`` the source weights, ``tgt_normals`` (m, 3) or None,
+        ``eps`` and ``radius`` (m), ``noise`` the median local noise of the target.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.registration import consensus_inputs
+    >>> rng = np.random.default_rng(0)
+    >>> floor = np.column_stack([rng.uniform(0, 5, (400, 2)), rng.normal(0, 0.002, 400)])
+    >>> pb = consensus_inputs(floor[:200], floor[200:], eps=0.02)
+    >>> pb.src.shape, pb.tgt.shape, round(pb.eps, 3), bool(np.allclose(abs(pb.tgt_normals[:, 2]), 1, atol=0.01))
+    ((200, 3), (200, 3), 0.02, True)
+    """
+    return prepare_problem(source, target, metric, eps, radius, max_angle_deg, weights,
+                           (source_normals, target_normals), k)
 
 
 @renamed_keywords(**_RENAMED)
