@@ -46,6 +46,14 @@ def registration_variance(registration, points, normals, held_std=None) -> np.nd
         Variance of the registration displacement along the normal; inf where an
         undetermined parameter (infinite variance) has a non-zero weight; NaN for NaN normals.
 
+    References
+    ----------
+    .. [1] Notebook 10, eq. 5 and section 4 (the registration term); eq. 6 of the
+       :mod:`labkit.change` module notes (a rigid registration).
+    .. [2] D. Lague, N. Brodu, J. Leroux (2013): Accurate 3D comparison of complex topography with
+       terrestrial laser scanner: application to the Rangitikei canyon (N-Z). ISPRS Journal of
+       Photogrammetry and Remote Sensing 82, 10-26, doi:10.1016/j.isprsjprs.2013.04.009.
+
     Examples
     --------
     A 1 cm isotropic shift uncertainty seen along a vertical normal:

@@ -45,6 +45,12 @@ def precision_tolerance(tolerance: float):
     ``with precision_tolerance(0.5): icp(a32, b32)`` accepts float32 coordinates at
     UTM size (rounded to 0.25 m); ``precision_tolerance(np.inf)`` switches the guard off.
 
+    References
+    ----------
+    .. [1] Notebook 03, section 2 ('Why float64': the spacing of float32 coordinates at UTM size).
+    .. [2] D. Goldberg (1991): What every computer scientist should know about floating-point
+       arithmetic. ACM Computing Surveys 23(1), 5-48, doi:10.1145/103162.103163.
+
     Examples
     --------
     >>> import numpy as np

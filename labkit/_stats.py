@@ -68,7 +68,15 @@ class GlobalTest(ReportMixin):
 
 
 def global_test(omega: float, dof: int, sigma0_apriori: float, alpha: float) -> GlobalTest:
-    """Two-sided chi-square test of ``omega = v^T Sigma_ll^-1 v`` with ``dof`` degrees of freedom."""
+    """Two-sided chi-square test of ``omega = v^T Sigma_ll^-1 v`` with ``dof`` degrees of freedom.
+
+    References
+    ----------
+    .. [1] Notebook 01, section 9 (the global test of the sphere adjustment).
+    .. [2] W. Niemeier (2008): Ausgleichungsrechnung. 2nd edition, de Gruyter, Berlin.
+    .. [3] W. Baarda (1968): A testing procedure for use in geodetic networks. Netherlands Geodetic
+       Commission, Publications on Geodesy, New Series 2(5), Delft.
+    """
     alpha = probability(alpha, "alpha")
     if dof <= 0:
         return GlobalTest(np.nan, int(dof), np.nan, np.nan, alpha, None, np.nan)
@@ -89,7 +97,14 @@ def _norm_quantile(p: float) -> float:
 
 
 def w_critical(alpha_w: float) -> float:
-    """Two-sided critical value of Baarda's w-test (normal quantile), e.g. 3.29 for 0.001."""
+    """Two-sided critical value of Baarda's w-test (normal quantile), e.g. 3.29 for 0.001.
+
+    References
+    ----------
+    .. [1] Notebook 01, section 9 (the w-test).
+    .. [2] W. Baarda (1968): A testing procedure for use in geodetic networks. Netherlands Geodetic
+       Commission, Publications on Geodesy, New Series 2(5), Delft.
+    """
     return _norm_quantile(1 - probability(alpha_w, "alpha_w") / 2)
 
 
@@ -244,6 +259,15 @@ def adjusted_p_values(p, correction: str = "holm") -> np.ndarray:
     hypothesis is true, both keep the chance of any rejection at alpha.
     ``'none'`` returns the p-values unchanged. NaN entries are not tests: they
     stay NaN and do not count in m.
+
+    References
+    ----------
+    .. [1] Notebook 08, section 4.1, eq. 7.
+    .. [2] S. Holm (1979): A simple sequentially rejective multiple test procedure. Scandinavian
+       Journal of Statistics 6(2), 65-70.
+    .. [3] Y. Benjamini, Y. Hochberg (1995): Controlling the false discovery rate: a practical and
+       powerful approach to multiple testing. Journal of the Royal Statistical Society B 57(1),
+       289-300.
 
     Examples
     --------

@@ -110,6 +110,10 @@ def gauss_helmert_model(
        Netherlands Geodetic Commission, Publications on Geodesy 2(5) (w-test).
     .. [5] A. J. Pope (1976): The statistics of residuals and the detection of
        outliers. NOAA Technical Report NOS 65 NGS 1 (tau test without a priori sigma0).
+    .. [6] Notebook 01, sections 2-9 (the same equations worked through, and the tests).
+    .. [7] W. Niemeier (2008): Ausgleichungsrechnung. 2nd edition, de Gruyter, Berlin.
+    .. [8] E. M. Mikhail, F. Ackermann (1976): Observations and Least Squares. IEP-Dun-Donnelley,
+       New York.
 
     Examples
     --------

@@ -258,6 +258,17 @@ def m3c2(
     the spread uses ddof = 1, as py4dgeo, while PDAL divides by n. Cores with an
     undetermined normal (fewer than 3 reference points within the normal radius) get NaN.
 
+    References
+    ----------
+    .. [1] Notebook 10, sections 2-3, eqs. 1-7.
+    .. [2] D. Lague, N. Brodu, J. Leroux (2013): Accurate 3D comparison of complex topography with
+       terrestrial laser scanner: application to the Rangitikei canyon (N-Z). ISPRS Journal of
+       Photogrammetry and Remote Sensing 82, 10-26, doi:10.1016/j.isprsjprs.2013.04.009.
+    .. [3] B. L. Welch (1947): The generalization of 'Student's' problem when several different
+       population variances are involved. Biometrika 34(1-2), 28-35.
+    .. [4] H. Hoppe, T. DeRose, T. Duchamp, J. McDonald, W. Stuetzle (1992): Surface reconstruction
+       from unorganized points. Computer Graphics (Proc. SIGGRAPH '92) 26(2), 71-78.
+
     Examples
     --------
     A noisy plane and the same plane 10 cm higher: the distance is significant at 1 cm noise.

@@ -151,6 +151,15 @@ def neighbour_areas(pairs, t, C, determined, ok, *, alpha: float, extra_std: flo
     the areas then follow from the agreeing pairs, and while some tile of an
     area is rejected (its p-value adjusted in the same family) the area is
     grown again from its tiles (:func:`_regrow`).
+
+    References
+    ----------
+    .. [1] Notebook 08, sections 4.1-4.2, eqs. 2-7.
+    .. [2] S. Holm (1979): A simple sequentially rejective multiple test procedure. Scandinavian
+       Journal of Statistics 6(2), 65-70.
+    .. [3] Y. Benjamini, Y. Hochberg (1995): Controlling the false discovery rate: a practical and
+       powerful approach to multiple testing. Journal of the Royal Statistical Society B 57(1),
+       289-300.
     """
     n, k = len(t), len(pairs)
     Ce = C + extra_std**2 * np.eye(3)

@@ -249,6 +249,10 @@ def synthetic_cases(regions=None, cases=CASES, *, size=(60.0, 60.0), density=10.
     regions. ``regions`` restricts the regions (default: all of
     :data:`labkit.synthetic.REGIONS`).
 
+    References
+    ----------
+    .. [1] Seed 003, step 5 (ALS/ALS, ALS/ALS with change, ALS/DIM); notebook 07, section 1.
+
     Examples
     --------
     >>> from labkit.compare import synthetic_cases
@@ -418,6 +422,16 @@ def compare_methods(pairs, methods, *, references=None, alpha: float = 0.05) -> 
     ComparisonTable
         One row per method and pair. A method that raises a labkit error gets
         a row with NaN numbers and the error in ``message``.
+
+    References
+    ----------
+    .. [1] Notebook 07, section 4, eqs. 5-6; seed 003, step 5 (compare the transformations visually
+       and quantitatively).
+    .. [2] P. J. Besl, N. D. McKay (1992): A method for registration of 3-D shapes. IEEE
+       Transactions on Pattern Analysis and Machine Intelligence 14(2), 239-256,
+       doi:10.1109/34.121791.
+    .. [3] Y. Chen, G. Medioni (1992): Object modelling by registration of multiple range images.
+       Image and Vision Computing 10(3), 145-155.
 
     Examples
     --------

@@ -50,6 +50,16 @@ def check_overlap(source, target, *, name: str = "source and target") -> None:
 def cloud_to_cloud(source, target, transform=None) -> np.ndarray:
     """Distance from each source point (after ``transform``) to its nearest target point, shape (n,).
 
+    References
+    ----------
+    .. [1] Notebook 10, section 1 (why C2C is not a change measure).
+    .. [2] D. Girardeau-Montaut, M. Roux, R. Marc, G. Thibault (2005): Change detection on points
+       cloud data acquired with a ground laser scanner. International Archives of the
+       Photogrammetry, Remote Sensing and Spatial Information Sciences 36(3/W19), 30-35.
+    .. [3] J. H. Friedman, J. L. Bentley, R. A. Finkel (1977): An algorithm for finding best matches
+       in logarithmic expected time. ACM Transactions on Mathematical Software 3(3), 209-226,
+       doi:10.1145/355744.355745.
+
     Examples
     --------
     >>> import numpy as np
@@ -75,6 +85,14 @@ def point_to_plane_distance(source, target, target_normals=None, *, k: int = 10,
     unknown - NaN (a degenerate neighbourhood) or of zero length - d_i is NaN,
     never 0; ``np.isnan(d).sum()`` counts those points. If no target point has a
     usable normal, :class:`~labkit.errors.DegenerateGeometryError` is raised.
+
+    References
+    ----------
+    .. [1] Notebook 07, eq. 4; notebook 04, eqs. 1-4 (the PCA normals).
+    .. [2] Y. Chen, G. Medioni (1992): Object modelling by registration of multiple range images.
+       Image and Vision Computing 10(3), 145-155.
+    .. [3] H. Hoppe, T. DeRose, T. Duchamp, J. McDonald, W. Stuetzle (1992): Surface reconstruction
+       from unorganized points. Computer Graphics (Proc. SIGGRAPH '92) 26(2), 71-78.
 
     Examples
     --------
@@ -173,6 +191,12 @@ def distances_before_after(source, target, transform, *, kind: str = "point_to_p
     normals of :func:`labkit.features.normals`) are computed only at the target points that are
     somebody's nearest neighbour, not for the whole target. Same values as
     :func:`point_to_plane_distance` and :func:`cloud_to_cloud`.
+
+    References
+    ----------
+    .. [1] Notebook 07, section 3, eq. 4.
+    .. [2] Y. Chen, G. Medioni (1992): Object modelling by registration of multiple range images.
+       Image and Vision Computing 10(3), 145-155.
 
     Examples
     --------

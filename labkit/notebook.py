@@ -35,6 +35,10 @@ def setup_notebook(seed: int = 2026) -> "np.random.Generator":  # noqa: F821
     Headless rendering (see :func:`setup_headless`), numpy print options, and
     matplotlib figure defaults in one call.
 
+    References
+    ----------
+    .. [1] Notebooks 01-10, first code cell (the shared setup and the seeded generator).
+
     Examples
     --------
     >>> from labkit.notebook import setup_notebook

@@ -138,6 +138,10 @@ class Reference(ReportMixin):
 def truth_reference(T, *, region: str = "", case: str = "", note: str = "synthetic truth") -> Reference:
     """A reference from a known 4x4 transformation (zero covariance).
 
+    References
+    ----------
+    .. [1] Notebook 07, section 2 (the known shift of the synthetic cases).
+
     Examples
     --------
     >>> import numpy as np
@@ -154,6 +158,11 @@ def truth_reference(T, *, region: str = "", case: str = "", note: str = "synthet
 def manual_reference(translation, std=None, *, covariance=None, rotation=None, region: str = "",
                      case: str = "", note: str = "") -> Reference:
     """A reference entered by hand, with its uncertainty as ``std`` (scalar or (3,)) or ``covariance``.
+
+    References
+    ----------
+    .. [1] Seed 003, step 1.5 (a manual reference transformation per test region); notebook 07,
+       section 2.
 
     Examples
     --------
@@ -182,6 +191,12 @@ def average_references(references, *, note: str = "") -> Reference:
     than stated (eq. 2: the larger of internal and external accuracy). Without
     stated uncertainties the mean is plain and its covariance is the sample
     covariance over n. Rotations must agree (pure shifts are the usual case).
+
+    References
+    ----------
+    .. [1] Notebook 07, section 2, eqs. 1-3; seed 003, step 1.5 (manual references made several
+       times).
+    .. [2] W. Niemeier (2008): Ausgleichungsrechnung. 2nd edition, de Gruyter, Berlin.
 
     Examples
     --------
@@ -236,6 +251,13 @@ def reference_from_targets(centres_source, cov_source, centres_target, cov_targe
     cov_source, cov_target : array_like (m, 3, 3) or (3, 3)
         Their covariances, e.g. ``ransac_sphere(...).fit.Sigma_xx[:3, :3]``.
 
+    References
+    ----------
+    .. [1] Notebook 07, section 2, eqs. 1-3.
+    .. [2] W. Niemeier (2008): Ausgleichungsrechnung. 2nd edition, de Gruyter, Berlin.
+    .. [3] E. M. Mikhail, F. Ackermann (1976): Observations and Least Squares. IEP-Dun-Donnelley,
+       New York.
+
     Examples
     --------
     Two sphere centres (1 mm each) measured in both epochs, the second epoch shifted by 5 cm in Z:
@@ -266,6 +288,11 @@ def reference_from_pairs(source_points, target_points, std=0.01, *, region: str 
 
     ``std`` is a scalar, one value per pair, or (m, 3); both picks get it.
 
+    References
+    ----------
+    .. [1] Notebook 07, section 2, eqs. 1-3 (picked pairs as control points).
+    .. [2] W. Niemeier (2008): Ausgleichungsrechnung. 2nd edition, de Gruyter, Berlin.
+
     Examples
     --------
     >>> import numpy as np
@@ -286,6 +313,10 @@ def reference_from_pairs(source_points, target_points, std=0.01, *, region: str 
 
 def save_references(references, path) -> Path:
     """Write references (an iterable or a mapping of them) to a JSON file, atomically.
+
+    References
+    ----------
+    .. [1] Seed 003, step 1.5; notebook 07, section 2 (the reference file).
 
     Examples
     --------
@@ -312,6 +343,10 @@ def load_references(path) -> dict:
     translations, optional per-component ``std``), which are averaged with
     :func:`average_references`. Several entries with the same region and case
     are averaged too.
+
+    References
+    ----------
+    .. [1] Seed 003, step 1.5; notebook 07, section 2 (the reference file).
 
     Examples
     --------

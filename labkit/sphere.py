@@ -44,7 +44,9 @@ def algebraic_sphere(points) -> np.ndarray:
 
     References
     ----------
-    .. [1] I. Kasa (1976): A circle fitting procedure and its error analysis.
+    .. [1] Seed 000, section 1 (initial values x0, found heuristically); notebook 01, section 3;
+       notebook 02, section 2 (the fit on all points).
+    .. [2] I. Kasa (1976): A circle fitting procedure and its error analysis.
        IEEE Transactions on Instrumentation and Measurement 25(1), 8-14 (the
        same linear fit, here in three dimensions).
 

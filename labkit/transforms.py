@@ -16,6 +16,12 @@ from .errors import LabkitError
 def make_transform(rotation=None, translation=None) -> np.ndarray:
     """Build a 4x4 matrix from a 3x3 rotation (default identity) and a translation (3,).
 
+    References
+    ----------
+    .. [1] Notebook 05, section 3 (a 4x4 matrix from the adjusted shift); notebook 07, eq. 5.
+    .. [2] R. Hartley, A. Zisserman (2004): Multiple View Geometry in Computer Vision, 2nd edition,
+       Cambridge University Press (rigid motions as 4x4 matrices in homogeneous coordinates).
+
     Examples
     --------
     >>> import numpy as np
@@ -68,6 +74,12 @@ def check_transform(T) -> np.ndarray:
 def compose(*transforms) -> np.ndarray:
     """Compose transforms so that ``compose(A, B)`` applies ``B`` first, then ``A``.
 
+    References
+    ----------
+    .. [1] Notebook 07, section 1 (rigid transforms as 4x4 matrices mapping source onto target).
+    .. [2] R. Hartley, A. Zisserman (2004): Multiple View Geometry in Computer Vision, 2nd edition,
+       Cambridge University Press (rigid motions as 4x4 matrices in homogeneous coordinates).
+
     Examples
     --------
     >>> from labkit.transforms import compose, make_transform
@@ -83,6 +95,12 @@ def compose(*transforms) -> np.ndarray:
 
 def invert(T) -> np.ndarray:
     """Inverse of a rigid-body transform (uses R^T, no general inversion).
+
+    References
+    ----------
+    .. [1] Notebook 07, section 1 (rigid transforms as 4x4 matrices mapping source onto target).
+    .. [2] R. Hartley, A. Zisserman (2004): Multiple View Geometry in Computer Vision, 2nd edition,
+       Cambridge University Press (rigid motions as 4x4 matrices in homogeneous coordinates).
 
     Examples
     --------
@@ -103,6 +121,13 @@ def apply_transform(T, points, *, origin=None) -> np.ndarray:
     With ``origin`` given, ``T`` is understood in the frame reduced to that
     origin: ``p' = R (p - o) + t + o``. This keeps rotations about a local point
     numerically sound for UTM coordinates.
+
+    References
+    ----------
+    .. [1] Notebook 05, section 3 (the source moved by the adjusted shift); notebook 07, section 1
+       (the 4x4 truth of a case).
+    .. [2] R. Hartley, A. Zisserman (2004): Multiple View Geometry in Computer Vision, 2nd edition,
+       Cambridge University Press (rigid motions as 4x4 matrices in homogeneous coordinates).
 
     Examples
     --------

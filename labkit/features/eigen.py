@@ -81,8 +81,12 @@ def eigen_features(eigenvalues) -> EigenFeatures:
 
     References
     ----------
-    Weinmann, Jutzi, Hinz, Mallet (2015): Semantic point cloud interpretation based on
-    optimal neighborhoods, relevant features and efficient classifiers. ISPRS J. 105, 286-304.
+    .. [1] Notebook 04, section 7, eqs. 6-8.
+    .. [2] M. Weinmann, B. Jutzi, S. Hinz, C. Mallet (2015): Semantic point cloud interpretation
+       based on optimal neighborhoods, relevant features and efficient classifiers. ISPRS Journal of
+       Photogrammetry and Remote Sensing 105, 286-304.
+    .. [3] K. F. West, B. N. Webb, J. R. Lersch, S. Pothier, J. M. Triscari, A. E. Iverson (2004):
+       Context-driven automated target detection in 3D data. Proc. SPIE 5426, 133-143.
 
     Examples
     --------

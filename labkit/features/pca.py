@@ -169,6 +169,15 @@ def local_pca(
     LabkitError
         Bad points (NaN, wrong shape), k < 3 or k > n, radius <= 0, bad orientation.
 
+    References
+    ----------
+    .. [1] Notebook 04, section 2, eqs. 1-4; seed 003, step 4 (kd-tree, centred covariance, PCA).
+    .. [2] H. Hoppe, T. DeRose, T. Duchamp, J. McDonald, W. Stuetzle (1992): Surface reconstruction
+       from unorganized points. Computer Graphics (Proc. SIGGRAPH '92) 26(2), 71-78.
+    .. [3] J. H. Friedman, J. L. Bentley, R. A. Finkel (1977): An algorithm for finding best matches
+       in logarithmic expected time. ACM Transactions on Mathematical Software 3(3), 209-226,
+       doi:10.1145/355744.355745.
+
     Examples
     --------
     >>> import numpy as np
@@ -271,6 +280,16 @@ def normals(
     --------
     local_pca : eigenvalues, centroids and counts as well.
 
+    References
+    ----------
+    .. [1] Notebook 04, section 2, eqs. 1-4; seed 003, step 4 (normal = eigenvector of the smallest
+       eigenvalue).
+    .. [2] H. Hoppe, T. DeRose, T. Duchamp, J. McDonald, W. Stuetzle (1992): Surface reconstruction
+       from unorganized points. Computer Graphics (Proc. SIGGRAPH '92) 26(2), 71-78.
+    .. [3] J. H. Friedman, J. L. Bentley, R. A. Finkel (1977): An algorithm for finding best matches
+       in logarithmic expected time. ACM Transactions on Mathematical Software 3(3), 209-226,
+       doi:10.1145/355744.355745.
+
     Examples
     --------
     >>> import numpy as np
@@ -292,6 +311,12 @@ def local_noise(points, k: int = 20, radius: float | None = None, *, chunk_size:
     l3 is the mean squared orthogonal residual of the best-fitting plane through the
     m neighbours; a plane has u = 3 parameters (two angles, one distance), so the
     redundancy is m - 3. ``points`` may also be a :class:`LocalPCA` (no new search).
+
+    References
+    ----------
+    .. [1] Notebook 04, section 6, eq. 5; seed 003, step 4 ('lokales Rauschen' with PCA).
+    .. [2] H. Hoppe, T. DeRose, T. Duchamp, J. McDonald, W. Stuetzle (1992): Surface reconstruction
+       from unorganized points. Computer Graphics (Proc. SIGGRAPH '92) 26(2), 71-78.
 
     Examples
     --------
@@ -335,6 +360,12 @@ def pca_at(tree, at, k: int, *, chunk_size: int = CHUNK_SIZE, step=None):
         Unit normals with n_z >= 0; NaN where the neighbourhood is a point or a line.
     noise : ndarray (len(at),)
         sigma_n = sqrt(k l3 / (k - 3)) in the units of the cloud; NaN where the normal is, or for k = 3.
+
+    References
+    ----------
+    .. [1] Notebook 04, section 2, eqs. 1-4.
+    .. [2] H. Hoppe, T. DeRose, T. Duchamp, J. McDonald, W. Stuetzle (1992): Surface reconstruction
+       from unorganized points. Computer Graphics (Proc. SIGGRAPH '92) 26(2), 71-78.
 
     Examples
     --------

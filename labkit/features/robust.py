@@ -121,8 +121,13 @@ def robust_normals(
 
     References
     ----------
-    Fischler, Bolles (1981), Comm. ACM 24(6): 381-395. Rousseeuw, Leroy (1987):
-    Robust Regression and Outlier Detection, Wiley, p. 202 (LMedS scale).
+    .. [1] Notebook 04, section 10, eq. 9 and eqs. 1-4; seed 003, step 4 (normals robust by RANSAC,
+       tested with several radii).
+    .. [2] M. A. Fischler, R. C. Bolles (1981): Random sample consensus: a paradigm for model fitting
+       with applications to image analysis and automated cartography. Communications of the ACM
+       24(6), 381-395, doi:10.1145/358669.358692.
+    .. [3] P. J. Rousseeuw, A. M. Leroy (1987): Robust Regression and Outlier Detection. Wiley, New
+       York, p. 202 (LMedS scale).
 
     Examples
     --------

@@ -78,6 +78,13 @@ def read_cloud(
     UnitsError
         ``units="m"`` and the file is in degrees (or in a unit with no metre factor).
 
+    References
+    ----------
+    .. [1] Notebook 03, section 2, eqs. 1-3 (LAS scaled integer coordinates); seed 003, step 1
+       (laspy to NumPy).
+    .. [2] ASPRS (2019): LAS Specification 1.4 - R15. American Society for Photogrammetry and Remote
+       Sensing.
+
     Examples
     --------
     >>> import tempfile

@@ -69,6 +69,13 @@ def write_cloud(cloud: PointCloud, path, *, scale=DEFAULT_SCALE, point_format: i
     Integer attributes must fit their LAS field (e.g. intensity 0..65535,
     classification 0..31 in formats 0-5): values outside raise, they never wrap.
 
+    References
+    ----------
+    .. [1] Notebook 03, section 8 (CSV export, the seed's step) and eqs. 1-3 (the LAS scale and
+       offset); seed 003, step 1.
+    .. [2] ASPRS (2019): LAS Specification 1.4 - R15. American Society for Photogrammetry and Remote
+       Sensing.
+
     Examples
     --------
     >>> import tempfile

@@ -68,6 +68,12 @@ def consensus_inputs(source, target, metric: str = "point_to_plane", eps: float 
         back gives the input frame), ``w`` the source weights, ``tgt_normals`` (m, 3) or None,
         ``eps`` and ``radius`` (m), ``noise`` the median local noise of the target.
 
+    References
+    ----------
+    .. [1] Notebook 06, section 1, eqs. 6.3-6.4a, and section 5, eq. 6.11.
+    .. [2] H. Hoppe, T. DeRose, T. Duchamp, J. McDonald, W. Stuetzle (1992): Surface reconstruction
+       from unorganized points. Computer Graphics (Proc. SIGGRAPH '92) 26(2), 71-78.
+
     Examples
     --------
     >>> import numpy as np
@@ -148,6 +154,13 @@ def consensus_cube(
     ------
     LabkitError
         Grid too large, eps <= 0, bad weights or normals; EmptyRegionError if the clouds do not overlap.
+
+    References
+    ----------
+    .. [1] Notebook 06, sections 1-2, eqs. 6.1-6.6; seed 003, step 3 (shifts in cm steps up to 1 m
+       each way, the consensus cube).
+    .. [2] T.-J. Chin, D. Suter (2017): The Maximum Consensus Problem: Recent Algorithmic Advances.
+       Synthesis Lectures on Computer Vision, Morgan & Claypool.
 
     Examples
     --------
@@ -331,6 +344,14 @@ def max_consensus(
         gap_tol < 0; reject_sigma <= 0; max_points < 3), bad weights or normals;
         DegenerateGeometryError when no target normal is determined; EmptyRegionError
         when the clouds do not overlap within the box.
+
+    References
+    ----------
+    .. [1] Notebook 06, section 5, eqs. 6.7-6.14; seed 003, step 3.
+    .. [2] T.-J. Chin, D. Suter (2017): The Maximum Consensus Problem: Recent Algorithmic Advances.
+       Synthesis Lectures on Computer Vision, Morgan & Claypool.
+    .. [3] B. Efron (1982): The Jackknife, the Bootstrap and Other Resampling Plans. CBMS-NSF
+       Regional Conference Series in Applied Mathematics 38, SIAM, Philadelphia.
 
     Examples
     --------

@@ -152,7 +152,8 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
 
     References
     ----------
-    .. [1] W. G. Cochran (1954): The combination of estimates from different
+    .. [1] Notebook 05, section 6, eqs. 5.16-5.17.
+    .. [2] W. G. Cochran (1954): The combination of estimates from different
        experiments. Biometrics 10(1), 101-129 (the Q statistic that eq. 5.16
        generalizes to vector estimates in the directions each group determines).
 

@@ -150,6 +150,12 @@ def degeneracy_report(
         its eigenvalue relative to the largest (on sloped terrain X and Y are often 5-50 times
         weaker than Z and still determined to centimetres). ``rel_threshold`` is then not used.
 
+    References
+    ----------
+    .. [1] Notebook 05, section 6, eqs. 5.12a-5.12b.
+    .. [2] J. Zhang, M. Kaess, S. Singh (2016): On degeneracy of optimization-based state estimation
+       problems. IEEE International Conference on Robotics and Automation (ICRA).
+
     Examples
     --------
     >>> import numpy as np

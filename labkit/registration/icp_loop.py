@@ -245,20 +245,6 @@ def icp(
     EmptyRegionError
         Too few correspondences survive the rejection rules (e.g. no overlap).
 
-    Examples
-    --------
-    >>> import numpy as np
-    >>> rng = np.random.default_rng(1)
-    >>> def wavy(n):  # a surface with slopes in X and Y, measured with 2 mm noise
-    ...     xy = rng.uniform(0, 6, (n, 2))
-    ...     z = 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])
-    ...     return np.column_stack([xy, z]) + rng.normal(0, 0.002, (n, 3))
-    >>> target = wavy(1500)
-    >>> source = wavy(300) - [0.05, 0.02, 0.03]  # another sampling, moved
-    >>> res = icp(source, target)
-    >>> res.converged, bool(np.allclose(res.translation, [0.05, 0.02, 0.03], atol=0.005))
-    (True, True)
-
     Notes
     -----
     Sampling (``sample='auto'``) keeps the covariance honest: the block covariance (eq. 5.13) takes its
@@ -305,6 +291,41 @@ def icp(
     1.11, 1.15, 0.97 on the test scene, 1.16, 1.13, 0.98 and 1.06, 1.18, 1.09 on two sets of
     village pairs, 1.12, 1.14, 1.0 with Tukey weights. The remaining 10-15 % in X and Y is not
     visible in the residuals of one registration (about 6 % on the village is the re-selection).
+
+    References
+    ----------
+    .. [1] Notebook 05, eqs. 5.1-5.18; seed 003, step 2 (ICP with kd-tree matching, own adjustment)
+       and step 4 (PCA normals, local noise as weights).
+    .. [2] P. J. Besl, N. D. McKay (1992): A method for registration of 3-D shapes. IEEE
+       Transactions on Pattern Analysis and Machine Intelligence 14(2), 239-256,
+       doi:10.1109/34.121791.
+    .. [3] Y. Chen, G. Medioni (1992): Object modelling by registration of multiple range images.
+       Image and Vision Computing 10(3), 145-155.
+    .. [4] S. Rusinkiewicz, M. Levoy (2001): Efficient variants of the ICP algorithm. Proc. Third
+       International Conference on 3-D Digital Imaging and Modeling (3DIM), 145-152.
+    .. [5] P. J. Huber (1981): Robust Statistics. Wiley, New York.
+    .. [6] A. E. Beaton, J. W. Tukey (1974): The fitting of power series, meaning polynomials,
+       illustrated on band-spectroscopic data. Technometrics 16(2), 147-185.
+    .. [7] H. White (1980): A heteroskedasticity-consistent covariance matrix estimator and a direct
+       test for heteroskedasticity. Econometrica 48(4), 817-838.
+    .. [8] K.-Y. Liang, S. L. Zeger (1986): Longitudinal data analysis using generalized linear
+       models. Biometrika 73(1), 13-22 (the cluster-robust sandwich).
+    .. [9] B. Efron (1982): The Jackknife, the Bootstrap and Other Resampling Plans. CBMS-NSF
+       Regional Conference Series in Applied Mathematics 38, SIAM, Philadelphia.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(1)
+    >>> def wavy(n):  # a surface with slopes in X and Y, measured with 2 mm noise
+    ...     xy = rng.uniform(0, 6, (n, 2))
+    ...     z = 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])
+    ...     return np.column_stack([xy, z]) + rng.normal(0, 0.002, (n, 3))
+    >>> target = wavy(1500)
+    >>> source = wavy(300) - [0.05, 0.02, 0.03]  # another sampling, moved
+    >>> res = icp(source, target)
+    >>> res.converged, bool(np.allclose(res.translation, [0.05, 0.02, 0.03], atol=0.005))
+    (True, True)
     """
     # the matching keywords arrive checked in `options` (takes_match_options); the body reads only that
     reach = None if reach is None else positive(reach, "reach")

@@ -311,6 +311,19 @@ def match(
     Weights follow eq. (5.6), p_i = 1 / (sigma_s,i^2 + sigma_t,j^2): the variance of
     a point-to-plane residual between two independently measured points. Without
     ``class_sigma`` and ``noise_weighting`` all weights are 1.
+
+    References
+    ----------
+    .. [1] Notebook 05, section 2, eqs. 5.1-5.2 and 5.5-5.6; seed 003, step 2 (kd-tree matching)
+       and step 4 (normal angles, local noise).
+    .. [2] J. H. Friedman, J. L. Bentley, R. A. Finkel (1977): An algorithm for finding best matches
+       in logarithmic expected time. ACM Transactions on Mathematical Software 3(3), 209-226,
+       doi:10.1145/355744.355745.
+    .. [3] S. Rusinkiewicz, M. Levoy (2001): Efficient variants of the ICP algorithm. Proc. Third
+       International Conference on 3-D Digital Imaging and Modeling (3DIM), 145-152.
+    .. [4] H. Hoppe, T. DeRose, T. Duchamp, J. McDonald, W. Stuetzle (1992): Surface reconstruction
+       from unorganized points. Computer Graphics (Proc. SIGGRAPH '92) 26(2), 71-78.
+
     Examples
     --------
     >>> import numpy as np

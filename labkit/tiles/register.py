@@ -23,6 +23,15 @@ __all__ = ["register_tile", "register_tiles"]
 def register_tile(tile: Tile, source, target, method, min_points: int = 200) -> TileShift:
     """Load (if needed) and register one tile; never raises for a labkit error, reports it instead.
 
+    References
+    ----------
+    .. [1] Notebook 08, section 3, eq. 1.
+    .. [2] P. J. Besl, N. D. McKay (1992): A method for registration of 3-D shapes. IEEE
+       Transactions on Pattern Analysis and Machine Intelligence 14(2), 239-256,
+       doi:10.1109/34.121791.
+    .. [3] Y. Chen, G. Medioni (1992): Object modelling by registration of multiple range images.
+       Image and Vision Computing 10(3), 145-155.
+
     Examples
     --------
     >>> import numpy as np
@@ -107,6 +116,15 @@ def register_tiles(source, target, method=None, *, size: float = 100.0, buffer: 
     -------
     ShiftField
         ``n_reused`` counts the tiles read back from ``results``.
+
+    References
+    ----------
+    .. [1] Notebook 08, section 3, eq. 1 (shift field s = R c + t - c and its covariance).
+    .. [2] P. J. Besl, N. D. McKay (1992): A method for registration of 3-D shapes. IEEE
+       Transactions on Pattern Analysis and Machine Intelligence 14(2), 239-256,
+       doi:10.1109/34.121791.
+    .. [3] Y. Chen, G. Medioni (1992): Object modelling by registration of multiple range images.
+       Image and Vision Computing 10(3), 145-155.
 
     Examples
     --------
