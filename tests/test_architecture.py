@@ -1,6 +1,7 @@
 """The import graph of labkit: layered, without cycles, light to import."""
 
 import ast
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -176,6 +177,67 @@ def test_every_public_function_and_class_has_a_runnable_example():
     without = sorted({f"{where}.{name}" for where, name, obj in objects
                       if not ("Examples\n--------" in (inspect.getdoc(obj) or "") and ">>>" in inspect.getdoc(obj))})
     assert without == []
+
+
+# --------------------------------------------------------------------------- references (issue 13)
+_SECTION = re.compile(r"^(\w[\w ]*)\n-+$", re.MULTILINE)
+
+
+def _sections(doc):
+    """Numpydoc section titles of ``doc`` in order, and the body of each."""
+    heads = list(_SECTION.finditer(doc))
+    return [(m.group(1), doc[m.end():heads[i + 1].start() if i + 1 < len(heads) else len(doc)])
+            for i, m in enumerate(heads)]
+
+
+def _first_reference(doc):
+    """Text of the ``.. [1]`` entry of the References section, or None."""
+    body = dict(_sections(doc)).get("References")
+    if body is None:
+        return None
+    m = re.match(r"\s*\.\. \[1\] (.*?)(?=\n\.\. \[2\]|\Z)", body, re.DOTALL)
+    return " ".join(m.group(1).split()) if m else None
+
+
+def test_first_reference_parser_rejects_what_it_should():
+    assert _first_reference("Summary.\n\nExamples\n--------\n>>> 1\n1") is None
+    assert _first_reference("S.\n\nReferences\n----------\nSomebody (2000).\n") is None  # not numbered
+    doc = "S.\n\nReferences\n----------\n.. [1] Notebook 04,\n   eq. 5.\n.. [2] X (1999): Y.\n\nExamples\n--------\n"
+    assert _first_reference(doc) == "Notebook 04, eq. 5."
+
+
+def test_every_public_function_cites_its_equations_or_literature():
+    """Every function in ``labkit.__all__`` names what it follows: a notebook or seed equation or a publication.
+
+    The References section sits after Notes and before Examples, and a notebook it cites exists.
+    """
+    import inspect
+    import warnings
+
+    notebooks = {p.name[:2] for p in (PACKAGE.parent / "notebooks").glob("[0-9][0-9]-*.ipynb")}
+    assert len(notebooks) >= 10
+    bad = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        functions = {n: getattr(labkit, n) for n in labkit.__all__ if inspect.isfunction(getattr(labkit, n))}
+    assert len(functions) > 25  # the walk found the top-level functions (icp, m3c2, read_cloud, ...)
+    for name, func in functions.items():
+        doc = inspect.getdoc(func) or ""
+        first = _first_reference(doc)
+        titles = [t for t, _ in _sections(doc)]
+        if first is None:
+            bad[name] = "no numbered References section"
+        elif not re.search(r"\b(notebooks?|seed) \d\d|\(\d{4}\)", first, re.IGNORECASE):
+            bad[name] = f"first reference cites neither a notebook, a seed nor a publication: {first!r}"
+        elif "Notes" in titles[titles.index("References"):] or "Examples" in titles[:titles.index("References")]:
+            bad[name] = f"References out of place in {titles}"
+        else:
+            cited = set(re.findall(r"notebooks? (\d\d)", first, re.IGNORECASE))
+            for a, b in re.findall(r"notebooks (\d\d)-(\d\d)", first, re.IGNORECASE):
+                cited |= {f"{i:02d}" for i in range(int(a), int(b) + 1)}
+            if cited - notebooks:
+                bad[name] = f"cites notebooks that do not exist: {sorted(cited - notebooks)}"
+    assert bad == {}
 
 
 # --------------------------------------------------------------------------- imports inside functions
