@@ -4,6 +4,7 @@
 - ``room_scene``: a small sphere in a scanned room (walls, floor, furniture).
 - ``multibeam_room``: a sphere in a room scanned by a 16-beam lidar (rings, occlusion).
 - ``als_epochs``: two airborne laser scanning epochs of a named test region.
+- ``wavy_surface``: a smooth surface sloping in X and Y (the registration examples' test object).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ _EXPORTS = {
     "EpochPair": "labkit.synthetic.als",
     "REGIONS": "labkit.synthetic.als",
     "SPARSE_REGIONS": "labkit.synthetic.als",
+    "wavy_surface": "labkit.synthetic.wavy",
 }
 
 __all__ = sorted(_EXPORTS)
