@@ -130,8 +130,7 @@ def prepare(
     --------
     >>> import numpy as np
     >>> from labkit.synthetic import wavy_surface
-    >>> rng = np.random.default_rng(1)
-    >>> target = wavy_surface(1500, rng, noise=0.0)  # slopes in X and Y, no noise
+    >>> target = wavy_surface(1500, 1, noise=0.0)  # slopes in X and Y, no noise
     >>> matcher = prepare(target[::5] + [0.0, 0.0, 0.02], target)
     >>> corr = matcher(np.eye(3), np.array([0.0, 0.0, -0.02]))  # pairs after moving the source back
     >>> len(corr), bool(np.abs(corr.dz[corr.accepted]).max() < 0.01)
@@ -315,8 +314,7 @@ def match(
     --------
     >>> import numpy as np
     >>> from labkit.synthetic import wavy_surface
-    >>> rng = np.random.default_rng(1)
-    >>> target = wavy_surface(1500, rng, noise=0.0)  # slopes in X and Y, no noise
+    >>> target = wavy_surface(1500, 1, noise=0.0)  # slopes in X and Y, no noise
     >>> corr = match(target[::5] + [0.0, 0.0, 0.02], target, max_distance=0.5)
     >>> corr.n_accepted > 250, bool(np.allclose(np.median(corr.dz[corr.accepted]), -0.02, atol=0.005))
     (True, True)
