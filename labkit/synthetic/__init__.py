@@ -9,7 +9,7 @@
 
 from __future__ import annotations
 
-import importlib
+from .._lazy import lazy_attribute
 
 _EXPORTS = {
     "sphere_on_tripod": "labkit.synthetic.tripod",
@@ -29,9 +29,4 @@ __all__ = sorted(_EXPORTS)
 
 
 def __getattr__(name: str):
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'labkit.synthetic' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
+    return lazy_attribute(__name__, _EXPORTS, globals(), name)
