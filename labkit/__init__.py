@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import importlib
 
+from ._lazy import lazy_attribute
+
 __version__ = "0.1.0"
 
 # public name -> module that defines it
@@ -86,12 +88,7 @@ def __getattr__(name: str):
         return value
     if name == "ConvergenceError":  # deprecated: warns on every access, so it is not cached
         return importlib.import_module("labkit.errors")._deprecated_convergence_error()
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'labkit' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
+    return lazy_attribute(__name__, _EXPORTS, globals(), name)
 
 
 def __dir__():

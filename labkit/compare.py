@@ -38,6 +38,7 @@ from .references import (  # noqa: F401  (re-exported)
     Reference, average_references, load_references, manual_reference, reference_from_pairs,
     reference_from_targets, save_references, truth_reference,
 )
+from .references import _json_entries
 
 AXES = ("X", "Y", "Z")
 
@@ -372,16 +373,8 @@ def load_pairs(path) -> dict:
     >>> list(pairs), len(pair.source), len(pair.target)
     ([('tile', 'epochs')], 50, 50)
     """
-    import json
-
     path = Path(path)
-    if not path.is_file():
-        raise LabkitError(f"pair file not found: {path}")
-    try:
-        entries = json.loads(path.read_text(encoding="utf-8"))
-        entries = entries["pairs"] if isinstance(entries, dict) else entries
-    except (json.JSONDecodeError, KeyError, UnicodeDecodeError) as exc:
-        raise LabkitError(f"{path} is not a list of epoch pairs: {exc}") from None
+    entries = _json_entries(path, "pairs", "pair file", "a list of epoch pairs")
     out = {}
     for i, e in enumerate(entries):
         if not isinstance(e, dict) or not {"region", "source", "target"} <= set(e):

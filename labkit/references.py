@@ -335,6 +335,21 @@ def save_references(references, path) -> Path:
     return atomic_write_text(path, f'{head}, "references": [\n{entries}\n]}}\n')
 
 
+def _json_entries(path: Path, key: str, label: str, what: str) -> list:
+    """The entries of a JSON file: the document itself, or its ``key`` when it is an object.
+
+    ``label`` names the file in the not-found error (``"reference file"``), ``what`` says what it should
+    be in the parse error (``"a labkit reference file"``).
+    """
+    if not path.is_file():
+        raise LabkitError(f"{label} not found: {path}")
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        return doc[key] if isinstance(doc, dict) else doc
+    except (json.JSONDecodeError, KeyError, UnicodeDecodeError) as exc:
+        raise LabkitError(f"{path} is not {what}: {exc}") from None
+
+
 def load_references(path) -> dict:
     """Read a reference file; returns ``{(region, case): Reference}``.
 
@@ -364,13 +379,7 @@ def load_references(path) -> dict:
     ('mean of manual', 2, [0.11, 0.0, 0.0])
     """
     path = Path(path)
-    if not path.is_file():
-        raise LabkitError(f"reference file not found: {path}")
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-        entries = doc["references"] if isinstance(doc, dict) else doc
-    except (json.JSONDecodeError, KeyError, UnicodeDecodeError) as exc:
-        raise LabkitError(f"{path} is not a labkit reference file: {exc}") from None
+    entries = _json_entries(path, "references", "reference file", "a labkit reference file")
     grouped: dict = {}
     for i, entry in enumerate(entries):
         try:

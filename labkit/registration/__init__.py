@@ -11,8 +11,7 @@ covariance and stopping rules in the ``_icp_*`` modules next to it; the matching
 
 from __future__ import annotations
 
-import importlib
-
+from .._lazy import lazy_attribute
 from .consistency import Consistency, group_consistency
 from .degeneracy import Degeneracy, degeneracy_report
 from .result import RegistrationResult
@@ -35,9 +34,4 @@ __all__ = ["Consistency", "Degeneracy", "RegistrationResult", "degeneracy_report
 
 
 def __getattr__(name: str):
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'labkit.registration' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
+    return lazy_attribute(__name__, _EXPORTS, globals(), name)

@@ -56,10 +56,8 @@ class Correspondences(ReportMixin):
     --------
     >>> import numpy as np
     >>> from labkit.registration import icp
-    >>> rng = np.random.default_rng(1)
-    >>> xy = rng.uniform(0, 6, (1500, 2))
-    >>> target = np.column_stack([xy, 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])])
-    >>> target += rng.normal(0, 0.001, target.shape)  # 1 mm noise
+    >>> from labkit.synthetic import wavy_surface
+    >>> target = wavy_surface(1500, 1, noise=0.001)  # slopes in X and Y, 1 mm noise
     >>> res = icp(target[::5] + [0.02, -0.01, 0.03], target, dof="translation")
     >>> corr = res.correspondences  # the pairs of the final adjustment (or: labkit.registration.match)
     >>> len(corr) == 300, corr.n_accepted == res.n_used, bool(np.abs(corr.plane_distance[corr.accepted]).max() < 0.01)

@@ -103,13 +103,10 @@ def branch_and_bound(ptr, src_of, D, nrm, pb, center, ext, tol, max_boxes, init_
     The steps of :func:`labkit.registration.max_consensus`, one by one:
 
     >>> import numpy as np
+    >>> from labkit.synthetic import wavy_surface  # slopes in X and Y; 2 mm noise unless told
     >>> rng = np.random.default_rng(1)
-    >>> def wavy(n):  # a surface with slopes in X and Y, measured with 2 mm noise
-    ...     xy = rng.uniform(0, 6, (n, 2))
-    ...     z = 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])
-    ...     return np.column_stack([xy, z]) + rng.normal(0, 0.002, (n, 3))
-    >>> target = wavy(1500)
-    >>> source = wavy(300) - [0.05, 0.02, 0.03]  # another sampling, moved
+    >>> target = wavy_surface(1500, rng)
+    >>> source = wavy_surface(300, rng) - [0.05, 0.02, 0.03]  # another sampling, moved
     >>> from labkit.registration._consensus_inputs import candidate_pairs, prepare_problem
     >>> pb = prepare_problem(source, target, "point_to_plane", 0.01, None, None, None, None, 12, max_points=100)
     >>> center, ext = np.zeros(3), np.full(3, 0.08)
@@ -388,13 +385,10 @@ def refine(bb, src_of, D, nrm, pb, reject_sigma, ext, runtime_bb, t0, max_outer:
     After the branch and bound (see :func:`branch_and_bound`), the adjustment of its consensus set:
 
     >>> import numpy as np
+    >>> from labkit.synthetic import wavy_surface  # slopes in X and Y; 2 mm noise unless told
     >>> rng = np.random.default_rng(1)
-    >>> def wavy(n):  # a surface with slopes in X and Y, measured with 2 mm noise
-    ...     xy = rng.uniform(0, 6, (n, 2))
-    ...     z = 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])
-    ...     return np.column_stack([xy, z]) + rng.normal(0, 0.002, (n, 3))
-    >>> target = wavy(1500)
-    >>> source = wavy(300) - [0.05, 0.02, 0.03]  # another sampling, moved
+    >>> target = wavy_surface(1500, rng)
+    >>> source = wavy_surface(300, rng) - [0.05, 0.02, 0.03]  # another sampling, moved
     >>> from labkit.registration._consensus_inputs import candidate_pairs, prepare_problem
     >>> pb = prepare_problem(source, target, "point_to_plane", 0.01, None, None, None, None, 12, max_points=100)
     >>> center, ext = np.zeros(3), np.full(3, 0.08)

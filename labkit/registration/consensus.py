@@ -165,13 +165,10 @@ def consensus_cube(
     Examples
     --------
     >>> import numpy as np
+    >>> from labkit.synthetic import wavy_surface  # slopes in X and Y; 2 mm noise unless told
     >>> rng = np.random.default_rng(1)
-    >>> def wavy(n):  # a surface with slopes in X and Y, measured with 2 mm noise
-    ...     xy = rng.uniform(0, 6, (n, 2))
-    ...     z = 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])
-    ...     return np.column_stack([xy, z]) + rng.normal(0, 0.002, (n, 3))
-    >>> target = wavy(1500)
-    >>> source = wavy(300) - [0.05, 0.02, 0.03]  # another sampling, moved
+    >>> target = wavy_surface(1500, rng)
+    >>> source = wavy_surface(300, rng) - [0.05, 0.02, 0.03]  # another sampling, moved
     >>> cube = consensus_cube(source[::2], target, extent=0.06, step=0.02, eps=0.01, center=[0.04, 0.02, 0.04],
     ...                       use_numba=False)
     >>> cube.counts.shape, cube.peak.kind
@@ -356,13 +353,10 @@ def max_consensus(
     Examples
     --------
     >>> import numpy as np
+    >>> from labkit.synthetic import wavy_surface  # slopes in X and Y; 2 mm noise unless told
     >>> rng = np.random.default_rng(1)
-    >>> def wavy(n):  # a surface with slopes in X and Y, measured with 2 mm noise
-    ...     xy = rng.uniform(0, 6, (n, 2))
-    ...     z = 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])
-    ...     return np.column_stack([xy, z]) + rng.normal(0, 0.002, (n, 3))
-    >>> target = wavy(1500)
-    >>> source = wavy(300) - [0.05, 0.02, 0.03]  # another sampling, moved
+    >>> target = wavy_surface(1500, rng)
+    >>> source = wavy_surface(300, rng) - [0.05, 0.02, 0.03]  # another sampling, moved
     >>> res = max_consensus(source, target, extent=0.08, eps=0.01, tol=0.02, max_points=100, use_numba=False)
     >>> bool(np.allclose(res.translation, [0.05, 0.02, 0.03], atol=0.01))
     True

@@ -53,14 +53,12 @@ class PeakShape(ReportMixin):
     --------
     >>> import numpy as np
     >>> from labkit.registration import consensus_cube
+    >>> from labkit.synthetic import wavy_surface  # slopes in X and Y; 2 mm noise unless told
     >>> rng = np.random.default_rng(1)
-    >>> def wavy(n):  # a surface with slopes in X and Y, measured with 2 mm noise
-    ...     xy = rng.uniform(0, 6, (n, 2))
-    ...     z = 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])
-    ...     return np.column_stack([xy, z]) + rng.normal(0, 0.002, (n, 3))
-    >>> target = wavy(1500)
-    >>> cube = consensus_cube(wavy(150) - [0.05, 0.02, 0.03], target, extent=0.06, step=0.02, eps=0.01,
-    ...                       center=[0.04, 0.02, 0.04], use_numba=False)
+    >>> target = wavy_surface(1500, rng)
+    >>> source = wavy_surface(150, rng) - [0.05, 0.02, 0.03]  # another sampling, moved
+    >>> cube = consensus_cube(source, target, extent=0.06, step=0.02, eps=0.01, center=[0.04, 0.02, 0.04],
+    ...                       use_numba=False)
     >>> peak = cube.peak  # slopes in X and Y: every direction is determined
     >>> peak.kind, peak.free.tolist(), peak.axis_constrained.tolist()
     ('point', [False, False, False], [True, True, True])
@@ -172,14 +170,12 @@ class ConsensusCube(ReportMixin):
     --------
     >>> import numpy as np
     >>> from labkit.registration import consensus_cube
+    >>> from labkit.synthetic import wavy_surface  # slopes in X and Y; 2 mm noise unless told
     >>> rng = np.random.default_rng(1)
-    >>> def wavy(n):  # a surface with slopes in X and Y, measured with 2 mm noise
-    ...     xy = rng.uniform(0, 6, (n, 2))
-    ...     z = 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])
-    ...     return np.column_stack([xy, z]) + rng.normal(0, 0.002, (n, 3))
-    >>> target = wavy(1500)
-    >>> cube = consensus_cube(wavy(150) - [0.05, 0.02, 0.03], target, extent=0.06, step=0.02, eps=0.01,
-    ...                       center=[0.04, 0.02, 0.04], use_numba=False)
+    >>> target = wavy_surface(1500, rng)
+    >>> source = wavy_surface(150, rng) - [0.05, 0.02, 0.03]  # another sampling, moved
+    >>> cube = consensus_cube(source, target, extent=0.06, step=0.02, eps=0.01, center=[0.04, 0.02, 0.04],
+    ...                       use_numba=False)
     >>> cube.counts.shape, [len(a) for a in cube.axes], cube.n_source
     ((7, 7, 7), [7, 7, 7], 150)
     >>> bool(cube.best_count == cube.counts.max()), bool(np.allclose(cube.best_translation, [0.05, 0.02, 0.03], atol=0.02))
@@ -220,11 +216,9 @@ class ConsensusCube(ReportMixin):
 
         Examples
         --------
-        >>> import numpy as np
         >>> from labkit.registration import consensus_cube
-        >>> rng = np.random.default_rng(1)
-        >>> xy = rng.uniform(0, 6, (1500, 2))
-        >>> target = np.column_stack([xy, 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])])
+        >>> from labkit.synthetic import wavy_surface
+        >>> target = wavy_surface(1500, 1, noise=0.0)  # slopes in X and Y, no noise
         >>> source = target[::10] - [0.0, 0.0, 0.02]
         >>> cube = consensus_cube(source, target, extent=0.04, step=0.02, eps=0.005, use_numba=False)
         >>> cube.count_at([0.0, 0.0, 0.02]) == cube.best_count == len(source)

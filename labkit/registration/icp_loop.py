@@ -68,10 +68,8 @@ class IterationRecord(ReportMixin):
     --------
     >>> import numpy as np
     >>> from labkit.registration import icp
-    >>> rng = np.random.default_rng(1)
-    >>> xy = rng.uniform(0, 6, (1500, 2))
-    >>> target = np.column_stack([xy, 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])])
-    >>> target += rng.normal(0, 0.001, target.shape)  # 1 mm noise
+    >>> from labkit.synthetic import wavy_surface
+    >>> target = wavy_surface(1500, 1, noise=0.001)  # slopes in X and Y, 1 mm noise
     >>> res = icp(target[::5] + [0.02, -0.01, 0.03], target, dof="translation")
     >>> last = res.history[-1]  # one IterationRecord per iteration
     >>> last.iteration == res.iterations, np.round(last.translation, 3)
@@ -316,13 +314,10 @@ def icp(
     Examples
     --------
     >>> import numpy as np
+    >>> from labkit.synthetic import wavy_surface  # slopes in X and Y; 2 mm noise unless told
     >>> rng = np.random.default_rng(1)
-    >>> def wavy(n):  # a surface with slopes in X and Y, measured with 2 mm noise
-    ...     xy = rng.uniform(0, 6, (n, 2))
-    ...     z = 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])
-    ...     return np.column_stack([xy, z]) + rng.normal(0, 0.002, (n, 3))
-    >>> target = wavy(1500)
-    >>> source = wavy(300) - [0.05, 0.02, 0.03]  # another sampling, moved
+    >>> target = wavy_surface(1500, rng)
+    >>> source = wavy_surface(300, rng) - [0.05, 0.02, 0.03]  # another sampling, moved
     >>> res = icp(source, target)
     >>> res.converged, bool(np.allclose(res.translation, [0.05, 0.02, 0.03], atol=0.005))
     (True, True)

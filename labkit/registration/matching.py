@@ -129,9 +129,8 @@ def prepare(
     Examples
     --------
     >>> import numpy as np
-    >>> rng = np.random.default_rng(1)
-    >>> xy = rng.uniform(0, 6, (1500, 2))
-    >>> target = np.column_stack([xy, 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])])
+    >>> from labkit.synthetic import wavy_surface
+    >>> target = wavy_surface(1500, 1, noise=0.0)  # slopes in X and Y, no noise
     >>> matcher = prepare(target[::5] + [0.0, 0.0, 0.02], target)
     >>> corr = matcher(np.eye(3), np.array([0.0, 0.0, -0.02]))  # pairs after moving the source back
     >>> len(corr), bool(np.abs(corr.dz[corr.accepted]).max() < 0.01)
@@ -327,9 +326,8 @@ def match(
     Examples
     --------
     >>> import numpy as np
-    >>> rng = np.random.default_rng(1)
-    >>> xy = rng.uniform(0, 6, (1500, 2))
-    >>> target = np.column_stack([xy, 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])])
+    >>> from labkit.synthetic import wavy_surface
+    >>> target = wavy_surface(1500, 1, noise=0.0)  # slopes in X and Y, no noise
     >>> corr = match(target[::5] + [0.0, 0.0, 0.02], target, max_distance=0.5)
     >>> corr.n_accepted > 250, bool(np.allclose(np.median(corr.dz[corr.accepted]), -0.02, atol=0.005))
     (True, True)

@@ -90,9 +90,8 @@ class MatchOptions:
     --------
     >>> import numpy as np
     >>> from labkit.registration import MatchOptions, icp
-    >>> rng = np.random.default_rng(1)
-    >>> xy = rng.uniform(0, 6, (1500, 2))
-    >>> target = np.column_stack([xy, 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])])
+    >>> from labkit.synthetic import wavy_surface
+    >>> target = wavy_surface(1500, 1, noise=0.0)  # slopes in X and Y, no noise
     >>> opts = MatchOptions(max_distance=0.5, max_angle_deg=20.0)
     >>> res = icp(target[::5] + [0.02, -0.01, 0.03], target, options=opts)
     >>> bool(np.allclose(res.translation, [-0.02, 0.01, -0.03], atol=0.002))

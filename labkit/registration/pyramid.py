@@ -129,11 +129,9 @@ def retry_with_pyramid(result, max_distance):
     --------
     A result with every axis determined is never retried:
 
-    >>> import numpy as np
     >>> from labkit.registration import icp
-    >>> rng = np.random.default_rng(1)
-    >>> xy = rng.uniform(0, 6, (1500, 2))
-    >>> target = np.column_stack([xy, 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])])
+    >>> from labkit.synthetic import wavy_surface
+    >>> target = wavy_surface(1500, 1, noise=0.0)  # slopes in X and Y, no noise
     >>> res = icp(target[::5] + [0.02, 0.0, 0.0], target, coarse_to_fine=False)
     >>> retry_with_pyramid(res, max_distance=1.0)
     False
@@ -191,13 +189,10 @@ def pyramid_icp(source, target, *, icp_function, reach=None, **options):
     Examples
     --------
     >>> import numpy as np
+    >>> from labkit.synthetic import wavy_surface  # slopes in X and Y; 2 mm noise unless told
     >>> rng = np.random.default_rng(1)
-    >>> def wavy(n):  # a surface with slopes in X and Y, measured with 2 mm noise
-    ...     xy = rng.uniform(0, 6, (n, 2))
-    ...     z = 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])
-    ...     return np.column_stack([xy, z]) + rng.normal(0, 0.002, (n, 3))
-    >>> target = wavy(1500)
-    >>> source = wavy(600) - [0.6, -0.4, 0.05]  # moved beyond the gate
+    >>> target = wavy_surface(1500, rng)
+    >>> source = wavy_surface(600, rng) - [0.6, -0.4, 0.05]  # moved beyond the gate
     >>> from labkit.registration import icp
     >>> res = pyramid_icp(source, target, icp_function=icp, reach=1.0, max_distance=0.25)
     >>> "coarse_to_fine" in res.method, bool(np.allclose(res.translation, [0.6, -0.4, 0.05], atol=0.01))

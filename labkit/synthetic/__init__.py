@@ -4,11 +4,12 @@
 - ``room_scene``: a small sphere in a scanned room (walls, floor, furniture).
 - ``multibeam_room``: a sphere in a room scanned by a 16-beam lidar (rings, occlusion).
 - ``als_epochs``: two airborne laser scanning epochs of a named test region.
+- ``wavy_surface``: a smooth surface sloping in X and Y (the registration examples' test object).
 """
 
 from __future__ import annotations
 
-import importlib
+from .._lazy import lazy_attribute
 
 _EXPORTS = {
     "sphere_on_tripod": "labkit.synthetic.tripod",
@@ -21,15 +22,11 @@ _EXPORTS = {
     "EpochPair": "labkit.synthetic.als",
     "REGIONS": "labkit.synthetic.als",
     "SPARSE_REGIONS": "labkit.synthetic.als",
+    "wavy_surface": "labkit.synthetic.wavy",
 }
 
 __all__ = sorted(_EXPORTS)
 
 
 def __getattr__(name: str):
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'labkit.synthetic' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
+    return lazy_attribute(__name__, _EXPORTS, globals(), name)
