@@ -160,6 +160,10 @@ class PointCloud:
         Units of the coordinates and of the file (set by :func:`labkit.io.read_cloud`).
         By default they are derived from ``crs`` with the coordinates taken in
         the CRS's own units; without a CRS they are unknown (taken as metres).
+    layout : labkit.io.las_layout.LasLayout, optional
+        The LAS file layout the cloud was read from (version, point format,
+        scales, offsets, extra-bytes types, VLRs). :func:`labkit.io.write_cloud`
+        writes the cloud back in it, so that only the coordinates change.
 
     Examples
     --------
@@ -178,6 +182,7 @@ class PointCloud:
     crs: str | None = None
     name: str = ""
     units: Units | None = None
+    layout: object = field(default=None, repr=False)
 
     def __post_init__(self):
         xyz = np.array(as_points(self.xyz, min_points=0, name="xyz"), dtype=np.float64, copy=True)
@@ -267,16 +272,18 @@ class PointCloud:
         """A new cloud with the selected points (boolean mask or integer index)."""
         sel = np.asarray(mask_or_index)
         attrs = {k: v[sel] for k, v in self.attributes.items()}
-        return PointCloud(self.xyz[sel], attrs, crs=self.crs, name=self.name, units=self.units)
+        return PointCloud(self.xyz[sel], attrs, crs=self.crs, name=self.name, units=self.units,
+                          layout=self.layout)
 
     def with_xyz(self, xyz) -> "PointCloud":
         """A new cloud with other coordinates and the same attributes (e.g. after a transform)."""
-        return PointCloud(xyz, self.attributes, crs=self.crs, name=self.name, units=self.units)
+        return PointCloud(xyz, self.attributes, crs=self.crs, name=self.name, units=self.units,
+                          layout=self.layout)
 
     def with_attributes(self, **attributes) -> "PointCloud":
         """A new cloud with attributes added or replaced."""
         return PointCloud(self.xyz, {**self.attributes, **attributes}, crs=self.crs, name=self.name,
-                          units=self.units)
+                          units=self.units, layout=self.layout)
 
     def require_metric(self, what: str = "this step") -> None:
         """Raise :class:`UnitsError` when the coordinates are known not to be metres (degrees, feet)."""

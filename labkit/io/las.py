@@ -16,6 +16,7 @@ from ..progress import progress_steps
 from .chunks import ChunkCollector
 from .common import LAS_SUFFIXES, existing_file, require_classification
 from .filter import ReadFilter
+from .las_layout import LasLayout
 
 
 def _check_las_header(path: Path) -> None:
@@ -83,7 +84,7 @@ def read_las(path: Path, flt: ReadFilter, keep, chunk_size: int, progress, units
         if seen != total:
             raise CloudFileError(f"{path} is truncated: the header announces {total} points, the file holds {seen}")
         xyz, attrs = gather.result()
-        return xyz, attrs, crs, found
+        return xyz, attrs, crs, found, LasLayout.of(header, crs)
 
 
 def laz_backend(parallel: bool = True):

@@ -10,7 +10,7 @@ import numpy as np
 from ..cloud import Units
 from ..errors import LabkitError
 from ..progress import progress_steps
-from .common import INT32_MAX
+from .common import INT32_MAX, STANDARD_DTYPES
 from .las import laz_backend
 
 
@@ -42,22 +42,34 @@ def write_las(cloud, tmp: Path, compress: bool, scales, point_format, chunk_size
                parallel: bool = True, label: str = "") -> None:
     import laspy
 
-    attrs = _las_attributes(cloud.attributes, point_format)
-    fmt_id = _auto_format(attrs) if point_format is None else int(point_format)
-    if fmt_id not in range(11):
-        raise LabkitError(f"point_format must be 0..10, got {point_format!r}")
-    version = "1.2" if fmt_id <= 3 else "1.3" if fmt_id <= 5 else "1.4"
-    header = laspy.LasHeader(version=version, point_format=fmt_id)
-    header.scales, header.offsets = scales, _las_offsets(cloud.xyz, scales)
-    header.generating_software = "labkit"
-    standard = set(header.point_format.dimension_names)
-    _check_extra_names([n for n in attrs if n not in standard])
+    layout = cloud.layout
+    keep_layout = layout is not None and (point_format is None or int(point_format) == layout.point_format)
+    attrs = _las_attributes(cloud.attributes, layout.point_format if keep_layout else point_format)
+    if keep_layout and layout.fits(attrs, STANDARD_DTYPES):  # the file it came from: only coordinates change
+        header = layout.header_for(attrs, cloud.crs, scales)
+        fmt_id = layout.point_format
+        offsets = layout.offsets_for(cloud.xyz, scales)
+        header.offsets = _las_offsets(cloud.xyz, scales) if offsets is None else offsets
+        if cloud.crs != layout.crs:
+            _add_crs(header, cloud.crs, cloud.units)
+    else:
+        fmt_id = _auto_format(attrs) if point_format is None else int(point_format)
+        if fmt_id not in range(11):
+            raise LabkitError(f"point_format must be 0..10, got {point_format!r}")
+        version = "1.2" if fmt_id <= 3 else "1.3" if fmt_id <= 5 else "1.4"
+        header = laspy.LasHeader(version=version, point_format=fmt_id)
+        header.scales, header.offsets = scales, _las_offsets(cloud.xyz, scales)
+        header.generating_software = "labkit"
+        _add_crs(header, cloud.crs, cloud.units)
+    standard = set(header.point_format.standard_dimension_names)
+    have = set(header.point_format.dimension_names)
+    _check_extra_names([n for n in attrs if n not in have])
     for name, values in attrs.items():
         if name in standard:
             _check_fits(name, values, header.point_format.dimension_by_name(name), fmt_id)
-        else:
+        elif name not in have:
             header.add_extra_dim(laspy.ExtraBytesParams(name=name[:32], type=_extra_dtype(name, values)))
-    _add_crs(header, cloud.crs, cloud.units)
+    standard = have | {n[:32] for n in attrs}
     _check_int32_range(cloud.xyz, header.offsets, header.scales)
     backend = laz_backend(parallel) if compress else None
     with laspy.open(str(tmp), mode="w", header=header, do_compress=compress, laz_backend=backend) as writer, \

@@ -105,9 +105,10 @@ def read_cloud(
     choice(units, UNIT_CHOICES, "units")
     keep = attribute_names(attributes)
     suffix = path.suffix.lower()
+    layout = None
     try:
         if suffix in LAS_SUFFIXES:
-            xyz, attrs, crs, found = read_las(path, flt, keep, chunk_size, progress, units, parallel)
+            xyz, attrs, crs, found, layout = read_las(path, flt, keep, chunk_size, progress, units, parallel)
         elif suffix in ASCII_SUFFIXES:
             xyz, attrs, crs = read_ascii(path, flt, keep, chunk_size, progress)
             found = Units()
@@ -134,4 +135,4 @@ def read_cloud(
         missing = set()  # a text scan-angle column, read under the name its values need
     if missing:
         raise LabkitError(f"{path} has no attribute {', '.join(sorted(missing))}")
-    return PointCloud._adopt(xyz, attrs, crs=crs, name=path.stem, units=found)  # no copy of the fresh arrays
+    return PointCloud._adopt(xyz, attrs, crs=crs, name=path.stem, units=found, layout=layout)  # no copy of the fresh arrays

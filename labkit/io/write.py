@@ -35,13 +35,16 @@ def write_cloud(cloud: PointCloud, path, *, scale=DEFAULT_SCALE, point_format: i
     scale : float, sequence of 3 floats or None
         Coordinate resolution in the file's units (metres, or the CRS's feet
         for a cloud converted from feet): LAS scale factors, decimals in text.
-        Default 0.001 (rounding error at most 0.5 mm); for a cloud in degrees
-        the default is 1e-7 degrees for x, y (about 1 cm). ``None`` picks, per
+        Default: the scale of the LAS file the cloud was read from (so nothing is
+        rounded away), else 0.001 (rounding error at most 0.5 mm); for a cloud in
+        degrees 1e-7 degrees for x, y (about 1 cm). ``None`` picks, per
         axis, the coarsest decimal grid the coordinates already lie on (so a
         cloud read from a LAS file is written back without rounding), and 0.0001 m
         when they lie on none.
     point_format : int, optional
-        LAS point format. By default the smallest of 0-3 (LAS 1.2) that holds
+        LAS point format. A cloud read from LAS/LAZ is written by default in its
+        file's layout: LAS version, point format, extra-bytes types, VLRs (CRS),
+        offsets where the coordinates still fit them. Otherwise the smallest of 0-3 (LAS 1.2) that holds
         the attributes, or 6-8 (LAS 1.4) when values need it (classes > 31,
         more than 7 returns, nir, scan_angle, overlap, scanner_channel).
     chunk_size : int
@@ -104,7 +107,11 @@ def write_cloud(cloud: PointCloud, path, *, scale=DEFAULT_SCALE, point_format: i
         raise CloudFileError(f"cannot write {path}: folder {path.parent} does not exist")
     if suffix in LAS_SUFFIXES + (".npz",):
         cloud = _in_file_units(cloud)
-    if scale is DEFAULT_SCALE and cloud.units.angular:  # 0.001 degrees would be about 100 m
+    if scale is DEFAULT_SCALE and cloud.layout is not None:  # the scale of the file it was read from
+        scale = cloud.layout.scales
+        if suffix not in LAS_SUFFIXES + (".npz",) and cloud.units.converted and cloud.units.factors is not None:
+            scale = scale * cloud.units.factors  # text holds metres: the file's resolution in metres
+    elif scale is DEFAULT_SCALE and cloud.units.angular:  # 0.001 degrees would be about 100 m
         scale = (ANGULAR_SCALE, ANGULAR_SCALE, DEFAULT_SCALE)
     scales = _choose_scale(cloud.xyz, scale)
     with _atomic(path) as tmp:
@@ -123,7 +130,7 @@ def _in_file_units(cloud: PointCloud) -> PointCloud:
     if not (u.converted and cloud.crs and u.factors is not None):
         return cloud
     return PointCloud(cloud.xyz / u.factors, cloud.attributes, crs=cloud.crs, name=cloud.name,
-                      units=replace(u, converted=False))
+                      units=replace(u, converted=False), layout=cloud.layout)
 
 
 @contextlib.contextmanager
