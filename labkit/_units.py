@@ -1,27 +1,26 @@
-"""Coordinate units from a CRS description: WKT (OGC/ESRI WKT1, WKT2) and GeoTIFF keys.
+"""Coordinate units from a CRS description: WKT (OGC/ESRI WKT1, WKT2), EPSG codes and GeoTIFF keys.
 
-No pyproj: a small bracket parser finds the unit nodes that belong to the
-horizontal and the vertical coordinate system, and a table of EPSG unit codes
-reads the GeoTIFF keys of a LAS file.
+pyproj reads the CRS (the well-kept library for it): the units of the
+horizontal and the vertical coordinate system come from its axes, EPSG codes
+(``EPSG:2277``, a ProjectedCSType GeoKey) are looked up in its database. A
+small bracket parser remains for WKT that PROJ refuses (abridged WKT1 without
+a datum, as some LAS writers store): it finds the unit nodes that belong to the
+horizontal and the vertical coordinate system.
 
 Rules (documented in :func:`labkit.io.read_cloud`)
 -------------------------------------------------
-- WKT1 ``PROJCS``/``GEOCCS``/``VERT_CS``/``LOCAL_CS``: the ``UNIT`` that is a
-  direct child of that node (the one inside ``GEOGCS`` is the base CRS's angle).
-  ``GEOGCS`` -> its angular unit.
-- WKT2 ``PROJCRS``/``VERTCRS``/``ENGCRS``/``GEODCRS``: a ``LENGTHUNIT``/``ANGLEUNIT``/
-  ``UNIT`` child of the CRS node or of its ``AXIS`` nodes; ``CONVERSION`` and
-  ``BASEGEOGCRS`` are skipped (their units are those of parameters).
-- Compound CRS (``COMPD_CS``/``COMPOUNDCRS``): horizontal from the first
-  component, vertical from the vertical one. ``BOUNDCRS``: its source CRS.
+- Projected, engineering and geocentric CRS: the unit of their axes; geographic
+  CRS: the angle unit (degrees); a 3D geographic CRS also gives the height unit.
+- Compound CRS: horizontal from the first component, vertical from the vertical
+  one. A bound CRS (a CRS with its datum transformation): its source CRS.
 - A vertical unit that is not stated is taken equal to the horizontal linear
   unit (a note says so); for geographic CRS it stays unknown.
 - GeoTIFF keys: ProjLinearUnitsGeoKey 3076 (or ProjLinearUnitSizeGeoKey 3077
   for a user-defined unit), GeogAngularUnitsGeoKey 2054, VerticalUnitsGeoKey
-  4099, with EPSG unit codes 9001 m, 9002 ft, 9003 ftUS, ... A projected CRS
-  code from a family known to be in metres (UTM, NAD83 state plane in m, ...)
-  implies metres when 3076 is absent; when 3076 says otherwise the keys
-  contradict themselves and the conflict is recorded.
+  4099, with EPSG unit codes 9001 m, 9002 ft, 9003 ftUS, ... Without a unit key
+  the unit of the ProjectedCSType / VerticalCSType code (from the EPSG
+  database) is used; when 3076 says otherwise the keys contradict themselves
+  and the conflict is recorded.
 - Both WKT and GeoKeys present: the LAS 1.4 global-encoding WKT bit decides,
   as the LAS specification says (bit set: WKT; not set: GeoTIFF keys); a LAS
   1.0-1.3 file uses its GeoKeys. A source that names no unit leaves the
@@ -30,6 +29,7 @@ Rules (documented in :func:`labkit.io.read_cloud`)
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 
@@ -51,16 +51,6 @@ EPSG_UNITS = {
     9105: ("grad", math.pi / 200.0, "angle"),
     9122: ("degree", DEGREE, "angle"),
 }
-
-# EPSG projected CRS codes known to be in metres (used when no unit key says so)
-_METRE_CRS_RANGES = (
-    (32601, 32660), (32701, 32760),  # WGS 84 / UTM
-    (26901, 26923), (26929, 26998), (32100, 32161),  # NAD83 / UTM, NAD83 / state plane (m)
-    (25828, 25838), (3040, 3051),  # ETRS89 / UTM
-    (28348, 28358), (7846, 7859),  # GDA94 / GDA2020 MGA
-    (31466, 31469), (2154, 2154), (27700, 27700), (2180, 2180), (2056, 2056), (3857, 3857),
-    (3006, 3006), (2193, 2193), (3035, 3035), (3034, 3034), (21781, 21781),
-)
 
 _ALIASES = {"meter": "metre", "metre": "metre", "m": "metre", "degree": "degree", "radian": "radian"}
 
@@ -188,7 +178,13 @@ def _crs_units(node: _Node):
 
 
 def units_from_wkt(text: str):
-    """(horizontal, vertical) as (name, factor, kind) or None each; None when the text is no CRS."""
+    """(horizontal, vertical) as (name, factor, kind) or None each; None when the text is no CRS.
+
+    pyproj reads the WKT; the bracket parser only takes WKT that PROJ refuses.
+    """
+    crs = pyproj_crs(text) if text and text.lstrip()[:1].isalpha() and "[" in text else None
+    if crs is not None:
+        return units_of_crs(crs)
     root = parse_wkt(text)
     if root is not None and root.key == "BOUNDCRS":  # a CRS with its datum transformation: the source CRS
         source = root.first("SOURCECRS")
@@ -198,11 +194,64 @@ def units_from_wkt(text: str):
     return _crs_units(root)
 
 
+# ============================================================================ pyproj
+_CANONICAL = {"metre": 1.0, "US survey foot": US_FOOT, "foot": FOOT, "kilometre": 1000.0,
+              "degree": DEGREE, "radian": 1.0, "grad": math.pi / 200.0}
+
+
+def _unit(factor: float, kind: str, label: str = ""):
+    """(name, factor, kind) with the defining factor for the units labkit knows by name."""
+    name = unit_name(factor, kind, label)
+    return name, _CANONICAL.get(name, factor), kind
+
+
+@functools.lru_cache(maxsize=256)
+def pyproj_crs(text: str):
+    """The pyproj CRS of a WKT text or ``EPSG:code`` (``EPSG:h+v`` for a compound), or None."""
+    import pyproj
+
+    text = (text or "").strip().rstrip("\x00").strip()
+    if not text:
+        return None
+    try:
+        if re.fullmatch(r"EPSG:\d+(\+\d+)?", text, flags=re.IGNORECASE):
+            return pyproj.CRS.from_user_input(text.upper())
+        return pyproj.CRS.from_wkt(text)
+    except (pyproj.exceptions.CRSError, ValueError, TypeError):
+        return None
+
+
+def units_of_crs(crs):
+    """(horizontal, vertical) as (name, factor, kind) or None each, from a pyproj CRS's axes."""
+    if crs.is_bound:
+        crs = crs.source_crs
+    if crs.is_compound:
+        horizontal, vertical = None, None
+        for part in crs.sub_crs_list:
+            h, v = units_of_crs(part)
+            horizontal, vertical = horizontal or h, vertical or v
+        return horizontal, vertical
+    axes = [a for a in crs.axis_info if a.unit_conversion_factor and a.unit_conversion_factor > 0]
+    if not axes:
+        return None, None
+    if crs.is_vertical:
+        return None, _unit(axes[0].unit_conversion_factor, "length", axes[0].unit_name)
+    kind = "angle" if crs.is_geographic else "length"
+    horizontal = _unit(axes[0].unit_conversion_factor, kind, axes[0].unit_name)
+    vertical = None
+    if len(axes) >= 3:  # a 3D geographic CRS (ellipsoidal height) or a geocentric one
+        vertical = _unit(axes[2].unit_conversion_factor, "length", axes[2].unit_name)
+    return horizontal, vertical
+
+
+@functools.lru_cache(maxsize=256)
+def _epsg_units(code: int):
+    """(horizontal, vertical) units of an EPSG CRS code from pyproj's database; (None, None) when unknown."""
+    crs = pyproj_crs(f"EPSG:{code}")
+    return (None, None) if crs is None else units_of_crs(crs)
+
+
 # ============================================================================ GeoTIFF keys
-def _metre_crs(code) -> bool:
-    return code is not None and any(lo <= code <= hi for lo, hi in _METRE_CRS_RANGES)
-
-
 def units_from_geokeys(keys: dict, doubles=()):
     """(horizontal, vertical, notes) from GeoKey id -> (location, count, value).
 
@@ -237,12 +286,13 @@ def units_from_geokeys(keys: dict, doubles=()):
     if model == 1:
         horizontal = code_unit(3076, "length")
         pcs = value(3072) if 3072 in keys else None
-        if horizontal is None and _metre_crs(pcs):
-            horizontal = ("metre", 1.0, "length")
-            notes.append(f"metre implied by the projected CRS EPSG:{pcs} (no ProjLinearUnitsGeoKey)")
-        elif horizontal is not None and _metre_crs(pcs) and horizontal[0] != "metre":
+        implied = _epsg_units(pcs)[0] if pcs is not None and 1024 <= pcs <= 32766 else None
+        if horizontal is None and implied is not None:
+            horizontal = implied
+            notes.append(f"{implied[0]} implied by the projected CRS EPSG:{pcs} (no ProjLinearUnitsGeoKey)")
+        elif horizontal is not None and implied is not None and horizontal[0] != implied[0]:
             notes.append(
-                f"GeoKeys contradict themselves: ProjectedCSType EPSG:{pcs} is a metre CRS but "
+                f"GeoKeys contradict themselves: ProjectedCSType EPSG:{pcs} is a {implied[0]} CRS but "
                 f"ProjLinearUnitsGeoKey says {horizontal[0]}"
             )
     elif model == 2:
@@ -250,6 +300,9 @@ def units_from_geokeys(keys: dict, doubles=()):
     elif model == 3:
         horizontal = code_unit(3076, "length") or ("metre", 1.0, "length")
     vertical = code_unit(4099, "length")
+    vcs = value(4096) if 4096 in keys else None
+    if vertical is None and vcs is not None and 1024 <= vcs <= 32766:
+        vertical = _epsg_units(vcs)[1]
     return horizontal, vertical, notes
 
 
@@ -308,9 +361,12 @@ def units_from_crs_text(crs: str | None) -> Units:
     m = re.fullmatch(r"\s*EPSG:(\d+)(?:\+(\d+))?\s*", crs, flags=re.IGNORECASE)
     if m is not None:
         code = int(m.group(1))
-        if 4000 <= code < 5000:
+        crs_obj = pyproj_crs(f"EPSG:{code}")
+        if crs_obj is not None and crs_obj.is_geographic:
             keys = {1024: (0, 1, 2), 2048: (0, 1, code)}
         else:
             keys = {1024: (0, 1, 1), 3072: (0, 1, code)}
+        if m.group(2):
+            keys[4096] = (0, 1, int(m.group(2)))
         return decide_units(None, keys)
     return decide_units(crs, None)

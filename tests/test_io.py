@@ -610,7 +610,9 @@ def test_wkt_parser_reads_nested_strings_and_numbers():
 def test_point_cloud_units_from_its_crs_text():
     assert PointCloud(np.zeros((2, 3)), crs="EPSG:4326").units.angular
     assert PointCloud(np.zeros((2, 3)), crs="EPSG:32632").units.is_metric
-    assert not PointCloud(np.zeros((2, 3)), crs="EPSG:2903").units.known  # not in the small table: unknown
+    feet = PointCloud(np.zeros((2, 3)), crs="EPSG:2903").units  # NAD83(HARN) / New Mexico Central (ftUS)
+    assert (feet.horizontal, feet.vertical) == ("US survey foot", "US survey foot")
+    assert feet.horizontal_to_metre == US_FT
     assert not PointCloud(np.zeros((2, 3))).units.known
     with pytest.raises(LabkitError, match="Units"):
         PointCloud(np.zeros((2, 3)), units="m")

@@ -7,7 +7,7 @@ Formats
   (classification, intensity, return_number, number_of_returns, gps_time,
   point_source_id, colours, flags, extra bytes, ...) becomes an attribute under
   laspy's name. The CRS is kept as text: the WKT of the WKT VLR, or
-  ``"EPSG:code"`` from the GeoTIFF keys (no pyproj needed).
+  ``"EPSG:code"`` from the GeoTIFF keys (read with pyproj).
 - ASCII ``.xyz .txt .csv .asc``: comma, semicolon or whitespace separated, with
   or without a header line. With a header, x/y/z are found by name and other
   columns become attributes (common spellings such as ``Classification``,
