@@ -59,6 +59,7 @@ from . import _change_search as search
 from ._change_registration import (RegistrationCovariance, load_registration, registration_variance,
                                    save_registration)
 from ._checks import as_points, choice, positive, probability
+from ._crs import check_same_crs
 from ._frame import local_origin, reduce
 from ._report import ReportMixin, fmt
 from .cloud import PointCloud
@@ -284,6 +285,7 @@ def m3c2(
     (0.1, True, True)
     """
     # Check the arguments; reduce everything to one local origin
+    check_same_crs(reference, compared, "m3c2", ("reference", "compared"))
     ref = as_points(reference, min_points=1, name="reference")
     cmp_ = as_points(compared, min_points=1, name="compared")
     radii = _check_radii(normal_radius) if normals is None else None

@@ -24,6 +24,7 @@ import numpy as np
 
 from . import __version__, compare
 from ._checks import count, finite, non_negative, positive, probability
+from ._crs import check_same_crs
 from ._outputs import save_figure, staged_outputs
 from ._treecache import forget as forget_tree
 from .demo import run_demo
@@ -48,6 +49,10 @@ def _cmd_demo(args) -> int:
 
 
 def _cmd_sphere(args) -> int:
+    if args.station is not None and args.no_station:
+        raise LabkitError("--station X Y Z and --no-station contradict each other: give one of them")
+    if args.hold_radius and args.radius is None:
+        raise LabkitError("--hold-radius holds the radius at --radius R: give --radius as well")
     xyz = read_cloud(args.file).xyz  # (a missing or corrupt file is reported first)
     print(f"{args.file}: {len(xyz)} points")
     station, why = _sphere_station(xyz, args.station, args.no_station)
@@ -89,11 +94,13 @@ def _sphere_station(xyz, given, off):
 
 def _cmd_register(args) -> int:
 
+    _method_options(args, [args.method])
     _check_dof([args.method], args.dof)
     progress = from_cli(args.quiet, args.progress)  # on stderr: reading, ICP iterations, distances, writing
     source = read_cloud(args.source, progress=progress)
     target = read_cloud(args.target, progress=progress)
     print(f"source {args.source}: {len(source)} points; target {args.target}: {len(target)} points")
+    check_same_crs(source, target, "labkit register")
     method = compare.standard_methods([args.method], dof=args.dof, extent=args.extent, max_points=args.max_points,
                                       rng=args.seed, reach=args.reach)[args.method]
     result = method(source, target, progress=progress)
@@ -122,6 +129,7 @@ def _cmd_register(args) -> int:
 
 def _cmd_compare(args) -> int:
 
+    _method_options(args, args.methods, "--methods")
     _check_dof(args.methods, args.dof)
     pairs = compare.load_pairs(args.pairs)
     refs = load_references(args.references) if args.references else {}
@@ -145,6 +153,7 @@ def _cmd_compare(args) -> int:
 
 def _cmd_tiles(args) -> int:
 
+    _method_options(args, [args.method])
     _check_dof([args.method], args.dof)
     method = compare.standard_methods([args.method], dof=args.dof, extent=args.extent, max_points=args.max_points,
                               rng=args.seed)[args.method]
@@ -197,8 +206,14 @@ def _cmd_change(args) -> int:
     """M3C2 change REFERENCE -> COMPARED with a LoD carrying the registration's covariance (issue 15)."""
     from .change import load_registration, m3c2  # (numba, about 0.5 s: loaded when needed)
 
+    _method_options(args, [args.register] if args.register else [], "--register")
+    if args.held_rotation_std is not None and not (args.register or args.registration):
+        raise LabkitError("--held-rotation-std applies to a registration's undetermined rotations only: give "
+                          "--register METHOD or --registration RESULT.json, or drop it")
+    args.held_rotation_std = 0.02 if args.held_rotation_std is None else args.held_rotation_std
     ref, cmp_ = read_cloud(args.reference), read_cloud(args.compared)
     print(f"reference {args.reference}: {len(ref)} points; compared {args.compared}: {len(cmp_)} points")
+    check_same_crs(ref, cmp_, "labkit change", ("reference", "compared"))
     registration = None
     if args.registration:
         registration = load_registration(args.registration)
@@ -323,16 +338,43 @@ _finite_float = _option_type(finite, "a finite number")
 _seed = _option_type(lambda v, name: count(v, name, minimum=0), "a whole number >= 0", int)
 
 
+_METHOD_DEFAULTS = {"dof": "translation", "extent": 1.0, "max_points": 5000, "seed": 0}
+
+
 def _add_method_options(p) -> None:
-    p.add_argument("--dof", choices=("translation", "rigid"), default="translation",
-                   help="estimate a translation or a rigid transformation (default: %(default)s)")
-    p.add_argument("--extent", type=_positive_float, default=1.0,
-                   help="consensus: search a translation within +-EXTENT m (default: %(default)s)")
-    p.add_argument("--max-points", type=_count, default=5000,
-                   help="consensus: at most this many source points vote, spread evenly in space; the "
-                        "search stops after a time budget with the best translation and its certified gap "
-                        "(default: %(default)s)")
-    p.add_argument("--seed", type=_seed, default=0, help="random seed (default: %(default)s)")
+    # defaults None: an option given for a method it does not apply to is refused (_method_options)
+    p.add_argument("--dof", choices=("translation", "rigid"), default=None,
+                   help="estimate a translation or a rigid transformation (default: translation)")
+    p.add_argument("--extent", type=_positive_float, default=None,
+                   help="consensus methods only: search a translation within +-EXTENT m (default: 1.0)")
+    p.add_argument("--max-points", type=_count, default=None,
+                   help="consensus methods only: at most this many source points vote, spread evenly in space; "
+                        "the search stops after a time budget with the best translation and its certified gap "
+                        "(default: 5000)")
+    p.add_argument("--seed", type=_seed, default=None, help="random seed (default: 0)")
+
+
+def _method_options(args, methods, option: str = "--method") -> None:
+    """Refuse a method option that none of the chosen methods uses; then fill in the defaults.
+
+    ``methods`` empty: no registration runs (``labkit change`` without ``--register``).
+    """
+    given = {"--dof": args.dof, "--extent": args.extent, "--max-points": args.max_points, "--seed": args.seed,
+             "--reach": getattr(args, "reach", None)}
+    used = {"--dof", "--seed"} if methods else set()
+    if any(m.startswith("consensus") for m in methods):
+        used |= {"--extent", "--max-points"}
+    if any(m.startswith("icp") for m in methods):
+        used.add("--reach")
+    for name, value in given.items():
+        if value is not None and name not in used:
+            chosen = f"{option} {' '.join(methods)}" if methods else "no registration (give --register METHOD)"
+            applies = {"--extent": "consensus methods", "--max-points": "consensus methods",
+                       "--reach": "the icp methods", "--dof": "a registration", "--seed": "a registration"}[name]
+            raise LabkitError(f"{name} applies to {applies} only, not to {chosen}: drop it")
+    for key, default in _METHOD_DEFAULTS.items():
+        if getattr(args, key) is None:
+            setattr(args, key, default)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -471,9 +513,9 @@ def build_parser() -> argparse.ArgumentParser:
     change.add_argument("--quantile", choices=("student", "normal"), default="student",
                         help="LoD quantile: Student t with Welch's degrees of freedom, or the normal z of "
                              "PDAL/CloudCompare (default: %(default)s)")
-    change.add_argument("--held-rotation-std", type=_non_negative_float, default=0.02, metavar="DEG",
+    change.add_argument("--held-rotation-std", type=_non_negative_float, default=None, metavar="DEG",
                         help="prior std (deg) of a rotation the registration left undetermined, as ICP's "
-                             "held_rotation_std_deg (default: %(default)s)")
+                             "held_rotation_std_deg (default: 0.02)")
     _add_method_options(change)
     change.add_argument("--out", default=".", help="output folder (default: the current folder)")
     change.set_defaults(func=_cmd_change)

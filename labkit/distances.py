@@ -20,6 +20,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ._checks import as_points, choice, count
+from ._crs import check_same_crs
 from ._frame import local_origin, reduce
 from ._report import ReportMixin
 from ._treecache import local_tree
@@ -305,6 +306,7 @@ def _normals_at(tree, at, k, report):
 
 
 def _prepared(source, target, transform):
+    check_same_crs(source, target, "distances")
     src = as_points(source, name="source")
     tgt = as_points(target, name="target")
     if transform is not None:

@@ -86,6 +86,29 @@ class CloudFileError(LabkitError):
     """
 
 
+class CrsMismatchError(LabkitError):
+    """Two inputs of one computation state different coordinate reference systems.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.distances import cloud_to_cloud
+    >>> from labkit.errors import CrsMismatchError
+    >>> a = PointCloud(np.zeros((3, 3)), crs="EPSG:25832")
+    >>> b = PointCloud(np.zeros((3, 3)), crs="EPSG:25833")
+    >>> try:
+    ...     cloud_to_cloud(a, b)
+    ... except CrsMismatchError as exc:
+    ...     print("refused")
+    refused
+    """
+
+
+class CrsNote(UserWarning):
+    """One input states a CRS and the other none: taken to be in the same frame (said, not refused)."""
+
+
 def _deprecated_convergence_error(stacklevel: int = 3):
     """The deprecated class, with a DeprecationWarning pointing at the caller's line."""
     warnings.warn("ConvergenceError is deprecated and will be removed: labkit never raises it; an iteration "

@@ -32,6 +32,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from .._checks import count, non_negative, positive
+from .._crs import check_same_crs
 from .._deprecation import renamed_keywords
 from . import _consensus_kernels as K
 from ._consensus_inputs import candidate_pairs, even_subset, grid, prepare_problem, search_box
@@ -362,6 +363,7 @@ def max_consensus(
     True
     """
     t0 = time.perf_counter()
+    check_same_crs(source, target, "max_consensus")
     # Parameters of the search and of the adjustment
     tol = positive(tol, "tol")
     ext, c = search_box(extent, center)

@@ -27,6 +27,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .._checks import as_points, choice, count, non_negative, positive
+from .._crs import check_same_crs
 from .._frame import local_origin
 from .._report import ReportMixin, fmt
 from ..errors import LabkitError
@@ -323,6 +324,7 @@ def icp(
     (True, True)
     """
     # the matching keywords arrive checked in `options` (takes_match_options); the body reads only that
+    check_same_crs(source, target, "icp")
     reach = None if reach is None else positive(reach, "reach")
     if reach is not None and coarse_to_fine is False:
         raise LabkitError("reach= sets the coarsest level of the pyramid: give coarse_to_fine=True or 'auto' with it")

@@ -8,6 +8,7 @@ from functools import partial
 import numpy as np
 
 from .._checks import as_points, choice, count, non_negative, positive
+from .._crs import check_same_crs
 from ..compare import METHODS, shift_at, shift_covariance, standard_methods
 from ..errors import LabkitError
 from ..regions import as_classes
@@ -150,6 +151,7 @@ def register_tiles(source, target, method=None, *, size: float = 100.0, buffer: 
     if classes is not None:
         classes = tuple(int(c) for c in as_classes(classes))
     # Describe the survey and cut the grid
+    check_same_crs(source, target, "register_tiles")
     src, tgt = _survey(source, classes, "source"), _survey(target, classes, "target")
     b_src, b_tgt = _bounds_of(src, "source"), _bounds_of(tgt, "target")
     common = np.r_[np.maximum(b_src[:2], b_tgt[:2]), np.minimum(b_src[2:], b_tgt[2:])]
