@@ -65,11 +65,10 @@ def read_las(path: Path, flt: ReadFilter, keep, chunk_size: int, progress, units
         names = [d for d in header.point_format.dimension_names if d not in ("X", "Y", "Z")]
         names = [d for d in names if keep is None or d in keep]
         require_classification(flt, header.point_format.dimension_names, path)
-        _check_overlap(flt, header, path, factors)
         every = not flt.active  # no filter: each point is kept, coordinates go straight into the cloud
         gather = ChunkCollector(_plausible_count(header, path) if every or _holds_header(flt, header, factors) else None)
         scales, offsets = np.asarray(header.scales, dtype=np.float64), np.asarray(header.offsets, dtype=np.float64)
-        seen = 0
+        seen, lo, hi = 0, np.full(3, np.inf), np.full(3, -np.inf)
         with progress_steps(progress, total, f"reading {path.name}", "pts") as step:
             for points in reader.chunk_iterator(chunk_size):
                 m = len(points)
@@ -78,12 +77,17 @@ def read_las(path: Path, flt: ReadFilter, keep, chunk_size: int, progress, units
                 xyz = _las_xyz(points, scales, offsets, factors, np.empty((m, 3)) if xyz is None else xyz)
                 cls = np.asarray(points["classification"]) if flt.classes is not None else None
                 mask = flt.mask(xyz, cls)
+                if mask is not None and m:  # the extent of the points themselves (header bounds may be wrong)
+                    lo, hi = np.minimum(lo, xyz.min(axis=0)), np.maximum(hi, xyz.max(axis=0))
                 sel = slice(None) if mask is None else mask
                 gather.add(xyz if mask is None else xyz[sel], {d: np.asarray(points[d])[sel] for d in names})
                 step(m)
         if seen != total:
             raise CloudFileError(f"{path} is truncated: the header announces {total} points, the file holds {seen}")
         xyz, attrs = gather.result()
+        if len(xyz) == 0 and seen and flt.classes is None and (flt.box is not None or flt.rings is not None):
+            raise EmptyRegionError(f"{flt.describe()} lies outside the extent of the points of {path} "
+                                   f"(x {lo[0]:.3f}..{hi[0]:.3f}, y {lo[1]:.3f}..{hi[1]:.3f})")
         return xyz, attrs, crs, found, LasLayout.of(header, crs)
 
 
@@ -93,16 +97,17 @@ def laz_backend(parallel: bool = True):
     Examples
     --------
     >>> from labkit.io import laz_backend
-    >>> [b.name for b in laz_backend()]
-    ['LazrsParallel', 'Lazrs', 'Laszip']
+    >>> [b.name for b in laz_backend()][:2]
+    ['LazrsParallel', 'Lazrs']
     >>> [b.name for b in laz_backend(parallel=False)][0]
     'Lazrs'
     """
     from laspy import LazBackend
 
-    if parallel:
-        return (LazBackend.LazrsParallel, LazBackend.Lazrs, LazBackend.Laszip)
-    return (LazBackend.Lazrs, LazBackend.Laszip, LazBackend.LazrsParallel)
+    order = ((LazBackend.LazrsParallel, LazBackend.Lazrs, LazBackend.Laszip) if parallel
+             else (LazBackend.Lazrs, LazBackend.Laszip, LazBackend.LazrsParallel))
+    # only installed backends: a corrupt file is then reported by lazrs, not as "Laszip is not available"
+    return tuple(b for b in order if b.is_available()) or order
 
 
 def _las_xyz(points, scales, offsets, factors, out: np.ndarray) -> np.ndarray:
@@ -194,21 +199,37 @@ def _plausible_count(header, path: Path) -> int | None:
                 f"{path} is truncated or corrupt: the header announces {total} points "
                 f"({header.offset_to_point_data + needed} bytes), the file has {size} bytes"
             )
+        held = (_end_of_points(header, size) - header.offset_to_point_data) // header.point_format.size
+        if held > total:
+            raise CloudFileError(
+                f"{path}: the header counts {total} points but the file holds {held} point records; "
+                "the header is wrong (rewrite the file with a tool that updates it, e.g. las2las or PDAL)"
+            )
         return total
+    _check_chunk_table(path, header, size)
     return total if needed <= 50 * size else None
 
 
-def _check_overlap(flt: ReadFilter, header, path: Path, factors=None) -> None:
-    """Fail early when the filter's area misses the header's bounding box."""
-    area = flt.xy_bounds()
-    if area is None or header.point_count == 0:
-        return
-    f = np.ones(2) if factors is None else factors[:2]
-    lo, hi = np.asarray(header.mins)[:2] * f, np.asarray(header.maxs)[:2] * f
-    if (area[0] > hi).any() or (area[1] < lo).any() or (area[0] > area[1]).any():
-        raise EmptyRegionError(
-            f"{flt.describe()} lies outside the extent of {path} "
-            f"(x {lo[0]:.3f}..{hi[0]:.3f}, y {lo[1]:.3f}..{hi[1]:.3f})"
+def _end_of_points(header, size: int) -> int:
+    """Byte where the point records end: the first EVLR or waveform record after them, else the end of the file."""
+    ends = [int(getattr(header, name, 0) or 0) for name in ("start_of_first_evlr",
+                                                             "start_of_waveform_data_packet_record")]
+    ends = [e for e in ends if header.offset_to_point_data < e <= size]
+    return min(ends) if ends else size
+
+
+def _check_chunk_table(path: Path, header, size: int) -> None:
+    """A LAZ file begins its points with the offset of its chunk table, written last: past the end = truncated."""
+    with open(path, "rb") as f:
+        f.seek(header.offset_to_point_data)
+        raw = f.read(8)
+    if len(raw) < 8:
+        raise CloudFileError(f"{path} is a truncated LAZ file: it ends before its compressed points begin")
+    table = struct.unpack("<q", raw)[0]
+    if table != -1 and not header.offset_to_point_data < table <= size - 8:
+        raise CloudFileError(
+            f"{path} is a truncated or corrupt LAZ file: its chunk table should start at byte {table}, "
+            f"the file has {size} bytes"
         )
 
 

@@ -122,6 +122,8 @@ def read_cloud(
     except (LabkitError, MemoryError, KeyboardInterrupt):
         raise
     except Exception as exc:  # laspy, lazrs, numpy and OS errors of a bad file
+        if suffix == ".laz" and not isinstance(exc, OSError):
+            raise CloudFileError(f"{path} is a truncated or corrupt LAZ file ({type(exc).__name__}: {exc})") from exc
         raise CloudFileError(f"cannot read {path}: {type(exc).__name__}: {exc}") from exc
     if len(xyz) == 0:
         if flt.active:
