@@ -90,6 +90,7 @@ def as_points(points, *, min_points: int = 1, name: str = "points", copy: bool =
     xyz = getattr(points, "xyz", points)  # PointCloud or array-like
     if callable(getattr(points, "require_metric", None)):  # a PointCloud in degrees or feet is refused
         points.require_metric(f"a metric step (on {name})")
+    require_real(xyz, name)
     try:
         arr = np.array(xyz, dtype=np.float64, copy=copy) if copy else np.asarray(xyz, dtype=np.float64)
     except (TypeError, ValueError) as exc:
@@ -106,6 +107,16 @@ def as_points(points, *, min_points: int = 1, name: str = "points", copy: bool =
         raise LabkitError(f"{name} contains {bad} point(s) with NaN or infinite coordinates")
     check_precision(xyz, name, tolerance, _values=arr)
     return arr
+
+
+def require_real(values, name: str) -> None:
+    """Refuse complex numbers (numpy would silently drop their imaginary parts)."""
+    try:
+        complex_values = np.iscomplexobj(values)
+    except (TypeError, ValueError):
+        return  # ragged or not numbers: the conversion that follows says so
+    if complex_values:
+        raise LabkitError(f"{name} must hold real numbers, got complex values")
 
 
 def check_precision(values, name: str = "points", tolerance: float | None = None, *, _values=None) -> None:
@@ -141,7 +152,8 @@ def check_precision(values, name: str = "points", tolerance: float | None = None
 # --------------------------------------------------------------------------- numbers
 def _number(value, name: str, what: str) -> float:
     """``value`` as float; strings, bools and non-numbers are refused with ``what`` in the message."""
-    if isinstance(value, (str, bytes, bool, np.bool_)) or not isinstance(value, (numbers.Real, np.ndarray)):
+    if isinstance(value, (str, bytes, bool, np.bool_)) or not isinstance(value, (numbers.Real, np.ndarray)) \
+            or np.iscomplexobj(value):
         raise LabkitError(f"{name} must be {what}, got {value!r} ({type(value).__name__})")
     try:
         return float(value)
@@ -222,6 +234,19 @@ def as_rng(rng) -> np.random.Generator:
     if rng is None or (isinstance(rng, numbers.Integral) and not isinstance(rng, (bool, np.bool_))):
         return np.random.default_rng(as_seed(rng, "rng"))
     raise LabkitError(f"rng must be an int >= 0, a numpy.random.Generator or None, got {type(rng).__name__}")
+
+
+def output_folder(path, name: str = "folder"):
+    """``path`` as a Path for a folder to write into: a path-like that is not an existing file."""
+    import os
+    from pathlib import Path
+
+    if not isinstance(path, (str, os.PathLike)) or not str(path).strip():
+        raise LabkitError(f"{name} must be a folder path (str or Path), got {path!r}")
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise LabkitError(f"{name} {path} is a file, not a folder: give a folder path")
+    return path
 
 
 def choice(value, allowed, name: str):

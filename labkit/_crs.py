@@ -13,8 +13,9 @@ from __future__ import annotations
 import warnings
 from pathlib import Path
 
-from ._units import pyproj_crs
+from ._units import pyproj_crs, units_from_crs_text
 from .errors import CrsMismatchError, CrsNote, LabkitError
+from .io import LAS_SUFFIXES, cloud_files, cloud_info
 
 
 def crs_of(data) -> str | None:
@@ -24,8 +25,6 @@ def crs_of(data) -> str | None:
         return crs or None
     if isinstance(data, (str, Path)) or (isinstance(data, (list, tuple)) and data
                                          and all(isinstance(p, (str, Path)) for p in data)):
-        from .io import LAS_SUFFIXES, cloud_files, cloud_info
-
         try:
             paths = [p for p in cloud_files(data) if p.suffix.lower() in LAS_SUFFIXES]
             found = {cloud_info(p).crs for p in paths} - {None}
@@ -68,8 +67,6 @@ def same_crs(a: str, b: str) -> bool:
         return True
     ca, cb = pyproj_crs(a), pyproj_crs(b)
     if ca is None or cb is None:
-        from ._units import units_from_crs_text
-
         return units_from_crs_text(a) == units_from_crs_text(b)  # not comparable beyond their units
     (ha, va), (hb, vb) = _horizontal_vertical(ca), _horizontal_vertical(cb)
     return _same(ha, hb) and _same(va, vb)

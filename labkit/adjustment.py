@@ -373,6 +373,11 @@ def _result(L, it, cov, origin, fixed, tol, alpha, alpha_w, sigma0_apriori, sigm
     Qxx = cho_solve(it.N_chol, np.eye(u), check_finite=False)
     Sigma_xx = np.zeros((4, 4))
     Sigma_xx[:u, :u] = (sigma0 if dof > 0 else sigma0_apriori) ** 2 * Qxx
+    undetermined = ""
+    if dof == 0 and not sigma_known:  # no redundancy and no a priori precision: nothing states the scale
+        Sigma_xx[:u, :u] = np.nan
+        undetermined = (f"no redundancy ({n} points for {u} parameters): sigma0 and the standard deviations are "
+                        "undetermined; give sigma (or more points) to state them")
     # Redundancy numbers r_i = 1 - p_i a_i^T N^-1 a_i and Baarda's w-test
     P = 1.0 / it.qbb
     ri = np.clip(1.0 - P * _leverage(it.b, Qxx), 0.0, 1.0)
@@ -385,7 +390,7 @@ def _result(L, it, cov, origin, fixed, tol, alpha, alpha_w, sigma0_apriori, sigm
         g_test, crit = global_test(omega, dof, sigma0_apriori, alpha), w_critical(alpha_w)
     else:
         g_test, crit = GlobalTest(np.nan, int(dof), np.nan, np.nan, alpha, None, np.nan), tau_critical(alpha_w, dof)
-    reason = it.reason or _plausibility(L, it.x, main_check, check_tol, it.converged)
+    reason = it.reason or _plausibility(L, it.x, main_check, check_tol, it.converged) or undetermined
     return SphereFit(
         x=np.concatenate([it.x[:3] + origin, it.x[3:]]),
         Sigma_xx=Sigma_xx,

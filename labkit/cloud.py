@@ -16,6 +16,8 @@ A cloud whose units are not stated anywhere (no CRS) is accepted as metres.
 
 from __future__ import annotations
 
+import numbers
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -140,6 +142,20 @@ class Units:
             )
 
 
+def _crs_text(crs) -> str | None:
+    """The CRS as text: WKT or ``EPSG:code`` kept, an int taken as an EPSG code, a pyproj CRS as its code or WKT."""
+    if crs is None or isinstance(crs, str):
+        return crs.strip() or None if isinstance(crs, str) else None
+    if isinstance(crs, numbers.Integral) and not isinstance(crs, (bool, np.bool_)):
+        if not 1024 <= int(crs) <= 999999:
+            raise LabkitError(f"crs={crs} is not an EPSG code")
+        return f"EPSG:{int(crs)}"
+    if type(crs).__name__ == "CRS" and hasattr(crs, "to_wkt"):  # pyproj.CRS
+        code = crs.to_epsg(min_confidence=100)
+        return f"EPSG:{code}" if code else crs.to_wkt()
+    raise LabkitError(f"crs must be WKT, 'EPSG:code', an EPSG code (int) or a pyproj.CRS, got {type(crs).__name__}")
+
+
 @dataclass(frozen=True, eq=False)
 class PointCloud:
     """Coordinates ``xyz`` (n, 3) float64 with per-point attributes by name.
@@ -187,8 +203,20 @@ class PointCloud:
     def __post_init__(self):
         xyz = np.array(as_points(self.xyz, min_points=0, name="xyz"), dtype=np.float64, copy=True)
         xyz.flags.writeable = False
+        object.__setattr__(self, "crs", _crs_text(self.crs))
+        if self.name is None:
+            object.__setattr__(self, "name", "")
+        if not isinstance(self.name, str):
+            raise LabkitError(f"name must be a str, got {type(self.name).__name__}")
+        if not isinstance(self.attributes, Mapping):
+            raise LabkitError(f"attributes must be a dict of name -> array (one value per point), "
+                              f"got {type(self.attributes).__name__}")
         attrs = {}
         for key, values in dict(self.attributes).items():
+            if not isinstance(key, str) or not key:
+                raise LabkitError(f"attribute names must be non-empty str, got {key!r}")
+            if np.iscomplexobj(values):
+                raise LabkitError(f"attribute {key!r} holds complex values; point attributes are real")
             arr = np.array(values, copy=True)
             if arr.shape[:1] != (xyz.shape[0],):
                 raise LabkitError(

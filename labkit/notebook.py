@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 
+from ._checks import as_seed
+
 
 def setup_headless() -> None:
     """Make matplotlib and pyvista render without a display.
@@ -49,6 +51,7 @@ def setup_notebook(seed: int = 2026) -> "np.random.Generator":  # noqa: F821
     import matplotlib.pyplot as plt
     import numpy as np
 
+    seed = as_seed(seed)  # before any global setting changes
     setup_headless()
     np.set_printoptions(precision=5, suppress=True, linewidth=110)
     plt.rcParams.update({"figure.figsize": (7.5, 4.5), "figure.dpi": 100, "axes.grid": True})

@@ -13,6 +13,7 @@ Equation numbers refer to ``notebooks/07-comparing-transformations.ipynb``.
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -329,7 +330,18 @@ def save_references(references, path) -> Path:
     >>> list(back), back[("roof", "als-als")].translation.tolist()
     ([('roof', 'als-als')], [0.1, 0.0, 0.0])
     """
-    refs = list(references.values()) if isinstance(references, Mapping) else list(references)
+    try:
+        refs = list(references.values()) if isinstance(references, Mapping) else list(references)
+    except TypeError:
+        raise LabkitError(f"save_references needs Reference objects (a list or a mapping), "
+                          f"got {type(references).__name__}") from None
+    bad = [type(r).__name__ for r in refs if not isinstance(r, Reference)]
+    if bad:
+        raise LabkitError(f"save_references needs Reference objects (see manual_reference), got {bad[0]}")
+    if not isinstance(path, (str, os.PathLike)) or not str(path).strip():
+        raise LabkitError(f"save_references needs a file path, got {path!r}")
+    if Path(path).is_dir():
+        raise LabkitError(f"cannot write references to {path}: it is a folder")
     entries = ",\n".join("    " + json.dumps(r.to_dict()) for r in refs)  # one line per reference
     head = json.dumps({"format": REFERENCE_FORMAT, "version": 1})[:-1]
     return atomic_write_text(path, f'{head}, "references": [\n{entries}\n]}}\n')
@@ -346,8 +358,10 @@ def _json_entries(path: Path, key: str, label: str, what: str) -> list:
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
         return doc[key] if isinstance(doc, dict) else doc
-    except (json.JSONDecodeError, KeyError, UnicodeDecodeError) as exc:
+    except (json.JSONDecodeError, KeyError, UnicodeDecodeError, TypeError) as exc:
         raise LabkitError(f"{path} is not {what}: {exc}") from None
+    except OSError as exc:
+        raise LabkitError(f"cannot read {path}: {exc}") from None
 
 
 def load_references(path) -> dict:
@@ -378,14 +392,21 @@ def load_references(path) -> dict:
     >>> ref.kind, ref.n, ref.translation.round(3).tolist()
     ('mean of manual', 2, [0.11, 0.0, 0.0])
     """
+    if not isinstance(path, (str, os.PathLike)):
+        raise LabkitError(f"load_references needs a file path, got {type(path).__name__}")
     path = Path(path)
     entries = _json_entries(path, "references", "reference file", "a labkit reference file")
+    if not isinstance(entries, list):
+        raise LabkitError(f"{path} is not a labkit reference file: expected a list of entries, "
+                          f"got {type(entries).__name__}")
     grouped: dict = {}
     for i, entry in enumerate(entries):
         try:
+            if not isinstance(entry, dict):
+                raise LabkitError(f"expected an object with region, case and translation, got {type(entry).__name__}")
             for ref in _entry_references(entry):
                 grouped.setdefault(ref.key, []).append(ref)
-        except (LabkitError, KeyError, TypeError, ValueError) as exc:
+        except (LabkitError, KeyError, TypeError, ValueError, AttributeError) as exc:
             raise LabkitError(f"{path}: reference entry {i} is invalid: {exc}") from None
     return {k: (v[0] if len(v) == 1 else average_references(v)) for k, v in grouped.items()}
 

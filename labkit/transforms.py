@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._checks import as_points
+from ._checks import as_points, require_real
 from .errors import LabkitError
 
 
@@ -32,16 +32,33 @@ def make_transform(rotation=None, translation=None) -> np.ndarray:
     """
     T = np.eye(4)
     if rotation is not None:
-        R = np.asarray(rotation, dtype=np.float64)
+        R = _real_array(rotation, "rotation")
         if R.shape != (3, 3):
             raise LabkitError(f"rotation must have shape (3, 3), got {R.shape}")
+        if not np.isfinite(R).all():
+            raise LabkitError("rotation contains NaN or infinite values")
+        if not np.allclose(R.T @ R, np.eye(3), atol=1e-6):
+            raise LabkitError("rotation is not orthonormal (R^T R != I): a scaled or sheared matrix is no rotation")
+        if np.linalg.det(R) < 0:
+            raise LabkitError("rotation has determinant -1: a reflection is no rotation")
         T[:3, :3] = R
     if translation is not None:
-        t = np.asarray(translation, dtype=np.float64)
+        t = _real_array(translation, "translation")
         if t.shape != (3,):
             raise LabkitError(f"translation must have shape (3,), got {t.shape}")
+        if not np.isfinite(t).all():
+            raise LabkitError(f"translation must be finite, got {t.tolist()}")
         T[:3, 3] = t
     return T
+
+
+def _real_array(values, name: str) -> np.ndarray:
+    """``values`` as a float64 array; complex numbers and non-numbers refused."""
+    require_real(values, name)
+    try:
+        return np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise LabkitError(f"{name} must be numeric: {exc}") from None
 
 
 def check_transform(T) -> np.ndarray:
@@ -144,7 +161,9 @@ def apply_transform(T, points, *, origin=None) -> np.ndarray:
     R, t = T[:3, :3], T[:3, 3]
     if origin is None:
         return xyz @ R.T + t
-    o = np.asarray(origin, dtype=np.float64)
+    o = _real_array(origin, "origin")
+    if o.shape != (3,) or not np.isfinite(o).all():
+        raise LabkitError(f"origin must be 3 finite numbers, got {np.asarray(origin).tolist()}")
     return (xyz - o) @ R.T + t + o
 
 

@@ -368,7 +368,7 @@ def test_failed_overwrite_keeps_the_old_file(tmp_path, monkeypatch):
         raise RuntimeError("interrupted")
 
     monkeypatch.setattr(laspy.LasWriter, "write_points", boom)
-    with pytest.raises(RuntimeError):
+    with pytest.raises(CloudFileError, match="RuntimeError: interrupted"):
         write_cloud(_cloud(n=300, seed=9), path)
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["keep.las"]

@@ -17,9 +17,13 @@ from .filter import ReadFilter
 
 def read_ascii(path: Path, flt: ReadFilter, keep, chunk_size: int, progress: bool):
     size = path.stat().st_size
-    with open(path, encoding="utf-8", errors="strict") as f:
+    with open(path, encoding="utf-8-sig", errors="strict") as f:  # -sig: a byte-order mark is no data
         first, skipped = _first_line(f, path)
         delimiter = "," if "," in first else ";" if ";" in first else None
+        first = first.lstrip("#").strip() if first.startswith("#") else first  # "# x y z": a header
+        trailing = delimiter is not None and first.endswith(delimiter)  # "1,2,3," (some exporters)
+        if trailing:
+            first = first.rstrip(delimiter).rstrip()
         tokens = [t.strip() for t in (first.split(delimiter) if delimiter else first.split())]
         header = not all(_is_number(t) for t in tokens)
         columns = _column_names(tokens, header, path)
@@ -34,6 +38,8 @@ def read_ascii(path: Path, flt: ReadFilter, keep, chunk_size: int, progress: boo
                 block = list(itertools.islice(lines, chunk_size))
                 if not block:
                     break
+                if trailing:
+                    block = [line.rstrip().rstrip(delimiter) for line in block]
                 data = _parse_block(block, delimiter, len(columns), path, row)
                 row += len(block)
                 xyz = data[:, ix]
@@ -49,9 +55,18 @@ def read_ascii(path: Path, flt: ReadFilter, keep, chunk_size: int, progress: boo
 def _first_line(f, path: Path) -> tuple[str, int]:
     """The first non-blank line (header or data) and the number of lines consumed."""
     for count, line in enumerate(f, start=1):
-        if line.strip():
+        if line.strip() and not _comment(line):
             return line.strip(), count - (0 if _looks_header(line) else 1)
     raise CloudFileError(f"{path} is empty (no lines with data)")
+
+
+def _comment(line: str) -> bool:
+    """A '#' line that is no header naming x, y and z (e.g. '# exported by ...')."""
+    text = line.strip()
+    if not text.startswith("#"):
+        return False
+    names = {canonical_name(t) for t in re.split(r"[,;\s]+", text.lstrip("#").strip()) if t}
+    return not {"x", "y", "z"} <= names
 
 
 def _looks_header(line: str) -> bool:

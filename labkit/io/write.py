@@ -141,6 +141,10 @@ def _atomic(path: Path):
             yield tmp
     except OSError as exc:
         raise CloudFileError(f"cannot write {path}: {exc}") from exc
+    except LabkitError:
+        raise
+    except Exception as exc:  # the LAZ compressor's errors (e.g. LazrsError on a full disk)
+        raise CloudFileError(f"cannot write {path}: {type(exc).__name__}: {exc}") from exc
 
 
 def _choose_scale(xyz: np.ndarray, scale) -> np.ndarray:

@@ -7,7 +7,7 @@ from functools import partial
 
 import numpy as np
 
-from .._checks import as_points, choice, count, non_negative, positive
+from .._checks import as_points, choice, count, non_negative, output_folder, positive
 from .._crs import check_same_crs
 from ..compare import METHODS, shift_at, shift_covariance, standard_methods
 from ..errors import LabkitError
@@ -152,6 +152,7 @@ def register_tiles(source, target, method=None, *, size: float = 100.0, buffer: 
         classes = tuple(int(c) for c in as_classes(classes))
     # Describe the survey and cut the grid
     check_same_crs(source, target, "register_tiles")
+    results = None if results is None else str(output_folder(results, "results"))
     src, tgt = _survey(source, classes, "source"), _survey(target, classes, "target")
     b_src, b_tgt = _bounds_of(src, "source"), _bounds_of(tgt, "target")
     common = np.r_[np.maximum(b_src[:2], b_tgt[:2]), np.minimum(b_src[2:], b_tgt[2:])]
