@@ -70,7 +70,7 @@ def cylinder_stats(local: np.ndarray, cores: np.ndarray, normals: np.ndarray, ra
     """
     if not compiled:
         return _tree_cylinder_stats(cKDTree(local), local, cores, normals, radius, depth, progress)
-    grid = grid_kernels.VoxelGrid(local, min(radius, depth))
+    grid = grid_kernels.VoxelGrid(local, grid_kernels.cylinder_cell(radius, depth))
     out = [np.zeros(len(cores), dtype=np.int64), np.full(len(cores), np.nan), np.full(len(cores), np.nan)]
     step = CORE_CHUNK * 10
     for start in range(0, len(cores), step):

@@ -53,6 +53,7 @@ import numbers
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 from scipy.stats import norm, t as student_t
 
 from . import _change_search as search
@@ -298,6 +299,7 @@ def m3c2(
     registration_variance(registration_covariance, np.zeros((1, 3)), up[None], held_std)  # fail before the work
     origin = local_origin(ref)
     ref_l, cmp_l = reduce(ref, origin), reduce(cmp_, origin)
+    _check_cylinder_scale(ref_l, r)
     cores_world = _corepoints(corepoints, ref, ref_l, r)
     cores = reduce(cores_world, origin)
     # Normals (eq. 1): PCA in the reference, lowest surface variation over the radii, oriented
@@ -349,6 +351,21 @@ def _check_radii(normal_radius):
     if values.ndim != 1 or len(values) == 0:
         raise LabkitError(f"normal_radius must be a number or a sequence of numbers, got {normal_radius!r}")
     return [positive(v, "normal_radius") for v in values]
+
+
+def _check_cylinder_scale(ref_l, r) -> None:
+    """Refuse a cylinder radius far below the reference's point spacing: its cylinders would hold no points."""
+    sample = ref_l[:: max(1, len(ref_l) // 2000)]
+    if len(sample) < 3:
+        return
+    d, _ = cKDTree(sample).query(sample, k=2, workers=-1)
+    gap = d[:, 1][d[:, 1] > 0]  # duplicates say nothing about the spacing
+    spacing = float(np.median(gap)) * (len(sample) / len(ref_l)) ** 0.5 if len(gap) else 0.0  # thinned: rescale
+    if r < 0.01 * spacing:
+        raise LabkitError(
+            f"cylinder_radius {r:g} m is far below the point spacing of the reference (about {spacing:.3g} m): "
+            "the cylinders would hold no points; choose a radius of a few point spacings"
+        )
 
 
 def _check_min_points(min_points) -> int:
