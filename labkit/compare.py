@@ -375,10 +375,15 @@ def load_pairs(path) -> dict:
     """
     path = Path(path)
     entries = _json_entries(path, "pairs", "pair file", "a list of epoch pairs")
+    if not isinstance(entries, list):
+        raise LabkitError(f"{path} is not a list of epoch pairs (got {type(entries).__name__})")
     out = {}
     for i, e in enumerate(entries):
         if not isinstance(e, dict) or not {"region", "source", "target"} <= set(e):
             raise LabkitError(f"{path}: pair {i} needs 'region', 'source' and 'target'")
+        if not all(isinstance(e[k], str) for k in ("source", "target")) or not (
+                e.get("constrained") is None or isinstance(e["constrained"], list)):
+            raise LabkitError(f"{path}: pair {i}: 'source' and 'target' must be file names, 'constrained' a list")
         files = [(path.parent / e[k]) for k in ("source", "target")]
         src, tgt = (read_cloud(f, bbox=e.get("bbox")) for f in files)
         c = e.get("constrained")

@@ -20,7 +20,7 @@ def read_ascii(path: Path, flt: ReadFilter, keep, chunk_size: int, progress: boo
     with open(path, encoding="utf-8-sig", errors="strict") as f:  # -sig: a byte-order mark is no data
         first, skipped = _first_line(f, path)
         delimiter = "," if "," in first else ";" if ";" in first else None
-        first = first.lstrip("#").strip() if first.startswith("#") else first  # "# x y z": a header
+        first = first.lstrip("#").strip() if first.startswith("#") else first.split("#")[0].strip()  # "# x y z"
         trailing = delimiter is not None and first.endswith(delimiter)  # "1,2,3," (some exporters)
         if trailing:
             first = first.rstrip(delimiter).rstrip()

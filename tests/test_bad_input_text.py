@@ -1,0 +1,84 @@
+"""Text clouds (labkit.io.ascii) that are valid although unusual are read; LAZ writer errors (labkit.io.write) and
+setup_notebook's seed (labkit.notebook) give a LabkitError."""
+
+import laspy
+import numpy as np
+import pytest
+
+from labkit.cloud import PointCloud
+from labkit.errors import CloudFileError, LabkitError
+from labkit.io import read_cloud, write_cloud
+from labkit.notebook import setup_notebook
+
+XYZ = [[1.0, 2.0, 3.0], [4.0, 5.5, 6.0]]
+
+
+@pytest.mark.parametrize("name, text", [
+    ("bom.xyz", "\ufeff1 2 3\n4 5.5 6\n"),
+    ("bom_header.csv", "\ufeffx,y,z\n1,2,3\n4,5.5,6\n"),
+    ("bom_semicolon.txt", "\ufeff1;2;3\n4;5.5;6\n"),
+    ("comment.xyz", "# exported by a scanner\n# units: m\n1 2 3\n4 5.5 6\n"),
+    ("comment_inside.xyz", "1 2 3\n# second strip\n4 5.5 6\n"),
+    ("comment_after_header.csv", "x,y,z\n# a note\n1,2,3\n4,5.5,6\n"),
+    ("comment_at_end.xyz", "1 2 3 # first\n4 5.5 6\n"),
+    ("trailing_comma.csv", "1,2,3,\n4,5.5,6,\n"),
+    ("trailing_comma_header.csv", "x,y,z,\n1,2,3,\n4,5.5,6,\n"),
+    ("trailing_semicolon.txt", "1;2;3;\n4;5.5;6;\n"),
+    ("trailing_space.xyz", "1 2 3  \n4 5.5 6\t\n"),
+    ("crlf.xyz", "1 2 3\r\n4 5.5 6\r\n"),
+    ("bom_comment_trailing.csv", "\ufeff# note\n1,2,3,\n4,5.5,6,\n"),
+    ("blank_lines.xyz", "\n\n1 2 3\n\n4 5.5 6\n\n"),
+])
+def test_unusual_but_valid_text_is_read(tmp_path, name, text):
+    path = tmp_path / name
+    path.write_bytes(text.encode("utf-8"))
+    cloud = read_cloud(path)
+    assert cloud.xyz.tolist() == XYZ
+    assert cloud.attributes == {}
+
+
+@pytest.mark.parametrize("text", ["# x y z intensity\n1 2 3 7\n4 5.5 6 8\n", "#x,y,z,intensity\n1,2,3,7\n4,5.5,6,8\n",
+                                  "\ufeff//X Y Z Intensity\n1 2 3 7\n4 5.5 6 8\n"])
+def test_a_header_behind_a_comment_sign_names_the_columns(tmp_path, text):
+    path = tmp_path / "h.txt"
+    path.write_bytes(text.encode("utf-8"))
+    cloud = read_cloud(path)
+    assert cloud.xyz.tolist() == XYZ and cloud["intensity"].tolist() == [7, 8]
+
+
+@pytest.mark.parametrize("text, fragment", [
+    ("1,,2,3\n", "names no column"), ("1,2,3\n4,5\n", "cannot parse|columns"), ("1 2\n", "3 columns"), ("# only a comment\n", "empty"),
+])
+def test_what_stays_invalid(tmp_path, text, fragment):
+    path = tmp_path / "bad.csv"
+    path.write_text(text)
+    with pytest.raises(CloudFileError, match=fragment):
+        read_cloud(path)
+
+
+@pytest.mark.parametrize("error", ["LazrsError", "RuntimeError", "ValueError"])
+def test_a_laz_writer_error_is_a_labkit_error_and_keeps_the_old_file(tmp_path, monkeypatch, error):
+    """A full disk makes lazrs raise its own error (not an OSError): reported in one LabkitError."""
+    path = write_cloud(PointCloud(np.zeros((5, 3))), tmp_path / "keep.laz")
+    before = path.read_bytes()
+    kind = type(error, (Exception,), {})
+
+    def full(*args, **kwargs):
+        raise kind("No space left on device (os error 28)")
+
+    monkeypatch.setattr(laspy.LasWriter, "write_points", full)
+    with pytest.raises(CloudFileError, match=f"{error}: No space left"):
+        write_cloud(PointCloud(np.ones((7, 3))), path)
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["keep.laz"]
+
+
+@pytest.mark.parametrize("seed", [-1, 1.5, "7", True, [1], np.nan])
+def test_setup_notebook_refuses_bad_seeds(seed):
+    with pytest.raises(LabkitError, match="seed"):
+        setup_notebook(seed)
+
+
+@pytest.mark.parametrize("seed", [0, 7, np.int64(3), 2**40])
+def test_setup_notebook_takes_whole_seeds(seed):
+    assert setup_notebook(seed).integers(1000) == np.random.default_rng(int(seed)).integers(1000)
