@@ -111,3 +111,13 @@ def test_corrupt_laz_points_are_named_as_such(tmp_path, garbage):
     except CloudFileError as exc:
         assert "corrupt" in str(exc) or "truncated" in str(exc)
         assert "Laszip" not in str(exc)
+
+
+@pytest.mark.parametrize("version, point_format", [("1.2", 1), ("1.4", 6)])
+@pytest.mark.parametrize("announced", [100_000, 60_000, 1])
+def test_laz_header_counting_fewer_points_than_its_chunks_hold(tmp_path, version, point_format, announced):
+    """A LAZ file of 120,000 points in chunks of 50,000: a count below the first point of the last chunk is refused."""
+    path = _file(tmp_path, ".laz", n=120_000, version=version, point_format=point_format)
+    _set_count(path, announced, version)
+    with pytest.raises(CloudFileError, match=f"counts {announced} points but the file holds at least"):
+        read_cloud(path)

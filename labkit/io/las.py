@@ -231,6 +231,33 @@ def _check_chunk_table(path: Path, header, size: int) -> None:
             f"{path} is a truncated or corrupt LAZ file: its chunk table should start at byte {table}, "
             f"the file has {size} bytes"
         )
+    held = _laz_points_at_least(path, header) if table != -1 else None
+    if held is not None and held > header.point_count:
+        raise CloudFileError(
+            f"{path}: the header counts {header.point_count} points but the file holds at least {held} "
+            "(its LAZ chunk table); the header is wrong (rewrite the file with a tool that updates it)"
+        )
+
+
+def _laz_points_at_least(path: Path, header) -> int | None:
+    """The fewest points the LAZ chunk table allows: the sum of variable chunks, else all but the last full."""
+    import lazrs
+
+    vlr = next((v for v in header.vlrs if getattr(v, "record_id", None) == 22204), None)
+    if vlr is None:
+        return None
+    try:
+        laz = lazrs.LazVlr(vlr.record_data)
+        with open(path, "rb") as f:
+            f.seek(header.offset_to_point_data)
+            chunks = lazrs.read_chunk_table(f, laz)
+    except Exception:  # noqa: BLE001 - an unreadable table is reported by the decompressor itself
+        return None
+    if not chunks:
+        return None
+    if laz.uses_variable_size_chunks():
+        return int(sum(c[0] for c in chunks))
+    return (len(chunks) - 1) * int(laz.chunk_size()) + 1
 
 
 def _las_crs_records(header):
