@@ -30,8 +30,6 @@ else:  # pragma: no cover - the kd-tree route in _change_search is used instead
     _njit = None
     _prange = range
 
-CALL_CORES = 4096  # core points per compiled call: between calls Python runs, so Ctrl-C stops a long search
-COLUMNS = 32  # a cylinder's bounding box spans at most about 2 * COLUMNS + 2 voxels per axis (see cylinder_cell)
 PARALLEL_FROM = 50_000  # core points; below, one thread (measured: starting the OpenMP team on a loaded
 #                         2-core machine cost 30-60 ms against 0.5 ms of work for 829 cores)
 
@@ -140,23 +138,6 @@ if HAVE_NUMBA:
         return max(a, 0), min(b, n - 1)
 
 
-def cylinder_cell(radius: float, depth: float) -> float:
-    """Voxel edge for the cylinder search: the smaller of radius and depth, but at least (radius + depth) / COLUMNS.
-
-    A thin long cylinder (radius far below its depth) in voxels of its radius would visit
-    (depth / radius)^2 voxel columns per core point: 10^18 for 1e-9 m in 1 m. The floor bounds
-    that to about (2 COLUMNS + 2)^2 columns, each found by one binary search.
-    """
-    return max(min(radius, depth), (radius + depth) / COLUMNS)
-
-
-def _in_calls(m: int, run) -> None:
-    """``run(rows)`` over slices of at most CALL_CORES core points; a KeyboardInterrupt stops between them."""
-    with _threads(m):
-        for start in range(0, m, CALL_CORES):
-            run(slice(start, start + CALL_CORES))
-
-
 @contextlib.contextmanager
 def _threads(m):
     """One numba thread for fewer than PARALLEL_FROM core points (the setting is per calling thread)."""
@@ -175,10 +156,10 @@ def cylinder_stats(grid: VoxelGrid, cores, normals, radius, depth):
     """Count, mean and standard deviation (ddof = 1) of the axial coordinates in each cylinder (compiled)."""
     m = len(cores)
     count, mean, m2 = np.zeros(m, dtype=np.int64), np.zeros(m), np.zeros(m)
-    cores, normals = np.ascontiguousarray(cores), np.ascontiguousarray(normals)
-    _in_calls(m, lambda rows: _cylinder_kernel(grid.points, grid.keys, grid.start, grid.lo, grid.dims, grid.cell,
-                                               cores[rows], normals[rows], float(radius), float(depth),
-                                               count[rows], mean[rows], m2[rows]))
+    with _threads(m):
+        _cylinder_kernel(grid.points, grid.keys, grid.start, grid.lo, grid.dims, grid.cell,
+                         np.ascontiguousarray(cores), np.ascontiguousarray(normals), float(radius), float(depth),
+                         count, mean, m2)
     with np.errstate(invalid="ignore", divide="ignore"):
         std = np.where(count > 1, np.sqrt(m2 / (count - 1)), np.nan)
     return count, np.where(count > 0, mean, np.nan), std
@@ -188,10 +169,9 @@ def ball_covariances(grid: VoxelGrid, cores, radius):
     """Counts and covariances (eq. 2 of notebook 04, divided by m) of the points within ``radius`` of each core."""
     m = len(cores)
     count, first, second = np.zeros(m, dtype=np.int64), np.zeros((m, 3)), np.zeros((m, 3, 3))
-    cores = np.ascontiguousarray(cores)
-    _in_calls(m, lambda rows: _ball_moments_kernel(grid.points, grid.keys, grid.start, grid.lo, grid.dims, grid.cell,
-                                                   cores[rows], float(radius), count[rows], first[rows],
-                                                   second[rows]))
+    with _threads(m):
+        _ball_moments_kernel(grid.points, grid.keys, grid.start, grid.lo, grid.dims, grid.cell,
+                             np.ascontiguousarray(cores), float(radius), count, first, second)
     k = np.maximum(count, 1).astype(np.float64)
     mu = first / k[:, None]  # centroid relative to the core point
     C = second / k[:, None, None] - mu[:, :, None] * mu[:, None, :]  # offsets from the core: no cancellation

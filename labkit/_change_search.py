@@ -27,6 +27,18 @@ from ._change_grid import VoxelGrid, ball_covariances
 from ._eigh3 import HAVE_NUMBA, eigh3
 
 CORE_CHUNK = 20_000  # core points per search batch (bounds the flattened neighbour arrays)
+CALL_CORES = 50_000  # core points per compiled call: Python runs between calls, so Ctrl-C stops a long search
+COLUMNS = 32  # a cylinder's bounding box spans at most about 2 * COLUMNS + 2 voxels per axis (cylinder_cell)
+
+
+def cylinder_cell(radius: float, depth: float) -> float:
+    """Voxel edge for the cylinder search: the smaller of radius and depth, but at least (radius + depth) / COLUMNS.
+
+    A thin long cylinder (radius far below its depth) in voxels of its radius would visit
+    (depth / radius)^2 voxel columns per core point: 10^18 for 1e-9 m in 1 m. The floor bounds
+    that to about (2 COLUMNS + 2)^2 columns, each found by one binary search.
+    """
+    return max(min(radius, depth), (radius + depth) / COLUMNS)
 
 
 # --------------------------------------------------------------------------- core points
@@ -56,7 +68,11 @@ def pca_normals(local: np.ndarray, cores: np.ndarray, radius: float, *, compiled
     """
     if not compiled:
         return _tree_pca_normals(cKDTree(local), local, cores, radius)
-    counts, C = ball_covariances(VoxelGrid(local, radius), cores, radius)
+    grid = VoxelGrid(local, radius)
+    counts, C = np.zeros(len(cores), dtype=np.int64), np.zeros((len(cores), 3, 3))
+    for start in range(0, len(cores), CALL_CORES):  # one compiled call per slice: Ctrl-C stops in between
+        rows = slice(start, start + CALL_CORES)
+        counts[rows], C[rows] = ball_covariances(grid, cores[rows], radius)
     return _normals_from_covariances(counts, C)
 
 
@@ -70,11 +86,10 @@ def cylinder_stats(local: np.ndarray, cores: np.ndarray, normals: np.ndarray, ra
     """
     if not compiled:
         return _tree_cylinder_stats(cKDTree(local), local, cores, normals, radius, depth, progress)
-    grid = grid_kernels.VoxelGrid(local, grid_kernels.cylinder_cell(radius, depth))
+    grid = grid_kernels.VoxelGrid(local, cylinder_cell(radius, depth))
     out = [np.zeros(len(cores), dtype=np.int64), np.full(len(cores), np.nan), np.full(len(cores), np.nan)]
-    step = CORE_CHUNK * 10
-    for start in range(0, len(cores), step):
-        rows = slice(start, start + step)
+    for start in range(0, len(cores), CALL_CORES):  # one compiled call per slice: Ctrl-C stops in between
+        rows = slice(start, start + CALL_CORES)
         for arr, part in zip(out, grid_kernels.cylinder_stats(grid, cores[rows], normals[rows], radius, depth)):
             arr[rows] = part
         if progress is not None:

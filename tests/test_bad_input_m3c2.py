@@ -55,26 +55,27 @@ def test_thin_long_cylinders_agree_with_the_tree_search(radius, depth):
 def test_results_do_not_depend_on_the_calls(monkeypatch, per_call):
     a = _plane(3000)
     ref = m3c2(a, a + [0, 0, 0.05], 1.0, normal_radius=1.0, cylinder_radius=0.5, max_depth=1.0)
-    monkeypatch.setattr(_change_grid, "CALL_CORES", per_call)
+    monkeypatch.setattr(_change_search, "CALL_CORES", per_call)
     got = m3c2(a, a + [0, 0, 0.05], 1.0, normal_radius=1.0, cylinder_radius=0.5, max_depth=1.0)
     np.testing.assert_array_equal(got.distance, ref.distance)
     np.testing.assert_array_equal(got.lod, ref.lod)
 
 
-@pytest.mark.parametrize("kernel", ["_cylinder_kernel", "_ball_moments_kernel"])
-def test_an_interrupt_stops_the_search_between_calls(monkeypatch, kernel):
+@pytest.mark.parametrize("module, search", [(_change_grid, "cylinder_stats"), (_change_search, "ball_covariances")])
+def test_an_interrupt_stops_the_search_between_calls(monkeypatch, module, search):
     """Ctrl-C (KeyboardInterrupt) raised after the second compiled call: no further call runs."""
     calls = []
-    original = getattr(_change_grid, kernel)
+    original = getattr(module, search)
 
     def counted(*args):
         calls.append(1)
-        original(*args)
+        out = original(*args)
         if len(calls) == 2:
             raise KeyboardInterrupt
+        return out
 
-    monkeypatch.setattr(_change_grid, kernel, counted)
-    monkeypatch.setattr(_change_grid, "CALL_CORES", 10)
+    monkeypatch.setattr(module, search, counted)
+    monkeypatch.setattr(_change_search, "CALL_CORES", 10)
     a = _plane(3000)
     with pytest.raises(KeyboardInterrupt):
         m3c2(a, a + [0, 0, 0.05], 0.5, normal_radius=1.0, cylinder_radius=0.5, max_depth=1.0)
