@@ -32,8 +32,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from .._checks import count, non_negative, positive
-from .._crs import check_same_crs
 from .._deprecation import renamed_keywords
+from .._crs import check_same_crs  # noqa: I001
 from . import _consensus_kernels as K
 from ._consensus_inputs import candidate_pairs, even_subset, grid, prepare_problem, search_box
 from .bnb import branch_and_bound, refine
@@ -362,8 +362,8 @@ def max_consensus(
     >>> bool(np.allclose(res.translation, [0.05, 0.02, 0.03], atol=0.01))
     True
     """
-    t0 = time.perf_counter()
     check_same_crs(source, target, "max_consensus")
+    t0 = time.perf_counter()
     # Parameters of the search and of the adjustment
     tol = positive(tol, "tol")
     ext, c = search_box(extent, center)

@@ -323,8 +323,8 @@ def icp(
     >>> res.converged, bool(np.allclose(res.translation, [0.05, 0.02, 0.03], atol=0.005))
     (True, True)
     """
-    # the matching keywords arrive checked in `options` (takes_match_options); the body reads only that
     check_same_crs(source, target, "icp")
+    # the matching keywords arrive checked in `options` (takes_match_options); the body reads only that
     reach = None if reach is None else positive(reach, "reach")
     if reach is not None and coarse_to_fine is False:
         raise LabkitError("reach= sets the coarsest level of the pyramid: give coarse_to_fine=True or 'auto' with it")
