@@ -33,7 +33,7 @@ import numpy as np
 
 from .._checks import count, non_negative, positive
 from .._deprecation import renamed_keywords
-from .._crs import check_same_crs  # noqa: I001
+from .._crs import check_same_crs
 from . import _consensus_kernels as K
 from ._consensus_inputs import candidate_pairs, even_subset, grid, prepare_problem, search_box
 from .bnb import branch_and_bound, refine
