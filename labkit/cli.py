@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__, compare
-from ._checks import count, finite, non_negative, positive, probability
 from ._crs import check_same_crs
+from ._checks import count, finite, non_negative, positive, probability
 from ._outputs import save_figure, staged_outputs
 from ._treecache import forget as forget_tree
 from .demo import run_demo
