@@ -121,3 +121,16 @@ def test_laz_header_counting_fewer_points_than_its_chunks_hold(tmp_path, version
     _set_count(path, announced, version)
     with pytest.raises(CloudFileError, match=f"counts {announced} points but the file holds at least"):
         read_cloud(path)
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_read_clouds_asks_the_points_before_saying_empty(tmp_path, suffix):
+    from labkit.io import read_clouds
+
+    path = _file(tmp_path, suffix)
+    full = read_cloud(path)
+    _patch(path, 179, "<6d", *WRONG_BOUNDS["shifted far away"])
+    box = (500_020.0, 5_400_020.0, 500_060.0, 5_400_070.0)
+    np.testing.assert_array_equal(read_clouds([path], bbox=box).xyz, crop_box(full, box).xyz)
+    with pytest.raises(EmptyRegionError, match="the points were read"):
+        read_clouds([path], bbox=(0, 0, 10, 10))

@@ -167,8 +167,9 @@ def read_clouds(paths, *, bbox=None, polygon=None, classes=None, attributes=None
         box = flt.box  # the z range can rule out a file too
     factors = (lambda info: _header_factors(info, units)) if units == "m" else None
     hits = [p for p in files if _header_meets(p, box, factors)]
-    if not hits:
-        raise EmptyRegionError(f"{flt.describe()} meets none of the {len(files)} file(s) (by their header extents)")
+    by_header = bool(hits)
+    if not hits:  # before "empty" is said, the points themselves are asked: a header's bounds may be wrong
+        hits = files
     clouds = []
     for path in hits:
         try:
@@ -178,7 +179,8 @@ def read_clouds(paths, *, bbox=None, polygon=None, classes=None, attributes=None
             if not flt.active:
                 raise
     if not clouds:
-        raise EmptyRegionError(f"{flt.describe()} keeps no point of the {len(hits)} file(s) whose extent it meets")
+        where = "whose extent it meets" if by_header else "(no header extent meets it; the points were read)"
+        raise EmptyRegionError(f"{flt.describe()} keeps no point of the {len(hits)} file(s) {where}")
     label = name or (clouds[0].name if len(clouds) == 1 else f"{clouds[0].name}+{len(clouds) - 1} files")
     return _merge(clouds, label)
 
