@@ -53,8 +53,11 @@ def _same(a, b) -> bool:
     return ea is not None and ea == eb
 
 
-def same_crs(a: str, b: str) -> bool:
+def same_crs(a: str, b: str) -> bool | None:
     """Whether two CRS texts (WKT or ``EPSG:code``) describe one CRS (parts stated by both compared).
+
+    None when pyproj cannot read one of them and their units agree (not comparable); False when the
+    units already differ.
 
     Examples
     --------
@@ -66,9 +69,14 @@ def same_crs(a: str, b: str) -> bool:
     if a.strip() == b.strip():
         return True
     ca, cb = pyproj_crs(a), pyproj_crs(b)
-    if ca is None or cb is None:
-        return units_from_crs_text(a) == units_from_crs_text(b)  # not comparable beyond their units
+    if ca is None or cb is None:  # not comparable beyond their units
+        ua, ub = units_from_crs_text(a), units_from_crs_text(b)
+        known = ua.known and ub.known
+        return False if known and (ua.horizontal, ua.vertical) != (ub.horizontal, ub.vertical) else None
     (ha, va), (hb, vb) = _horizontal_vertical(ca), _horizontal_vertical(cb)
+    local = [c for c in (ha, hb) if c is not None and c.type_name == "Engineering CRS"]
+    if local and ha is not None and hb is not None and ha.name != hb.name:
+        return None  # local frames (LOCAL_CS, ENGCRS) of other names: PROJ cannot tell whether they agree
     return _same(ha, hb) and _same(va, vb)
 
 
@@ -99,6 +107,11 @@ def check_same_crs(a, b, what: str, names=("source", "target")) -> None:
         warnings.warn(f"{what}: the {missing} states no CRS, the {stated} is in {describe_crs(ca or cb)}; "
                       "both are taken to be in that frame", CrsNote, stacklevel=3)
         return
-    if not same_crs(ca, cb):
+    same = same_crs(ca, cb)
+    if same is None:
+        warnings.warn(f"{what}: the CRS of the {names[0]} ({describe_crs(ca)}) and of the {names[1]} "
+                      f"({describe_crs(cb)}) cannot be compared (pyproj reads one of them not); both are taken "
+                      "to be in one frame", CrsNote, stacklevel=3)
+    elif not same:
         raise CrsMismatchError(f"{what}: the {names[0]} is in {describe_crs(ca)} but the {names[1]} in "
                                f"{describe_crs(cb)}; reproject one of them to the other's CRS first")

@@ -178,3 +178,19 @@ def test_read_keeps_a_feet_epsg_code_and_converts(tmp_path):
     cloud = read_cloud(path)
     assert cloud.units.converted and cloud.units.horizontal == "US survey foot"
     np.testing.assert_allclose(cloud.xyz[:, 0], np.asarray(raw.x) * US_FT, rtol=1e-15)
+
+
+@pytest.mark.parametrize("a, b", [("LOCAL_CS[\"site A\"]", "LOCAL_CS[\"site B\"]"), ("garbage", "EPSG:25832")])
+def test_crs_that_pyproj_cannot_read_are_noted_not_taken_for_equal(a, b):
+    xyz = _surface()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        labkit.cloud_to_cloud(PointCloud(xyz, crs=a), PointCloud(xyz, crs=b))
+    notes = [str(w.message) for w in caught if issubclass(w.category, CrsNote)]
+    assert notes and "cannot be compared" in notes[0]
+
+
+def test_register_tiles_compares_the_crs_of_files(tmp_path):
+    a, b = _las(tmp_path / "a.las", 25832), _las(tmp_path / "b.las", 32632)
+    with pytest.raises(CrsMismatchError, match="ETRS89 / UTM zone 32N.*WGS 84 / UTM zone 32N"):
+        labkit.register_tiles(a, b, size=50.0, scheduler="serial", progress=False)
