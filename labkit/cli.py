@@ -35,6 +35,7 @@ from .plotting.compare import plot_distance_map, plot_shift_field, symmetric_lim
 from .progress import from_cli
 from .ransac import ransac_sphere
 from .references import load_references
+from .registration_file import save_registration
 from .tiles import MAX_TILES, check_scheduler, neighbour_test, register_tiles
 from .transforms import angles_from_rotation
 
@@ -114,6 +115,8 @@ def _cmd_register(args) -> int:
     with staged_outputs(args.out) as stage:
         write_cloud(moved, stage(f"{stem}_registered{suffix}"), progress=progress)
         save_figure(fig, stage(f"{stem}_distances.png"))
+        save_registration(stage("registration.json"), result, crs=source.crs,
+                          inputs={"source": args.source, "target": args.target})
     print()
     for path in stage.written:
         print(f"wrote {path}")
@@ -201,8 +204,7 @@ def _cmd_change(args) -> int:
     print(f"reference {args.reference}: {len(ref)} points; compared {args.compared}: {len(cmp_)} points")
     registration = None
     if args.registration:
-        registration = load_registration(args.registration)
-        print(f"registration {args.registration}: {', '.join(registration.parameter_names)} with covariance")
+        registration = _registration_for(load_registration(args.registration), args)
     elif args.register:
         method = compare.standard_methods([args.register], dof=args.dof, extent=args.extent, max_points=args.max_points,
                                   rng=args.seed)[args.register]
@@ -234,6 +236,19 @@ def _cmd_change(args) -> int:
     for path in stage.written:
         print(f"wrote {path}")
     return 0
+
+
+def _registration_for(registration, args):
+    """The registration file oriented compared -> reference (a file of ``labkit register REF CMP`` is inverted)."""
+    names = ", ".join(registration.parameter_names)
+    roles = dict(getattr(registration, "inputs", ()))
+    same = lambda a, b: a is not None and Path(a).resolve() == Path(b).resolve()  # noqa: E731
+    if same(roles.get("source"), args.reference) and same(roles.get("target"), args.compared):
+        print(f"registration {args.registration}: {names} with covariance; it maps {args.reference} onto "
+              f"{args.compared}, used inverted (compared -> reference)")
+        return registration.inverse()
+    print(f"registration {args.registration}: {names} with covariance (compared -> reference)")
+    return registration
 
 
 def _check_dof(methods, dof: str) -> None:
@@ -456,9 +471,11 @@ def build_parser() -> argparse.ArgumentParser:
     change.add_argument("reference", help="reference epoch (point-cloud file)")
     change.add_argument("compared", help="compared (later) epoch")
     how = change.add_mutually_exclusive_group()
-    how.add_argument("--registration", metavar="RESULT.json",
-                     help="registration of COMPARED onto REFERENCE as JSON (labkit.change.save_registration, or "
-                          "{'matrix': 4x4, 'covariance': 3x3}); applied, its covariance enters the LoD")
+    how.add_argument("--registration", metavar="REGISTRATION.json",
+                     help="registration file (labkit register --out R writes R/registration.json; "
+                          "labkit.save_registration; or {'matrix': 4x4, 'covariance': 3x3}) of COMPARED onto "
+                          "REFERENCE, or of REFERENCE onto COMPARED as its inputs say (then inverted); applied, "
+                          "its covariance enters the LoD")
     how.add_argument("--register", choices=compare.METHODS, metavar="METHOD",
                      help=f"register COMPARED onto REFERENCE first ({', '.join(compare.METHODS)}) and use its covariance")
     change.add_argument("--normal-radius", type=_positive_float, nargs="+", required=True,
