@@ -60,7 +60,8 @@ from ._change_registration import (RegistrationCovariance, load_registration, re
                                    save_registration)
 from ._checks import as_points, choice, positive, probability
 from ._frame import local_origin, reduce
-from ._report import ReportMixin, fmt
+from ._lengths import length_text
+from ._report import ReportMixin
 from .cloud import PointCloud
 from .errors import LabkitError
 from .progress import progress_steps
@@ -156,7 +157,7 @@ class M3C2Result(ReportMixin):
         d = self.distance[ok]
         rows = [
             ("core points", f"{n} ({nv} with a distance, {n - nv} without)"),
-            ("cylinder", f"radius {fmt(self.cylinder_radius, 3)}, half length {fmt(self.max_depth, 3)}"),
+            ("cylinder", f"radius {length_text(self.cylinder_radius)}, half length {length_text(self.max_depth)}"),
             ("normal radius", _radius_text(self.normal_radius)),
             ("confidence", f"{self.confidence:.3f} ({_quantile_text(self)}), at least {self.min_points} points "
                            "per cylinder"),
@@ -164,9 +165,9 @@ class M3C2Result(ReportMixin):
         if nv:
             lod = self.lod[ok]
             rows += [
-                ("distance median", fmt(np.median(d), 4)),
-                ("distance 2.5 / 97.5 %", fmt(np.quantile(d, [0.025, 0.975]), 4)),
-                ("LoD median", fmt(np.median(lod[np.isfinite(lod)]) if np.isfinite(lod).any() else np.inf, 4)),
+                ("distance median", length_text(np.median(d), sign=True)),
+                ("distance 2.5 / 97.5 %", " / ".join(length_text(q, sign=True) for q in np.quantile(d, [0.025, 0.975]))),
+                ("LoD median", length_text(np.median(lod[np.isfinite(lod)]) if np.isfinite(lod).any() else np.inf)),
                 ("points per cylinder median", f"{np.median(self.count1[ok]):.0f} / {np.median(self.count2[ok]):.0f}"),
                 ("significant change", f"{ns} of {nv} ({100 * ns / nv:.1f} %): "
                                        f"{int((self.significant & (self.distance > 0)).sum())} up, "
@@ -175,8 +176,8 @@ class M3C2Result(ReportMixin):
         reg = self.registration_variance[ok]
         if np.any(reg != 0):
             finite = np.isfinite(reg)
-            rows.append(("registration term median", fmt(np.sqrt(np.median(reg[finite])) if finite.any() else np.inf,
-                                                         4) + " (sqrt of n^T Sigma_t n)"))
+            rows.append(("registration term median", length_text(np.sqrt(np.median(reg[finite])) if finite.any()
+                                                                 else np.inf) + " (sqrt of n^T Sigma_t n)"))
             if not finite.all():
                 rows.append(("LoD infinite", f"{int((~finite).sum())} cores: the registration does not determine "
                                              "the shift along their normal"))
@@ -398,4 +399,4 @@ def _radius_text(chosen) -> str:
     if not len(vals):
         return "none chosen (normals given, or too few points)"
     uniq, counts = np.unique(vals, return_counts=True)
-    return ", ".join(f"{u:g} ({c})" for u, c in zip(uniq, counts))
+    return ", ".join(f"{length_text(u)} ({c} cores)" for u, c in zip(uniq, counts))

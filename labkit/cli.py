@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__, compare
+from ._lengths import length_text
 from ._checks import count, finite, non_negative, positive, probability
 from ._outputs import save_figure, staged_outputs
 from ._treecache import forget as forget_tree
@@ -34,6 +35,7 @@ from .plotting.change import plot_change_figure
 from .plotting.compare import plot_distance_map, plot_shift_field, symmetric_limits
 from .progress import from_cli
 from .ransac import ransac_sphere
+from .change_defaults import m3c2_parameters
 from .references import load_references
 from .registration_file import save_registration
 from .tiles import MAX_TILES, check_scheduler, neighbour_test, register_tiles
@@ -219,8 +221,17 @@ def _cmd_change(args) -> int:
                 if n.startswith("r") and np.isinf(v)}
         if held:
             print(f"undetermined {', '.join(held)}: prior std {args.held_rotation_std:g} deg in the LoD")
-    result = m3c2(ref, moved, args.spacing, normal_radius=args.normal_radius, cylinder_radius=args.cylinder_radius,
-                  max_depth=args.max_depth, registration_covariance=registration, confidence=args.confidence, quantile=args.quantile,
+        shifts = [n for n, v in zip(registration.parameter_names, np.diag(registration.covariance))
+                  if n.startswith("t") and np.isinf(v)]
+        if shifts and args.held_shift_std is not None:
+            held.update({n: args.held_shift_std for n in shifts})
+            print(f"undetermined {', '.join(shifts)}: prior std {length_text(args.held_shift_std)} in the LoD")
+        elif shifts:
+            print(f"undetermined {', '.join(shifts)}: the LoD is infinite where they move the surface along the "
+                  "normal; --held-shift-std M states a prior (e.g. the survey's horizontal accuracy)")
+    normal_radius, cylinder_radius, max_depth = _change_parameters(ref.xyz, moved, args)
+    result = m3c2(ref, moved, args.spacing, normal_radius=normal_radius, cylinder_radius=cylinder_radius,
+                  max_depth=max_depth, registration_covariance=registration, confidence=args.confidence, quantile=args.quantile,
                   progress=sys.stderr.isatty(), held_std=held)
     print()
     print(result.summary())
@@ -236,6 +247,21 @@ def _cmd_change(args) -> int:
     for path in stage.written:
         print(f"wrote {path}")
     return 0
+
+
+def _change_parameters(ref, moved, args):
+    """Normal radius, cylinder radius and max depth: as given, else chosen from the data (printed with the rule)."""
+    if args.normal_radius and args.cylinder_radius and args.max_depth:
+        return args.normal_radius, args.cylinder_radius, args.max_depth
+    chosen = m3c2_parameters(ref, moved, expected_change=args.expected_change, rng=args.seed)
+    print("\nM3C2 parameters (lengths in m of the metric coordinates; --normal-radius, --cylinder-radius, "
+          "--max-depth override):")
+    given = {"cylinder": args.cylinder_radius, "normal": args.normal_radius, "max depth": args.max_depth}
+    for line in chosen.lines():
+        key = next((k for k in given if line.startswith(k)), None)
+        print(f"  {line if key is None or given[key] is None else key + ': given on the command line'}")
+    return (args.normal_radius or chosen.normal_radius, args.cylinder_radius or chosen.cylinder_radius,
+            args.max_depth or chosen.max_depth)
 
 
 def _registration_for(registration, args):
@@ -478,10 +504,19 @@ def build_parser() -> argparse.ArgumentParser:
                           "its covariance enters the LoD")
     how.add_argument("--register", choices=compare.METHODS, metavar="METHOD",
                      help=f"register COMPARED onto REFERENCE first ({', '.join(compare.METHODS)}) and use its covariance")
-    change.add_argument("--normal-radius", type=_positive_float, nargs="+", required=True,
-                        help="PCA radius for the normals; several: the most planar per core point")
-    change.add_argument("--cylinder-radius", type=_positive_float, required=True, help="cylinder radius")
-    change.add_argument("--max-depth", type=_positive_float, required=True, help="cylinder half length along the normal")
+    change.add_argument("--normal-radius", type=_positive_float, nargs="+",
+                        help="PCA radius for the normals in m; several: the most planar per core point (default: "
+                             "max(cylinder radius, 12.5 x roughness), the normal scale >= 25 x roughness of "
+                             "Lague et al. 2013)")
+    change.add_argument("--cylinder-radius", type=_positive_float,
+                        help="cylinder radius in m (default: median distance to the 30th nearest reference point, "
+                             "about 30 points per cylinder)")
+    change.add_argument("--max-depth", type=_positive_float,
+                        help="cylinder half length along the normal in m (default: max(2 x expected change, "
+                             "cylinder radius))")
+    change.add_argument("--expected-change", type=_positive_float,
+                        help="largest change expected in m, for the default max depth (default: the 99th "
+                             "percentile of the cloud-to-cloud distance compared -> reference)")
     change.add_argument("--spacing", type=_positive_float,
                         help="core points: one reference point per cube of this edge (default: the cylinder radius)")
     change.add_argument("--confidence", type=_probability, default=0.95, help="LoD confidence (default: %(default)s)")
@@ -491,6 +526,9 @@ def build_parser() -> argparse.ArgumentParser:
     change.add_argument("--held-rotation-std", type=_non_negative_float, default=0.02, metavar="DEG",
                         help="prior std (deg) of a rotation the registration left undetermined, as ICP's "
                              "held_rotation_std_deg (default: %(default)s)")
+    change.add_argument("--held-shift-std", type=_non_negative_float, metavar="M",
+                        help="prior std in m of a shift component the registration left undetermined (default: "
+                             "none, the LoD is infinite where it matters)")
     _add_method_options(change)
     change.add_argument("--out", default=".", help="output folder (default: the current folder)")
     change.set_defaults(func=_cmd_change)
