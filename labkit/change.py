@@ -143,9 +143,11 @@ class M3C2Result(ReportMixin):
         return self.z * np.sqrt(self.spread1**2 / self.count1 + self.spread2**2 / self.count2)
 
     def to_cloud(self):
-        """The core points as a :class:`labkit.PointCloud` with ``m3c2_*`` attributes (for LAS/CSV)."""
-        attrs = {"m3c2_distance": self.distance, "m3c2_lod": self.lod,
-                 "m3c2_significant": self.significant.astype(np.uint8),
+        """The core points as a :class:`labkit.PointCloud` with ``distance``, ``lod``, ``significant`` (for LAS/CSV).
+
+        Further attributes: ``m3c2_spread1/2``, ``m3c2_count1/2`` and ``normal_x/y/z``. Lengths in m.
+        """
+        attrs = {"distance": self.distance, "lod": self.lod, "significant": self.significant.astype(np.uint8),
                  "m3c2_spread1": self.spread1, "m3c2_spread2": self.spread2,
                  "m3c2_count1": self.count1.astype(np.int32), "m3c2_count2": self.count2.astype(np.int32),
                  "normal_x": self.normals[:, 0], "normal_y": self.normals[:, 1], "normal_z": self.normals[:, 2]}

@@ -23,19 +23,21 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__, compare
-from ._lengths import length_text
 from ._checks import count, finite, non_negative, positive, probability
+from ._lengths import length_text
 from ._outputs import save_figure, staged_outputs
 from ._treecache import forget as forget_tree
+from .change_defaults import m3c2_parameters
+from .cloud import PointCloud
 from .demo import run_demo
 from .distances import distances_before_after
 from .errors import LabkitError
+from .geotiff import change_geotiff, shift_field_geotiff
 from .io import LAS_SUFFIXES, read_cloud, write_cloud
 from .plotting.change import plot_change_figure
 from .plotting.compare import plot_distance_map, plot_shift_field, symmetric_limits
 from .progress import from_cli
 from .ransac import ransac_sphere
-from .change_defaults import m3c2_parameters
 from .references import load_references
 from .registration_file import save_registration
 from .tiles import MAX_TILES, check_scheduler, neighbour_test, register_tiles
@@ -170,6 +172,7 @@ def _cmd_tiles(args) -> int:
     with staged_outputs(args.out) as stage:
         field.to_csv(stage("shift_field.csv"), test)
         save_figure(ax.figure, stage("shift_field.png"))
+        shift_field_geotiff(field, stage("shift_field.tif"), list(args.source))
     print()
     for path in stage.written:
         print(f"wrote {path}")
@@ -238,11 +241,13 @@ def _cmd_change(args) -> int:
     stem = f"{Path(args.reference).stem}_{Path(args.compared).stem}_m3c2"
     suffix = Path(args.reference).suffix.lower() if Path(args.reference).suffix.lower() in LAS_SUFFIXES else ".laz"
     cores = result.to_cloud()
+    cores = PointCloud(cores.xyz, cores.attributes, crs=ref.crs, units=ref.units, name=stem)  # in the file's units
     fig = plot_change_figure(result, f"M3C2 {Path(args.compared).stem} - {Path(args.reference).stem}")
     with staged_outputs(args.out) as stage:
         write_cloud(cores, stage(stem + suffix), scale=None)
         write_cloud(cores, stage(stem + ".csv"), scale=None)
         save_figure(fig, stage(stem + ".png"))
+        change_geotiff(result, stage(stem + ".tif"), crs=ref.crs, units=ref.units, extent=ref.bounds)
     print()
     for path in stage.written:
         print(f"wrote {path}")
@@ -492,7 +497,7 @@ def build_parser() -> argparse.ArgumentParser:
     change = sub.add_parser("change", help="M3C2 change between two epochs with a level of detection",
                             description="M3C2 distances from REFERENCE to COMPARED at core points, with a level of "
                                         "detection that carries the registration's covariance; writes the core "
-                                        "points (LAS/LAZ with m3c2_distance, m3c2_lod, m3c2_significant), a CSV "
+                                        "points (LAS/LAZ with distance, lod, significant), a CSV, a GeoTIFF "
                                         "and a PNG map of significant change.")
     change.add_argument("reference", help="reference epoch (point-cloud file)")
     change.add_argument("compared", help="compared (later) epoch")
