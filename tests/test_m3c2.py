@@ -396,7 +396,7 @@ def test_cli_change_with_register_icp_writes_cores_csv_and_png(epoch_files, tmp_
     text = capsys.readouterr().out
     assert "Registration result" in text and "M3C2 change" in text
     stem = "als_2014_als_2016_m3c2"
-    assert sorted(p.name for p in out.iterdir()) == [f"{stem}.csv", f"{stem}.laz", f"{stem}.png"]
+    assert sorted(p.name for p in out.iterdir()) == [f"{stem}.csv", f"{stem}.laz", f"{stem}.png", f"{stem}.tif"]
     assert (out / f"{stem}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     las = laspy.read(out / f"{stem}.laz")
     assert {"distance", "lod", "significant"} <= set(las.point_format.extra_dimension_names)
