@@ -38,6 +38,7 @@ from .plotting.change import plot_change_figure
 from .plotting.compare import plot_distance_map, plot_shift_field, symmetric_limits
 from .progress import from_cli
 from .ransac import ransac_sphere
+from .ransac.threshold import estimate_threshold
 from .references import load_references
 from .registration_file import save_registration
 from .tiles import MAX_TILES, check_scheduler, neighbour_test, register_tiles
@@ -61,14 +62,21 @@ def _cmd_sphere(args) -> int:
         # a sphere of unknown size competes with every round object and needs uniform sampling: refuse
         raise LabkitError("labkit sphere needs the size of the target: --radius-range MIN MAX or --radius R "
                           "(in m; e.g. --radius-range 0.1 0.2 for a 0.145 m target)")
-    result = ransac_sphere(xyz, args.threshold, p=args.p, rng=args.seed,
+    estimate = estimate_threshold(xyz, rng=args.seed)
+    threshold = estimate.threshold if args.threshold is None else args.threshold
+    print(f"inlier {estimate.text()} (estimated from the data; --threshold overrides)" if args.threshold is None
+          else f"threshold: {1000 * threshold:g} mm (given; the data's noise suggests {estimate.text()})")
+    result = ransac_sphere(xyz, threshold, p=args.p, rng=args.seed,
                            radius_range=None if args.radius_range is None else tuple(args.radius_range),
                            nominal_radius=args.radius, hold_radius=args.hold_radius, sigma=args.sigma,
                            station=station)
     print()
     print(result.summary())
     if not result.found:
-        print(f"\nlabkit sphere: no sphere found in {args.file}: {result.reason}", file=sys.stderr)
+        hint = (f"; tried with threshold {1000 * threshold:g} mm: try --threshold {2 * threshold:g} (m) if the "
+                "noise is larger than the estimate" if args.threshold is None else
+                f"; tried with --threshold {threshold:g} m: try --threshold {max(estimate.threshold, 2 * threshold):g}")
+        print(f"\nlabkit sphere: no sphere found in {args.file}: {result.reason}{hint}", file=sys.stderr)
         return 1
     print()
     print(result.fit.summary())
@@ -406,8 +414,9 @@ def build_parser() -> argparse.ArgumentParser:
                             description="Detect a sphere in a point cloud (ASCII xyz, LAS/LAZ, npy/npz, PLY) with "
                                         "RANSAC and adjust it in the Gauss-Helmert model.")
     sphere.add_argument("file", help="point-cloud file")
-    sphere.add_argument("--threshold", type=_positive_float, default=0.003,
-                        help="inlier threshold t in m (about 2-3 x the noise; default: %(default)s)")
+    sphere.add_argument("--threshold", type=_positive_float, default=None,
+                        help="inlier threshold t in m (about 2-3 x the noise; default: 3 x the noise estimated "
+                             "from 8-point neighbourhoods, see labkit.ransac.threshold)")
     sphere.add_argument("--radius-range", type=_positive_float, nargs=2, metavar=("MIN", "MAX"),
                         help="admissible radii in m (this or --radius is required)")
     sphere.add_argument("--radius", type=_positive_float, help="nominal radius of the target in m")
