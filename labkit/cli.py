@@ -113,7 +113,7 @@ def _cmd_register(args) -> int:
     print()
     print(result.summary())
     print()
-    print(_rotation_text(result))
+    print(_rotation_text(result, _frame_text(source)))
     change = distances_before_after(source, target, result, progress=progress)  # reuses ICP's target tree
     forget_tree()  # then frees it before the moved cloud is written
     print()
@@ -298,9 +298,19 @@ def _check_dof(methods, dof: str) -> None:
 
 
 # --------------------------------------------------------------------------- text and figures
-def _rotation_text(result) -> str:
+def _frame_text(cloud) -> str:
+    """What the coordinates are: the CRS's name (metres as read), or a local frame."""
+    if not cloud.crs:
+        return "a local frame (no CRS in the file), m"
+    name = cloud.crs.split('"')[1] if cloud.crs.count('"') >= 2 else cloud.crs
+    f = cloud.units.factors
+    converted = cloud.units.converted and f is not None and not np.allclose(f, 1.0)
+    return f"{name}, coordinates in m" + (f" (converted from {cloud.units.label(native=True)})" if converted else "")
+
+
+def _rotation_text(result, frame: str = "the input's coordinates") -> str:
     """The 4x4 matrix and, for a rigid result, the angles with standard deviations (arcsec)."""
-    lines = ["4x4 transformation (source -> target, caller's frame):",
+    lines = [f"4x4 transformation (source -> target) in {frame}:",
              np.array2string(result.matrix, precision=6, suppress_small=True, max_line_width=120)]
     names = tuple(result.parameter_names)
     if "rx" in names:
