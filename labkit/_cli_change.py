@@ -3,6 +3,7 @@ orientation, priors for undetermined parameters, and the name of the coordinate 
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -26,9 +27,12 @@ def change_parameters(ref, moved, args):
             args.max_depth or chosen.max_depth)
 
 
-def registration_for(registration, args):
+def registration_for(registration, args, crs=None):
     """The registration file oriented compared -> reference (a file of ``labkit register REF CMP`` is inverted)."""
     names = ", ".join(registration.parameter_names)
+    if crs is not None and getattr(registration, "crs", None) and not same_crs(registration.crs, crs):
+        warnings.warn(f"the registration file {args.registration} was made in another CRS "
+                      f"({registration.crs[:60]}...) than {args.reference}", stacklevel=2)
     roles = dict(getattr(registration, "inputs", ()))
     same = lambda a, b: a is not None and Path(a).resolve() == Path(b).resolve()  # noqa: E731
     if same(roles.get("source"), args.reference) and same(roles.get("target"), args.compared):
@@ -37,6 +41,16 @@ def registration_for(registration, args):
         return registration.inverse()
     print(f"registration {args.registration}: {names} with covariance (compared -> reference)")
     return registration
+
+
+def same_crs(a: str, b: str) -> bool:
+    """Two CRS texts name the same CRS (pyproj), or are equal text where pyproj cannot parse them."""
+    import pyproj
+
+    try:
+        return pyproj.CRS.from_user_input(a).equals(pyproj.CRS.from_user_input(b), ignore_axis_order=True)
+    except pyproj.exceptions.CRSError:
+        return a == b
 
 
 def held_priors(registration, args) -> dict:

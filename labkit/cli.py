@@ -216,7 +216,7 @@ def _cmd_change(args) -> int:
     print(f"reference {args.reference}: {len(ref)} points; compared {args.compared}: {len(cmp_)} points")
     registration = None
     if args.registration:
-        registration = registration_for(load_registration(args.registration), args)
+        registration = registration_for(load_registration(args.registration), args, ref.crs)
     elif args.register:
         method = compare.standard_methods([args.register], dof=args.dof, extent=args.extent, max_points=args.max_points,
                                   rng=args.seed)[args.register]
