@@ -80,6 +80,8 @@ def test_autzen_register_then_change_with_defaults_writes_geotiff(tmp_path, caps
     assert re.search(r"distance median\s+[+-]\d+\.\d+ (mm|m)\b", text)
     # Autzen's NN spacing is about 1.1 m: about 30 points lie within 3-4.5 m
     assert 2.5 < float(radius.group(1)) < 5.0
+    counts = re.search(r"points per cylinder median\s+(\d+) / (\d+)", text)
+    assert 20 <= int(counts.group(1)) <= 45  # the rule's promise: about 30 reference points per cylinder
     stem = "autzen-bmx-2010_autzen-bmx-2023_m3c2"
     _check_change_geotiff(out / f"{stem}.tif", out / f"{stem}.las", a, text)
 
