@@ -127,7 +127,7 @@ def _cmd_register(args) -> int:
         write_cloud(moved, stage(f"{stem}_registered{suffix}"), progress=progress)
         save_figure(fig, stage(f"{stem}_distances.png"))
         save_registration(stage("registration.json"), result, crs=source.crs,
-                          inputs={"source": args.source, "target": args.target})
+                          inputs={"source": str(Path(args.source).resolve()), "target": str(Path(args.target).resolve())})
     print()
     for path in stage.written:
         print(f"wrote {path}")

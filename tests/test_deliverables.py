@@ -69,7 +69,8 @@ def test_autzen_register_then_change_with_defaults_writes_geotiff(tmp_path, caps
     a, b = str(REAL / "epochs" / "autzen-bmx-2010.las"), str(REAL / "epochs" / "autzen-bmx-2023.las")
     assert main(["register", b, a, "--out", str(tmp_path / "R"), "--quiet"]) == 0
     reg = load_registration(tmp_path / "R" / "registration.json")
-    assert dict(reg.inputs) == {"source": b, "target": a} and reg.crs == read_cloud(b).crs
+    assert dict(reg.inputs) == {"source": str(Path(b).resolve()), "target": str(Path(a).resolve())}
+    assert reg.crs == read_cloud(b).crs
     capsys.readouterr()
     out = tmp_path / "C"
     assert main(["change", a, b, "--registration", str(tmp_path / "R" / "registration.json"),

@@ -96,3 +96,14 @@ def test_inverse_maps_back_and_its_lod_term_matches_monte_carlo(tmp_path):
         moved.append(np.linalg.solve(M, np.c_[pts, np.ones(2)].T).T[:, :3])
     spread = np.std(np.einsum("kij,ij->ki", np.array(moved), nrm), axis=0, ddof=1)
     assert np.all((spread / stated > 0.9) & (spread / stated < 1.1)), (spread, stated)
+
+
+def test_change_orients_the_file_by_its_inputs(tmp_path):
+    from labkit._cli_change import _maps_reference_onto_compared as inverted
+
+    a, b = str(tmp_path / "2014" / "tile.laz"), str(tmp_path / "2016" / "tile.laz")
+    assert inverted({"source": a, "target": b}, a, b) and not inverted({"source": b, "target": a}, a, b)
+    assert not inverted({}, a, b)
+    # moved elsewhere: by file name, unless the names cannot tell the roles apart
+    assert inverted({"source": "/old/x_2014.laz", "target": "/old/x_2016.laz"}, "x_2014.laz", "x_2016.laz")
+    assert not inverted({"source": "/old/tile.laz", "target": "/other/tile.laz"}, a, b)
