@@ -122,7 +122,8 @@ def _cmd_register(args) -> int:
     moved = source.with_xyz(result.apply(source.xyz))
     suffix = Path(args.source).suffix.lower() if Path(args.source).suffix.lower() in LAS_SUFFIXES else ".laz"
     stem = Path(args.source).stem
-    fig = _distance_figure(source, change, f"{stem} -> {Path(args.target).stem} ({result.method})", args.seed)
+    fig = _distance_figure(source, change, f"{stem} -> {Path(args.target).stem} ({result.method})\n"
+                                           f"{frame_text(source)}", args.seed)
     with staged_outputs(args.out) as stage:
         write_cloud(moved, stage(f"{stem}_registered{suffix}"), progress=progress)
         save_figure(fig, stage(f"{stem}_distances.png"))
@@ -235,7 +236,8 @@ def _cmd_change(args) -> int:
     suffix = Path(args.reference).suffix.lower() if Path(args.reference).suffix.lower() in LAS_SUFFIXES else ".laz"
     cores = result.to_cloud()
     cores = PointCloud(cores.xyz, cores.attributes, crs=ref.crs, units=ref.units, name=stem)  # in the file's units
-    fig = plot_change_figure(result, f"M3C2 {Path(args.compared).stem} - {Path(args.reference).stem}")
+    fig = plot_change_figure(result, f"M3C2 {Path(args.compared).stem} - {Path(args.reference).stem}\n"
+                                     f"{frame_text(ref)}")
     with staged_outputs(args.out) as stage:
         write_cloud(cores, stage(stem + suffix), scale=None)
         write_cloud(cores, stage(stem + ".csv"), scale=None)
