@@ -112,11 +112,12 @@ def _cmd_register(args) -> int:
     print()
     print(result.summary())
     print()
-    print(_rotation_text(result, frame_text(source)))
+    print(_rotation_text(result))
     change = distances_before_after(source, target, result, progress=progress)  # reuses ICP's target tree
     forget_tree()  # then frees it before the moved cloud is written
     print()
     print(change.summary())
+    print(f"\ncoordinates of the 4x4 and the outputs: {frame_text(source)}")
 
     # Outputs: the transformed source (LAS/LAZ, attributes kept) and a distance-coloured top view
     moved = source.with_xyz(result.apply(source.xyz))
@@ -257,7 +258,7 @@ def _check_dof(methods, dof: str) -> None:
 
 
 # --------------------------------------------------------------------------- text and figures
-def _rotation_text(result, frame: str = "the input's coordinates") -> str:
+def _rotation_text(result, frame: str = "the input's coordinates, m") -> str:
     """The 4x4 matrix and, for a rigid result, the angles with standard deviations (arcsec)."""
     lines = [f"4x4 transformation (source -> target) in {frame}:",
              np.array2string(result.matrix, precision=6, suppress_small=True, max_line_width=120)]
