@@ -491,6 +491,9 @@ def build_parser() -> argparse.ArgumentParser:
     change.add_argument("--expected-change", type=_positive_float,
                         help="largest change expected in m, for the default max depth (default: the 99th "
                              "percentile of the cloud-to-cloud distance compared -> reference)")
+    change.add_argument("--held-shift-std", type=_non_negative_float, metavar="M",
+                        help="prior std in m of a shift component the registration left undetermined (default: "
+                             "none, the LoD is infinite where it matters)")
     change.add_argument("--spacing", type=_positive_float,
                         help="core points: one reference point per cube of this edge (default: the cylinder radius)")
     change.add_argument("--confidence", type=_probability, default=0.95, help="LoD confidence (default: %(default)s)")
@@ -500,9 +503,6 @@ def build_parser() -> argparse.ArgumentParser:
     change.add_argument("--held-rotation-std", type=_non_negative_float, default=0.02, metavar="DEG",
                         help="prior std (deg) of a rotation the registration left undetermined, as ICP's "
                              "held_rotation_std_deg (default: %(default)s)")
-    change.add_argument("--held-shift-std", type=_non_negative_float, metavar="M",
-                        help="prior std in m of a shift component the registration left undetermined (default: "
-                             "none, the LoD is infinite where it matters)")
     _add_method_options(change)
     change.add_argument("--out", default=".", help="output folder (default: the current folder)")
     change.set_defaults(func=_cmd_change)
