@@ -56,12 +56,13 @@ def _maps_reference_onto_compared(roles, reference, compared) -> bool:
 
 
 def same_crs(a: str, b: str) -> bool:
-    """Two CRS texts name the same CRS (pyproj), or are equal text where pyproj cannot parse them."""
-    import pyproj
+    """Two CRS texts name the same CRS (GDAL/PROJ through rasterio), or are equal text where they cannot be parsed."""
+    from rasterio.crs import CRS
+    from rasterio.errors import CRSError
 
     try:
-        return pyproj.CRS.from_user_input(a).equals(pyproj.CRS.from_user_input(b), ignore_axis_order=True)
-    except pyproj.exceptions.CRSError:
+        return CRS.from_user_input(a) == CRS.from_user_input(b)
+    except CRSError:
         return a == b
 
 
