@@ -30,6 +30,7 @@ __all__ = ["change_geotiff", "geotiff_crs", "shift_field_geotiff"]
 
 CHANGE_BANDS = ("distance", "lod", "significant")
 SHIFT_BANDS = ("dx", "dy", "dz", "std_dx", "std_dy", "std_dz", "status")
+STATUS_CODES = {"ok": 1, "undetermined": 2, "not converged": 3, "too few points": 4, "failed": 5}
 
 
 def geotiff_crs(crs):
@@ -140,8 +141,9 @@ def shift_field_geotiff(field, path, sources=None, *, crs=None, units=None):
     """Write a tile shift field as a GeoTIFF at tile resolution: dx, dy, dz, their std (m) and status.
 
     One pixel per tile of the regular grid: the shift at the tile's centroid (eq. 1 of
-    notebook 08) and its standard deviations (inf: not determined); ``status`` is 1 for a
-    registered tile, 0 for one skipped or failed (then the shifts are NaN).
+    notebook 08), NaN for a component the tile's data do not determine, and its standard
+    deviations (inf: not determined; NaN: not registered); ``status`` codes the tile's status:
+    1 ok, 2 undetermined, 3 not converged, 4 too few points, 5 failed (0 any other).
 
     Parameters
     ----------
@@ -195,12 +197,16 @@ def shift_field_geotiff(field, path, sources=None, *, crs=None, units=None):
     data = np.full((len(SHIFT_BANDS), nrow, ncol), np.nan)
     col = np.round((bounds[:, 0] - x0) / size).astype(int)
     row = np.round((y1 - bounds[:, 3]) / size).astype(int)
-    ok = field.ok
-    data[0:3, row[ok], col[ok]] = field.translations[ok].T
-    data[3:6, row[ok], col[ok]] = field.std[ok].T
-    data[6, row, col] = ok.astype(np.float64)
+    shifts = field.determined_translations  # NaN: a component the tile's data do not determine
+    registered = np.isfinite(field.translations).all(axis=1)
+    std = np.where(np.isnan(shifts) & registered[:, None], np.inf, field.std)
+    data[0:3, row, col] = shifts.T
+    data[3:6, row, col] = np.where(registered[:, None], std, np.nan).T
+    names = [getattr(t, "verdict", t.status) for t in field.tiles]
+    data[6, row, col] = [STATUS_CODES.get(n, 0) for n in names]
+    codes = ", ".join(f"{v} {k}" for k, v in STATUS_CODES.items())
     descriptions = ("dx (m)", "dy (m)", "dz (m)", "std dx (m, inf: not determined)", "std dy (m, inf: not determined)",
-                    "std dz (m, inf: not determined)", "status (1 registered, 0 skipped or failed)")
+                    "std dz (m, inf: not determined)", f"status ({codes}, 0 other)")
     return _write(path, (data, x0, y1, size), descriptions, SHIFT_BANDS, crs, units, "tile shift field (labkit)")
 
 
