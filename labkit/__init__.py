@@ -68,6 +68,11 @@ _EXPORTS = {
     # change between epochs (issue 15)
     "m3c2": "labkit.change",
     "M3C2Result": "labkit.change",
+    "m3c2_parameters": "labkit.change_defaults",
+    # deliverables: the registration file
+    "RegistrationFile": "labkit.registration_file",
+    "save_registration": "labkit.registration_file",
+    "load_registration": "labkit.registration_file",
     # notebooks
     "setup_notebook": "labkit.notebook",
 }
