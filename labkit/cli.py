@@ -3,7 +3,9 @@
 Each sub-command is a small function taking the parsed arguments. Bad input
 (a missing or corrupt file, an invalid option or number) ends with exactly one
 line on stderr and exit status 2, never a traceback; ``labkit sphere`` exits
-with 1 when no sphere is found; an unexpected internal error prints one line
+with 1 when no sphere is found; ``labkit register`` exits with 4 when the
+registration did not converge or determines no component (one line says why
+and what to try); an unexpected internal error prints one line
 and exits with 3 (``LABKIT_TRACEBACK=1`` shows the traceback).
 
 Output files are staged next to their destination and moved into place only
@@ -90,17 +92,25 @@ def _sphere_station(xyz, given, off):
 def _cmd_register(args) -> int:
 
     _check_dof([args.method], args.dof)
+    if args.max_iterations is not None and args.method == "consensus":
+        raise LabkitError("--max-iterations applies to the icp methods (icp*, consensus+icp); --method consensus "
+                          "stops at its own search budget")
     progress = from_cli(args.quiet, args.progress)  # on stderr: reading, ICP iterations, distances, writing
     source = read_cloud(args.source, progress=progress)
     target = read_cloud(args.target, progress=progress)
     print(f"source {args.source}: {len(source)} points; target {args.target}: {len(target)} points")
     method = compare.standard_methods([args.method], dof=args.dof, extent=args.extent, max_points=args.max_points,
-                                      rng=args.seed, reach=args.reach)[args.method]
+                                      rng=args.seed, reach=args.reach,
+                                      max_iterations=args.max_iterations)[args.method]
     result = method(source, target, progress=progress)
     print()
     print(result.summary())
     print()
     print(_rotation_text(result))
+    why = register_verdict(result)
+    if why is not None:  # not converged, or no component determined: a verdict, not a result to apply
+        print(f"labkit register: {why}; nothing written", file=sys.stderr)
+        return EXIT_NOT_CONVERGED
     change = distances_before_after(source, target, result, progress=progress)  # reuses ICP's target tree
     forget_tree()  # then frees it before the moved cloud is written
     print()
@@ -118,6 +128,45 @@ def _cmd_register(args) -> int:
     for path in stage.written:
         print(f"wrote {path}")
     return 0
+
+
+#: Exit status of ``labkit register`` when the registration did not converge or determines no component.
+EXIT_NOT_CONVERGED = 4
+
+
+def register_verdict(result) -> str | None:
+    """Why a registration result must not be used (one line with what to try), or None when it may.
+
+    Not usable: the method did not converge, or the data determine none of the shift
+    components (dX, dY, dZ all held, std inf). A result that determines some components
+    (e.g. only dZ on flat ground) is usable; its summary names the undetermined ones.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.cli import register_verdict
+    >>> from labkit.registration import RegistrationResult
+    >>> res = RegistrationResult(np.zeros(3), np.eye(3), np.zeros(3), np.eye(3) * 1e-6, ("tx", "ty", "tz"),
+    ...                          1.0, 500, 1.0, False, 50, method="icp", message="not converged after 50 iterations")
+    >>> register_verdict(res).split(";")[0]
+    'not converged: icp stopped: not converged after 50 iterations'
+    """
+    method = (getattr(result, "method", "") or "the method").split(" (")[0]
+    if not result.converged:
+        stop = _one_line(getattr(result, "message", "")).split(";")[0] or f"after {result.iterations} iterations"
+        if "consensus" in method and "icp" not in method:
+            advice = "try a smaller --extent or fewer --max-points (the search ran out of budget)"
+        else:
+            advice = (f"try --max-iterations {max(2 * int(result.iterations), 100)}; if the shift may exceed the "
+                      "1 m matching distance, --reach R or --method consensus+icp")
+        return f"not converged: {method} stopped: {stop}; {advice}"
+    std = np.asarray(result.translation_std, dtype=float)
+    deg = getattr(result, "degeneracy", None)
+    determined = np.isfinite(std) & (np.ones(3, bool) if deg is None else np.asarray(deg.axis_determined, bool))
+    if not determined.any():
+        return ("not usable: the data determine none of dX, dY, dZ (all held, std inf): the overlap is too "
+                "small or featureless; try a larger overlap, or the whole survey rather than a part")
+    return None
 
 
 def _cmd_compare(args) -> int:
@@ -380,7 +429,10 @@ def build_parser() -> argparse.ArgumentParser:
     reg = sub.add_parser("register", help="register SOURCE onto TARGET (ICP or maximum consensus)",
                          description="Register SOURCE onto TARGET; print the transformation with standard "
                                      "deviations and the degeneracy report; write the transformed source and "
-                                     "a distance-coloured PNG.")
+                                     "a distance-coloured PNG.",
+                         epilog="Exit status: 0 done; 2 bad input; 3 internal error; 4 the registration did not "
+                                "converge or determines none of dX, dY, dZ (one line on stderr says why and what "
+                                "to try; nothing is written).")
     reg.add_argument("source", help="point cloud to move (e.g. the later epoch)")
     reg.add_argument("target", help="reference point cloud")
     reg.add_argument("--method", choices=compare.METHODS, default="icp",
@@ -392,6 +444,9 @@ def build_parser() -> argparse.ArgumentParser:
     reg.add_argument("--reach", type=_positive_float, default=None,
                      help="icp methods: largest expected shift in m; beyond the 1 m matching distance a "
                           "coarse-to-fine pyramid (voxel levels, wider gates) runs first (default: none)")
+    reg.add_argument("--max-iterations", type=_count, default=None, metavar="N",
+                     help="icp methods: stop after N iterations (default: ICP's own, 50); a run that stops "
+                          "before converging exits with status 4")
     reg.add_argument("--out", default=".", help="output folder (default: the current folder)")
     shown = reg.add_mutually_exclusive_group()
     shown.add_argument("--quiet", action="store_true",
@@ -491,7 +546,8 @@ def _one_line(text) -> str:
 def main(argv=None) -> int:
     """Run ``labkit`` with the arguments ``argv`` (default: the command line); return the exit status.
 
-    0: done; 1: ``labkit sphere`` found no sphere; 2: bad input (one line on stderr); 3: an internal error.
+    0: done; 1: ``labkit sphere`` found no sphere; 2: bad input (one line on stderr); 3: an internal error;
+    4: ``labkit register``'s registration did not converge or determines no component (:data:`EXIT_NOT_CONVERGED`).
 
     Examples
     --------
