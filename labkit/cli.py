@@ -39,6 +39,7 @@ from .ransac import ransac_sphere
 from .references import load_references
 from .tiles import MAX_TILES, check_scheduler, neighbour_test, register_tiles
 from .transforms import angles_from_rotation
+from .verdict import EXIT_NOT_CONVERGED, register_verdict
 
 PLOT_POINTS = 150_000  # at most this many points in a top-view figure
 
@@ -128,45 +129,6 @@ def _cmd_register(args) -> int:
     for path in stage.written:
         print(f"wrote {path}")
     return 0
-
-
-#: Exit status of ``labkit register`` when the registration did not converge or determines no component.
-EXIT_NOT_CONVERGED = 4
-
-
-def register_verdict(result) -> str | None:
-    """Why a registration result must not be used (one line with what to try), or None when it may.
-
-    Not usable: the method did not converge, or the data determine none of the shift
-    components (dX, dY, dZ all held, std inf). A result that determines some components
-    (e.g. only dZ on flat ground) is usable; its summary names the undetermined ones.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> from labkit.cli import register_verdict
-    >>> from labkit.registration import RegistrationResult
-    >>> res = RegistrationResult(np.zeros(3), np.eye(3), np.zeros(3), np.eye(3) * 1e-6, ("tx", "ty", "tz"),
-    ...                          1.0, 500, 1.0, False, 50, method="icp", message="not converged after 50 iterations")
-    >>> register_verdict(res).split(";")[0]
-    'not converged: icp stopped: not converged after 50 iterations'
-    """
-    method = (getattr(result, "method", "") or "the method").split(" (")[0]
-    if not result.converged:
-        stop = _one_line(getattr(result, "message", "")).split(";")[0] or f"after {result.iterations} iterations"
-        if "consensus" in method and "icp" not in method:
-            advice = "try a smaller --extent or fewer --max-points (the search ran out of budget)"
-        else:
-            advice = (f"try --max-iterations {max(2 * int(result.iterations), 100)}; if the shift may exceed the "
-                      "1 m matching distance, --reach R or --method consensus+icp")
-        return f"not converged: {method} stopped: {stop}; {advice}"
-    std = np.asarray(result.translation_std, dtype=float)
-    deg = getattr(result, "degeneracy", None)
-    determined = np.isfinite(std) & (np.ones(3, bool) if deg is None else np.asarray(deg.axis_determined, bool))
-    if not determined.any():
-        return ("not usable: the data determine none of dX, dY, dZ (all held, std inf): the overlap is too "
-                "small or featureless; try a larger overlap, or the whole survey rather than a part")
-    return None
 
 
 def _cmd_compare(args) -> int:
@@ -311,15 +273,22 @@ def _rotation_text(result) -> str:
 
 
 def _print_tiles(field, test) -> None:
+    """The tile table: a component the tile does not determine is '-' (empty in the CSV), never a number."""
     print("\n  row col        dX        dY        dZ   sX (mm) sY (mm) sZ (mm)  area  status")
-    for i, (t, s) in enumerate(zip(field.tiles, field.std)):
-        if t.ok:
-            print(f"  {t.tile.row:3d} {t.tile.col:3d} "
-                  + " ".join(f"{v:+9.4f}" if np.isfinite(sd) else f"{'undet.':>9s}" for v, sd in zip(t.translation, s))
-                  + " " + " ".join(f"{1000 * v:7.1f}" for v in s) + f"  {test.areas[i]:4d}  ok")
+    det, std, flagged = field.determined, field.std, test.disagreeing
+    for i, t in enumerate(field.tiles):
+        head = f"  {t.tile.row:3d} {t.tile.col:3d} "
+        if t.usable:
+            shift = " ".join(f"{v:+9.4f}" if d else f"{'-':>9s}" for v, d in zip(t.translation, det[i]))
+            sd = " ".join(f"{1000 * v:7.1f}" if d else f"{'-':>7s}" for v, d in zip(std[i], det[i]))
+            note = "" if t.ok else " (" + "".join(a for a, d in zip("XYZ", det[i]) if not d) + " not determined)"
+            flag = "  DISAGREES with neighbours" if flagged[i] else ""
+            print(head + shift + " " + sd + f"  {test.areas[i]:4d}  {t.verdict}{note}{flag}")
         else:
-            print(f"  {t.tile.row:3d} {t.tile.col:3d} " + " " * 60 + f"  {t.status}: {t.message}")
-    if len(test.pairs) and test.agree.mean() < 0.5 and test.extra_std == 0:
+            why = t.message.split(";")[0]
+            print(head + " " * 60 + f"  {t.verdict}: {why}")
+    tested = test.dof > 0
+    if tested.any() and test.agree[tested].mean() < 0.5 and test.extra_std == 0:
         print("\nMost neighbours disagree. The formal standard deviations of a registration ignore systematic "
               "effects;\nan extra standard deviation per tile (e.g. --extra-std 0.005) makes the test realistic.")
 

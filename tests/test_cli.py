@@ -102,10 +102,12 @@ def test_register_icp_writes_moved_cloud_and_png(files, tmp_path, capsys):
 
 
 def test_register_consensus_and_rigid(files, tmp_path, capsys):
-    assert main(["register", str(files["src"]), str(files["tgt"]), "--method", "consensus", "--max-points", "800",
-                 "--out", str(tmp_path)]) == 0
-    out = capsys.readouterr().out
+    code = main(["register", str(files["src"]), str(files["tgt"]), "--method", "consensus", "--max-points", "800",
+                 "--out", str(tmp_path)])
+    out, err = capsys.readouterr()
     assert "max_consensus" in out
+    # on a loaded machine the search may spend its time budget first: then a verdict (4), never a silent 0
+    assert code == 0 or (code == 4 and "not converged" in err and "time budget" in err), err
     np.testing.assert_allclose(_shift(out), files["truth"], atol=0.03)
     assert main(["register", str(files["src"]), str(files["tgt"]), "--dof", "rigid", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out

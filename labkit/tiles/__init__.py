@@ -35,10 +35,11 @@ from __future__ import annotations
 
 from ..coherent_areas import CORRECTIONS
 from ..io import LAS_SUFFIXES
-from .field import NeighbourTest, ShiftField, TileShift, neighbour_test
+from .field import STATUSES, NeighbourTest, ShiftField, TileShift, neighbour_test, tile_status
 from .grid import MAX_TILES, Tile, tile_grid, write_tiles
 from .register import register_tile, register_tiles
 from .schedule import SCHEDULERS, check_scheduler
 
-__all__ = ["CORRECTIONS", "LAS_SUFFIXES", "MAX_TILES", "SCHEDULERS", "NeighbourTest", "ShiftField", "Tile", "TileShift",
-           "check_scheduler", "neighbour_test", "register_tile", "register_tiles", "tile_grid", "write_tiles"]
+__all__ = ["CORRECTIONS", "LAS_SUFFIXES", "MAX_TILES", "SCHEDULERS", "STATUSES", "NeighbourTest", "ShiftField", "Tile",
+           "TileShift", "check_scheduler", "neighbour_test", "register_tile", "register_tiles", "tile_grid",
+           "tile_status", "write_tiles"]
