@@ -157,8 +157,11 @@ def _cmd_compare(args) -> int:
 def _cmd_tiles(args) -> int:
 
     _check_dof([args.method], args.dof)
+    if args.max_iterations is not None and args.method == "consensus":
+        raise LabkitError("--max-iterations applies to the icp methods (icp*, consensus+icp); --method consensus "
+                          "stops at its own search budget")
     method = compare.standard_methods([args.method], dof=args.dof, extent=args.extent, max_points=args.max_points,
-                              rng=args.seed)[args.method]
+                              rng=args.seed, max_iterations=args.max_iterations)[args.method]
     scheduler = args.scheduler or default_scheduler()
     results = Path(args.results) if args.results else Path(args.out) / "tiles"
     field = register_tiles(list(args.source), list(args.target), method,
@@ -438,7 +441,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     tiles = sub.add_parser("tiles", help="register tile by tile and test neighbouring tiles (shift field)",
                            description="Cut two surveys into square tiles, register every tile, test whether "
-                                       "neighbouring tiles agree; write the shift field as PNG and CSV.")
+                                       "neighbouring tiles agree; write the shift field as PNG and CSV. A tile is "
+                                       "'ok' only when its registration converged and its data determine dX, dY "
+                                       "and dZ; 'undetermined' tiles give only the components they determine "
+                                       "(the others are empty in the CSV), 'not converged' tiles none.")
     tiles.add_argument("source", nargs="+",
                        help="point-cloud files, folders of LAS/LAZ tiles or globs ('2016/*.laz') of the epoch to move")
     tiles.add_argument("--target", nargs="+", required=True,
@@ -450,6 +456,9 @@ def build_parser() -> argparse.ArgumentParser:
     tiles.add_argument("--min-points", type=_count, default=200,
                        help="fewer points: tile skipped (default: %(default)s)")
     tiles.add_argument("--method", choices=compare.METHODS, default="icp", help="registration per tile (default: %(default)s)")
+    tiles.add_argument("--max-iterations", type=_count, default=None, metavar="N",
+                       help="icp methods: stop after N iterations (default: ICP's own, 50); a tile that stops "
+                            "before converging is 'not converged' and gives no shift")
     tiles.add_argument("--alpha", type=_probability, default=0.05, help="test level (default: %(default)s)")
     tiles.add_argument("--extra-std", type=_non_negative_float, default=0.0,
                        help="extra std per tile in m for the neighbour test")
