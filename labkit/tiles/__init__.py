@@ -6,6 +6,13 @@ shifts differ by more than their combined uncertainty do not move together;
 tiles linked by agreeing neighbours, each fitting its area's common shift, form
 *coherent areas* (the tests and their correction: :mod:`labkit.coherent_areas`).
 
+A tile is ``ok`` only when its registration converged and its data determine
+every component of its shift; otherwise it is ``undetermined`` (it gives the
+components it determines, the others are NaN / empty in the CSV), ``not
+converged`` (no shift at all), ``too few points`` or ``failed``
+(:data:`STATUSES`, :func:`tile_status`). A tile that disagrees with most of its
+tested neighbours is flagged (:attr:`NeighbourTest.disagreeing`).
+
 The per-tile work runs on Dask: one ``dask.delayed`` task per tile, computed by
 a local scheduler, a ``distributed.LocalCluster`` started for the run, a running
 cluster named by its address (``tcp://HOST:PORT``) or any Client passed in. With
