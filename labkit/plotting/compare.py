@@ -291,8 +291,8 @@ def plot_shift_field(field, *, ax=None, test=None, scale=None, cmap=CMAP_SEQUENT
         ax.figure.colorbar(q, ax=ax, label="|shift| of the determined components (mm)", shrink=0.8)
         if h > 0:
             ref = 10 ** np.floor(np.log10(h))
-            ax.quiverkey(q, 1.0, 1.02, ref, f"{1000 * ref:g} mm horizontal", labelpos="W", coordinates="axes",
-                         fontproperties={"size": "small"})
+            ax.quiverkey(q, 0.7, 1.03, ref, f"{1000 * ref:g} mm horizontal", labelpos="E", coordinates="axes",
+                         fontproperties={"size": "small"})  # right of the left-aligned title, inside the axes' width
     if test is not None:
         _draw_disagreement(ax, field, test, xy, font)
     _status_legend(ax, field, flagged, test is not None and not test.agree[test.dof > 0].all())
