@@ -93,9 +93,7 @@ def _sphere_station(xyz, given, off):
 def _cmd_register(args) -> int:
 
     _check_dof([args.method], args.dof)
-    if args.max_iterations is not None and args.method == "consensus":
-        raise LabkitError("--max-iterations applies to the icp methods (icp*, consensus+icp); --method consensus "
-                          "stops at its own search budget")
+    _check_max_iterations(args.method, args.max_iterations)
     progress = from_cli(args.quiet, args.progress)  # on stderr: reading, ICP iterations, distances, writing
     source = read_cloud(args.source, progress=progress)
     target = read_cloud(args.target, progress=progress)
@@ -157,9 +155,7 @@ def _cmd_compare(args) -> int:
 def _cmd_tiles(args) -> int:
 
     _check_dof([args.method], args.dof)
-    if args.max_iterations is not None and args.method == "consensus":
-        raise LabkitError("--max-iterations applies to the icp methods (icp*, consensus+icp); --method consensus "
-                          "stops at its own search budget")
+    _check_max_iterations(args.method, args.max_iterations)
     method = compare.standard_methods([args.method], dof=args.dof, extent=args.extent, max_points=args.max_points,
                               rng=args.seed, max_iterations=args.max_iterations)[args.method]
     scheduler = args.scheduler or default_scheduler()
@@ -255,6 +251,13 @@ def _check_dof(methods, dof: str) -> None:
     if "consensus" in methods and dof == "rigid":
         raise LabkitError("--method consensus estimates a translation only; use --dof translation, "
                           "or --method consensus+icp / icp for a rigid transformation")
+
+
+def _check_max_iterations(method: str, max_iterations) -> None:
+    """``--max-iterations`` bounds ICP; refuse it with ``--method consensus`` rather than ignore it."""
+    if max_iterations is not None and method == "consensus":
+        raise LabkitError("--max-iterations applies to the icp methods (icp*, consensus+icp); --method consensus "
+                          "stops at its own search budget")
 
 
 # --------------------------------------------------------------------------- text and figures
