@@ -3,7 +3,9 @@
 Each sub-command is a small function taking the parsed arguments. Bad input
 (a missing or corrupt file, an invalid option or number) ends with exactly one
 line on stderr and exit status 2, never a traceback; ``labkit sphere`` exits
-with 1 when no sphere is found; an unexpected internal error prints one line
+with 1 when no sphere is found; ``labkit register`` exits with 4 when the
+registration did not converge or determines no component (one line says why
+and what to try); an unexpected internal error prints one line
 and exits with 3 (``LABKIT_TRACEBACK=1`` shows the traceback).
 
 Output files are staged next to their destination and moved into place only
@@ -43,6 +45,7 @@ from .references import load_references
 from .registration_file import save_registration
 from .tiles import MAX_TILES, check_scheduler, neighbour_test, register_tiles
 from .transforms import angles_from_rotation
+from .verdict import EXIT_NOT_CONVERGED, register_verdict
 
 PLOT_POINTS = 150_000  # at most this many points in a top-view figure
 
@@ -108,18 +111,24 @@ def _cmd_register(args) -> int:
 
     _method_options(args, [args.method])
     _check_dof([args.method], args.dof)
+    _check_max_iterations(args.method, args.max_iterations)
     progress = from_cli(args.quiet, args.progress)  # on stderr: reading, ICP iterations, distances, writing
     source = read_cloud(args.source, progress=progress)
     target = read_cloud(args.target, progress=progress)
     print(f"source {args.source}: {len(source)} points; target {args.target}: {len(target)} points")
     check_same_crs(source, target, "labkit register")
     method = compare.standard_methods([args.method], dof=args.dof, extent=args.extent, max_points=args.max_points,
-                                      rng=args.seed, reach=args.reach)[args.method]
+                                      rng=args.seed, reach=args.reach,
+                                      max_iterations=args.max_iterations)[args.method]
     result = method(source, target, progress=progress)
     print()
     print(result.summary())
     print()
     print(_rotation_text(result))
+    why = register_verdict(result)
+    if why is not None:  # not converged, or no component determined: a verdict, not a result to apply
+        print(f"labkit register: {why}; nothing written", file=sys.stderr)
+        return EXIT_NOT_CONVERGED
     change = distances_before_after(source, target, result, progress=progress)  # reuses ICP's target tree
     forget_tree()  # then frees it before the moved cloud is written
     print()
@@ -171,8 +180,9 @@ def _cmd_tiles(args) -> int:
 
     _method_options(args, [args.method])
     _check_dof([args.method], args.dof)
+    _check_max_iterations(args.method, args.max_iterations)
     method = compare.standard_methods([args.method], dof=args.dof, extent=args.extent, max_points=args.max_points,
-                              rng=args.seed)[args.method]
+                              rng=args.seed, max_iterations=args.max_iterations)[args.method]
     scheduler = args.scheduler or default_scheduler()
     results = Path(args.results) if args.results else Path(args.out) / "tiles"
     field = register_tiles(list(args.source), list(args.target), method,
@@ -272,6 +282,13 @@ def _check_dof(methods, dof: str) -> None:
                           "or --method consensus+icp / icp for a rigid transformation")
 
 
+def _check_max_iterations(method: str, max_iterations) -> None:
+    """``--max-iterations`` bounds ICP; refuse it with ``--method consensus`` rather than ignore it."""
+    if max_iterations is not None and method == "consensus":
+        raise LabkitError("--max-iterations applies to the icp methods (icp*, consensus+icp); --method consensus "
+                          "stops at its own search budget")
+
+
 # --------------------------------------------------------------------------- text and figures
 def _rotation_text(result, frame: str = "the input's coordinates, m") -> str:
     """The 4x4 matrix and, for a rigid result, the angles with standard deviations (arcsec)."""
@@ -291,15 +308,22 @@ def _rotation_text(result, frame: str = "the input's coordinates, m") -> str:
 
 
 def _print_tiles(field, test) -> None:
+    """The tile table: a component the tile does not determine is '-' (empty in the CSV), never a number."""
     print("\n  row col        dX        dY        dZ   sX (mm) sY (mm) sZ (mm)  area  status")
-    for i, (t, s) in enumerate(zip(field.tiles, field.std)):
-        if t.ok:
-            print(f"  {t.tile.row:3d} {t.tile.col:3d} "
-                  + " ".join(f"{v:+9.4f}" if np.isfinite(sd) else f"{'undet.':>9s}" for v, sd in zip(t.translation, s))
-                  + " " + " ".join(f"{1000 * v:7.1f}" for v in s) + f"  {test.areas[i]:4d}  ok")
+    det, std, flagged = field.determined, field.std, test.disagreeing
+    for i, t in enumerate(field.tiles):
+        head = f"  {t.tile.row:3d} {t.tile.col:3d} "
+        if t.usable:
+            shift = " ".join(f"{v:+9.4f}" if d else f"{'-':>9s}" for v, d in zip(t.translation, det[i]))
+            sd = " ".join(f"{1000 * v:7.1f}" if d else f"{'-':>7s}" for v, d in zip(std[i], det[i]))
+            note = "" if t.ok else " (" + "".join(a for a, d in zip("XYZ", det[i]) if not d) + " not determined)"
+            flag = "  DISAGREES with neighbours" if flagged[i] else ""
+            print(head + shift + " " + sd + f"  {test.areas[i]:4d}  {t.verdict}{note}{flag}")
         else:
-            print(f"  {t.tile.row:3d} {t.tile.col:3d} " + " " * 60 + f"  {t.status}: {t.message}")
-    if len(test.pairs) and test.agree.mean() < 0.5 and test.extra_std == 0:
+            why = t.message.split(";")[0]
+            print(head + " " * 60 + f"  {t.verdict}: {why}")
+    tested = test.dof > 0
+    if tested.any() and test.agree[tested].mean() < 0.5 and test.extra_std == 0:
         print("\nMost neighbours disagree. The formal standard deviations of a registration ignore systematic "
               "effects;\nan extra standard deviation per tile (e.g. --extra-std 0.005) makes the test realistic.")
 
@@ -437,7 +461,10 @@ def build_parser() -> argparse.ArgumentParser:
     reg = sub.add_parser("register", help="register SOURCE onto TARGET (ICP or maximum consensus)",
                          description="Register SOURCE onto TARGET; print the transformation with standard "
                                      "deviations and the degeneracy report; write the transformed source and "
-                                     "a distance-coloured PNG.")
+                                     "a distance-coloured PNG.",
+                         epilog="Exit status: 0 done; 2 bad input; 3 internal error; 4 the registration did not "
+                                "converge or determines none of dX, dY, dZ (one line on stderr says why and what "
+                                "to try; nothing is written).")
     reg.add_argument("source", help="point cloud to move (e.g. the later epoch)")
     reg.add_argument("target", help="reference point cloud")
     reg.add_argument("--method", choices=compare.METHODS, default="icp",
@@ -449,6 +476,9 @@ def build_parser() -> argparse.ArgumentParser:
     reg.add_argument("--reach", type=_positive_float, default=None,
                      help="icp methods: largest expected shift in m; beyond the 1 m matching distance a "
                           "coarse-to-fine pyramid (voxel levels, wider gates) runs first (default: none)")
+    reg.add_argument("--max-iterations", type=_count, default=None, metavar="N",
+                     help="icp methods: stop after N iterations (default: ICP's own, 50); a run that stops "
+                          "before converging exits with status 4")
     reg.add_argument("--out", default=".", help="output folder (default: the current folder)")
     shown = reg.add_mutually_exclusive_group()
     shown.add_argument("--quiet", action="store_true",
@@ -471,7 +501,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     tiles = sub.add_parser("tiles", help="register tile by tile and test neighbouring tiles (shift field)",
                            description="Cut two surveys into square tiles, register every tile, test whether "
-                                       "neighbouring tiles agree; write the shift field as PNG and CSV.")
+                                       "neighbouring tiles agree; write the shift field as PNG and CSV. A tile is "
+                                       "'ok' only when its registration converged and its data determine dX, dY "
+                                       "and dZ; 'undetermined' tiles give only the components they determine "
+                                       "(the others are empty in the CSV), 'not converged' tiles none.")
     tiles.add_argument("source", nargs="+",
                        help="point-cloud files, folders of LAS/LAZ tiles or globs ('2016/*.laz') of the epoch to move")
     tiles.add_argument("--target", nargs="+", required=True,
@@ -483,6 +516,9 @@ def build_parser() -> argparse.ArgumentParser:
     tiles.add_argument("--min-points", type=_count, default=200,
                        help="fewer points: tile skipped (default: %(default)s)")
     tiles.add_argument("--method", choices=compare.METHODS, default="icp", help="registration per tile (default: %(default)s)")
+    tiles.add_argument("--max-iterations", type=_count, default=None, metavar="N",
+                       help="icp methods: stop after N iterations (default: ICP's own, 50); a tile that stops "
+                            "before converging is 'not converged' and gives no shift")
     tiles.add_argument("--alpha", type=_probability, default=0.05, help="test level (default: %(default)s)")
     tiles.add_argument("--extra-std", type=_non_negative_float, default=0.0,
                        help="extra std per tile in m for the neighbour test")
@@ -562,7 +598,8 @@ def _one_line(text) -> str:
 def main(argv=None) -> int:
     """Run ``labkit`` with the arguments ``argv`` (default: the command line); return the exit status.
 
-    0: done; 1: ``labkit sphere`` found no sphere; 2: bad input (one line on stderr); 3: an internal error.
+    0: done; 1: ``labkit sphere`` found no sphere; 2: bad input (one line on stderr); 3: an internal error;
+    4: ``labkit register``'s registration did not converge or determines no component (:data:`EXIT_NOT_CONVERGED`).
 
     Examples
     --------

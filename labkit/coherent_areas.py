@@ -103,6 +103,30 @@ class NeighbourTest(ReportMixin):
         return int(self.areas.max() + 1) if (self.areas >= 0).any() else 0
 
     @property
+    def neighbours_tested(self) -> np.ndarray:
+        """(n,) int: neighbour pairs of each tile that were tested (a common determined axis)."""
+        return self._per_tile(self.dof > 0)
+
+    @property
+    def neighbours_disagree(self) -> np.ndarray:
+        """(n,) int: tested neighbour pairs of each tile that do not agree (eq. 3 after eq. 7)."""
+        return self._per_tile((self.dof > 0) & ~self.agree)
+
+    @property
+    def disagreeing(self) -> np.ndarray:
+        """(n,) bool: the tile disagrees with more than half of its tested neighbours (at least one).
+
+        One border of a moved block disagrees with a minority of each tile's
+        neighbours; a tile that moved alone (or whose registration went wrong)
+        disagrees with most of them.
+        """
+        bad = self.neighbours_disagree
+        return (bad >= 1) & (2 * bad > self.neighbours_tested)
+
+    def _per_tile(self, mask) -> np.ndarray:
+        return np.bincount(self.pairs[mask].ravel(), minlength=len(self.areas)).astype(int)
+
+    @property
     def area_std(self) -> np.ndarray:
         """(n_areas, 3) standard deviations of the areas' common shifts (m)."""
         return np.sqrt(np.clip(np.einsum("kii->ki", self.area_covariance), 0, None))
@@ -116,6 +140,9 @@ class NeighbourTest(ReportMixin):
                 ("coherent areas", f"{self.n_areas} (agreeing neighbours alone: {self.n_pair_areas})"),
                 ("test", f"chi-square, alpha = {self.alpha:g}, extra std per tile {self.extra_std:.4f} m"),
                 ("correction", f"{how} over {self.n_tests} tests")]
+        flagged = int(self.disagreeing.sum())
+        if flagged:
+            rows.append(("tiles disagreeing with most neighbours", f"{flagged} (flagged in the CSV)"))
         areas = []
         for a in range(min(self.n_areas, 12)):
             n = int((self.areas == a).sum())

@@ -282,7 +282,8 @@ METHODS = ("icp", "icp-point", "icp-huber", "icp-tukey", "icp-classes", "consens
 
 
 def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "translation", extent: float = 1.0,
-                     max_points: int | None = 5000, rng=0, reach: float | None = None) -> dict:
+                     max_points: int | None = 5000, rng=0, reach: float | None = None,
+                     max_iterations: int | None = None) -> dict:
     """Ready-made registration methods by name, for :func:`compare_methods`, tiles and the command line.
 
     ``icp`` (point to plane), ``icp-point`` (point to point), ``icp-huber`` and
@@ -294,6 +295,7 @@ def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "tra
     evenly); ``consensus+icp`` (consensus, then a Tukey ICP with ``dof`` from there: the
     route for shifts larger than ICP's matching distance). ``reach`` (m, optional) is passed to the ICP
     methods: a reach beyond the matching distance runs ICP's coarse-to-fine pyramid first.
+    ``max_iterations`` (optional) is passed to every ICP run (default: ICP's own).
     The callables are picklable (for Dask workers in other processes).
 
     Examples
@@ -308,11 +310,11 @@ def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "tra
     for name in names:
         choice(name, METHODS, "method")
         out[name] = partial(_standard, name=name, dof=dof, extent=float(extent), max_points=max_points, rng=rng,
-                            reach=reach)
+                            reach=reach, **({} if max_iterations is None else {"max_iterations": max_iterations}))
     return out
 
 
-def _standard(source, target, *, name, dof, extent, max_points, rng, progress=False, reach=None):
+def _standard(source, target, *, name, dof, extent, max_points, rng, progress=False, reach=None, **icp_options):
     from .registration import icp, max_consensus  # (numba: loaded when a registration runs)
 
     if name.startswith("icp"):
@@ -320,11 +322,12 @@ def _standard(source, target, *, name, dof, extent, max_points, rng, progress=Fa
         metric = "point_to_point" if kind == "point" else "point_to_plane"
         classes = STABLE_CLASSES if kind == "classes" else None
         return icp(source, target, dof=dof, metric=metric, robust=kind if kind in ("huber", "tukey") else None,
-                   classes=classes, rng=rng, progress=progress, reach=reach)
+                   classes=classes, rng=rng, progress=progress, reach=reach, **icp_options)
     result = max_consensus(source, target, extent=extent, max_points=max_points)  # an even subset votes
     if name == "consensus":
         return result
-    refined = icp(source, target, dof=dof, robust="tukey", initial=result.matrix, rng=rng, progress=progress)
+    refined = icp(source, target, dof=dof, robust="tukey", initial=result.matrix, rng=rng, progress=progress,
+                  **icp_options)
     bb = result.history[0]  # the branch-and-bound outcome: how far the start is certified
     start = (f"started at max_consensus: consensus {bb.lower:.0f}, certified gap {bb.gap:.0f}, {bb.reason}, "
              f"shift {np.array2string(result.translation, precision=4)} m")

@@ -9,6 +9,19 @@ neighbourhood gives a NaN normal; a zero-length normal is treated the same)
 gets a NaN point-to-plane distance instead of a made-up 0; the statistics of
 :class:`DistanceChange` leave those points out and count them.
 
+Before/after statistics of :func:`distances_before_after` are taken only where
+the target covers the ground: a source point counts when, after the
+transformation, it lies within the target's sampling of the surface - its offset
+*along* the target's tangent plane at the nearest target point (horizontal for
+cloud to cloud) is at most :data:`COVERAGE_FACTOR` times the target's local
+spacing there (the distance to its :data:`COVERAGE_K`-th neighbour). The offset
+*along the normal* - the change itself - does not enter, so a moved surface stays
+covered; a point beyond the edge of the target's strip, in a hole of it or over
+ground it never saw is counted apart (``n_outside``) instead of inflating the RMS.
+The local spacing adapts the rule to sparse ALS (metres) and dense TLS (millimetres)
+alike; under overhangs (a floor below a ceiling the target saw) it errs towards
+covered when the normals are missing (cloud to cloud).
+
 Equation numbers refer to ``notebooks/07-comparing-transformations.ipynb``.
 """
 
@@ -139,10 +152,20 @@ def _unit_normals(target_normals, shape) -> np.ndarray:
     return nrm
 
 
+#: Neighbour whose distance is a target point's local spacing (the coverage rule; exact copies count once).
+COVERAGE_K = 6
+#: A source point is covered when its offset along the target surface is at most this many local spacings.
+COVERAGE_FACTOR = 1.5
+
+
 @dataclass(frozen=True, eq=False, repr=False)
 class DistanceChange(ReportMixin):
     """Distances of the source to the target before and after a transformation.
 
+    ``covered`` (bool per source point, or None: all) marks the points where the target
+    covers the ground (module notes); :meth:`stats` uses only those by default, the others
+    are counted in ``n_outside`` and reported apart. The mask is taken at the transformed
+    positions and used for both before and after, so both describe the same points.
     Points without a distance (NaN: their nearest target point has no usable
     normal) are left out of :meth:`stats` and counted in ``n_undetermined``.
     """
@@ -150,16 +173,29 @@ class DistanceChange(ReportMixin):
     before: np.ndarray
     after: np.ndarray
     kind: str
+    covered: np.ndarray | None = None
 
     @property
     def n_undetermined(self) -> int:
         """Points without a distance (NaN) after the transformation."""
         return int(np.isnan(self.after).sum())
 
-    def stats(self, which: str = "after") -> dict:
-        """Median |d|, RMS, mean, 95 % quantile of |d| (m) over the points that have a distance; their count ``n``."""
+    @property
+    def n_outside(self) -> int:
+        """Source points outside the target's coverage (left out of the statistics)."""
+        return 0 if self.covered is None else int((~self.covered).sum())
+
+    def stats(self, which: str = "after", part: str = "covered") -> dict:
+        """Median |d|, RMS, mean, 95 % quantile of |d| (m) over the points that have a distance; their count ``n``.
+
+        ``part``: ``'covered'`` (default: where the target covers the ground), ``'outside'``
+        (the rest) or ``'all'``.
+        """
         choice(which, ("before", "after"), "which")
+        choice(part, ("covered", "outside", "all"), "part")
         d = self.before if which == "before" else self.after
+        if self.covered is not None and part != "all":
+            d = d[self.covered if part == "covered" else ~self.covered]
         d = d[np.isfinite(d)]
         if d.size == 0:
             nan = float("nan")
@@ -170,18 +206,31 @@ class DistanceChange(ReportMixin):
 
     def _report(self):
         rows = []
+        if self.covered is not None:
+            rows.append(("covered by the target", f"{len(self.after) - self.n_outside} points (statistics below)"))
         for which in ("before", "after"):
             s = self.stats(which)
             rows.append((which, f"median |d| {s['median_abs']:.4f} m, RMS {s['rms']:.4f} m, "
                                 f"mean {s['mean']:+.4f} m, 95% |d| {s['q95_abs']:.4f} m"))
+        if self.n_outside:
+            s = self.stats("after", "outside")
+            rows.append(("outside its coverage", f"{self.n_outside} points ({100 * self.n_outside / len(self.after):.1f} %"
+                                                 f", left out; after: median |d| {s['median_abs']:.4f} m, "
+                                                 f"RMS {s['rms']:.4f} m)"))
         if self.n_undetermined:
             rows.append(("without a distance", f"{self.n_undetermined} points (no usable target normal; left out)"))
         return f"Distances ({self.kind}, {len(self.after)} points)", [("", rows)]
 
 
 def distances_before_after(source, target, transform, *, kind: str = "point_to_plane", k: int = 10,
-                           target_normals=None, progress=False) -> DistanceChange:
+                           target_normals=None, progress=False, coverage: bool = True) -> DistanceChange:
     """Distances of ``source`` to ``target`` without and with ``transform`` (4x4, result or reference).
+
+    With ``coverage`` (default) the statistics use only the source points whose transformed
+    position the target covers (module notes: offset along the target's tangent plane at most
+    :data:`COVERAGE_FACTOR` local spacings); the others are counted apart
+    (:attr:`DistanceChange.n_outside`), so the part of one epoch outside the other's
+    coverage does not inflate the RMS after registration.
 
     ``progress`` (bool, "bar", "lines" or callable, see :mod:`labkit.progress`) reports the two
     passes ("before", "after") over the source points, chunk by chunk; default silent.
@@ -239,7 +288,8 @@ def distances_before_after(source, target, transform, *, kind: str = "point_to_p
         for name, tr in (("before", None), ("after", T)):
             passes.append(_nearest(tree, src, order, tr, origin, tgt, kind, lambda c, name=name: step(c, info=name)))
     if kind == "cloud_to_cloud":
-        return DistanceChange(passes[0][0], passes[1][0], kind)
+        covered = _covered(tree, tgt, origin, src, T, passes[1][1], None, k) if coverage else None
+        return DistanceChange(passes[0][0], passes[1][0], kind, covered)
     if nrm is None:  # normals only at the target points that are used (a nearest neighbour)
         used = np.zeros(len(tgt), dtype=bool)
         for _, j, _ in passes:
@@ -250,7 +300,40 @@ def distances_before_after(source, target, transform, *, kind: str = "point_to_p
         with progress_steps(progress, len(at), "normals", "pts") as step:  # of the used target points
             nrm[at] = _normals_at(tree, at, k, step)
     before, after = (_dot(nrm, j, v) for _, j, v in passes)
-    return DistanceChange(before, after, kind)
+    covered = _covered(tree, tgt, origin, src, T, passes[1][1], nrm, k, passes[1][2]) if coverage else None
+    return DistanceChange(before, after, kind, covered)
+
+
+def _covered(tree, tgt, origin, src, T, j, nrm, k, v=None):
+    """Coverage of the moved source points: |offset along the tangent plane at q_j| <= factor x spacing(q_j).
+
+    The offset p - q_j is split into its part along the target normal n_j (the change,
+    not looked at) and the rest; without a normal (cloud to cloud, or an unusable one)
+    the horizontal part is used. The spacing of q_j is the distance to its
+    :data:`COVERAGE_K`-th neighbour, at least half the median spacing (exact copies).
+    """
+    used, inv = np.unique(j, return_inverse=True)
+    kk = min(COVERAGE_K, len(tgt) - 1)
+    spacing = np.zeros(len(used))
+    if kk >= 1:
+        for a in range(0, len(used), CHUNK):
+            d = tree.query(tgt[used[a : a + CHUNK]] - origin, k=kk + 1, workers=-1)[0][:, -1]
+            spacing[a : a + CHUNK] = np.where(np.isfinite(d), d, 0.0)
+    spacing = np.maximum(spacing, 0.5 * float(np.median(spacing)))
+    out = np.empty(len(j), dtype=bool)
+    for a in range(0, len(j), CHUNK):
+        sl = slice(a, a + CHUNK)
+        off = (apply_transform(T, src[sl]) - tgt[j[sl]]) if v is None else v[sl].astype(np.float64)
+        n = None if nrm is None else nrm[j[sl]].astype(np.float64)
+        if n is None:
+            along = np.hypot(off[:, 0], off[:, 1])
+        else:
+            ok = np.isfinite(n).all(axis=1)
+            n = np.where(ok[:, None], n, 0.0)
+            tang = off - np.einsum("ij,ij->i", n, off)[:, None] * n  # (I - n n^T)(p - q_j)
+            along = np.where(ok, np.linalg.norm(tang, axis=1), np.hypot(off[:, 0], off[:, 1]))
+        out[sl] = along <= COVERAGE_FACTOR * spacing[inv[sl]]
+    return out
 
 
 def _dot(nrm, j, v):

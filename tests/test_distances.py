@@ -108,3 +108,55 @@ def test_a_target_line_gives_nan_distances_next_to_it():
     change = distances_before_after(src, tgt, np.eye(4), k=6)
     assert np.isnan(change.after[20:]).all() and change.n_undetermined == 5
     np.testing.assert_allclose(change.after[:20], 0.05, atol=1e-6)
+
+
+# --------------------------------------------------------------------------- coverage (real data)
+def _halves(xyz, shift, seed):
+    half = np.random.default_rng(seed).uniform(size=len(xyz)) < 0.5
+    return xyz[half] - shift, xyz[~half]
+
+
+def _coverage_check(src, tgt, shift, cut, margin):
+    """Target cut at x = cut: moved source points well inside are covered, well outside are not (an independent
+    route: scipy's horizontal nearest-neighbour distance to the cut target), and the statistics use the covered."""
+    tgt = tgt[tgt[:, 0] < cut]
+    change = distances_before_after(src, tgt, make_transform(np.eye(3), shift))
+    moved = src + shift
+    gap = cKDTree(tgt[:, :2]).query(moved[:, :2], k=1)[0]
+    inside, far = (moved[:, 0] < cut - margin) & (gap < margin / 4), gap > margin
+    assert inside.sum() > 1000 and far.sum() > 1000
+    return change, inside, far
+
+
+def test_real_als_halves_coverage_keeps_the_rms_after_honest(realdata):
+    """Real sparse ALS (IGN, 0.3 m spacing) split into two epochs with a known shift; the target cut in half. The
+    points beyond the cut are counted apart, so the RMS after is the covered part's and below the RMS before."""
+    from labkit.io import read_cloud
+
+    xyz = read_cloud(realdata / "als" / "las_with_several_extra_byte_bloc.laz").xyz[::4]
+    shift = np.array([0.3, -0.2, 0.1])
+    src, tgt = _halves(xyz, shift, 0)
+    change, inside, far = _coverage_check(src, tgt, shift, float(np.median(tgt[:, 0])), 3.0)
+    assert change.covered[inside].mean() > 0.995 and change.covered[far].mean() < 0.005
+    n_out = change.n_outside
+    assert 0.3 * len(src) < n_out < 0.7 * len(src) and change.stats("after")["n"] + n_out >= len(src) - 10
+    text = change.summary()
+    assert f"{n_out} points" in text and "outside its coverage" in text and "covered by the target" in text
+    after, before, everything = change.stats("after"), change.stats("before"), change.stats("after", "all")
+    assert after["rms"] < before["rms"] and after["rms"] < 0.5 * everything["rms"]
+    # without the mask: every point, as before
+    plain = distances_before_after(src, tgt[tgt[:, 0] < np.median(tgt[:, 0])], make_transform(np.eye(3), shift),
+                                   coverage=False)
+    assert plain.covered is None and plain.n_outside == 0
+    assert np.isclose(plain.stats("after")["rms"], everything["rms"])
+
+
+def test_real_tls_coverage_adapts_to_dense_spacing(realdata):
+    """A real TLS scan (mm spacing, walls and ground) split the same way: the rule follows the local spacing."""
+    from labkit.io import read_cloud
+
+    xyz = read_cloud(realdata / "tls" / "TLS_scan_vz400i.laz").xyz[::10]
+    shift = np.array([0.02, -0.01, 0.015])
+    src, tgt = _halves(xyz, shift, 1)
+    change, inside, far = _coverage_check(src, tgt, shift, 0.0, 0.5)
+    assert change.covered[inside].mean() > 0.99 and change.covered[far].mean() < 0.1

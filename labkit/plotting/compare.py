@@ -229,57 +229,107 @@ def plot_error_overview(table, *, ax=None, metric="error_norm_constrained"):
 
 
 # --------------------------------------------------------------------------- shift field
+#: Face colour of a tile by its status (:data:`labkit.tiles.STATUSES`).
+TILE_FACES = {"ok": "#ffffff", "undetermined": "#dfe8f3", "not converged": "#f7d9c4", "too few points": "#eeeeee",
+              "failed": "#c8c8c8"}
+FLAG_COLOR = "#7570b3"  # edge of a tile that disagrees with most of its neighbours
+
+
 def plot_shift_field(field, *, ax=None, test=None, scale=None, cmap=CMAP_SEQUENTIAL):
     """Arrows of the horizontal shift per tile, coloured by the 3D shift magnitude (mm).
 
-    Components a tile's data do not determine are left out: such a tile gets an
-    arrow along its determined horizontal axis only (none if neither is), is
-    labelled, and its colour uses the determined components.
+    Each tile's face shows its status (legend below the map): ``ok``, ``undetermined``
+    (some component not determined by the tile's data), ``not converged``, ``too few
+    points``, ``failed``. Components a tile does not determine are left out: its arrow
+    runs along its determined horizontal axis only (a dot when it determines only Z),
+    its colour uses the determined components; a tile that did not converge gets no
+    arrow. Text in the tiles (the undetermined axes, the area) is drawn only where the
+    tiles are large enough on the page to hold it.
 
     With ``test`` (a :class:`labkit.tiles.NeighbourTest`), borders between
     neighbours that do NOT agree within their uncertainty are drawn in red,
     borders between areas that the area test split (the pair itself agrees)
-    dashed, and each tile is labelled with its coherent area.
+    dashed, tiles that disagree with most of their neighbours get a thick purple
+    edge, and each tile is labelled with its coherent area (``A0``, ``A1``, ...).
     """
     import matplotlib.patches as mpatches
+    from matplotlib.colors import Normalize
 
-    ax = _axes(ax, figsize=(7, 6))
-    c, ok = field.centres, field.ok
+    ax = _axes(ax, figsize=(7.5, 6.5), layout="constrained")
+    c, use = field.centres, field.usable
     det = field.determined
     t = np.where(det, field.translations, 0.0)  # undetermined components drawn as no arrow, not as 0 shift
     o = np.floor(c.min(axis=0) / field.size) * field.size if len(c) else np.zeros(2)
     xy = c - o
-    for s, (x, y) in zip(field.tiles, xy):
-        face = "none" if s.ok else "#dddddd"
+    flagged = test.disagreeing if test is not None else np.zeros(len(xy), bool)
+    font = _tile_font(ax, xy, field.size)
+    for n, (status, (x, y)) in enumerate(zip(field.status, xy)):
         ax.add_patch(mpatches.Rectangle((x - field.size / 2, y - field.size / 2), field.size, field.size,
-                                        fc=face, ec="#999999", lw=0.6))
-        if not s.ok:
-            ax.text(x, y, s.status, ha="center", va="center", fontsize=7, color="#666666")
-        elif not s.axis_determined.all():
-            free = "".join(a for a, d in zip("XYZ", s.axis_determined) if not d)
-            ax.text(x, y - 0.4 * field.size, f"{free} undetermined", ha="center", va="bottom", fontsize=7,
-                    color="#666666")
-    mag = 1000 * np.linalg.norm(t[ok], axis=1)
-    if ok.any():
-        h = np.linalg.norm(t[ok, :2], axis=1).max()
+                                        fc=TILE_FACES.get(status, "#c8c8c8"), ec="#999999", lw=0.6, zorder=0))
+        if font and status in ("undetermined", "not converged"):
+            free = "".join(a for a, d in zip("XYZ", det[n]) if not d)
+            text = f"{free} undet." if status == "undetermined" else "not conv."
+            ax.text(x, y - 0.42 * field.size, text, ha="center", va="bottom", fontsize=font, color="#555555",
+                    clip_on=True)
+    for n in np.flatnonzero(flagged):
+        x, y = xy[n]
+        ax.add_patch(mpatches.Rectangle((x - field.size / 2, y - field.size / 2), field.size, field.size,
+                                        fc="none", ec=FLAG_COLOR, lw=2.5, zorder=3))
+    if use.any():
+        mag = 1000 * np.linalg.norm(t[use], axis=1)
+        lo, hi = float(mag.min()), float(mag.max())
+        norm = Normalize(lo, hi) if hi > lo else Normalize(0.0, max(hi, 1.0))
+        h = np.linalg.norm(t[use, :2], axis=1).max()
         scale = scale or (h / (0.45 * field.size) if h > 0 else 1.0)
-        q = ax.quiver(xy[ok, 0], xy[ok, 1], t[ok, 0], t[ok, 1], mag, cmap=cmap, angles="xy", scale_units="xy",
-                      scale=scale, width=0.006, pivot="middle")
-        ax.figure.colorbar(q, ax=ax, label="|shift| (mm)", shrink=0.8)
-        ref = 10 ** np.floor(np.log10(max(h, 1e-6)))
-        ax.quiverkey(q, 0.92, 1.04, ref, f"{1000 * ref:g} mm horizontal", labelpos="W", coordinates="axes",
-                     fontproperties={"size": "small"})
+        horizontal = det[use, :2].any(axis=1)
+        p, v = xy[use], t[use]
+        q = ax.quiver(p[horizontal, 0], p[horizontal, 1], v[horizontal, 0], v[horizontal, 1], mag[horizontal],
+                      cmap=cmap, norm=norm, angles="xy", scale_units="xy", scale=scale, width=0.006, pivot="middle",
+                      zorder=4)
+        ax.scatter(p[~horizontal, 0], p[~horizontal, 1], c=mag[~horizontal], cmap=cmap, norm=norm, s=18, marker="o",
+                   edgecolors="k", linewidths=0.4, zorder=4)
+        ax.figure.colorbar(q, ax=ax, label="|shift| of the determined components (mm)", shrink=0.8)
+        if h > 0:
+            ref = 10 ** np.floor(np.log10(h))
+            ax.quiverkey(q, 0.7, 1.03, ref, f"{1000 * ref:g} mm horizontal", labelpos="E", coordinates="axes",
+                         fontproperties={"size": "small"})  # right of the left-aligned title, inside the axes' width
     if test is not None:
-        _draw_disagreement(ax, field, test, xy)
+        _draw_disagreement(ax, field, test, xy, font)
+    _status_legend(ax, field, flagged, test is not None and not test.agree[test.dof > 0].all())
     ax.set_aspect("equal")
     ax.autoscale_view()
     ax.set_xlabel(f"x - {o[0]:.0f} (m)")
     ax.set_ylabel(f"y - {o[1]:.0f} (m)")
-    ax.set_title(f"Shift field: {int(ok.sum())} tiles of {field.size:g} m", loc="left")
+    ax.set_title(f"Shift field, {field.size:g} m tiles", loc="left")
     return ax
 
 
-def _draw_disagreement(ax, field, test, xy):
+def _tile_font(ax, xy, size) -> float:
+    """Font size (pt) for text inside a tile: about an eighth of the tile's width on the page; 0 if too small."""
+    fig = ax.figure
+    width_pt = ax.get_position().width * fig.get_figwidth() * 72
+    span = max(float(np.ptp(xy[:, 0])) + size, float(np.ptp(xy[:, 1])) + size) if len(xy) else size
+    font = min(7.0, width_pt * size / span / 8)
+    return font if font >= 4.5 else 0.0
+
+
+def _status_legend(ax, field, flagged, with_test) -> None:
+    import matplotlib.lines as mlines
+    import matplotlib.patches as mpatches
+
+    status = field.status
+    handles = [mpatches.Patch(fc=face, ec="#999999", label=f"{name} ({int((status == name).sum())})")
+               for name, face in TILE_FACES.items() if (status == name).any()]
+    if flagged.any():
+        handles.append(mpatches.Patch(fc="none", ec=FLAG_COLOR, lw=2.5,
+                                      label=f"disagrees with neighbours ({int(flagged.sum())})"))
+    if with_test:
+        handles.append(mlines.Line2D([], [], color=COLORS["outlier"], lw=3, label="neighbours disagree"))
+    ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=3, fontsize="small",
+              frameon=False)
+
+
+def _draw_disagreement(ax, field, test, xy, font=7.0):
     half = field.size / 2
     for (i, j), agree in zip(test.pairs, test.agree):
         split = agree and test.areas[i] != test.areas[j]  # the pair agrees, their areas' common shifts do not
@@ -289,7 +339,10 @@ def _draw_disagreement(ax, field, test, xy):
         d = (xy[j] - xy[i]) / np.linalg.norm(xy[j] - xy[i])
         perp = np.array([-d[1], d[0]]) * half
         ax.plot(*np.c_[mid - perp, mid + perp], color=COLORS["outlier"], lw=1.5 if split else 3,
-                ls="--" if split else "-", solid_capstyle="butt")
+                ls="--" if split else "-", solid_capstyle="butt", zorder=2)
+    if not font:
+        return
     for n, (x, y) in enumerate(xy):
         if test.areas[n] >= 0:
-            ax.text(x - 0.45 * field.size, y + 0.38 * field.size, f"area {test.areas[n]}", fontsize=7)
+            ax.text(x - 0.45 * field.size, y + 0.43 * field.size, f"A{test.areas[n]}", fontsize=font, va="top",
+                    color="#333333", clip_on=True)

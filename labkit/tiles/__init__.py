@@ -6,6 +6,13 @@ shifts differ by more than their combined uncertainty do not move together;
 tiles linked by agreeing neighbours, each fitting its area's common shift, form
 *coherent areas* (the tests and their correction: :mod:`labkit.coherent_areas`).
 
+A tile is ``ok`` only when its registration converged and its data determine
+every component of its shift; otherwise it is ``undetermined`` (it gives the
+components it determines, the others are NaN / empty in the CSV), ``not
+converged`` (no shift at all), ``too few points`` or ``failed``
+(:data:`STATUSES`, :func:`tile_status`). A tile that disagrees with most of its
+tested neighbours is flagged (:attr:`NeighbourTest.disagreeing`).
+
 The per-tile work runs on Dask: one ``dask.delayed`` task per tile, computed by
 a local scheduler, a ``distributed.LocalCluster`` started for the run, a running
 cluster named by its address (``tcp://HOST:PORT``) or any Client passed in. With
@@ -35,10 +42,11 @@ from __future__ import annotations
 
 from ..coherent_areas import CORRECTIONS
 from ..io import LAS_SUFFIXES
-from .field import NeighbourTest, ShiftField, TileShift, neighbour_test
+from .field import STATUSES, NeighbourTest, ShiftField, TileShift, neighbour_test, tile_status
 from .grid import MAX_TILES, Tile, tile_grid, write_tiles
 from .register import register_tile, register_tiles
 from .schedule import SCHEDULERS, check_scheduler
 
-__all__ = ["CORRECTIONS", "LAS_SUFFIXES", "MAX_TILES", "SCHEDULERS", "NeighbourTest", "ShiftField", "Tile", "TileShift",
-           "check_scheduler", "neighbour_test", "register_tile", "register_tiles", "tile_grid", "write_tiles"]
+__all__ = ["CORRECTIONS", "LAS_SUFFIXES", "MAX_TILES", "SCHEDULERS", "STATUSES", "NeighbourTest", "ShiftField", "Tile",
+           "TileShift", "check_scheduler", "neighbour_test", "register_tile", "register_tiles", "tile_grid",
+           "tile_status", "write_tiles"]

@@ -12,7 +12,7 @@ from .._crs import check_same_crs
 from ..compare import METHODS, shift_at, shift_covariance, standard_methods
 from ..errors import LabkitError
 from ..regions import as_classes
-from .field import ShiftField, TileShift
+from .field import ShiftField, TileShift, tile_status
 from .grid import MAX_TILES, Tile, tile_grid
 from .schedule import _dask_client, _run_jobs, check_scheduler
 from .store import _run_and_save, _run_key, _TileStore
@@ -23,6 +23,10 @@ __all__ = ["register_tile", "register_tiles"]
 
 def register_tile(tile: Tile, source, target, method, min_points: int = 200) -> TileShift:
     """Load (if needed) and register one tile; never raises for a labkit error, reports it instead.
+
+    The tile's status is ``'ok'`` only when the method converged and the tile's data determine
+    every component of its shift (finite standard deviation); otherwise ``'not converged'`` or
+    ``'undetermined'`` (:func:`~labkit.tiles.tile_status`), ``'too few points'`` or ``'failed'``.
 
     References
     ----------
@@ -61,11 +65,19 @@ def register_tile(tile: Tile, source, target, method, min_points: int = 200) -> 
         return TileShift(tile, nan3, nan33, np.zeros(3, bool), ns, nt, 0, np.nan, False,
                          time.perf_counter() - t0, "failed", f"{type(exc).__name__}: {exc}")
     c = as_points(src).mean(axis=0)
+    cov = shift_covariance(result, c)
     deg = getattr(result, "degeneracy", None)
     determined = np.ones(3, bool) if deg is None else np.asarray(deg.axis_determined, bool)
-    return TileShift(tile, shift_at(result.matrix, c), shift_covariance(result, c), determined, ns, nt,
-                     int(result.n_used), float(result.sigma0), bool(result.converged),
-                     time.perf_counter() - t0, "ok", str(getattr(result, "message", "")))
+    determined = determined & np.isfinite(np.diag(cov))  # a held rotation leaves the shift at c undetermined too
+    converged = bool(result.converged)
+    status = tile_status(converged, determined)
+    message = str(getattr(result, "message", ""))
+    if status == "undetermined":
+        free = ", ".join(a for a, d in zip("XYZ", determined) if not d)
+        rest = [m for m in message.split("; ") if not m.startswith(("converged", "UNDETERMINED"))]  # (said here)
+        message = "; ".join([f"{free} not determined by the tile's data (empty in the CSV)"] + rest)
+    return TileShift(tile, shift_at(result.matrix, c), cov, determined, ns, nt, int(result.n_used),
+                     float(result.sigma0), converged, time.perf_counter() - t0, status, message)
 
 
 def register_tiles(source, target, method=None, *, size: float = 100.0, buffer: float = 0.0,

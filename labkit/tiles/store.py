@@ -11,7 +11,7 @@ import numpy as np
 
 from .._atomic import atomic_write_text
 from .._checks import as_points
-from .field import TileShift
+from .field import TileShift, tile_status
 from .grid import Tile
 from .survey import _Files
 
@@ -83,9 +83,14 @@ def _shift_json(s: "TileShift") -> dict:
 
 
 def _shift_from_json(rec: dict, tile: Tile) -> "TileShift":
-    return TileShift(tile, np.array(rec["translation"], float), np.array(rec["covariance"], float),
-                     np.array(rec["axis_determined"], bool), int(rec["n_source"]), int(rec["n_target"]),
-                     int(rec["n_used"]), float(rec["sigma0"]), bool(rec["converged"]), float(rec["runtime_s"]),
-                     str(rec["status"]), str(rec["message"]))
+    cov, determined, converged = np.array(rec["covariance"], float), np.array(rec["axis_determined"], bool), \
+        bool(rec["converged"])
+    status = str(rec["status"])
+    if status in ("ok", "undetermined", "not converged"):  # the verdict follows the numbers, whoever wrote them
+        determined = determined & np.isfinite(np.diag(cov))
+        status = tile_status(converged, determined)
+    return TileShift(tile, np.array(rec["translation"], float), cov, determined, int(rec["n_source"]),
+                     int(rec["n_target"]), int(rec["n_used"]), float(rec["sigma0"]), converged,
+                     float(rec["runtime_s"]), status, str(rec["message"]))
 
 
