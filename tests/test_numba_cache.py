@@ -64,8 +64,8 @@ rng = np.random.default_rng(0)
 a = np.c_[rng.uniform(0, 10, (2000, 2)), rng.normal(0, 0.01, 2000)]
 b = a + [0, 0, 0.1]
 r = m3c2(a, b, a[:50], normal_radius=1.0, cylinder_radius=0.5, max_depth=1.0)
-hits = sum(sum(k.stats.cache_hits.values()) for k in (g._cylinder_kernel, g._ball_moments_kernel))
-misses = sum(sum(k.stats.cache_misses.values()) for k in (g._cylinder_kernel, g._ball_moments_kernel))
+hits = sum(sum(k.stats.cache_hits.values()) for k in (g._cylinder_serial, g._ball_serial))
+misses = sum(sum(k.stats.cache_misses.values()) for k in (g._cylinder_serial, g._ball_serial))
 print(hits, misses, round(float(np.nanmedian(r.distance)), 3))
 """
 
