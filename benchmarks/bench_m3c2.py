@@ -158,6 +158,7 @@ def main() -> None:
         except (FileNotFoundError, OSError) as exc:
             print(f"skipped {make.__name__}: {exc}")
     run_labkit(*cases[-1][1:4], cases[-1][4])  # warm up (numba, imports)
+    print(f"{os.cpu_count()} CPU(s), load average {os.getloadavg()}")
     head = f"{'case':30s} {'ref pts':>9s} {'cores':>8s} {'labkit s':>9s} {'py4dgeo s':>10s} {'ratio':>6s} " \
            f"{'max |dd| mm':>12s} {'same counts':>12s} {'valid':>7s}"
     print(head)

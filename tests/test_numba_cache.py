@@ -14,7 +14,7 @@ from labkit import _numba_cache
 numba = pytest.importorskip("numba")
 
 ROOT = Path(labkit.__file__).resolve().parents[1]
-KERNEL_MODULES = ["labkit._eigh3", "labkit._kdtree", "labkit._kdtree_build", "labkit.neighbours", "labkit._change_grid",
+KERNEL_MODULES = ["labkit._eigh3", "labkit._kdtree", "labkit._kdtree_nn", "labkit._kdtree_build", "labkit.neighbours", "labkit._change_grid",
                   "labkit.registration._matcher", "labkit.registration._consensus_kernels",
                   "labkit.registration._local_surface"]
 
