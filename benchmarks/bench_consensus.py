@@ -102,6 +102,7 @@ def main(quick=False):
     n_src, n_tgt, size = (2000, 20000, (32.0, 32.0)) if quick else (5000, 50000, (50.0, 50.0))
     step = 0.02 if quick else 0.01
     pair, src, tgt = clouds(n_src, n_tgt, size)
+    print(f"{os.cpu_count()} CPU(s), load average {os.getloadavg()}")
     print(f"source {len(src)} points, target {len(tgt)} points, search box +-1 m, step {step * 100:g} cm, "
           f"true shift {pair.translation} m\n")
     rows = []

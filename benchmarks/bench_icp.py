@@ -83,9 +83,9 @@ def _halves(xyz, seed=0, keep=1.0):
     return xyz[pick & half], xyz[pick & ~half]
 
 
-def pairs(root, quick):
+def pairs(root, quick, keep=None):
     """(name, source, target, truth 4x4 or None, note) for every row whose file exists."""
-    keep = 0.25 if quick else 1.0
+    keep = keep if keep is not None else (0.25 if quick else 1.0)
     out = []
 
     def load(rel):
@@ -171,6 +171,9 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="thin the halves to a quarter")
     ap.add_argument("--realdata", default=None, help="folder of the real development clouds")
     ap.add_argument("--repeats", type=int, default=3, help="each time is the best of this many runs")
+    ap.add_argument("--keep", type=float, default=None,
+                    help="share of the halves' points kept (0.5: about 260,000 TLS points each; default 1, --quick 0.25)")
+    ap.add_argument("--halves-only", action="store_true", help="only the TLS and ALS halves")
     args = ap.parse_args(argv)
     try:
         import open3d as o3d
@@ -182,10 +185,13 @@ def main(argv=None):
         print("skipped: real development data not found (set LABKIT_REALDATA or --realdata)")
         return
     warm_up(o3d)
-    print(f"{os.cpu_count()} CPU(s); every time is the best of {args.repeats} wall-clock runs (shared machine)")
+    print(f"{os.cpu_count()} CPU(s), load average {os.getloadavg()}; every time is the best of {args.repeats} "
+          "wall-clock runs, the methods taking turns (shared machine: compare within a row)")
     head = f"{'pair':18s} {'points src/tgt':>16s} {'method':14s} {'time s':>7s} {'dX mm':>8s} {'dY mm':>8s} {'dZ mm':>8s}"
     print(head + "   (error vs the known shift; for pairs without one: the estimated shift)")
-    for name, src, tgt, truth, note in pairs(root, args.quick):
+    for name, src, tgt, truth, note in pairs(root, args.quick, args.keep):
+        if args.halves_only and "halves" not in name:
+            continue
         c = src.mean(axis=0)
         ref = shift_mm(truth, c) if truth is not None else np.zeros(3)
         n = f"{len(src)}/{len(tgt)}"
@@ -209,6 +215,9 @@ def main(argv=None):
         if o3d is not None:
             t, T = timed[-1]
             print(f"{'':18s} {'':16s} {'open3d p2pl':14s} {t:7.2f} " + " ".join(f"{v:8.2f}" for v in shift_mm(T, c) - ref))
+            for (label, kw), (t_l, _, _) in zip(variants, timed):
+                print(f"{'':18s} {'':16s} {'  ratio':14s} {t_l / t:7.2f}   ({label} / open3d)")
+        print(f"{'':18s} load average after the row: {os.getloadavg()[0]:.1f}")
         if note:
             print(f"{'':18s} note: {note}")
 

@@ -9,6 +9,9 @@ from __future__ import annotations
 import importlib
 
 from ._lazy import lazy_attribute
+from ._numba_cache import ensure_cache_dir
+
+ensure_cache_dir()  # before any compiled kernel is defined: numba must find a writable cache folder
 
 __version__ = "0.1.0"
 

@@ -43,6 +43,7 @@ import numpy as np
 
 from ._eigh3 import HAVE_NUMBA
 from ._kdtree_build import _build_two, _duplicates, _pool, _threads
+from ._kdtree_nn import nearest
 
 if HAVE_NUMBA:
     import numba
@@ -394,6 +395,14 @@ class KDTree:
         if b > a:
             _knn_leaves(self.data, *self._nodes, self._leaves[j0:j1], k, _NO_IDX, cen, C, True)
         return cen, C
+
+    def nearest_in_groups(self, q, starts, distance_upper_bound: float = np.inf, workers: int = 1):
+        """As ``query(q, k=1, ...)`` (the same distances and indices, ties included), the rows
+        ``starts[g]:starts[g + 1]`` of ``q`` searched together (:func:`labkit._kdtree_nn.nearest`):
+        fast when each group lies close together (e.g. the leaves of a tree over the queries)."""
+        d2, leaf = nearest(self, q, starts, float(distance_upper_bound), _threads(workers))
+        found = leaf >= 0
+        return np.where(found, np.sqrt(d2), np.inf), np.where(found, self.indices[np.where(found, leaf, 0)], self.n)
 
     def query(self, q, k: int = 1, distance_upper_bound: float = np.inf, workers: int = 1):
         """Like ``cKDTree.query``: (distance, input index); k = 1 gives 1-D arrays.

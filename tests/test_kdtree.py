@@ -105,3 +105,31 @@ def test_selection_finds_the_kth_smallest_with_ties():
                 work = x.copy()
                 assert _select(work, n, kth) == np.sort(x)[kth]
                 assert np.array_equal(np.sort(work), np.sort(x))  # reordered, nothing lost
+
+
+@pytest.mark.parametrize("name", list(clouds()))
+@pytest.mark.parametrize("bound", [np.inf, 0.05])
+def test_grouped_nearest_equals_the_per_point_search_index_for_index(name, bound):
+    """nearest_in_groups (a source leaf walks the tree at once) against query(k=1): bitwise the same
+    distances and the same indices, also where two target points are equally near (the 'ties' cloud
+    and queries on the grid of its coordinates) and for groups that are not compact."""
+    P = clouds()[name]
+    tree = KDTree(P, leafsize=8, merge_duplicates=True)
+    rng = np.random.default_rng(2)
+    Q = np.round(P[::3] + rng.normal(0, 0.05, (len(P[::3]), 3)), 1 if name == "ties" else 12)
+    qt = KDTree(Q, leafsize=8)
+    Q = Q[qt.indices]  # leaf order: the groups are the leaves
+    leaf_groups = qt.leaf_bounds
+    chunk_groups = np.append(np.arange(0, len(Q), 5), len(Q))  # any grouping gives the same answer
+    d0, i0 = tree.query(Q, k=1, distance_upper_bound=bound)
+    for starts in (leaf_groups, chunk_groups, np.array([0, len(Q)])):
+        for workers in (1, 2):
+            d, i = tree.nearest_in_groups(Q, starts, bound, workers=workers)
+            assert np.array_equal(d, d0) and np.array_equal(i, i0)
+    if name == "ties":  # the case the fallback is for: equally near target points
+        from labkit._kdtree_nn import _nn_groups
+
+        n = len(Q)
+        idx, d2, tie = np.empty(n, np.intp), np.empty(n), np.zeros(n, np.bool_)
+        _nn_groups(tree.data, *tree._nodes, Q, leaf_groups, np.inf, idx, d2, tie)
+        assert tie.sum() > 10

@@ -85,6 +85,7 @@ class _Matcher:
     n_source: int
     source_class: np.ndarray | None = None  # class of each sampled source point (None: no classification)
     query_order: np.ndarray | None = None  # sampled source points in spatial (leaf) order: coherent queries
+    query_groups: np.ndarray | None = None  # per row of query_order: its leaf in the source's tree (ascending)
 
     def __call__(self, R=None, t=None) -> Correspondences:
         """Correspondences of the source moved by p' = R p + t (local frame)."""
@@ -93,7 +94,8 @@ class _Matcher:
         t = np.zeros(3) if t is None else t
         p = _rotated(self.source, R) + t  # not `@`: a BLAS call per iteration (see _rotated)
         rule = self.source_rule.copy()
-        live = self.query_order[rule[self.query_order] == 0]  # in leaf order: neighbouring queries in cache
+        ok = rule[self.query_order] == 0
+        live = self.query_order[ok]  # in leaf order: neighbouring queries in cache
         m = len(p)
         tidx = np.full(m, -1)
         d = np.full((m, 3), np.nan)
@@ -101,7 +103,12 @@ class _Matcher:
         noise_t = np.full(m, np.nan)
         # (3) nearest neighbour in the target kd-tree, within max_distance
         workers = -1 if len(live) > 20000 else 1  # thread start-up dominates small queries
-        dist, j = self.tree.query(p[live], k=1, distance_upper_bound=opt["max_distance"], workers=workers)
+        if self.query_groups is None:
+            dist, j = self.tree.query(p[live], k=1, distance_upper_bound=opt["max_distance"], workers=workers)
+        else:  # the same answer; a source leaf's points walk the target tree together
+            g = self.query_groups[ok]
+            starts = np.append(np.flatnonzero(np.r_[True, g[1:] != g[:-1]]), len(g))
+            dist, j = self.tree.nearest_in_groups(p[live], starts, opt["max_distance"], workers=workers)
         # back to ascending rows (one scatter), so that the steps below read and write in order
         nearest = np.full(m, -1)
         nearest[live] = np.where(np.isfinite(dist), j, -1)

@@ -175,9 +175,12 @@ def prepare(
     src_tree = src_geo.tree if src_geo is not None else KDTree(src_l[idx])
     if src_geo is not None:
         order = np.argsort(src_tree.representative[idx], kind="stable")
+        leaf_pos = src_tree.representative[idx][order]
     else:
         order = np.empty(len(idx), dtype=np.intp)
         order[:] = src_tree.indices
+        leaf_pos = np.arange(len(idx))
+    groups = np.searchsorted(src_tree.leaf_bounds, leaf_pos, side="right")  # the source leaf of each query
     settings = dict(  # the matcher's resolved form: no gate is an infinite distance, 'auto' is decided
         max_distance=np.inf if opt.max_distance is None else opt.max_distance,
         max_angle_deg=opt.max_angle_deg,
@@ -201,7 +204,7 @@ def prepare(
     rule, sigma = _source_rules(src_cls, idx, src_noise, settings)
     return _Matcher(
         src_l[idx], idx, src_normals, sigma, rule, _TreePoints(tree, n_tgt), tree, tgt_geo, tgt_cls, settings, origin, len(src),
-        None if src_cls is None else src_cls[idx], order,
+        None if src_cls is None else src_cls[idx], order, groups,
     )  # fmt: skip
 
 
