@@ -67,17 +67,19 @@ _EXPORTS = {
     "ShiftField": "labkit.tiles",
     # change between epochs (issue 15)
     "m3c2": "labkit.change",
+    "M3C2Result": "labkit.change",
     # target-based registration (issue 23)
     "helmert": "labkit.helmert_fit",
     "HelmertFit": "labkit.helmert_fit",
-    "M3C2Result": "labkit.change",
+    "register_targets": "labkit.targets",
+    "TargetNetwork": "labkit.targets",
     # notebooks
     "setup_notebook": "labkit.notebook",
 }
 
 #: Sub-modules reachable as attributes (``labkit.registration``) without an explicit import.
 _SUBMODULES = {
-    "adjustment", "change", "compare", "distances", "errors", "features", "helmert_fit", "io", "masks", "plotting", "ransac",
+    "adjustment", "change", "compare", "distances", "errors", "features", "io", "masks", "plotting", "ransac",
     "references", "regions", "registration", "sphere", "sphere_fit", "synthetic", "tiles", "transforms", "widgets",
 }
 

@@ -7,7 +7,7 @@ Every helper here works on stacks of points or 3x3 blocks with batched numpy: no
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
+from scipy import linalg, stats
 
 from .errors import LabkitError
 from .transforms import angles_from_rotation, rotation_from_angles
@@ -91,7 +91,7 @@ def solve_normal(N, rhs):
     if not np.isfinite(N).all():
         raise LabkitError("the normal matrix contains NaN or infinite values")
     d[d == 0] = 1.0
-    lam, V = np.linalg.eigh(N / np.outer(d, d))
+    lam, V = linalg.eigh(N / np.outer(d, d), driver="ev", check_finite=False)  # numpy's eigh stalls on busy BLAS threads
     keep = lam > _NULL_RCOND * max(lam[-1], 1e-300)
     Qs = (V[:, keep] / lam[keep]) @ V[:, keep].T
     Q = Qs / np.outer(d, d)

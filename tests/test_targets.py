@@ -1,0 +1,119 @@
+"""labkit.targets: a network of scans registered by sphere centres, against truth, Monte Carlo and its tests."""
+
+import numpy as np
+import pytest
+
+import labkit
+from labkit.targets import register_targets
+from labkit.transforms import angles_from_rotation, apply_transform, invert, make_transform, rotation_from_angles
+
+
+def _covs(rng, n, lo=2e-4, hi=8e-4):
+    Q, _ = np.linalg.qr(rng.normal(size=(n, 3, 3)))
+    s = rng.uniform(lo, hi, (n, 3))
+    return np.einsum("nij,nj,nkj->nik", Q, s**2, Q)
+
+
+def _network(rng, n_scans=4, n_targets=7, visible=None):
+    """True target layout, poses (scan -> reference), per-scan covariances in a shuffled order."""
+    world = np.c_[rng.uniform(-12, 12, (n_targets, 2)), rng.uniform(0.5, 2.5, n_targets)]
+    poses = [np.eye(4)] + [make_transform(rotation_from_angles(*rng.normal(0, 0.005, 2), rng.uniform(-np.pi, np.pi)),
+                                          [*rng.uniform(-5, 5, 2), rng.normal(0, 0.2)]) for _ in range(n_scans - 1)]
+    vis = np.ones((n_scans, n_targets), bool) if visible is None else visible
+    truth, covs, orders = [], [], []
+    for s, T in enumerate(poses):
+        idx = rng.permutation(np.flatnonzero(vis[s]))
+        truth.append(apply_transform(invert(T), world[idx]))
+        covs.append(_covs(rng, len(idx)))
+        orders.append(idx)
+    return world, poses, truth, covs, orders
+
+
+def _observe(rng, truth, covs):
+    return [c + np.einsum("nij,nj->ni", np.linalg.cholesky(S), rng.normal(size=c.shape)) for c, S in zip(truth, covs)]
+
+
+def _params(T):
+    return np.r_[angles_from_rotation(T[:3, :3]), T[:3, 3]]
+
+
+def test_four_scans_recovered_within_their_standard_deviations_and_the_spec():
+    rng = np.random.default_rng(11)
+    world, poses, truth, covs, _ = _network(rng)
+    net = register_targets(_observe(rng, truth, covs), covs)
+    assert net.converged and net.excluded == () and net.global_test.passed
+    for s in range(1, 4):
+        d = invert(poses[s]) @ net.matrices[s]
+        assert np.degrees(np.linalg.norm(angles_from_rotation(d[:3, :3]))) < 0.01
+        assert np.abs(net.matrices[s][:3, 3] - poses[s][:3, 3]).max() < 0.003
+        assert (np.abs(net.parameters[s] - _params(poses[s])) < 3.5 * net.std[s]).all()
+        assert net.undetermined[s] == ()
+    assert net.table.status.tolist().count("used") == 28
+    assert net.targets.shape == (7, 3)
+
+
+def test_monte_carlo_spread_of_the_network_matches_its_standard_deviations():
+    rng = np.random.default_rng(12)
+    vis = np.ones((3, 6), bool)
+    vis[1, 0] = vis[2, 5] = False  # not every scan sees every target
+    _, poses, truth, covs, _ = _network(rng, n_scans=3, n_targets=6, visible=vis)
+    xs, sds = [], []
+    for _ in range(150):
+        net = register_targets(_observe(rng, truth, covs), covs)
+        xs.append(net.parameters[1:])
+        sds.append(net.std[1:])
+    xs, stated = np.array(xs), np.mean(sds, axis=0)
+    ratio = xs.std(axis=0, ddof=1) / stated
+    assert ((ratio > 0.8) & (ratio < 1.25)).all(), ratio
+
+
+def test_a_target_moved_between_set_ups_is_found_and_left_out():
+    rng = np.random.default_rng(13)
+    _, poses, truth, covs, orders = _network(rng)
+    obs = _observe(rng, truth, covs)
+    moved = int(orders[2][3])
+    obs[2][3] += poses[2][:3, :3].T @ np.array([0.03, 0.0, 0.0])  # 3 cm in the world, before scan 2
+    net = register_targets(obs, covs)
+    assert len(net.excluded) == 1 and net.excluded[0][0] == 2
+    row = np.flatnonzero((net.table.scan == 2) & (net.table.index == 3))[0]
+    assert net.table.status[row] == "excluded" and net.table.target[row] == net.excluded[0][1]
+    assert net.global_test.passed
+    d = invert(poses[2]) @ net.matrices[2]
+    assert np.abs(d[:3, 3]).max() < 0.003 and moved >= 0
+
+
+def test_a_scan_sharing_only_two_targets_is_refused_with_the_reason():
+    rng = np.random.default_rng(14)
+    vis = np.ones((3, 6), bool)
+    vis[2] = [True, True, False, False, False, False]
+    _, poses, truth, covs, _ = _network(rng, n_scans=3, n_targets=6, visible=vis)
+    net = register_targets(_observe(rng, truth, covs), covs)
+    assert np.isnan(net.matrices[2]).all() and "shares only 2" in net.undetermined[2][0]
+    assert "rotation about their line" in net.undetermined[2][0]
+    assert net.undetermined[1] == () and np.isfinite(net.std[1]).all()
+    assert (net.table.status[net.table.scan == 2] == "unmatched").all()
+
+
+def test_three_collinear_shared_targets_name_the_undetermined_rotation():
+    rng = np.random.default_rng(15)
+    world = np.array([[0.0, 0, 1], [4, 1, 1.5], [-3, 6, 1], [6, 5, 2], [10, 2.5, 2.0], [8, 2, 1.75]])
+    T = make_transform(rotation_from_angles(0, 0, 0.7), [1.0, 2.0, 0.0])
+    world[5] = world[0] + 2 * (world[1] - world[0])  # targets 0, 1, 5 on one line
+    line = [0, 1, 5]
+    c0, c1, c2 = world, apply_transform(invert(T), world[line]), apply_transform(invert(T), world)
+    covs = [_covs(rng, 6), _covs(rng, 3), _covs(rng, 6)]
+    net = register_targets([c0, c1, c2], covs, match_tolerance=0.01)
+    assert "lie on a line" in net.undetermined[1][0] and np.isnan(net.matrices[1]).all()
+    assert net.undetermined[2] == () and np.isfinite(net.matrices[2]).all()
+    with pytest.raises(labkit.LabkitError, match="lie on a line"):
+        register_targets([c0, c1], covs[:2], match_tolerance=0.01)
+
+
+def test_bad_input_is_refused_clearly():
+    c = np.zeros((4, 3))
+    for args in (([c], [np.zeros((4, 3, 3))]), ([c, c], [np.zeros((4, 3, 3))] * 2),
+                 ([c, c[:3]], [np.tile(np.eye(3), (4, 1, 1))] * 2)):
+        with pytest.raises(labkit.LabkitError):
+            register_targets(*args)
+    with pytest.raises(labkit.LabkitError):
+        register_targets([c[:2], c], [np.tile(np.eye(3), (2, 1, 1)), np.tile(np.eye(3), (4, 1, 1))])
