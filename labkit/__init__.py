@@ -28,6 +28,7 @@ _EXPORTS = {
     "gauss_helmert_model": "labkit.adjustment",
     "SphereFit": "labkit.sphere_fit",
     "ransac_sphere": "labkit.ransac",
+    "find_spheres": "labkit.ransac",
     # local geometry (issue 4)
     "local_pca": "labkit.features",
     "LocalPCA": "labkit.features",
