@@ -73,6 +73,7 @@ _EXPORTS = {
     "helmert": "labkit.helmert_fit",
     "HelmertFit": "labkit.helmert_fit",
     "register_targets": "labkit.targets",
+    "register_scans": "labkit.targets",
     "TargetNetwork": "labkit.targets",
     # notebooks
     "setup_notebook": "labkit.notebook",

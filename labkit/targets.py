@@ -8,11 +8,11 @@ centre and leave out, one at a time, those that do not fit (moved or mismatched 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from . import _pose
+from . import _pose, ransac
 from ._checks import count, non_negative, probability
 from ._frame import local_origin
 from ._report import ReportMixin, fmt
@@ -21,7 +21,7 @@ from ._target_match import match_targets
 from ._target_network import adjust, caller_pose
 from .errors import LabkitError
 
-__all__ = ["register_targets", "TargetNetwork", "TargetTable"]
+__all__ = ["register_targets", "register_scans", "TargetNetwork", "TargetTable"]
 
 _COLLINEAR = 1e-3  # second/first singular value of a scan's shared targets below this: on a line
 
@@ -136,6 +136,73 @@ def register_targets(centers, covariances, *, reference: int = 0, scale: bool = 
 
     return _result(C, red, o, net, z, p, status, row, origins, reference, scale, refused, excluded, assign,
                    alpha, alpha_w, crit)
+
+
+def register_scans(scans, radius_range, *, reference: int = 0, scale: bool = False, alpha: float = 0.05,
+                   alpha_w: float = 0.001, match_tolerance: float = 0.05, station_at_origin: bool = True,
+                   rng=None) -> TargetNetwork:
+    """Find the sphere targets in every scan and register all scans into the reference scan's frame.
+
+    Parameters
+    ----------
+    scans : sequence of array_like (n_i, 3) or PointCloud
+        The scans, each in its own frame (m).
+    radius_range : (float, float)
+        Smallest and largest radius of the targets (m); spheres of other sizes are ignored.
+    reference, scale, alpha, alpha_w, match_tolerance
+        As in :func:`register_targets`.
+    station_at_origin : bool
+        Each scan is in its scanner's own frame (the station at the origin), as a TLS delivers it: the
+        detection uses the station for its visibility checks. False when the scans were moved before.
+    rng : int or numpy.random.Generator, optional
+        Seed of the sphere detection (RANSAC).
+
+    Returns
+    -------
+    TargetNetwork
+        With ``spheres[i]``, the spheres found in scan i.
+
+    References
+    ----------
+    .. [1] Notebook 11, sections 7-10 (the network) and notebook 02 (finding spheres with RANSAC).
+    .. [2] Seed 000, sections 1-2 (the sphere in the Gauss-Helmert model, RANSAC).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import labkit
+    >>> from labkit.synthetic import target_stations
+    >>> hall = target_stations(n_stations=2, n_points=300_000, rng=1)
+    >>> net = labkit.register_scans(hall.scans, (0.09, 0.11), rng=0)
+    >>> len(net.matrices), net.undetermined[1]
+    (2, ())
+    >>> bool(np.abs(net.matrices[1] - np.linalg.inv(hall.poses[0]) @ hall.poses[1]).max() < 0.003)
+    True
+    """
+    scans = list(scans)
+    if len(scans) < 2:
+        raise LabkitError(f"register_scans needs at least two scans, got {len(scans)}")
+    gen = np.random.default_rng(rng)
+    station = np.zeros(3) if station_at_origin else None
+    spheres = [tuple(ransac.find_spheres(s, radius_range, station=station, rng=gen)) for s in scans]
+    centers = [np.array([sp.center for sp in found]).reshape(-1, 3) for found in spheres]
+    covs = [np.array([_centre_cov(sp) for sp in found]).reshape(-1, 3, 3) for found in spheres]
+    net = register_targets(centers, covs, reference=reference, scale=scale, alpha=alpha, alpha_w=alpha_w,
+                           match_tolerance=match_tolerance)
+    return _with_spheres(net, tuple(spheres))
+
+
+def _centre_cov(sphere):
+    """The centre's 3x3 covariance of a sphere result (``covariance`` or ``Sigma_xx``)."""
+    c = getattr(sphere, "covariance", None)
+    if c is None:
+        c = sphere.Sigma_xx
+    return np.asarray(c, dtype=np.float64)[:3, :3]
+
+
+def _with_spheres(net, spheres):
+    """The network with the spheres found in each scan."""
+    return replace(net, spheres=spheres)
 
 
 def _check(centers, covariances):

@@ -117,3 +117,36 @@ def test_bad_input_is_refused_clearly():
             register_targets(*args)
     with pytest.raises(labkit.LabkitError):
         register_targets([c[:2], c], [np.tile(np.eye(3), (2, 1, 1)), np.tile(np.eye(3), (4, 1, 1))])
+
+
+@pytest.fixture(scope="module")
+def hall():
+    from labkit.synthetic import target_stations
+
+    return target_stations(n_stations=4, n_points=250_000, rng=3)
+
+
+def test_register_scans_finds_the_targets_and_recovers_four_stations(hall):
+    net = labkit.register_scans(hall.scans, (0.09, 0.11), rng=0)
+    assert len(net.spheres) == 4 and all(len(s) >= 3 for s in net.spheres)
+    assert net.excluded == () and net.global_test.passed is not False
+    for s in range(1, 4):
+        true = invert(hall.poses[0]) @ hall.poses[s]
+        d = invert(true) @ net.matrices[s]
+        # 250 000 points per scan keep the test short; benchmarks/bench_targets.py checks 0.01 deg with 1 M
+        assert np.degrees(np.linalg.norm(angles_from_rotation(d[:3, :3]))) < 0.03
+        assert np.abs(d[:3, 3]).max() < 0.003
+        assert (np.abs(net.parameters[s] - _params(true)) < 3 * net.std[s]).all()
+
+
+def test_register_scans_leaves_out_a_target_moved_between_set_ups(hall):
+    scans = [s.copy() for s in hall.scans]
+    j = int(np.flatnonzero(hall.visible[2])[0])
+    on = hall.target[2] == j
+    scans[2][on] += hall.poses[2][:3, :3].T @ np.array([0.0, 0.03, 0.0])  # the target stood 3 cm away in scan 2
+    net = labkit.register_scans(scans, (0.09, 0.11), rng=0)
+    assert len(net.excluded) == 1 and net.excluded[0][0] == 2
+    row = np.flatnonzero((net.table.scan == 2) & (net.table.status == "excluded"))
+    assert len(row) == 1 and np.linalg.norm(net.table.center[row[0]] - hall.centers_in_scan(2)[j]) > 0.025
+    true = invert(hall.poses[0]) @ hall.poses[2]
+    assert np.abs((invert(true) @ net.matrices[2])[:3, 3]).max() < 0.003
