@@ -164,8 +164,8 @@ def register_scans(scans, radius_range, *, reference: int = 0, scale: bool = Fal
 
     References
     ----------
-    .. [1] Notebook 11, sections 7-10 (the network) and notebook 02 (finding spheres with RANSAC).
-    .. [2] Seed 000, sections 1-2 (the sphere in the Gauss-Helmert model, RANSAC).
+    .. [1] Seed 000, sections 1-2 (the sphere in the Gauss-Helmert model, RANSAC).
+    .. [2] Notebook 11, sections 7-10 (the network) and notebook 02 (finding spheres with RANSAC).
 
     Examples
     --------
