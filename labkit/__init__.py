@@ -75,6 +75,10 @@ _EXPORTS = {
     "register_targets": "labkit.targets",
     "register_scans": "labkit.targets",
     "TargetNetwork": "labkit.targets",
+    # deliverables: the registration file
+    "RegistrationFile": "labkit.registration_file",
+    "save_registration": "labkit.registration_file",
+    "load_registration": "labkit.registration_file",
     # notebooks
     "setup_notebook": "labkit.notebook",
 }

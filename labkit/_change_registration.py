@@ -13,11 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ._atomic import atomic_write_text
 from .errors import LabkitError
+from .registration_file import load_registration as _load_file, save_registration as _save_file
 from .transforms import apply_transform
-
-REGISTRATION_FORMAT = "labkit-registration"
 
 
 def registration_variance(registration, points, normals, held_std=None) -> np.ndarray:
@@ -78,6 +76,9 @@ def registration_variance(registration, points, normals, held_std=None) -> np.nd
             lever = np.cross(np.asarray(points) - np.asarray(registration.origin), normals)  # (eq. 6)
             for axis, name in enumerate(("rx", "ry", "rz")):
                 G[:, names.index(name)] = lever[:, axis]  # n . (dw x a) = dw . (a x n)
+        if "scale" in names:  # p' = (1 + ds) R (p - o) + ...: d(n . dp) / ds = n . (p - o)
+            G[:, names.index("scale")] = np.einsum("ij,ij->i", np.asarray(points) - np.asarray(registration.origin),
+                                                   normals)
     else:
         Sigma = _check_covariance(registration, 3, allow_inf=False)
         G = np.asarray(normals, dtype=np.float64)
@@ -114,9 +115,9 @@ class RegistrationCovariance:
 def save_registration(result, path) -> Path:
     """Write a registration (``RegistrationResult`` or :class:`RegistrationCovariance`) as JSON, atomically.
 
-    Keys: ``format``, ``matrix`` (4x4, compared -> reference, caller's frame), ``parameter_names``,
-    ``covariance`` (p x p, m^2 and rad^2; ``null`` for an undetermined (infinite) entry) and
-    ``origin`` (the point the angles rotate about). :func:`load_registration` reads it back.
+    The registration file of :func:`labkit.save_registration` (matrix compared -> reference,
+    covariance with parameter names, ``null`` for an undetermined entry, origin, CRS, inputs,
+    version); :func:`load_registration` reads it back.
 
     Examples
     --------
@@ -130,16 +131,14 @@ def save_registration(result, path) -> Path:
     >>> load_registration(path).covariance.diagonal().tolist()  # inf is written as null and read back
     [0.0001, 0.0001, inf]
     """
-    cov = np.asarray(result.covariance, dtype=np.float64)
-    doc = {"format": REGISTRATION_FORMAT, "version": 1,
-           "matrix": np.asarray(result.matrix).tolist(), "parameter_names": list(result.parameter_names),
-           "covariance": [[v if np.isfinite(v) else None for v in row] for row in cov.tolist()],
-           "origin": np.asarray(result.origin, dtype=np.float64).tolist()}
-    return atomic_write_text(path, json.dumps(doc, indent=1) + "\n")
+    return _save_file(path, result)
 
 
 def load_registration(path) -> RegistrationCovariance:
     """Read a registration JSON: the file :func:`save_registration` writes, or a bare 3x3 shift covariance.
+
+    The registration file (with ``format``) is read by :func:`labkit.load_registration`
+    (unknown keys refused) and comes back as a :class:`labkit.RegistrationFile`.
 
     Accepted: ``{"matrix": 4x4 (optional, default identity), "covariance": 3x3}`` (a shift
     covariance in m^2), the same with ``parameter_names`` and ``origin`` for a rigid
@@ -163,6 +162,8 @@ def load_registration(path) -> RegistrationCovariance:
         doc = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise LabkitError(f"cannot read the registration file {path}: {exc}") from None
+    if isinstance(doc, dict) and "format" in doc:  # the registration file of labkit.save_registration
+        return _load_file(path)
     if isinstance(doc, list):
         doc = {"covariance": doc}
     if not isinstance(doc, dict) or "covariance" not in doc:

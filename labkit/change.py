@@ -60,7 +60,8 @@ from ._change_registration import (RegistrationCovariance, load_registration, re
                                    save_registration)
 from ._checks import as_points, choice, positive, probability
 from ._frame import local_origin, reduce
-from ._report import ReportMixin, fmt
+from ._lengths import length_text
+from ._report import ReportMixin
 from .cloud import PointCloud
 from .errors import LabkitError
 from .progress import progress_steps
@@ -142,9 +143,11 @@ class M3C2Result(ReportMixin):
         return self.z * np.sqrt(self.spread1**2 / self.count1 + self.spread2**2 / self.count2)
 
     def to_cloud(self):
-        """The core points as a :class:`labkit.PointCloud` with ``m3c2_*`` attributes (for LAS/CSV)."""
-        attrs = {"m3c2_distance": self.distance, "m3c2_lod": self.lod,
-                 "m3c2_significant": self.significant.astype(np.uint8),
+        """The core points as a :class:`labkit.PointCloud` with ``distance``, ``lod``, ``significant`` (for LAS/CSV).
+
+        Further attributes: ``m3c2_spread1/2``, ``m3c2_count1/2`` and ``normal_x/y/z``. Lengths in m.
+        """
+        attrs = {"distance": self.distance, "lod": self.lod, "significant": self.significant.astype(np.uint8),
                  "m3c2_spread1": self.spread1, "m3c2_spread2": self.spread2,
                  "m3c2_count1": self.count1.astype(np.int32), "m3c2_count2": self.count2.astype(np.int32),
                  "normal_x": self.normals[:, 0], "normal_y": self.normals[:, 1], "normal_z": self.normals[:, 2]}
@@ -156,7 +159,7 @@ class M3C2Result(ReportMixin):
         d = self.distance[ok]
         rows = [
             ("core points", f"{n} ({nv} with a distance, {n - nv} without)"),
-            ("cylinder", f"radius {fmt(self.cylinder_radius, 3)}, half length {fmt(self.max_depth, 3)}"),
+            ("cylinder", f"radius {length_text(self.cylinder_radius)}, half length {length_text(self.max_depth)}"),
             ("normal radius", _radius_text(self.normal_radius)),
             ("confidence", f"{self.confidence:.3f} ({_quantile_text(self)}), at least {self.min_points} points "
                            "per cylinder"),
@@ -164,9 +167,9 @@ class M3C2Result(ReportMixin):
         if nv:
             lod = self.lod[ok]
             rows += [
-                ("distance median", fmt(np.median(d), 4)),
-                ("distance 2.5 / 97.5 %", fmt(np.quantile(d, [0.025, 0.975]), 4)),
-                ("LoD median", fmt(np.median(lod[np.isfinite(lod)]) if np.isfinite(lod).any() else np.inf, 4)),
+                ("distance median", length_text(np.median(d), sign=True)),
+                ("distance 2.5 / 97.5 %", " / ".join(length_text(q, sign=True) for q in np.quantile(d, [0.025, 0.975]))),
+                ("LoD median", length_text(np.median(lod[np.isfinite(lod)]) if np.isfinite(lod).any() else np.inf)),
                 ("points per cylinder median", f"{np.median(self.count1[ok]):.0f} / {np.median(self.count2[ok]):.0f}"),
                 ("significant change", f"{ns} of {nv} ({100 * ns / nv:.1f} %): "
                                        f"{int((self.significant & (self.distance > 0)).sum())} up, "
@@ -175,8 +178,8 @@ class M3C2Result(ReportMixin):
         reg = self.registration_variance[ok]
         if np.any(reg != 0):
             finite = np.isfinite(reg)
-            rows.append(("registration term median", fmt(np.sqrt(np.median(reg[finite])) if finite.any() else np.inf,
-                                                         4) + " (sqrt of n^T Sigma_t n)"))
+            rows.append(("registration term median", length_text(np.sqrt(np.median(reg[finite])) if finite.any()
+                                                                 else np.inf) + " (sqrt of n^T Sigma_t n)"))
             if not finite.all():
                 rows.append(("LoD infinite", f"{int((~finite).sum())} cores: the registration does not determine "
                                              "the shift along their normal"))
@@ -398,4 +401,4 @@ def _radius_text(chosen) -> str:
     if not len(vals):
         return "none chosen (normals given, or too few points)"
     uniq, counts = np.unique(vals, return_counts=True)
-    return ", ".join(f"{u:g} ({c})" for u, c in zip(uniq, counts))
+    return ", ".join(f"{length_text(u)} ({c} cores)" for u, c in zip(uniq, counts))

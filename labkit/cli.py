@@ -24,17 +24,23 @@ import numpy as np
 
 from . import __version__, compare
 from ._checks import count, finite, non_negative, positive, probability
+from ._lengths import length_text
 from ._outputs import save_figure, staged_outputs
 from ._treecache import forget as forget_tree
+from .change_defaults import m3c2_parameters
+from .cloud import PointCloud
 from .demo import run_demo
 from .distances import distances_before_after
 from .errors import LabkitError
+from .geotiff import change_geotiff, shift_field_geotiff
 from .io import LAS_SUFFIXES, read_cloud, write_cloud
 from .plotting.change import plot_change_figure
 from .plotting.compare import plot_distance_map, plot_shift_field, symmetric_limits
 from .progress import from_cli
 from .ransac import ransac_sphere
+from .ransac.threshold import estimate_threshold
 from .references import load_references
+from .registration_file import save_registration
 from .tiles import MAX_TILES, check_scheduler, neighbour_test, register_tiles
 from .transforms import angles_from_rotation
 
@@ -56,14 +62,21 @@ def _cmd_sphere(args) -> int:
         # a sphere of unknown size competes with every round object and needs uniform sampling: refuse
         raise LabkitError("labkit sphere needs the size of the target: --radius-range MIN MAX or --radius R "
                           "(in m; e.g. --radius-range 0.1 0.2 for a 0.145 m target)")
-    result = ransac_sphere(xyz, args.threshold, p=args.p, rng=args.seed,
+    estimate = estimate_threshold(xyz, rng=args.seed)
+    threshold = estimate.threshold if args.threshold is None else args.threshold
+    print(f"inlier {estimate.text()} (estimated from the data; --threshold overrides)" if args.threshold is None
+          else f"threshold: {1000 * threshold:g} mm (given; the data's noise suggests {estimate.text()})")
+    result = ransac_sphere(xyz, threshold, p=args.p, rng=args.seed,
                            radius_range=None if args.radius_range is None else tuple(args.radius_range),
                            nominal_radius=args.radius, hold_radius=args.hold_radius, sigma=args.sigma,
                            station=station)
     print()
     print(result.summary())
     if not result.found:
-        print(f"\nlabkit sphere: no sphere found in {args.file}: {result.reason}", file=sys.stderr)
+        hint = (f"; tried with threshold {1000 * threshold:g} mm: try --threshold {2 * threshold:g} (m) if the "
+                "noise is larger than the estimate" if args.threshold is None else
+                f"; tried with --threshold {threshold:g} m: try --threshold {max(estimate.threshold, 2 * threshold):g}")
+        print(f"\nlabkit sphere: no sphere found in {args.file}: {result.reason}{hint}", file=sys.stderr)
         return 1
     print()
     print(result.fit.summary())
@@ -114,6 +127,8 @@ def _cmd_register(args) -> int:
     with staged_outputs(args.out) as stage:
         write_cloud(moved, stage(f"{stem}_registered{suffix}"), progress=progress)
         save_figure(fig, stage(f"{stem}_distances.png"))
+        save_registration(stage("registration.json"), result, crs=source.crs,
+                          inputs={"source": args.source, "target": args.target})
     print()
     for path in stage.written:
         print(f"wrote {path}")
@@ -165,6 +180,7 @@ def _cmd_tiles(args) -> int:
     with staged_outputs(args.out) as stage:
         field.to_csv(stage("shift_field.csv"), test)
         save_figure(ax.figure, stage("shift_field.png"))
+        shift_field_geotiff(field, stage("shift_field.tif"), list(args.source))
     print()
     for path in stage.written:
         print(f"wrote {path}")
@@ -201,8 +217,7 @@ def _cmd_change(args) -> int:
     print(f"reference {args.reference}: {len(ref)} points; compared {args.compared}: {len(cmp_)} points")
     registration = None
     if args.registration:
-        registration = load_registration(args.registration)
-        print(f"registration {args.registration}: {', '.join(registration.parameter_names)} with covariance")
+        registration = _registration_for(load_registration(args.registration), args)
     elif args.register:
         method = compare.standard_methods([args.register], dof=args.dof, extent=args.extent, max_points=args.max_points,
                                   rng=args.seed)[args.register]
@@ -217,23 +232,62 @@ def _cmd_change(args) -> int:
                 if n.startswith("r") and np.isinf(v)}
         if held:
             print(f"undetermined {', '.join(held)}: prior std {args.held_rotation_std:g} deg in the LoD")
-    result = m3c2(ref, moved, args.spacing, normal_radius=args.normal_radius, cylinder_radius=args.cylinder_radius,
-                  max_depth=args.max_depth, registration_covariance=registration, confidence=args.confidence, quantile=args.quantile,
+        shifts = [n for n, v in zip(registration.parameter_names, np.diag(registration.covariance))
+                  if n.startswith("t") and np.isinf(v)]
+        if shifts and args.held_shift_std is not None:
+            held.update({n: args.held_shift_std for n in shifts})
+            print(f"undetermined {', '.join(shifts)}: prior std {length_text(args.held_shift_std)} in the LoD")
+        elif shifts:
+            print(f"undetermined {', '.join(shifts)}: the LoD is infinite where they move the surface along the "
+                  "normal; --held-shift-std M states a prior (e.g. the survey's horizontal accuracy)")
+    normal_radius, cylinder_radius, max_depth = _change_parameters(ref.xyz, moved, args)
+    result = m3c2(ref, moved, args.spacing, normal_radius=normal_radius, cylinder_radius=cylinder_radius,
+                  max_depth=max_depth, registration_covariance=registration, confidence=args.confidence, quantile=args.quantile,
                   progress=sys.stderr.isatty(), held_std=held)
     print()
     print(result.summary())
     stem = f"{Path(args.reference).stem}_{Path(args.compared).stem}_m3c2"
     suffix = Path(args.reference).suffix.lower() if Path(args.reference).suffix.lower() in LAS_SUFFIXES else ".laz"
     cores = result.to_cloud()
+    cores = PointCloud(cores.xyz, cores.attributes, crs=ref.crs, units=ref.units, name=stem)  # in the file's units
     fig = plot_change_figure(result, f"M3C2 {Path(args.compared).stem} - {Path(args.reference).stem}")
     with staged_outputs(args.out) as stage:
         write_cloud(cores, stage(stem + suffix), scale=None)
         write_cloud(cores, stage(stem + ".csv"), scale=None)
         save_figure(fig, stage(stem + ".png"))
+        change_geotiff(result, stage(stem + ".tif"), crs=ref.crs, units=ref.units, extent=ref.bounds)
     print()
     for path in stage.written:
         print(f"wrote {path}")
     return 0
+
+
+def _change_parameters(ref, moved, args):
+    """Normal radius, cylinder radius and max depth: as given, else chosen from the data (printed with the rule)."""
+    if args.normal_radius and args.cylinder_radius and args.max_depth:
+        return args.normal_radius, args.cylinder_radius, args.max_depth
+    chosen = m3c2_parameters(ref, moved, expected_change=args.expected_change, rng=args.seed)
+    print("\nM3C2 parameters (lengths in m of the metric coordinates; --normal-radius, --cylinder-radius, "
+          "--max-depth override):")
+    given = {"cylinder": args.cylinder_radius, "normal": args.normal_radius, "max depth": args.max_depth}
+    for line in chosen.lines():
+        key = next((k for k in given if line.startswith(k)), None)
+        print(f"  {line if key is None or given[key] is None else key + ': given on the command line'}")
+    return (args.normal_radius or chosen.normal_radius, args.cylinder_radius or chosen.cylinder_radius,
+            args.max_depth or chosen.max_depth)
+
+
+def _registration_for(registration, args):
+    """The registration file oriented compared -> reference (a file of ``labkit register REF CMP`` is inverted)."""
+    names = ", ".join(registration.parameter_names)
+    roles = dict(getattr(registration, "inputs", ()))
+    same = lambda a, b: a is not None and Path(a).resolve() == Path(b).resolve()  # noqa: E731
+    if same(roles.get("source"), args.reference) and same(roles.get("target"), args.compared):
+        print(f"registration {args.registration}: {names} with covariance; it maps {args.reference} onto "
+              f"{args.compared}, used inverted (compared -> reference)")
+        return registration.inverse()
+    print(f"registration {args.registration}: {names} with covariance (compared -> reference)")
+    return registration
 
 
 def _check_dof(methods, dof: str) -> None:
@@ -360,8 +414,9 @@ def build_parser() -> argparse.ArgumentParser:
                             description="Detect a sphere in a point cloud (ASCII xyz, LAS/LAZ, npy/npz, PLY) with "
                                         "RANSAC and adjust it in the Gauss-Helmert model.")
     sphere.add_argument("file", help="point-cloud file")
-    sphere.add_argument("--threshold", type=_positive_float, default=0.003,
-                        help="inlier threshold t in m (about 2-3 x the noise; default: %(default)s)")
+    sphere.add_argument("--threshold", type=_positive_float, default=None,
+                        help="inlier threshold t in m (about 2-3 x the noise; default: 3 x the noise estimated "
+                             "from 8-point neighbourhoods, see labkit.ransac.threshold)")
     sphere.add_argument("--radius-range", type=_positive_float, nargs=2, metavar=("MIN", "MAX"),
                         help="admissible radii in m (this or --radius is required)")
     sphere.add_argument("--radius", type=_positive_float, help="nominal radius of the target in m")
@@ -451,20 +506,31 @@ def build_parser() -> argparse.ArgumentParser:
     change = sub.add_parser("change", help="M3C2 change between two epochs with a level of detection",
                             description="M3C2 distances from REFERENCE to COMPARED at core points, with a level of "
                                         "detection that carries the registration's covariance; writes the core "
-                                        "points (LAS/LAZ with m3c2_distance, m3c2_lod, m3c2_significant), a CSV "
+                                        "points (LAS/LAZ with distance, lod, significant), a CSV, a GeoTIFF "
                                         "and a PNG map of significant change.")
     change.add_argument("reference", help="reference epoch (point-cloud file)")
     change.add_argument("compared", help="compared (later) epoch")
     how = change.add_mutually_exclusive_group()
-    how.add_argument("--registration", metavar="RESULT.json",
-                     help="registration of COMPARED onto REFERENCE as JSON (labkit.change.save_registration, or "
-                          "{'matrix': 4x4, 'covariance': 3x3}); applied, its covariance enters the LoD")
+    how.add_argument("--registration", metavar="REGISTRATION.json",
+                     help="registration file (labkit register --out R writes R/registration.json; "
+                          "labkit.save_registration; or {'matrix': 4x4, 'covariance': 3x3}) of COMPARED onto "
+                          "REFERENCE, or of REFERENCE onto COMPARED as its inputs say (then inverted); applied, "
+                          "its covariance enters the LoD")
     how.add_argument("--register", choices=compare.METHODS, metavar="METHOD",
                      help=f"register COMPARED onto REFERENCE first ({', '.join(compare.METHODS)}) and use its covariance")
-    change.add_argument("--normal-radius", type=_positive_float, nargs="+", required=True,
-                        help="PCA radius for the normals; several: the most planar per core point")
-    change.add_argument("--cylinder-radius", type=_positive_float, required=True, help="cylinder radius")
-    change.add_argument("--max-depth", type=_positive_float, required=True, help="cylinder half length along the normal")
+    change.add_argument("--normal-radius", type=_positive_float, nargs="+",
+                        help="PCA radius for the normals in m; several: the most planar per core point (default: "
+                             "max(cylinder radius, 12.5 x roughness), the normal scale >= 25 x roughness of "
+                             "Lague et al. 2013)")
+    change.add_argument("--cylinder-radius", type=_positive_float,
+                        help="cylinder radius in m (default: median distance to the 30th nearest reference point, "
+                             "about 30 points per cylinder)")
+    change.add_argument("--max-depth", type=_positive_float,
+                        help="cylinder half length along the normal in m (default: max(2 x expected change, "
+                             "cylinder radius))")
+    change.add_argument("--expected-change", type=_positive_float,
+                        help="largest change expected in m, for the default max depth (default: the 99th "
+                             "percentile of the cloud-to-cloud distance compared -> reference)")
     change.add_argument("--spacing", type=_positive_float,
                         help="core points: one reference point per cube of this edge (default: the cylinder radius)")
     change.add_argument("--confidence", type=_probability, default=0.95, help="LoD confidence (default: %(default)s)")
@@ -474,6 +540,9 @@ def build_parser() -> argparse.ArgumentParser:
     change.add_argument("--held-rotation-std", type=_non_negative_float, default=0.02, metavar="DEG",
                         help="prior std (deg) of a rotation the registration left undetermined, as ICP's "
                              "held_rotation_std_deg (default: %(default)s)")
+    change.add_argument("--held-shift-std", type=_non_negative_float, metavar="M",
+                        help="prior std in m of a shift component the registration left undetermined (default: "
+                             "none, the LoD is infinite where it matters)")
     _add_method_options(change)
     change.add_argument("--out", default=".", help="output folder (default: the current folder)")
     change.set_defaults(func=_cmd_change)

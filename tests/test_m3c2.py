@@ -332,7 +332,7 @@ def test_inputs_not_modified_and_exported():
     r = labkit.m3c2(ref, cmp_, normal_radius=0.5, cylinder_radius=0.5, max_depth=1.0)
     assert np.array_equal(ref, ref0) and np.array_equal(cmp_, cmp0)
     cloud = r.to_cloud()
-    assert set(cloud.attributes) >= {"m3c2_distance", "m3c2_lod", "m3c2_significant"}
+    assert set(cloud.attributes) >= {"distance", "lod", "significant"}
     assert "M3C2" in repr(r) and "<table>" in r._repr_html_()
 
 
@@ -396,10 +396,10 @@ def test_cli_change_with_register_icp_writes_cores_csv_and_png(epoch_files, tmp_
     text = capsys.readouterr().out
     assert "Registration result" in text and "M3C2 change" in text
     stem = "als_2014_als_2016_m3c2"
-    assert sorted(p.name for p in out.iterdir()) == [f"{stem}.csv", f"{stem}.laz", f"{stem}.png"]
+    assert sorted(p.name for p in out.iterdir()) == [f"{stem}.csv", f"{stem}.laz", f"{stem}.png", f"{stem}.tif"]
     assert (out / f"{stem}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     las = laspy.read(out / f"{stem}.laz")
-    assert {"m3c2_distance", "m3c2_lod", "m3c2_significant"} <= set(las.point_format.extra_dimension_names)
+    assert {"distance", "lod", "significant"} <= set(las.point_format.extra_dimension_names)
     # the files hold what the library computes on the registered pair
     from labkit.compare import standard_methods
 
@@ -416,9 +416,9 @@ def test_cli_change_with_register_icp_writes_cores_csv_and_png(epoch_files, tmp_
              registration_covariance=reg, held_std=held)
     csv_cloud = read_cloud(out / f"{stem}.csv")
     assert len(csv_cloud) == len(r.distance) == len(las.points)
-    assert np.allclose(np.asarray(las["m3c2_distance"]), r.distance, atol=1e-9, equal_nan=True)
-    assert np.array_equal(np.asarray(las["m3c2_significant"]).astype(bool), r.significant)
-    assert np.allclose(csv_cloud["m3c2_lod"], r.lod, rtol=1e-12, equal_nan=True)
+    assert np.allclose(np.asarray(las["distance"]), r.distance, atol=1e-9, equal_nan=True)
+    assert np.array_equal(np.asarray(las["significant"]).astype(bool), r.significant)
+    assert np.allclose(csv_cloud["lod"], r.lod, rtol=1e-12, equal_nan=True)
     assert np.isfinite(r.registration_variance[r.valid]).all() and (r.registration_variance[r.valid] > 0).all()
     assert r.significant.sum() > 0.05 * r.valid.sum()  # the scene has real change (vegetation, buildings)
 
@@ -439,7 +439,7 @@ def test_cli_change_with_registration_json_and_all_or_nothing(epoch_files, tmp_p
     base = ["change", str(d / "als_2014.laz"), str(d / "als_2016.laz"), "--normal-radius", "1.5",
             "--cylinder-radius", "1.0", "--max-depth", "3.0", "--out", str(out)]
     assert main(base + ["--registration", str(path)]) == 0
-    assert len(list(out.iterdir())) == 3
+    assert len(list(out.iterdir())) == 4  # LAS/LAZ, CSV, PNG, GeoTIFF
     # a bare 3x3 covariance that is not positive semi-definite: clear error, nothing written
     bad = tmp_path / "bad.json"
     bad.write_text("[[1e-4, 0, 0], [0, -1e-4, 0], [0, 0, 1e-4]]")
