@@ -10,7 +10,7 @@ import numpy as np
 from scipy import linalg, stats
 
 from .errors import LabkitError
-from .transforms import angles_from_rotation, rotation_from_angles
+from .transforms import angles_from_rotation, rotation_from_angles, skew  # noqa: F401 (skew: used by targets)
 
 _NULL_RCOND = 1e-10  # eigenvalue of the scaled N below this times the largest: a direction the data do not fix
 _E = np.eye(3)

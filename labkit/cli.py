@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__, compare
+from . import __version__, _cli_targets, compare
 from ._checks import count, finite, non_negative, positive, probability
 from ._lengths import length_text
 from ._outputs import save_figure, staged_outputs
@@ -546,6 +546,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_method_options(change)
     change.add_argument("--out", default=".", help="output folder (default: the current folder)")
     change.set_defaults(func=_cmd_change)
+
+    _cli_targets.add_parser(sub, _positive_float, _seed)
     return parser
 
 

@@ -443,6 +443,29 @@ class TargetNetwork(ReportMixin):
     def names(self) -> tuple:
         return ("rx", "ry", "rz", "tx", "ty", "tz", "scale")[: self.parameters.shape[1]]
 
+    def registration_covariance(self, scan: int):
+        """(names, covariance) of scan ``scan`` in the registration file's terms (``labkit.save_registration``).
+
+        The file describes a small change of the pose as p' -> p' + dt + dw x p' (+ ds p'), with a shift, a
+        rotation vector dw about the axes of the reference frame at its origin and a relative scale. With
+        R = Rz Ry Rx the rotation vector is dw = Rz Ry e_x drx + Rz e_y dry + e_z drz; the shift absorbs
+        dw x t, so dt_file = dt + t x dw - t ds / s. NaN for a refused scan.
+        """
+        x, C = self.parameters[scan], self.covariances[scan]
+        names = ("tx", "ty", "tz", "rx", "ry", "rz") + (("scale",) if self.scaled else ())
+        u = len(names)
+        if not np.isfinite(x).all():
+            return names, np.full((u, u), np.nan)
+        Rx, Ry, Rz = (_pose.rotation_from_angles(*a) for a in np.diag(x[:3]))
+        Jw = np.column_stack([Rz @ Ry[:, 0], Rz[:, 1], [0.0, 0.0, 1.0]])
+        t, s = x[3:6], (x[6] if self.scaled else 1.0)
+        G = np.zeros((u, u))
+        G[:3, :3], G[:3, 3:6], G[3:6, :3] = _pose.skew(t) @ Jw, np.eye(3), Jw
+        if self.scaled:
+            G[:3, 6], G[6, 6] = -t / s, 1.0 / s
+        with np.errstate(invalid="ignore"):
+            return names, G @ C @ G.T
+
     def _report(self):
         sections = []
         for s in range(len(self.matrices)):

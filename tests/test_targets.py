@@ -150,3 +150,45 @@ def test_register_scans_leaves_out_a_target_moved_between_set_ups(hall):
     assert len(row) == 1 and np.linalg.norm(net.table.center[row[0]] - hall.centers_in_scan(2)[j]) > 0.025
     true = invert(hall.poses[0]) @ hall.poses[2]
     assert np.abs((invert(true) @ net.matrices[2])[:3, 3]).max() < 0.003
+
+
+def test_registration_covariance_describes_the_same_displacements_as_the_euler_parameters():
+    rng = np.random.default_rng(16)
+    _, poses, truth, covs, _ = _network(rng, n_scans=3, n_targets=6)
+    for scale in (False, True):
+        net = register_targets(_observe(rng, truth, covs), covs, scale=scale)
+        x, names = net.parameters[1], net.registration_covariance(1)[0]
+
+        def moved(x, pts):
+            return (x[6] if scale else 1.0) * pts @ rotation_from_angles(*x[:3]).T + x[3:6]
+
+        pts = rng.uniform(-10, 10, (10, 3))
+        J = np.column_stack([(moved(x + h, pts) - moved(x - h, pts)).ravel() / 2e-7 for h in np.eye(len(x)) * 1e-7])
+        q = moved(x, pts)
+        G = np.zeros((len(q), 3, len(names)))  # file model: dp = dt + dw x p' (+ ds p')
+        G[:, :, :3] = np.eye(3)
+        G[:, :, 3:6] = -labkit.transforms.skew(q)
+        if scale:
+            G[:, :, 6] = q
+        G = G.reshape(-1, len(names))
+        C_euler, C_file = J @ net.covariances[1] @ J.T, G @ net.registration_covariance(1)[1] @ G.T
+        assert np.abs(C_euler - C_file).max() < 1e-6 * np.abs(C_euler).max()
+
+
+def test_cli_targets_writes_registration_files_that_labkit_change_reads(hall, tmp_path, capsys):
+    from labkit.change import load_registration  # what `labkit change --registration` reads with
+    from labkit.cli import main
+
+    paths = []
+    for i in (0, 1):
+        paths.append(str(tmp_path / f"scan{i}.npy"))
+        np.save(paths[-1], hall.scans[i])
+    code = main(["targets", *paths, "--radius-range", "0.09", "0.11", "--out", str(tmp_path / "out")])
+    text = capsys.readouterr().out
+    assert code == 0 and "arcsec" in text and "mm" in text and "test" in text
+    reg = load_registration(tmp_path / "out" / "scan1_registration.json")
+    true = invert(hall.poses[0]) @ hall.poses[1]
+    assert np.abs(reg.matrix - true).max() < 0.003 and reg.method == "targets"
+    assert reg.parameter_names[:3] == ("tx", "ty", "tz") and np.isfinite(reg.std).all()
+    assert (tmp_path / "out" / "scan1_registered.laz").exists()
+    assert main(["targets", paths[0], "--radius-range", "0.09", "0.11"]) == 2  # one scan: one clear line
