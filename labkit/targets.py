@@ -110,7 +110,7 @@ def register_targets(centers, covariances, *, reference: int = 0, scale: bool = 
     status = np.array(["unmatched" if s in refused else "used" for s in range(k) for _ in C[s]], dtype=object)
     row = {(s, i): r for r, (s, i) in enumerate((s, i) for s in range(k) for i in range(len(C[s])))}
     crit = w_critical(alpha_w)
-    excluded = []
+    excluded, left_out = [], {}
     while True:
         use = np.array([status[row[s, i]] == "used" for s, i, _ in obs], bool)
         seen = np.bincount(obs[use, 2], minlength=len(X0))
@@ -131,11 +131,12 @@ def register_targets(centers, covariances, *, reference: int = 0, scale: bool = 
             break
         j = int(np.nanargmax(z))
         status[row[o[j, 0], o[j, 1]]] = "excluded"
+        left_out[row[o[j, 0], o[j, 1]]] = (z[j], p[j])  # its test when it was left out
         excluded.append((int(o[j, 0]), int(o[j, 2])))
         poses0, X0 = _poses_of(net, poses0), net.X
 
     return _result(C, red, o, net, z, p, status, row, origins, reference, scale, refused, excluded, assign,
-                   alpha, alpha_w, crit)
+                   alpha, alpha_w, crit, left_out)
 
 
 def register_scans(scans, radius_range, *, reference: int = 0, scale: bool = False, alpha: float = 0.05,
@@ -281,7 +282,7 @@ def _poses_of(net, poses0):
 
 
 def _result(C, red, o, net, z, p, status, row, origins, reference, scale, refused, excluded, assign,
-            alpha, alpha_w, crit):
+            alpha, alpha_w, crit, left_out):
     """Poses and covariances in the caller's frames, the named undetermined directions and the target table."""
     k, u = len(C), (7 if scale else 6)
     mats, pars, covs, undet = np.full((k, 4, 4), np.nan), np.full((k, u), np.nan), [], []
@@ -306,6 +307,8 @@ def _result(C, red, o, net, z, p, status, row, origins, reference, scale, refuse
         test=np.full(n, np.nan), p=np.full(n, np.nan), status=status.astype(str))
     rows = [row[s, i] for s, i, _ in o]
     table.residual[rows], table.test[rows], table.p[rows] = net.v, z, p
+    for r, (zr, pr) in left_out.items():
+        table.test[r], table.p[r] = zr, pr
     sigma0 = float(np.sqrt(net.omega / net.dof)) if net.dof > 0 else np.nan
     g = global_test(net.omega, net.dof, 1.0, alpha)
     world = net.X + origins[reference]
@@ -339,7 +342,8 @@ class TargetTable(ReportMixin):
     residual : ndarray (n, 3)
         Residual v of the centre (m), NaN where not used.
     test : ndarray (n,)
-        Test of the centre as a standard normal value (compare with 3.29 at alpha_w = 0.001), NaN where not used.
+        Test of the centre as a standard normal value (compare with 3.29 at alpha_w = 0.001); for an excluded
+        centre its value when it was left out; NaN where not tested.
     p : ndarray (n,)
         Its p-value.
     status : ndarray of str (n,)
