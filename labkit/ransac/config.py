@@ -20,6 +20,7 @@ BACKFACE_SHARE = 0.2  # inliers on the side turned away from the station (true s
 CONTRAST = 5.0  # inliers on the shell per point in the shell just outside it, t..3t (true spheres: > 14,
 # spheres fitted to a cylinder or to pieces of planes: 2-3)
 TWO_PLANES_SHARE = 0.9  # inliers on one or two planes: plane pieces cut by the sphere
+TWO_PLANES_POINTS = 2048  # the share is counted on an even subsample of at most this many inliers
 MIN_LEVELS = 3  # a cap spans at least three scan lines (elevation levels) seen from the station
 MIN_SPREAD = 0.01  # smallest variance of the inliers' normals across the cap (units of 1; a ring: ~0)
 LOCAL_REACH = 1.0  # local sampling: the other three points lie within LOCAL_REACH r_max + t of the first

@@ -159,7 +159,7 @@ def _from_proposals(xyz, search, gen):
     for c in prop.centers[:MAX_PROPOSALS]:
         if any(np.linalg.norm(c - (f.center - origin)) < r_max for f in found):
             continue  # (a sphere found already)
-        local = np.asarray(whole.tree.query_ball_point(c, CROP * r_max + 3.0 * t), dtype=np.int64)
+        local = whole.ball(c, CROP * r_max + 3.0 * t)
         if len(local) < MIN_INLIERS:
             continue
         result = ransac_sphere(xyz[local], rng=gen, **search)
