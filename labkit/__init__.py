@@ -69,6 +69,7 @@ _EXPORTS = {
     # change between epochs (issue 15)
     "m3c2": "labkit.change",
     "M3C2Result": "labkit.change",
+    "m3c2_parameters": "labkit.change_defaults",
     # target-based registration (issue 23)
     "helmert": "labkit.helmert_fit",
     "HelmertFit": "labkit.helmert_fit",

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import LabkitError
-from .registration_file import load_registration as _load_file, save_registration as _save_file
+from .registration_file import check_covariance, load_registration as _load_file, save_registration as _save_file
 from .transforms import apply_transform
 
 
@@ -213,20 +213,4 @@ def _quadratic_form(G, Sigma):
 
 
 def _check_covariance(cov, p, allow_inf):
-    try:
-        S = np.array(cov, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise LabkitError(f"registration_covariance must be a ({p}, {p}) matrix or a RegistrationResult") from None
-    if S.shape != (p, p):
-        raise LabkitError(f"registration_covariance must have shape ({p}, {p}), got {S.shape}")
-    loose = np.isinf(np.diag(S)) & allow_inf
-    core = S[np.ix_(~loose, ~loose)]
-    if not np.isfinite(core).all():
-        raise LabkitError("registration_covariance contains NaN or infinite entries")
-    if not np.allclose(core, core.T, rtol=1e-8, atol=1e-12 * max(1.0, np.abs(core).max(initial=0))):
-        raise LabkitError("registration_covariance must be symmetric")
-    if core.size:
-        lam = np.linalg.eigvalsh(0.5 * (core + core.T))
-        if lam[0] < -1e-9 * max(lam[-1], 1e-300):
-            raise LabkitError(f"registration_covariance must be positive semi-definite; smallest eigenvalue {lam[0]:.3g}")
-    return S
+    return check_covariance(cov, p, "registration_covariance", allow_inf)

@@ -24,10 +24,9 @@ import numpy as np
 
 from . import __version__, _cli_targets, compare
 from ._checks import count, finite, non_negative, positive, probability
-from ._lengths import length_text
+from ._cli_change import change_parameters, frame_text, held_priors, registration_for
 from ._outputs import save_figure, staged_outputs
 from ._treecache import forget as forget_tree
-from .change_defaults import m3c2_parameters
 from .cloud import PointCloud
 from .demo import run_demo
 from .distances import distances_before_after
@@ -113,7 +112,7 @@ def _cmd_register(args) -> int:
     print()
     print(result.summary())
     print()
-    print(_rotation_text(result))
+    print(_rotation_text(result, frame_text(source)))
     change = distances_before_after(source, target, result, progress=progress)  # reuses ICP's target tree
     forget_tree()  # then frees it before the moved cloud is written
     print()
@@ -217,7 +216,7 @@ def _cmd_change(args) -> int:
     print(f"reference {args.reference}: {len(ref)} points; compared {args.compared}: {len(cmp_)} points")
     registration = None
     if args.registration:
-        registration = _registration_for(load_registration(args.registration), args)
+        registration = registration_for(load_registration(args.registration), args, ref.crs)
     elif args.register:
         method = compare.standard_methods([args.register], dof=args.dof, extent=args.extent, max_points=args.max_points,
                                   rng=args.seed)[args.register]
@@ -225,22 +224,8 @@ def _cmd_change(args) -> int:
         print()
         print(registration.summary())
     moved = cmp_.xyz if registration is None else registration.apply(cmp_.xyz)
-    held = {}
-    if registration is not None:  # rotations the registration held at their initial value: the stated prior
-        held = {n: np.radians(args.held_rotation_std) for n, v in zip(registration.parameter_names,
-                                                                      np.diag(registration.covariance))
-                if n.startswith("r") and np.isinf(v)}
-        if held:
-            print(f"undetermined {', '.join(held)}: prior std {args.held_rotation_std:g} deg in the LoD")
-        shifts = [n for n, v in zip(registration.parameter_names, np.diag(registration.covariance))
-                  if n.startswith("t") and np.isinf(v)]
-        if shifts and args.held_shift_std is not None:
-            held.update({n: args.held_shift_std for n in shifts})
-            print(f"undetermined {', '.join(shifts)}: prior std {length_text(args.held_shift_std)} in the LoD")
-        elif shifts:
-            print(f"undetermined {', '.join(shifts)}: the LoD is infinite where they move the surface along the "
-                  "normal; --held-shift-std M states a prior (e.g. the survey's horizontal accuracy)")
-    normal_radius, cylinder_radius, max_depth = _change_parameters(ref.xyz, moved, args)
+    held = held_priors(registration, args)
+    normal_radius, cylinder_radius, max_depth = change_parameters(ref.xyz, moved, args)
     result = m3c2(ref, moved, args.spacing, normal_radius=normal_radius, cylinder_radius=cylinder_radius,
                   max_depth=max_depth, registration_covariance=registration, confidence=args.confidence, quantile=args.quantile,
                   progress=sys.stderr.isatty(), held_std=held)
@@ -262,34 +247,6 @@ def _cmd_change(args) -> int:
     return 0
 
 
-def _change_parameters(ref, moved, args):
-    """Normal radius, cylinder radius and max depth: as given, else chosen from the data (printed with the rule)."""
-    if args.normal_radius and args.cylinder_radius and args.max_depth:
-        return args.normal_radius, args.cylinder_radius, args.max_depth
-    chosen = m3c2_parameters(ref, moved, expected_change=args.expected_change, rng=args.seed)
-    print("\nM3C2 parameters (lengths in m of the metric coordinates; --normal-radius, --cylinder-radius, "
-          "--max-depth override):")
-    given = {"cylinder": args.cylinder_radius, "normal": args.normal_radius, "max depth": args.max_depth}
-    for line in chosen.lines():
-        key = next((k for k in given if line.startswith(k)), None)
-        print(f"  {line if key is None or given[key] is None else key + ': given on the command line'}")
-    return (args.normal_radius or chosen.normal_radius, args.cylinder_radius or chosen.cylinder_radius,
-            args.max_depth or chosen.max_depth)
-
-
-def _registration_for(registration, args):
-    """The registration file oriented compared -> reference (a file of ``labkit register REF CMP`` is inverted)."""
-    names = ", ".join(registration.parameter_names)
-    roles = dict(getattr(registration, "inputs", ()))
-    same = lambda a, b: a is not None and Path(a).resolve() == Path(b).resolve()  # noqa: E731
-    if same(roles.get("source"), args.reference) and same(roles.get("target"), args.compared):
-        print(f"registration {args.registration}: {names} with covariance; it maps {args.reference} onto "
-              f"{args.compared}, used inverted (compared -> reference)")
-        return registration.inverse()
-    print(f"registration {args.registration}: {names} with covariance (compared -> reference)")
-    return registration
-
-
 def _check_dof(methods, dof: str) -> None:
     """Maximum consensus estimates a translation only: refuse ``--dof rigid`` rather than ignore it."""
     if "consensus" in methods and dof == "rigid":
@@ -298,9 +255,9 @@ def _check_dof(methods, dof: str) -> None:
 
 
 # --------------------------------------------------------------------------- text and figures
-def _rotation_text(result) -> str:
+def _rotation_text(result, frame: str = "the input's coordinates") -> str:
     """The 4x4 matrix and, for a rigid result, the angles with standard deviations (arcsec)."""
-    lines = ["4x4 transformation (source -> target, caller's frame):",
+    lines = [f"4x4 transformation (source -> target) in {frame}:",
              np.array2string(result.matrix, precision=6, suppress_small=True, max_line_width=120)]
     names = tuple(result.parameter_names)
     if "rx" in names:

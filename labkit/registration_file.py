@@ -190,7 +190,7 @@ def save_registration(path, registration=None, *, matrix=None, covariance=None, 
         raise LabkitError("save_registration needs a registration result, or matrix, covariance and parameter_names")
     names = _check_names(parameter_names, path)
     M = _check_matrix(matrix, path)
-    cov = _check_covariance(covariance, len(names), path)
+    cov = check_covariance(covariance, len(names), f"{path}: covariance")
     o = _check_origin(np.zeros(3) if origin is None else origin, path)
     doc = {"format": FORMAT, "format_version": FORMAT_VERSION, "matrix": M.tolist(), "parameter_names": list(names),
            "covariance": [[v if np.isfinite(v) else None for v in row] for row in cov.tolist()],
@@ -263,9 +263,9 @@ def load_registration(path) -> RegistrationFile:
         raise LabkitError(f"{path}: crs must be a string or null")
     if not isinstance(doc["inputs"], dict):
         raise LabkitError(f"{path}: inputs must be an object such as {{'source': ..., 'target': ...}}")
-    return RegistrationFile(_check_matrix(doc["matrix"], path), _check_covariance(cov, len(names), path), names,
-                            _check_origin(doc["origin"], path), "m", crs, _pairs(doc["inputs"], path),
-                            str(doc["method"]), str(doc["labkit_version"]))
+    cov = check_covariance(cov, len(names), f"{path}: covariance")
+    return RegistrationFile(_check_matrix(doc["matrix"], path), cov, names, _check_origin(doc["origin"], path), "m",
+                            crs, _pairs(doc["inputs"], path), str(doc["method"]), str(doc["labkit_version"]))
 
 
 # --------------------------------------------------------------------------- checks
@@ -304,23 +304,34 @@ def _check_matrix(matrix, where):
     return M
 
 
-def _check_covariance(cov, p, where):
+def check_covariance(cov, p, what="covariance", allow_inf=True):
+    """A p x p covariance as float array: symmetric, positive semi-definite; ``inf`` on the diagonal
+    (a parameter not determined, if ``allow_inf``) with its row and column set to 0 off the diagonal.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.registration_file import check_covariance
+    >>> check_covariance(np.diag([1e-4, np.inf]), 2).tolist()
+    [[0.0001, 0.0], [0.0, inf]]
+    """
     try:
         S = np.array(cov, dtype=np.float64)
     except (TypeError, ValueError):
-        raise LabkitError(f"{where}: covariance must be a {p} x {p} list of numbers") from None
+        raise LabkitError(f"{what} must be a {p} x {p} matrix of numbers") from None
     if S.shape != (p, p):
-        raise LabkitError(f"{where}: covariance must be {p} x {p} (one row per parameter name), got {S.shape}")
-    loose = np.isinf(np.diag(S)) & (np.diag(S) > 0)
+        raise LabkitError(f"{what} must be {p} x {p} (one row per parameter), got shape {S.shape}")
+    loose = np.isinf(np.diag(S)) & (np.diag(S) > 0) & bool(allow_inf)
     core = S[np.ix_(~loose, ~loose)]
     if not np.isfinite(core).all() or np.isnan(S).any():
-        raise LabkitError(f"{where}: covariance has NaN or infinite entries off an undetermined parameter")
+        raise LabkitError(f"{what} contains NaN or infinite entries (inf is allowed only on the diagonal, for a "
+                          "parameter not determined)" if allow_inf else f"{what} contains NaN or infinite entries")
     if not np.allclose(core, core.T, rtol=1e-8, atol=1e-12 * max(1.0, np.abs(core).max(initial=0))):
-        raise LabkitError(f"{where}: covariance must be symmetric")
+        raise LabkitError(f"{what} must be symmetric")
     if core.size:
         lam = np.linalg.eigvalsh(0.5 * (core + core.T))
         if lam[0] < -1e-9 * max(lam[-1], 1e-300):
-            raise LabkitError(f"{where}: covariance must be positive semi-definite; smallest eigenvalue {lam[0]:.3g}")
+            raise LabkitError(f"{what} must be positive semi-definite; smallest eigenvalue {lam[0]:.3g}")
     S[loose, :] = S[:, loose] = 0.0
     S[loose, loose] = np.inf
     return S

@@ -51,7 +51,8 @@ def _vector(text: str, label: str) -> np.ndarray:
 
 
 def _shift(text: str) -> np.ndarray:
-    return np.array([float(re.search(rf"^d{a}\s+([+-][0-9.]+) m", text, flags=re.M).group(1)) for a in "XYZ"])
+    found = [re.search(rf"^d{a}\s+([+-][0-9.]+) (?:\+- \S+ )?(mm|m)\b", text, flags=re.M) for a in "XYZ"]
+    return np.array([float(m.group(1)) / (1000.0 if m.group(2) == "mm" else 1.0) for m in found])
 
 
 def _no_partials(folder: Path):

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from labkit import load_registration
+from labkit import load_registration, save_registration
 from labkit.cli import main
 from labkit.io import read_cloud, write_cloud
 
@@ -96,6 +96,12 @@ def test_feet_halves_register_and_change(tmp_path, capsys):
                           a, text)
     with rasterio.open(tmp_path / "C" / f"{a.stem}_{b.stem}_m3c2.tif") as ds:
         assert ds.tags()["COORDINATE_UNIT"] == "US survey foot" and ds.bounds.left > 2.4e6  # feet, not metres
+    # a registration file made in another CRS: said on stderr, not silently applied
+    other = save_registration(tmp_path / "other.json", matrix=np.eye(4), covariance=np.eye(3) * 1e-6,
+                              parameter_names=("tx", "ty", "tz"), crs=read_cloud(REAL / "epochs" /
+                                                                                  "autzen-bmx-2010.las").crs)
+    assert main(["change", str(a), str(b), "--registration", str(other), "--out", str(tmp_path / "C2")]) == 0
+    assert "made in another CRS" in capsys.readouterr().err
 
 
 def _check_shift_geotiff(out, source, size):

@@ -6,9 +6,9 @@ noise as sqrt(lambda_3), the spread off its best plane; a neighbourhood along on
 line -- what a multi-beam scanner's sparse rings give, where all 8 neighbours lie on one
 ring -- gives it as sqrt(lambda_2), the spread off its best line within the ring. The
 noise sigma is the median over the sample, with the degrees of freedom of the fit
-(the variance times (k - 1) / (k - 3) for a plane, (k - 1) / (k - 2) for a line), and t = 3 sigma (a residual of a normal
-distribution passes with 99.7 %; Hartley and Zisserman use 1.96 sigma per coordinate
-for 95 %), at least 1 mm (coordinates quantised to a grid give lambda = 0). Where the
+(the variance times (k - 1) / (k - 3) for a plane, (k - 1) / (k - 2) for a line), and
+t = 3 sigma (a residual of a normal distribution passes with 99.7 %; Hartley and
+Zisserman use 1.96 sigma per coordinate for 95 %), at least 1 mm (coordinates quantised to a grid give lambda = 0). Where the
 noise exceeds the point spacing the neighbourhoods are blobs, not patches, and the
 estimate is low: then give the threshold.
 """

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .._lengths import length_text
 from .._report import ReportMixin, fmt
 from ..transforms import angles_from_rotation, apply_transform, make_transform
 from .consistency import Consistency, group_consistency  # noqa: F401  (re-exported: their former home)
@@ -132,7 +133,7 @@ class RegistrationResult(ReportMixin):
     def _report(self):
         std = self.translation_std
         rows = [
-            (f"d{a}", f"{t:+.4f} m  +- {s:.4f} m") for a, t, s in zip(AXES, self.translation, std)
+            (f"d{a}", length_text(t, s, sign=True)) for a, t, s in zip(AXES, self.translation, std)
         ]
         if not np.allclose(self.rotation, np.eye(3)):
             ang = np.degrees(angles_from_rotation(self.rotation)) * 3600
