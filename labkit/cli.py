@@ -1,4 +1,4 @@
-"""Command line: ``labkit demo``, ``sphere``, ``register``, ``compare``, ``tiles`` and ``change``.
+"""Command line: ``labkit demo``, ``sphere``, ``register``, ``compare``, ``tiles``, ``change`` and ``targets``.
 
 Each sub-command is a small function taking the parsed arguments. Bad input
 (a missing or corrupt file, an invalid option or number) ends with exactly one

@@ -192,3 +192,21 @@ def test_cli_targets_writes_registration_files_that_labkit_change_reads(hall, tm
     assert reg.parameter_names[:3] == ("tx", "ty", "tz") and np.isfinite(reg.std).all()
     assert (tmp_path / "out" / "scan1_registered.laz").exists()
     assert main(["targets", paths[0], "--radius-range", "0.09", "0.11"]) == 2  # one scan: one clear line
+
+
+def test_extra_spheres_and_missing_targets_do_not_disturb_the_matching():
+    rng = np.random.default_rng(17)
+    vis = np.ones((4, 8), bool)
+    vis[1, [0, 3]] = vis[2, [5]] = vis[3, [1, 6, 7]] = False  # every scan misses some targets
+    _, poses, truth, covs, _ = _network(rng, n_scans=4, n_targets=8, visible=vis)
+    obs = _observe(rng, truth, covs)
+    for s in (1, 2):  # spheres that are no targets (a decoy ball, a lamp) in two scans
+        obs[s] = np.vstack([obs[s], rng.uniform(-12, 12, (2, 3))])
+        covs[s] = np.concatenate([covs[s], _covs(rng, 2)])
+    net = register_targets(obs, covs)
+    assert net.excluded == () and net.global_test.passed
+    for s in range(1, 4):
+        assert (np.abs(net.parameters[s] - _params(poses[s])) < 3.5 * net.std[s]).all()
+    extra = np.flatnonzero(np.isin(net.table.scan, (1, 2)) & (net.table.index >= np.array([len(t) for t in truth])
+                                                               [net.table.scan]))
+    assert len(extra) == 4 and (net.table.status[extra] == "seen once").all()
