@@ -91,7 +91,8 @@ def solve_normal(N, rhs):
     if not np.isfinite(N).all():
         raise LabkitError("the normal matrix contains NaN or infinite values")
     d[d == 0] = 1.0
-    lam, V = linalg.eigh(N / np.outer(d, d), driver="ev", check_finite=False)  # numpy's eigh stalls on busy BLAS threads
+    # scipy's eigh: numpy's stalls on busy BLAS threads for these small matrices
+    lam, V = linalg.eigh(N / np.outer(d, d), driver="ev", check_finite=False)
     keep = lam > _NULL_RCOND * max(lam[-1], 1e-300)
     Qs = (V[:, keep] / lam[keep]) @ V[:, keep].T
     Q = Qs / np.outer(d, d)

@@ -348,7 +348,8 @@ class HelmertFit(ReportMixin):
         rows = []
         for i, name in enumerate(self.names):
             if i < 3:
-                rows.append((name, f"{np.degrees(self.parameters[i]):+.6f} deg  +- {np.degrees(std[i]) * 3600:.2f} arcsec"))
+                rows.append((name, f"{np.degrees(self.parameters[i]):+.6f} deg  +- "
+                                   f"{np.degrees(std[i]) * 3600:.2f} arcsec"))
             elif i < 6:
                 rows.append((name, f"{self.parameters[i]:+.4f} m  +- {std[i] * 1e3:.2f} mm"))
             else:

@@ -16,7 +16,7 @@ from . import _pose, ransac
 from ._checks import count, non_negative, probability
 from ._frame import local_origin
 from ._report import ReportMixin, fmt
-from ._stats import GlobalTest, global_test, w_critical  # noqa: F401
+from ._stats import GlobalTest, global_test, w_critical
 from ._target_match import match_targets
 from ._target_network import adjust, caller_pose
 from .errors import LabkitError
@@ -374,7 +374,8 @@ class TargetTable(ReportMixin):
         rows = []
         for r in range(len(self)):
             v = self.residual[r] * 1e3
-            res = "-" if np.isnan(v).all() else f"[{v[0]:+6.2f} {v[1]:+6.2f} {v[2]:+6.2f}] mm  |v| {np.linalg.norm(v):5.2f}"
+            res = "-" if np.isnan(v).all() else (f"[{v[0]:+6.2f} {v[1]:+6.2f} {v[2]:+6.2f}] mm  "
+                                                 f"|v| {np.linalg.norm(v):5.2f}")
             test = "" if np.isnan(self.test[r]) else f"  test {self.test[r]:5.2f}"
             rows.append((f"scan {self.scan[r]} sphere {self.index[r]} -> target {self.target[r]}",
                          f"{res}{test}  {self.status[r]}"))

@@ -1,4 +1,4 @@
-"""labkit.helmert: the 3D transformation in the Gauss-Helmert model against closed forms, a dense GHM and Monte Carlo."""
+"""labkit.helmert: the 3D transformation in the Gauss-Helmert model against closed forms, a dense GHM, Monte Carlo."""
 
 import numpy as np
 import pytest
@@ -114,18 +114,33 @@ def test_monte_carlo_spread_matches_the_stated_standard_deviations(scale):
     q_true = s_true * apply_transform(_truth(), p_true)
     Cp, Cq = _random_cov(rng, n), _random_cov(rng, n)
     Lp, Lq = np.linalg.cholesky(Cp), np.linalg.cholesky(Cq)
-    xs, stds = [], []
+    xs, stds, p_point, rejected = [], [], [], []
     for _ in range(runs):
         p = p_true + np.einsum("nij,nj->ni", Lp, rng.normal(size=(n, 3)))
         q = q_true + np.einsum("nij,nj->ni", Lq, rng.normal(size=(n, 3)))
         fit = helmert(p, q, source_cov=Cp, target_cov=Cq, scale=scale)
         xs.append(fit.parameters)
         stds.append(fit.std)
+        p_point.append(fit.point_p)
+        rejected.append(not fit.global_test.passed)
     xs, stated = np.array(xs), np.mean(stds, axis=0)
     ratio = xs.std(axis=0, ddof=1) / stated
     assert ((ratio > 0.8) & (ratio < 1.25)).all(), ratio
+    # the tests keep their level under H0: 5 % of the point tests below p = 0.05, 5 % of the global tests rejected
+    assert 0.035 < (np.array(p_point) < 0.05).mean() < 0.065
+    assert 0.025 < np.mean(rejected) < 0.08
     truth = np.concatenate([ANGLES, s_true * SHIFT] + ([[s_true]] if scale else []))  # q = s (R p + t)
     assert (np.abs(xs.mean(axis=0) - truth) < 4 * stated / np.sqrt(runs)).all()
+
+
+def test_point_test_without_a_priori_precision_keeps_its_level():
+    """Unit weights of unknown scale: the test uses the estimated sigma0 (Beta distribution, Pope's tau in 3D)."""
+    rng = np.random.default_rng(8)
+    p0 = rng.uniform(-10, 10, (6, 3))
+    q0 = apply_transform(_truth(), p0)
+    p = np.array([helmert(p0 + rng.normal(0, 0.001, p0.shape), q0 + rng.normal(0, 0.001, p0.shape)).point_p
+                  for _ in range(400)])
+    assert 0.035 < (p < 0.05).mean() < 0.065
 
 
 def test_global_test_and_point_test_find_a_moved_point():
