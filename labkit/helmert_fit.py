@@ -73,7 +73,9 @@ def helmert(source, target, *, source_cov=None, target_cov=None, scale: bool = F
     dx = -N^-1 sum A_i^T M_i^-1 w_i, k_i = -M_i^-1 (A_i dx + w_i), v_p,i = s Sigma_p,i R^T k_i,
     v_q,i = -Sigma_q,i k_i. Coordinates are reduced to the centroids first; translation and covariance
     are returned in the caller's frames. With a known a priori precision Sigma_xx = sigma0^2 N^-1 with the
-    a priori sigma0 (the global test checks it); otherwise with the estimated one. Equal isotropic
+    a priori sigma0 (the global test checks it); otherwise with the estimated one. The translation refers to
+    the origin of the caller's frames: far from it (UTM coordinates) its standard deviation contains the
+    rotation's uncertainty times that lever arm. Equal isotropic
     precision of both sets gives exactly the closed-form SVD solution (Kabsch) for a rigid transformation.
 
     References

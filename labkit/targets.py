@@ -66,7 +66,8 @@ def register_targets(centers, covariances, *, reference: int = 0, scale: bool = 
     two shared targets fix neither the rotation about their line nor which target is which. It is refused
     (matrix NaN, the reason in ``undetermined[i]``). Targets seen in one scan only carry no information and
     are listed with the status ``seen once``. Standard deviations use the a priori sigma0 = 1 (the centres'
-    covariances are taken as known); the global test checks that assumption.
+    covariances are taken as known); the global test checks that assumption. A target seen in two scans only
+    cannot show which of its two centres is wrong (their tests are equal): one is left out, and with it the target.
 
     References
     ----------
