@@ -80,9 +80,9 @@ def helmert(source, target, *, source_cov=None, target_cov=None, scale: bool = F
 
     References
     ----------
-    .. [1] Seed 000, section 1 (the Gauss-Helmert model of the sphere: the same steps, eqs. 6-24).
-    .. [2] Notebook 11, sections 3-6: functional model (eqs. 1-2), linearization (eqs. 3-8), the 3x3 blocks
+    .. [1] Notebook 11, sections 3-6: functional model (eqs. 1-2), linearization (eqs. 3-8), the 3x3 blocks
        of B Sigma_ll B^T (eq. 6), normal equations and iteration (eq. 9), statistics (eqs. 10-12).
+    .. [2] Seed 000, section 1 (the Gauss-Helmert model of the sphere: the same steps, eqs. 6-24).
     .. [3] F. Neitzel (2010): Generalization of total least-squares on example of unweighted and weighted 2D
        similarity transformation. Journal of Geodesy 84(12), 751-762, doi:10.1007/s00190-010-0408-0.
     .. [4] S. Umeyama (1991): Least-squares estimation of transformation parameters between two point

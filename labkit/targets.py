@@ -71,9 +71,9 @@ def register_targets(centers, covariances, *, reference: int = 0, scale: bool = 
 
     References
     ----------
-    .. [1] Seed 000, section 1 (the Gauss-Helmert model), here with one 3x3 block per observed centre.
-    .. [2] Notebook 11, sections 7-10: matching by distances (section 7), the network's conditions and
+    .. [1] Notebook 11, sections 7-10: matching by distances (section 7), the network's conditions and
        blocks (eqs. 13-14), the tests and the exclusion of moved targets (sections 9-10).
+    .. [2] Seed 000, section 1 (the Gauss-Helmert model), here with one 3x3 block per observed centre.
     .. [3] W. Baarda (1968): A testing procedure for use in geodetic networks. Netherlands Geodetic
        Commission, Publications on Geodesy 2(5).
     .. [4] K. R. Koch (1999): Parameter Estimation and Hypothesis Testing in Linear Models. 2nd edition,
@@ -166,8 +166,8 @@ def register_scans(scans, radius_range, *, reference: int = 0, scale: bool = Fal
 
     References
     ----------
-    .. [1] Seed 000, sections 1-2 (the sphere in the Gauss-Helmert model, RANSAC).
-    .. [2] Notebook 11, sections 7-10 (the network) and notebook 02 (finding spheres with RANSAC).
+    .. [1] Notebook 11, sections 7-10 (the network) and notebook 02 (finding spheres with RANSAC).
+    .. [2] Seed 000, sections 1-2 (the sphere in the Gauss-Helmert model, RANSAC).
 
     Examples
     --------
