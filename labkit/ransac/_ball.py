@@ -63,3 +63,85 @@ def ball_counts(X, c, radii):
         d2 = np.einsum("ij,ij->i", d, d)
         return np.array([np.count_nonzero(d2 <= r * r) for r in radii])
     return _counts(X, c, radii)
+
+
+def _shell(X, c, r, reach):  # pragma: no cover - compiled
+    R2 = (r + reach) * (r + reach)
+    idx = np.empty(X.shape[0], dtype=np.int64)
+    d = np.empty(X.shape[0])
+    k = 0
+    for i in range(X.shape[0]):
+        dx, dy, dz = X[i, 0] - c[0], X[i, 1] - c[1], X[i, 2] - c[2]
+        q = dx * dx + dy * dy + dz * dz
+        if q <= R2:
+            idx[k] = i
+            d[k] = np.sqrt(q) - r
+            k += 1
+    return idx[:k].copy(), d[:k].copy()
+
+
+def _normal_equations(P, shift, c, r):  # pragma: no cover - compiled
+    """J^T J (4, 4) and J^T d (4,) of the orthogonal sphere fit at (c, r), for the points P - shift."""
+    JtJ = np.zeros((4, 4))
+    Jtd = np.zeros(4)
+    for i in range(P.shape[0]):
+        dx = (P[i, 0] - shift[0]) - c[0]
+        dy = (P[i, 1] - shift[1]) - c[1]
+        dz = (P[i, 2] - shift[2]) - c[2]
+        dist = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if dist == 0.0:
+            JtJ[3, 3] = -1.0  # flag: a point at the centre
+            return JtJ, Jtd
+        u0, u1, u2 = dx / dist, dy / dist, dz / dist
+        d = dist - r
+        JtJ[0, 0] += u0 * u0
+        JtJ[0, 1] += u0 * u1
+        JtJ[0, 2] += u0 * u2
+        JtJ[1, 1] += u1 * u1
+        JtJ[1, 2] += u1 * u2
+        JtJ[2, 2] += u2 * u2
+        JtJ[0, 3] += u0
+        JtJ[1, 3] += u1
+        JtJ[2, 3] += u2
+        Jtd[0] -= u0 * d
+        Jtd[1] -= u1 * d
+        Jtd[2] -= u2 * d
+        Jtd[3] -= d
+    JtJ[3, 3] = P.shape[0]
+    for a in range(4):
+        for b in range(a):
+            JtJ[a, b] = JtJ[b, a]
+    return JtJ, Jtd
+
+
+if numba is not None:
+    _shell = numba.njit(cache=True, nogil=True)(_shell)
+    _normal_equations = numba.njit(cache=True, nogil=True)(_normal_equations)
+
+
+def shell_points(X, c, r, reach):
+    """Indices of the points of X within r + reach of c and their residuals d = |x - c| - r (eq. 25)."""
+    c = np.asarray(c, dtype=np.float64)
+    if numba is None:  # pragma: no cover
+        idx = ball_indices(X, c, r + reach)
+        diff = X[idx] - c
+        return idx, np.sqrt(np.einsum("ij,ij->i", diff, diff)) - r
+    return _shell(X, c, float(r), float(reach))
+
+
+def normal_equations(P, shift, c, r):
+    """J^T J and J^T d of the orthogonal-distance sphere fit (rows J_i = -[u_i, 1], u_i the unit radial
+    vector of P_i - shift about c); None when a point lies at the centre."""
+    P = np.ascontiguousarray(P, dtype=np.float64)
+    if numba is None:  # pragma: no cover
+        diff = P - shift - c
+        dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+        if np.any(dist == 0):
+            return None
+        u, d = diff / dist[:, None], dist - r
+        su = u.sum(axis=0)
+        JtJ = np.empty((4, 4))
+        JtJ[:3, :3], JtJ[:3, 3], JtJ[3, :3], JtJ[3, 3] = u.T @ u, su, su, len(P)
+        return JtJ, -np.append(u.T @ d, d.sum())
+    JtJ, Jtd = _normal_equations(P, np.asarray(shift, dtype=np.float64), np.asarray(c, dtype=np.float64), float(r))
+    return None if JtJ[3, 3] < 0 else (JtJ, Jtd)
