@@ -33,9 +33,7 @@ def registration_for(registration, args, crs=None):
     if crs is not None and getattr(registration, "crs", None) and not same_crs(registration.crs, crs):
         warnings.warn(f"the registration file {args.registration} was made in another CRS "
                       f"({registration.crs[:60]}...) than {args.reference}", stacklevel=2)
-    roles = dict(getattr(registration, "inputs", ()))
-    same = lambda a, b: a is not None and Path(a).resolve() == Path(b).resolve()  # noqa: E731
-    if same(roles.get("source"), args.reference) and same(roles.get("target"), args.compared):
+    if _maps_reference_onto_compared(dict(getattr(registration, "inputs", ())), args.reference, args.compared):
         print(f"registration {args.registration}: {names} with covariance; it maps {args.reference} onto "
               f"{args.compared}, used inverted (compared -> reference)")
         return registration.inverse()
@@ -43,13 +41,28 @@ def registration_for(registration, args, crs=None):
     return registration
 
 
+def _maps_reference_onto_compared(roles, reference, compared) -> bool:
+    """The file's source is the reference and its target the compared epoch: by path, else by file name."""
+    src, tgt = roles.get("source"), roles.get("target")
+    if src is None or tgt is None:
+        return False
+    path = lambda a, b: Path(a).resolve() == Path(b).resolve()  # noqa: E731
+    if path(src, reference) and path(tgt, compared):
+        return True
+    if path(src, compared) and path(tgt, reference):
+        return False
+    name = lambda a, b: Path(a).name == Path(b).name  # noqa: E731  (the files were moved together)
+    return name(src, reference) and name(tgt, compared) and not (name(src, compared) and name(tgt, reference))
+
+
 def same_crs(a: str, b: str) -> bool:
-    """Two CRS texts name the same CRS (pyproj), or are equal text where pyproj cannot parse them."""
-    import pyproj
+    """Two CRS texts name the same CRS (GDAL/PROJ through rasterio), or are equal text where they cannot be parsed."""
+    from rasterio.crs import CRS
+    from rasterio.errors import CRSError
 
     try:
-        return pyproj.CRS.from_user_input(a).equals(pyproj.CRS.from_user_input(b), ignore_axis_order=True)
-    except pyproj.exceptions.CRSError:
+        return CRS.from_user_input(a) == CRS.from_user_input(b)
+    except CRSError:
         return a == b
 
 

@@ -112,22 +112,24 @@ def _cmd_register(args) -> int:
     print()
     print(result.summary())
     print()
-    print(_rotation_text(result, frame_text(source)))
+    print(_rotation_text(result))
     change = distances_before_after(source, target, result, progress=progress)  # reuses ICP's target tree
     forget_tree()  # then frees it before the moved cloud is written
     print()
     print(change.summary())
+    print(f"\ncoordinates of the 4x4 and the outputs: {frame_text(source)}")
 
     # Outputs: the transformed source (LAS/LAZ, attributes kept) and a distance-coloured top view
     moved = source.with_xyz(result.apply(source.xyz))
     suffix = Path(args.source).suffix.lower() if Path(args.source).suffix.lower() in LAS_SUFFIXES else ".laz"
     stem = Path(args.source).stem
-    fig = _distance_figure(source, change, f"{stem} -> {Path(args.target).stem} ({result.method})", args.seed)
+    fig = _distance_figure(source, change, f"{stem} -> {Path(args.target).stem} ({result.method})\n"
+                                           f"{frame_text(source)}", args.seed)
     with staged_outputs(args.out) as stage:
         write_cloud(moved, stage(f"{stem}_registered{suffix}"), progress=progress)
         save_figure(fig, stage(f"{stem}_distances.png"))
         save_registration(stage("registration.json"), result, crs=source.crs,
-                          inputs={"source": args.source, "target": args.target})
+                          inputs={"source": str(Path(args.source).resolve()), "target": str(Path(args.target).resolve())})
     print()
     for path in stage.written:
         print(f"wrote {path}")
@@ -235,7 +237,8 @@ def _cmd_change(args) -> int:
     suffix = Path(args.reference).suffix.lower() if Path(args.reference).suffix.lower() in LAS_SUFFIXES else ".laz"
     cores = result.to_cloud()
     cores = PointCloud(cores.xyz, cores.attributes, crs=ref.crs, units=ref.units, name=stem)  # in the file's units
-    fig = plot_change_figure(result, f"M3C2 {Path(args.compared).stem} - {Path(args.reference).stem}")
+    fig = plot_change_figure(result, f"M3C2 {Path(args.compared).stem} - {Path(args.reference).stem}\n"
+                                     f"{frame_text(ref)}")
     with staged_outputs(args.out) as stage:
         write_cloud(cores, stage(stem + suffix), scale=None)
         write_cloud(cores, stage(stem + ".csv"), scale=None)
@@ -255,7 +258,7 @@ def _check_dof(methods, dof: str) -> None:
 
 
 # --------------------------------------------------------------------------- text and figures
-def _rotation_text(result, frame: str = "the input's coordinates") -> str:
+def _rotation_text(result, frame: str = "the input's coordinates, m") -> str:
     """The 4x4 matrix and, for a rigid result, the angles with standard deviations (arcsec)."""
     lines = [f"4x4 transformation (source -> target) in {frame}:",
              np.array2string(result.matrix, precision=6, suppress_small=True, max_line_width=120)]
@@ -488,6 +491,9 @@ def build_parser() -> argparse.ArgumentParser:
     change.add_argument("--expected-change", type=_positive_float,
                         help="largest change expected in m, for the default max depth (default: the 99th "
                              "percentile of the cloud-to-cloud distance compared -> reference)")
+    change.add_argument("--held-shift-std", type=_non_negative_float, metavar="M",
+                        help="prior std in m of a shift component the registration left undetermined (default: "
+                             "none, the LoD is infinite where it matters)")
     change.add_argument("--spacing", type=_positive_float,
                         help="core points: one reference point per cube of this edge (default: the cylinder radius)")
     change.add_argument("--confidence", type=_probability, default=0.95, help="LoD confidence (default: %(default)s)")
@@ -497,9 +503,6 @@ def build_parser() -> argparse.ArgumentParser:
     change.add_argument("--held-rotation-std", type=_non_negative_float, default=0.02, metavar="DEG",
                         help="prior std (deg) of a rotation the registration left undetermined, as ICP's "
                              "held_rotation_std_deg (default: %(default)s)")
-    change.add_argument("--held-shift-std", type=_non_negative_float, metavar="M",
-                        help="prior std in m of a shift component the registration left undetermined (default: "
-                             "none, the LoD is infinite where it matters)")
     _add_method_options(change)
     change.add_argument("--out", default=".", help="output folder (default: the current folder)")
     change.set_defaults(func=_cmd_change)

@@ -58,21 +58,20 @@ def geotiff_crs(crs):
     >>> geotiff_crs("EPSG:25832").to_epsg(), geotiff_crs(None)
     (25832, None)
     """
-    import pyproj
     from rasterio.crs import CRS
+    from rasterio.errors import CRSError
 
     if not crs:
         return None
     try:
-        parsed = pyproj.CRS.from_user_input(crs)
-    except pyproj.exceptions.CRSError as exc:
+        return CRS.from_user_input(crs)
+    except CRSError as exc:
         m = re.fullmatch(r"\s*EPSG:(\d+)\+\d+\s*", str(crs), flags=re.IGNORECASE)
         if m is None:
             raise LabkitError(f"cannot write a GeoTIFF in the CRS {str(crs)[:80]!r}: {exc}") from None
-        warnings.warn(f"the vertical part of {crs} is not a CRS PROJ knows; the GeoTIFF gets EPSG:{m.group(1)}",
-                      stacklevel=2)
-        parsed = pyproj.CRS.from_epsg(int(m.group(1)))
-    return CRS.from_wkt(parsed.to_wkt())
+    warnings.warn(f"the vertical part of {crs} is not a CRS PROJ knows; the GeoTIFF gets EPSG:{m.group(1)}",
+                  stacklevel=2)
+    return CRS.from_epsg(int(m.group(1)))
 
 
 def change_geotiff(result, path, *, crs=None, units=None, cell=None, extent=None):

@@ -69,7 +69,8 @@ def test_autzen_register_then_change_with_defaults_writes_geotiff(tmp_path, caps
     a, b = str(REAL / "epochs" / "autzen-bmx-2010.las"), str(REAL / "epochs" / "autzen-bmx-2023.las")
     assert main(["register", b, a, "--out", str(tmp_path / "R"), "--quiet"]) == 0
     reg = load_registration(tmp_path / "R" / "registration.json")
-    assert dict(reg.inputs) == {"source": b, "target": a} and reg.crs == read_cloud(b).crs
+    assert dict(reg.inputs) == {"source": str(Path(b).resolve()), "target": str(Path(a).resolve())}
+    assert reg.crs == read_cloud(b).crs
     capsys.readouterr()
     out = tmp_path / "C"
     assert main(["change", a, b, "--registration", str(tmp_path / "R" / "registration.json"),
@@ -80,6 +81,8 @@ def test_autzen_register_then_change_with_defaults_writes_geotiff(tmp_path, caps
     assert re.search(r"distance median\s+[+-]\d+\.\d+ (mm|m)\b", text)
     # Autzen's NN spacing is about 1.1 m: about 30 points lie within 3-4.5 m
     assert 2.5 < float(radius.group(1)) < 5.0
+    counts = re.search(r"points per cylinder median\s+(\d+) / (\d+)", text)
+    assert 20 <= int(counts.group(1)) <= 45  # the rule's promise: about 30 reference points per cylinder
     stem = "autzen-bmx-2010_autzen-bmx-2023_m3c2"
     _check_change_geotiff(out / f"{stem}.tif", out / f"{stem}.las", a, text)
 

@@ -52,3 +52,15 @@ def test_default_threshold_finds_the_sphere_in_a_real_multibeam_scan(capsys):
     assert re.search(r"inlier threshold \d+ mm = 3 x noise \d+\.\d mm", out)
     centre = np.array([float(v) for v in re.search(r"^centre\s+\[([^\]]+)\]", out, re.M).group(1).split(",")])
     assert np.linalg.norm(centre - ref["center"]) < 0.005  # the independent reference fit, within 5 mm
+
+
+def test_a_failed_search_names_the_threshold_and_a_value_to_try(tmp_path, capsys):
+    from labkit.cli import main
+    from labkit.cloud import PointCloud
+    from labkit.io import write_cloud
+
+    pts = np.random.default_rng(0).uniform(0, 1, (2000, 3))  # a box of noise: no sphere
+    write_cloud(PointCloud(pts), tmp_path / "noise.xyz")
+    assert main(["sphere", str(tmp_path / "noise.xyz"), "--radius-range", "0.05", "0.1", "--threshold", "0.003"]) == 1
+    err = capsys.readouterr().err
+    assert re.search(r"tried with --threshold 0.003 m: try --threshold [0-9.]+", err)

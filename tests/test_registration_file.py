@@ -96,3 +96,31 @@ def test_inverse_maps_back_and_its_lod_term_matches_monte_carlo(tmp_path):
         moved.append(np.linalg.solve(M, np.c_[pts, np.ones(2)].T).T[:, :3])
     spread = np.std(np.einsum("kij,ij->ki", np.array(moved), nrm), axis=0, ddof=1)
     assert np.all((spread / stated > 0.9) & (spread / stated < 1.1)), (spread, stated)
+
+
+def test_change_orients_the_file_by_its_inputs(tmp_path):
+    from labkit._cli_change import _maps_reference_onto_compared as inverted
+
+    a, b = str(tmp_path / "2014" / "tile.laz"), str(tmp_path / "2016" / "tile.laz")
+    assert inverted({"source": a, "target": b}, a, b) and not inverted({"source": b, "target": a}, a, b)
+    assert not inverted({}, a, b)
+    # moved elsewhere: by file name, unless the names cannot tell the roles apart
+    assert inverted({"source": "/old/x_2014.laz", "target": "/old/x_2016.laz"}, "x_2014.laz", "x_2016.laz")
+    assert not inverted({"source": "/old/tile.laz", "target": "/other/tile.laz"}, a, b)
+
+
+def test_a_scale_parameter_enters_the_lod_term_as_monte_carlo_says(tmp_path):
+    """A similarity registration (targets): the stated n^T Sigma n with a scale against drawn transformations."""
+    names = ("tx", "ty", "tz", "scale")
+    cov = np.diag([2e-3, 2e-3, 3e-3, 20e-6]) ** 2
+    o = np.array([1000.0, 2000.0, 100.0])
+    path = save_registration(tmp_path / "r.json", matrix=np.eye(4), covariance=cov, parameter_names=names, origin=o,
+                             method="targets")
+    reg = load_registration(path)
+    pts = o + np.array([[150.0, -80.0, 5.0], [-200.0, 10.0, -3.0]])
+    nrm = np.array([[0.6, 0.0, 0.8], [0.0, 1.0, 0.0]])
+    stated = np.sqrt(registration_variance(reg, pts, nrm))
+    d = np.random.default_rng(3).multivariate_normal(np.zeros(4), cov, 20000)
+    moved = (1 + d[:, 3, None, None]) * (pts - o)[None] + o + d[:, None, :3]  # p' = (1 + s)(p - o) + o + t
+    spread = np.std(np.einsum("kij,ij->ki", moved - pts, nrm), axis=0, ddof=1)
+    assert np.all((spread / stated > 0.95) & (spread / stated < 1.05)), (spread, stated)
