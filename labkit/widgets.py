@@ -483,7 +483,7 @@ def target_line_points(n=4, offset=1.0, length=20.0, rng=0):
     Examples
     --------
     >>> from labkit.widgets import target_line_points
-    >>> target_line_points(3, 0.0)[:, 1:].tolist()
+    >>> (target_line_points(3, 0.0)[:, 1:] + 0.0).tolist()
     [[0.0, 1.5], [0.0, 1.5], [0.0, 1.5]]
     """
     gen = as_rng(rng)
