@@ -31,6 +31,7 @@ _EXPORTS = {
     "gauss_helmert_model": "labkit.adjustment",
     "SphereFit": "labkit.sphere_fit",
     "ransac_sphere": "labkit.ransac",
+    "find_spheres": "labkit.ransac",
     # local geometry (issue 4)
     "local_pca": "labkit.features",
     "LocalPCA": "labkit.features",
@@ -72,6 +73,12 @@ _EXPORTS = {
     "m3c2": "labkit.change",
     "M3C2Result": "labkit.change",
     "m3c2_parameters": "labkit.change_defaults",
+    # target-based registration (issue 23)
+    "helmert": "labkit.helmert_fit",
+    "HelmertFit": "labkit.helmert_fit",
+    "register_targets": "labkit.targets",
+    "register_scans": "labkit.targets",
+    "TargetNetwork": "labkit.targets",
     # deliverables: the registration file
     "RegistrationFile": "labkit.registration_file",
     "save_registration": "labkit.registration_file",

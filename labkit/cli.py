@@ -1,4 +1,4 @@
-"""Command line: ``labkit demo``, ``sphere``, ``register``, ``compare``, ``tiles`` and ``change``.
+"""Command line: ``labkit demo``, ``sphere``, ``register``, ``compare``, ``tiles``, ``change`` and ``targets``.
 
 Each sub-command is a small function taking the parsed arguments. Bad input
 (a missing or corrupt file, an invalid option or number) ends with exactly one
@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__, compare
+from . import __version__, _cli_targets, compare
 from ._crs import check_same_crs
 from ._checks import count, finite, non_negative, positive, probability
 from ._cli_change import change_parameters, frame_text, held_priors, registration_for
@@ -584,6 +584,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_method_options(change)
     change.add_argument("--out", default=".", help="output folder (default: the current folder)")
     change.set_defaults(func=_cmd_change)
+
+    _cli_targets.add_parser(sub, _positive_float, _seed)
     return parser
 
 

@@ -15,6 +15,7 @@ import numpy as np
 from ._checks import as_rng, choice
 from .adjustment import gauss_helmert_model
 from .coherent_areas import CORRECTIONS
+from .helmert_fit import helmert
 from .plotting.compare import plot_shift_field
 from .plotting.consensus import PLANES, plot_consensus_slice
 from .plotting.ransac import plot_adaptive_trace, plot_section
@@ -22,6 +23,7 @@ from .plotting.registration import plot_correspondences
 from .plotting.sphere import plot_confidence_ellipsoid
 from .ransac import ransac_sphere
 from .tiles import neighbour_test
+from .transforms import make_transform, rotation_from_angles
 
 _P_OPTIONS = (0.5, 0.8, 0.9, 0.95, 0.99, 0.999, 0.9999)
 
@@ -470,4 +472,79 @@ def _gates_figure(corr):
     ax1.set_aspect("auto")
     ax0.set_title("pairs by the rule that rejected them (XY)")
     ax1.set_title("the same, side view (XZ)")
+    return fig
+
+
+def target_line_points(n=4, offset=1.0, length=20.0, rng=0):
+    """``n`` target centres along a ``length`` m line (x) with lateral offsets of about ``offset`` m (y, z).
+
+    ``offset=0`` puts them exactly on the line. The offsets alternate in sign with random sizes (seeded).
+
+    Examples
+    --------
+    >>> from labkit.widgets import target_line_points
+    >>> (target_line_points(3, 0.0)[:, 1:] + 0.0).tolist()
+    [[0.0, 1.5], [0.0, 1.5], [0.0, 1.5]]
+    """
+    gen = as_rng(rng)
+    x = np.linspace(-length / 2, length / 2, n)
+    side = np.where(np.arange(n) % 2 == 0, 1.0, -1.0) * gen.uniform(0.5, 1.0, n)
+    return np.column_stack([x, offset * side, 1.5 + 0.3 * offset * gen.uniform(-1, 1, n)])
+
+
+def target_geometry_explorer(n_targets=4, offset=1.0, noise=0.001, rng=0):
+    """Sliders for the number of targets and their offset from a line: what the transformation can determine.
+
+    Each change simulates the targets (:func:`target_line_points`) in two scans related by a known rigid
+    transformation, with ``noise`` (m) on every centre, adjusts :func:`labkit.helmert` and shows the standard
+    deviations, or the directions it cannot determine (two targets, or targets on one line).
+
+    Returns
+    -------
+    ipywidgets.VBox
+        With ``n_slider``, ``offset_slider``, ``report`` (HTML), ``figure`` (Image), ``last_fit``, ``update()``.
+    """
+    import ipywidgets as widgets
+
+    n_slider = widgets.IntSlider(value=n_targets, min=2, max=8, description="targets", continuous_update=False)
+    offset_slider = widgets.FloatSlider(value=offset, min=0.0, max=5.0, step=0.05, description="offset (m)",
+                                        continuous_update=False)
+    report, figure = widgets.HTML(), widgets.Image(format="png")
+    box = widgets.VBox([widgets.HBox([n_slider, offset_slider]), report, figure])
+    T = make_transform(rotation_from_angles(0.01, -0.02, 0.8), [3.0, -1.0, 0.2])
+
+    def update(*_):
+        gen = as_rng(rng)
+        p = target_line_points(n_slider.value, offset_slider.value, rng=rng)
+        q = p @ T[:3, :3].T + T[:3, 3] + gen.normal(0, noise, p.shape)
+        fit = helmert(p + gen.normal(0, noise, p.shape), q, source_cov=noise, target_cov=noise)
+        box.last_fit = fit
+        report.value = _geometry_html(fit)
+        figure.value = _png(_geometry_figure(p))
+
+    n_slider.observe(update, names="value")
+    offset_slider.observe(update, names="value")
+    box.n_slider, box.offset_slider, box.report, box.figure, box.update = n_slider, offset_slider, report, figure, update
+    update()
+    return box
+
+
+def _geometry_html(fit):
+    if fit.undetermined:
+        return "<p><b>Not determined:</b> " + "; ".join(fit.undetermined) + "</p>"
+    sd = fit.std
+    return ("<p>std rx, ry, rz = " + ", ".join(f"{np.degrees(v) * 3600:.1f}" for v in sd[:3])
+            + " arcsec; tx, ty, tz = " + ", ".join(f"{v * 1e3:.2f}" for v in sd[3:6]) + " mm</p>")
+
+
+def _geometry_figure(p):
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(7, 2.6), layout="constrained")
+    ax = fig.subplots()
+    ax.axhline(0.0, color="0.7", lw=1)
+    ax.plot(p[:, 0], p[:, 1], "o", ms=9)
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("offset y (m)")
+    ax.set_ylim(-6, 6)
     return fig

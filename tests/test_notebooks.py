@@ -31,6 +31,7 @@ MIN_FIGURES = {
     "08": 3,
     "09": 8,
     "10": 5,
+    "11": 4,
 }
 
 # Notebooks whose exercises are checked here: one 'solution'-tagged, collapsed cell per numbered exercise.

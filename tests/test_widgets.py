@@ -135,3 +135,16 @@ def test_matching_gates_explorer_equals_match_and_icp():
     assert np.array_equal(box.last_match.rule, tight.rule)
     assert box.last_match.n_accepted < n_loose and box.figure.value != img
     assert f"{tight.n_accepted} of {len(tight)} pairs accepted" in box.report.value
+
+
+def test_target_geometry_explorer_names_what_two_or_collinear_targets_leave_open():
+    from labkit.widgets import target_geometry_explorer, target_line_points
+
+    box = target_geometry_explorer(n_targets=4, offset=2.0)
+    assert box.last_fit.undetermined == () and "arcsec" in box.report.value
+    spread = box.last_fit.std[0]
+    box.offset_slider.value = 0.2  # closer to the line: the rotation about it is weaker
+    assert box.last_fit.std[0] > 5 * spread
+    box.n_slider.value = 2
+    assert "rotation about the line" in box.report.value and np.isinf(box.last_fit.std[0])
+    assert np.allclose(target_line_points(4, 0.0)[:, 1], 0.0)

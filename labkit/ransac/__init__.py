@@ -27,7 +27,10 @@ One module per step, in the order of a detection:
 - :mod:`~labkit.ransac.verify`: is a candidate a sphere cap the scanner saw?
 - :mod:`~labkit.ransac.refit`: robust band, Gauss-Helmert refit, data snooping;
 - :mod:`~labkit.ransac.result` and :mod:`~labkit.ransac.detect`: ``RansacResult``
-  and the public :func:`ransac_sphere`.
+  and the public :func:`ransac_sphere`;
+- :mod:`~labkit.ransac.proposals` and :mod:`~labkit.ransac.multi`: every sphere
+  of a size in a scan, :func:`find_spheres` (candidate centres from normals,
+  RANSAC around each, or detect-remove-repeat).
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from __future__ import annotations
 from .config import S
 from .detect import ransac_sphere
 from .iterations import required_iterations
+from .multi import find_spheres
 from .result import RansacResult
 
-__all__ = ["RansacResult", "S", "ransac_sphere", "required_iterations"]
+__all__ = ["RansacResult", "S", "find_spheres", "ransac_sphere", "required_iterations"]

@@ -20,6 +20,7 @@ BACKFACE_SHARE = 0.2  # inliers on the side turned away from the station (true s
 CONTRAST = 5.0  # inliers on the shell per point in the shell just outside it, t..3t (true spheres: > 14,
 # spheres fitted to a cylinder or to pieces of planes: 2-3)
 TWO_PLANES_SHARE = 0.9  # inliers on one or two planes: plane pieces cut by the sphere
+TWO_PLANES_POINTS = 1024  # the share is counted on an even subsample of at most this many inliers
 MIN_LEVELS = 3  # a cap spans at least three scan lines (elevation levels) seen from the station
 MIN_SPREAD = 0.01  # smallest variance of the inliers' normals across the cap (units of 1; a ring: ~0)
 LOCAL_REACH = 1.0  # local sampling: the other three points lie within LOCAL_REACH r_max + t of the first
@@ -28,6 +29,9 @@ LOCAL_MAX_PAIRS = 8_000_000  # ... and the neighbour pairs stay affordable
 FINAL_ATTEMPTS = 3  # searches per working set when the final refit of the best fails its checks
 VERIFY_PER_BATCH = 16  # candidates verified per batch at most (the best-scoring ones)
 VERIFY_MAX = 400  # candidates verified per search at most
+SHAPE_POINTS = 8192  # the shape checks of a candidate use an even subsample of at most this many inliers
+COARSE_POINTS = 65_536  # the coarse interior test runs first on an even subsample of about this many points
+COARSE_CLEAR = 100  # ... and rejects there only with this many points deep inside and twice the limit
 
 
 @dataclass(frozen=True)

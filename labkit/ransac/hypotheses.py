@@ -7,6 +7,7 @@ import numpy as np
 from ..adjustment import gauss_helmert_model
 from ..errors import LabkitError
 from ..sphere import algebraic_sphere, circumspheres
+from ._ball import normal_equations
 from .config import LO_STEPS, S
 
 
@@ -80,22 +81,14 @@ def orthogonal_fit(P, x, steps=3):
         x = algebraic_sphere(P) if x is None else np.array(x, dtype=np.float64)
     except LabkitError:
         return None
-    P = P - x[:3]  # work relative to the current centre (UTM-safe)
-    shift, x = x[:3].copy(), np.array([0.0, 0.0, 0.0, x[3]])
-    n = len(P)
+    shift, x = x[:3].copy(), np.array([0.0, 0.0, 0.0, x[3]])  # work relative to the current centre (UTM-safe)
     for _ in range(steps):
-        diff = P - x[:3]
-        dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
-        if np.any(dist == 0):
-            return None
         # Jacobian rows J_i = -[u_i, 1] (u_i the unit radial vector); J^T J and J^T d
-        # in blocks, without forming the n x 4 matrix J
-        u = diff / dist[:, None]
-        d = dist - x[3]
-        su = u.sum(axis=0)
-        JtJ = np.empty((4, 4))
-        JtJ[:3, :3], JtJ[:3, 3], JtJ[3, :3], JtJ[3, 3] = u.T @ u, su, su, n
-        Jtd = -np.append(u.T @ d, d.sum())
+        # summed in one compiled pass, without forming the n x 4 matrix J
+        eqs = normal_equations(P, shift, x[:3], x[3])
+        if eqs is None:
+            return None
+        JtJ, Jtd = eqs
         eig = np.linalg.eigvalsh(JtJ)
         if eig[0] <= 1e-12 * eig[-1]:
             return None

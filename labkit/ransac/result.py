@@ -100,6 +100,11 @@ class RansacResult(ReportMixin):
         return None if self.fit is None else float(self.fit.x[3])
 
     @property
+    def covariance(self):
+        """Covariance matrix (4, 4) of [xc, yc, zc, r] from the Gauss-Helmert refit (None when not found)."""
+        return None if self.fit is None else self.fit.Sigma_xx
+
+    @property
     def n_inliers(self) -> int:
         return int(self.inliers.sum())
 

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
+from ._ball import ball_counts, ball_indices, shell_points
 from .config import (
-    BACKFACE_SHARE, BAND_K, CONTRAST, INTERIOR_SHARE, MIN_LEVELS, MIN_SPREAD, PLANE_RATIO,
-    SHADOW_SHARE, TWO_PLANES_SHARE, VERIFY_MAX, S,
+    BACKFACE_SHARE, BAND_K, COARSE_CLEAR, COARSE_POINTS, CONTRAST, INTERIOR_SHARE, MIN_LEVELS, MIN_SPREAD, PLANE_RATIO,
+    SHADOW_SHARE, SHAPE_POINTS, TWO_PLANES_POINTS, TWO_PLANES_SHARE, VERIFY_MAX, S,
 )
 from .hypotheses import orthogonal_fit, squared_center_distances
 from .refit import truncated_mad_scale
@@ -23,19 +23,19 @@ class Verifier:
     """
 
     def __init__(self, X, station, cfg):
-        self.X, self.station, self.cfg = X, station, cfg
-        self._tree = None
+        self.X, self.station, self.cfg = np.ascontiguousarray(X, dtype=np.float64), station, cfg
+        step = len(self.X) // COARSE_POINTS
+        self._sub = np.ascontiguousarray(self.X[::step]) if step >= 2 else None  # for the coarse test
+        self._scale = len(self.X) / len(self._sub) if step >= 2 else 1.0
         self.n_rejected, self.n_checked = 0, 0
         self.best_rejection = ""
         self._best_rejected_score = -np.inf
         self._rejected = []  # polished spheres that failed
         self._R = None  # the same as an array (cached)
 
-    @property
-    def tree(self):
-        if self._tree is None:
-            self._tree = cKDTree(self.X)
-        return self._tree
+    def ball(self, c, R):
+        """Indices of the points within distance R of c (one pass over the cloud, no tree)."""
+        return ball_indices(self.X, c, R)
 
     def start(self, cfg):
         self.cfg = cfg
@@ -71,12 +71,18 @@ class Verifier:
         c, r = x[:3], float(x[3])
         if r <= 5.0 * t:
             return ""
-        shell = self.tree.query_ball_point(c, r + t, return_length=True) - self.tree.query_ball_point(
-            c, r - t, return_length=True)
-        deep = self.tree.query_ball_point(c, r - 5.0 * t, return_length=True)
+        radii = [r + t, r - t, r - 5.0 * t]
+        about = ""
+        if self._sub is not None:  # first on an even subsample: a clear verdict needs no pass over all points
+            outer, inner, deep = ball_counts(self._sub, c, radii) * self._scale
+            if deep >= COARSE_CLEAR * self._scale and deep > 2.0 * max(5.0 * INTERIOR_SHARE * (outer - inner), 20):
+                about = "about "
+        if not about:
+            outer, inner, deep = ball_counts(self.X, c, radii)
+        shell = int(outer - inner)
         if deep > max(5.0 * INTERIOR_SHARE * shell, 20):
-            return (f"{deep} points lie deep inside it (for {shell} on its shell): a solid sphere hides its "
-                    "interior, so this is a cut through other surfaces or a volume of points, not a sphere")
+            return (f"{about}{int(deep)} points lie deep inside it (for {about}{shell} on its shell): a solid sphere "
+                    "hides its interior, so this is a cut through other surfaces or a volume of points, not a sphere")
         return ""
 
     def reject(self, *spheres):
@@ -102,9 +108,7 @@ class Verifier:
 
     def _local(self, x, reach):
         """Indices and residuals d (eq. 25) of the points within r + reach of the centre."""
-        idx = np.asarray(self.tree.query_ball_point(x[:3], x[3] + reach), dtype=np.int64)
-        diff = self.X[idx] - x[:3]
-        return idx, np.sqrt(np.einsum("ij,ij->i", diff, diff)) - x[3]
+        return shell_points(self.X, x[:3], x[3], reach)
 
     def _polish(self, x, t):
         """Inliers -> orthogonal fit, three rounds; the band widens to k sigma_hat when t is below the noise."""
@@ -151,10 +155,13 @@ class Verifier:
         if n_in < CONTRAST * outside:
             return (f"too many points just outside the shell ({outside}, for {n_in} on it): no spherical surface "
                     "stands out, the points only pass through the shell (a cylinder, plane pieces, clutter)")
-        P = self.X[idx[on]]
+        sel = np.flatnonzero(on)
+        if len(sel) > SHAPE_POINTS:  # the shape statistics (shares, rms, spreads) on an even subsample of the shell
+            sel = sel[:: -(-len(sel) // SHAPE_POINTS)]
+        P = self.X[idx[sel]]
         q = P - P.mean(axis=0)
         rms_plane = np.sqrt(max(np.linalg.eigvalsh(q.T @ q / len(q))[0], 0.0))
-        rms_sphere = np.sqrt(np.mean(d[on] ** 2))
+        rms_sphere = np.sqrt(np.mean(d[sel] ** 2))
         if rms_plane < PLANE_RATIO * rms_sphere:
             return (f"the inliers are nearly flat (plane rms {rms_plane * 1e3:.3g} mm vs sphere rms "
                     f"{rms_sphere * 1e3:.3g} mm): a plane patch, not a sphere")
@@ -219,6 +226,8 @@ def _two_plane_share(P, t, trials=256):
     through a floor and a wall (an edge) has nearly all its inliers on two.
     Planes through random point triples of a fixed-seed generator (deterministic).
     """
+    if len(P) > TWO_PLANES_POINTS:  # a share: an even subsample of the cap estimates it to about 1 %
+        P = P[:: -(-len(P) // TWO_PLANES_POINTS)]
     n = len(P)
     if n < 6:
         return 1.0

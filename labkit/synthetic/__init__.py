@@ -5,6 +5,7 @@
 - ``multibeam_room``: a sphere in a room scanned by a 16-beam lidar (rings, occlusion).
 - ``als_epochs``: two airborne laser scanning epochs of a named test region.
 - ``wavy_surface``: a smooth surface sloping in X and Y (the registration examples' test object).
+- ``target_stations``: TLS panoramas of sphere targets in a yard from several stations with known poses.
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ _EXPORTS = {
     "REGIONS": "labkit.synthetic.als",
     "SPARSE_REGIONS": "labkit.synthetic.als",
     "wavy_surface": "labkit.synthetic.wavy",
+    "target_stations": "labkit.synthetic.stations",
+    "TargetStations": "labkit.synthetic.stations",
 }
 
 __all__ = sorted(_EXPORTS)

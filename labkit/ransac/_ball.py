@@ -1,0 +1,147 @@
+"""Points of a cloud within a ball: one compiled pass over the points, no tree to build.
+
+The verification asks a few dozen ball queries per detection; a k-d tree over
+10^6 points costs about a second to build, a pass over them a few milliseconds.
+The comparison is |x - c|^2 <= R^2, as in ``cKDTree.query_ball_point``.
+Without numba the same runs in numpy.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+try:  # numba compiles the passes; without it numpy does the work
+    import numba
+except ImportError:  # pragma: no cover - depends on the environment
+    numba = None
+
+
+def _inside(X, c, R):  # pragma: no cover - compiled
+    R2 = R * R
+    out = np.empty(X.shape[0], dtype=np.int64)
+    k = 0
+    for i in range(X.shape[0]):
+        dx, dy, dz = X[i, 0] - c[0], X[i, 1] - c[1], X[i, 2] - c[2]
+        if dx * dx + dy * dy + dz * dz <= R2:
+            out[k] = i
+            k += 1
+    return out[:k].copy()
+
+
+def _counts(X, c, radii):  # pragma: no cover - compiled
+    R2 = radii * radii
+    out = np.zeros(radii.shape[0], dtype=np.int64)
+    for i in range(X.shape[0]):
+        dx, dy, dz = X[i, 0] - c[0], X[i, 1] - c[1], X[i, 2] - c[2]
+        d2 = dx * dx + dy * dy + dz * dz
+        for j in range(radii.shape[0]):
+            if d2 <= R2[j]:
+                out[j] += 1
+    return out
+
+
+if numba is not None:
+    _inside = numba.njit(cache=True, nogil=True)(_inside)
+    _counts = numba.njit(cache=True, nogil=True)(_counts)
+
+
+def ball_indices(X, c, R):
+    """Indices (ascending) of the points of X (n, 3), C-contiguous float64, within distance R of c."""
+    c = np.asarray(c, dtype=np.float64)
+    if numba is None:  # pragma: no cover
+        d = X - c
+        return np.flatnonzero(np.einsum("ij,ij->i", d, d) <= R * R)
+    return _inside(X, c, float(R))
+
+
+def ball_counts(X, c, radii):
+    """Number of points of X within each of the distances ``radii`` of c."""
+    c = np.asarray(c, dtype=np.float64)
+    radii = np.atleast_1d(np.asarray(radii, dtype=np.float64))
+    if numba is None:  # pragma: no cover
+        d = X - c
+        d2 = np.einsum("ij,ij->i", d, d)
+        return np.array([np.count_nonzero(d2 <= r * r) for r in radii])
+    return _counts(X, c, radii)
+
+
+def _shell(X, c, r, reach):  # pragma: no cover - compiled
+    R2 = (r + reach) * (r + reach)
+    idx = np.empty(X.shape[0], dtype=np.int64)
+    d = np.empty(X.shape[0])
+    k = 0
+    for i in range(X.shape[0]):
+        dx, dy, dz = X[i, 0] - c[0], X[i, 1] - c[1], X[i, 2] - c[2]
+        q = dx * dx + dy * dy + dz * dz
+        if q <= R2:
+            idx[k] = i
+            d[k] = np.sqrt(q) - r
+            k += 1
+    return idx[:k].copy(), d[:k].copy()
+
+
+def _normal_equations(P, shift, c, r):  # pragma: no cover - compiled
+    """J^T J (4, 4) and J^T d (4,) of the orthogonal sphere fit at (c, r), for the points P - shift."""
+    JtJ = np.zeros((4, 4))
+    Jtd = np.zeros(4)
+    for i in range(P.shape[0]):
+        dx = (P[i, 0] - shift[0]) - c[0]
+        dy = (P[i, 1] - shift[1]) - c[1]
+        dz = (P[i, 2] - shift[2]) - c[2]
+        dist = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if dist == 0.0:
+            JtJ[3, 3] = -1.0  # flag: a point at the centre
+            return JtJ, Jtd
+        u0, u1, u2 = dx / dist, dy / dist, dz / dist
+        d = dist - r
+        JtJ[0, 0] += u0 * u0
+        JtJ[0, 1] += u0 * u1
+        JtJ[0, 2] += u0 * u2
+        JtJ[1, 1] += u1 * u1
+        JtJ[1, 2] += u1 * u2
+        JtJ[2, 2] += u2 * u2
+        JtJ[0, 3] += u0
+        JtJ[1, 3] += u1
+        JtJ[2, 3] += u2
+        Jtd[0] -= u0 * d
+        Jtd[1] -= u1 * d
+        Jtd[2] -= u2 * d
+        Jtd[3] -= d
+    JtJ[3, 3] = P.shape[0]
+    for a in range(4):
+        for b in range(a):
+            JtJ[a, b] = JtJ[b, a]
+    return JtJ, Jtd
+
+
+if numba is not None:
+    _shell = numba.njit(cache=True, nogil=True)(_shell)
+    _normal_equations = numba.njit(cache=True, nogil=True)(_normal_equations)
+
+
+def shell_points(X, c, r, reach):
+    """Indices of the points of X within r + reach of c and their residuals d = |x - c| - r (eq. 25)."""
+    c = np.asarray(c, dtype=np.float64)
+    if numba is None:  # pragma: no cover
+        idx = ball_indices(X, c, r + reach)
+        diff = X[idx] - c
+        return idx, np.sqrt(np.einsum("ij,ij->i", diff, diff)) - r
+    return _shell(X, c, float(r), float(reach))
+
+
+def normal_equations(P, shift, c, r):
+    """J^T J and J^T d of the orthogonal-distance sphere fit (rows J_i = -[u_i, 1], u_i the unit radial
+    vector of P_i - shift about c); None when a point lies at the centre."""
+    P = np.ascontiguousarray(P, dtype=np.float64)
+    if numba is None:  # pragma: no cover
+        diff = P - shift - c
+        dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+        if np.any(dist == 0):
+            return None
+        u, d = diff / dist[:, None], dist - r
+        su = u.sum(axis=0)
+        JtJ = np.empty((4, 4))
+        JtJ[:3, :3], JtJ[:3, 3], JtJ[3, :3], JtJ[3, 3] = u.T @ u, su, su, len(P)
+        return JtJ, -np.append(u.T @ d, d.sum())
+    JtJ, Jtd = _normal_equations(P, np.asarray(shift, dtype=np.float64), np.asarray(c, dtype=np.float64), float(r))
+    return None if JtJ[3, 3] < 0 else (JtJ, Jtd)
