@@ -26,8 +26,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .._eigh3 import eigh3
-
 K_NORMALS = 12  # neighbours per normal
 MIN_VOTES = 10  # votes a candidate block needs
 MIN_SPREAD = 0.03  # smallest eigenvalue of the voters' normal scatter (plane, edge, cylinder: ~0; cap: ~0.1-0.2)
@@ -75,6 +73,13 @@ def not_flat(X, h, t, min_points=8):
     seed = (cnt >= min_points) & (np.sqrt(np.maximum(lam[:, 0], 0.0)) > 0.5 * t)
     grow = np.unique((key[seed][:, None, :] + _OFFSETS[None]).reshape(-1, 3), axis=0)
     return _member(key, grow)[inv]
+
+
+def eigh3(C):
+    """Eigenvalues (ascending) and eigenvectors of stacked 3x3 matrices (numba loads here, not on import)."""
+    from .._eigh3 import eigh3 as compiled
+
+    return compiled(C)
 
 
 def _cells(X, h):
