@@ -149,3 +149,23 @@ def normal_equations(P, shift, c, r):
         return JtJ, -np.append(u.T @ d, d.sum())
     JtJ, Jtd = kernel(P, np.asarray(shift, dtype=np.float64), np.asarray(c, dtype=np.float64), float(r))
     return None if JtJ[3, 3] < 0 else (JtJ, Jtd)
+
+
+def _plane_counts(Q, nrm, off, t):  # pragma: no cover - compiled
+    out = np.zeros(nrm.shape[0], dtype=np.int64)
+    for b in range(nrm.shape[0]):
+        n0, n1, n2, o = nrm[b, 0], nrm[b, 1], nrm[b, 2], off[b]
+        k = 0
+        for i in range(Q.shape[0]):
+            if abs(Q[i, 0] * n0 + Q[i, 1] * n1 + Q[i, 2] * n2 - o) < t:
+                k += 1
+        out[b] = k
+    return out
+
+
+def plane_counts(Q, nrm, off, t):
+    """Points of Q (m, 3) within t of each plane n_b . x = off_b (unit normals nrm (B, 3)), (B,)."""
+    kernel = _jit(_plane_counts)
+    if kernel is None:  # pragma: no cover
+        return (np.abs(Q @ nrm.T - off[None, :]) < t).sum(axis=0)
+    return kernel(np.ascontiguousarray(Q), np.ascontiguousarray(nrm), np.ascontiguousarray(off), float(t))
