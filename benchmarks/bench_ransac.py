@@ -126,6 +126,8 @@ def main(argv=None):
     parser.add_argument("--speed-only", action="store_true", help="only the best-of-3 speed table")
     parser.add_argument("--speed-cells", type=str, nargs="+", default=["1e4:0.5", "1e5:0.5", "1e5:0.8", "1e6:0.8"],
                         help="n:outlier_ratio cells of the speed table")
+    parser.add_argument("--methods", type=str, nargs="+", default=["labkit", "pyransac3d", "skimage"],
+                        help="methods of the speed table (the peers take minutes at 1e6 points)")
     parser.add_argument("--peer-trials", type=int, default=5000, help="hypotheses per peer run on scans")
     args = parser.parse_args(argv)
     if args.quick:
@@ -190,6 +192,7 @@ def speed_table(args):
         "pyransac3d": lambda pts, ratio: run_pyransac3d(pts, 0, ratio)[0],
         "skimage": lambda pts, ratio: run_skimage(pts, 0)[0],
     }
+    methods = {name: fn for name, fn in methods.items() if name == "labkit" or name in args.methods}
     print(f"# RANSAC speed, best of 3 with the methods taking turns ({os.cpu_count()} CPUs); threshold "
           f"{THRESHOLD * 1e3:.0f} mm, p = 0.99; pyransac3d gets N of eq. 27 for the true outlier ratio\n")
     print("| n | outlier ratio | method | runs | right | best wall (s) | its CPU (s) | peer / labkit (wall) | "

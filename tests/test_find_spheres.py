@@ -104,3 +104,14 @@ def test_bad_input_raises(kwargs):
     points = np.random.default_rng(0).normal(size=(100, 3))
     with pytest.raises(LabkitError):
         find_spheres(points, args.pop("radius_range"), **args)
+
+
+def test_utm_coordinates_give_the_same_spheres():
+    small = target_stations(n_stations=1, n_points=300_000, rng=2)
+    offset = np.array([512_345.0, 5_401_234.0, 312.0])
+    local = find_spheres(small.scans[0], RANGE, station=np.zeros(3), rng=0)
+    utm = find_spheres(small.scans[0] + offset, RANGE, station=offset, rng=0)
+    assert len(local) == len(utm) >= 3
+    a = np.array(sorted(s.center.tolist() for s in local))
+    b = np.array(sorted((s.center - offset).tolist() for s in utm))
+    assert np.abs(a - b).max() < 1e-3

@@ -3,17 +3,25 @@
 The verification asks a few dozen ball queries per detection; a k-d tree over
 10^6 points costs about a second to build, a pass over them a few milliseconds.
 The comparison is |x - c|^2 <= R^2, as in ``cKDTree.query_ball_point``.
-Without numba the same runs in numpy.
+numba loads on the first call, not on import; without it numpy does the work.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-try:  # numba compiles the passes; without it numpy does the work
-    import numba
-except ImportError:  # pragma: no cover - depends on the environment
-    numba = None
+_COMPILED = {}  # kernel -> its compiled version (None without numba); numba loads on the first call only
+
+
+def _jit(kernel):
+    if kernel not in _COMPILED:
+        try:
+            import numba
+        except ImportError:  # pragma: no cover - depends on the environment
+            _COMPILED[kernel] = None
+        else:
+            _COMPILED[kernel] = numba.njit(cache=True, nogil=True)(kernel)
+    return _COMPILED[kernel]
 
 
 def _inside(X, c, R):  # pragma: no cover - compiled
@@ -40,29 +48,27 @@ def _counts(X, c, radii):  # pragma: no cover - compiled
     return out
 
 
-if numba is not None:
-    _inside = numba.njit(cache=True, nogil=True)(_inside)
-    _counts = numba.njit(cache=True, nogil=True)(_counts)
-
 
 def ball_indices(X, c, R):
     """Indices (ascending) of the points of X (n, 3), C-contiguous float64, within distance R of c."""
     c = np.asarray(c, dtype=np.float64)
-    if numba is None:  # pragma: no cover
+    kernel = _jit(_inside)
+    if kernel is None:  # pragma: no cover
         d = X - c
         return np.flatnonzero(np.einsum("ij,ij->i", d, d) <= R * R)
-    return _inside(X, c, float(R))
+    return kernel(X, c, float(R))
 
 
 def ball_counts(X, c, radii):
     """Number of points of X within each of the distances ``radii`` of c."""
     c = np.asarray(c, dtype=np.float64)
     radii = np.atleast_1d(np.asarray(radii, dtype=np.float64))
-    if numba is None:  # pragma: no cover
+    kernel = _jit(_counts)
+    if kernel is None:  # pragma: no cover
         d = X - c
         d2 = np.einsum("ij,ij->i", d, d)
         return np.array([np.count_nonzero(d2 <= r * r) for r in radii])
-    return _counts(X, c, radii)
+    return kernel(X, c, radii)
 
 
 def _shell(X, c, r, reach):  # pragma: no cover - compiled
@@ -114,26 +120,24 @@ def _normal_equations(P, shift, c, r):  # pragma: no cover - compiled
     return JtJ, Jtd
 
 
-if numba is not None:
-    _shell = numba.njit(cache=True, nogil=True)(_shell)
-    _normal_equations = numba.njit(cache=True, nogil=True)(_normal_equations)
-
 
 def shell_points(X, c, r, reach):
     """Indices of the points of X within r + reach of c and their residuals d = |x - c| - r (eq. 25)."""
     c = np.asarray(c, dtype=np.float64)
-    if numba is None:  # pragma: no cover
+    kernel = _jit(_shell)
+    if kernel is None:  # pragma: no cover
         idx = ball_indices(X, c, r + reach)
         diff = X[idx] - c
         return idx, np.sqrt(np.einsum("ij,ij->i", diff, diff)) - r
-    return _shell(X, c, float(r), float(reach))
+    return kernel(X, c, float(r), float(reach))
 
 
 def normal_equations(P, shift, c, r):
     """J^T J and J^T d of the orthogonal-distance sphere fit (rows J_i = -[u_i, 1], u_i the unit radial
     vector of P_i - shift about c); None when a point lies at the centre."""
     P = np.ascontiguousarray(P, dtype=np.float64)
-    if numba is None:  # pragma: no cover
+    kernel = _jit(_normal_equations)
+    if kernel is None:  # pragma: no cover
         diff = P - shift - c
         dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
         if np.any(dist == 0):
@@ -143,5 +147,25 @@ def normal_equations(P, shift, c, r):
         JtJ = np.empty((4, 4))
         JtJ[:3, :3], JtJ[:3, 3], JtJ[3, :3], JtJ[3, 3] = u.T @ u, su, su, len(P)
         return JtJ, -np.append(u.T @ d, d.sum())
-    JtJ, Jtd = _normal_equations(P, np.asarray(shift, dtype=np.float64), np.asarray(c, dtype=np.float64), float(r))
+    JtJ, Jtd = kernel(P, np.asarray(shift, dtype=np.float64), np.asarray(c, dtype=np.float64), float(r))
     return None if JtJ[3, 3] < 0 else (JtJ, Jtd)
+
+
+def _plane_counts(Q, nrm, off, t):  # pragma: no cover - compiled
+    out = np.zeros(nrm.shape[0], dtype=np.int64)
+    for b in range(nrm.shape[0]):
+        n0, n1, n2, o = nrm[b, 0], nrm[b, 1], nrm[b, 2], off[b]
+        k = 0
+        for i in range(Q.shape[0]):
+            if abs(Q[i, 0] * n0 + Q[i, 1] * n1 + Q[i, 2] * n2 - o) < t:
+                k += 1
+        out[b] = k
+    return out
+
+
+def plane_counts(Q, nrm, off, t):
+    """Points of Q (m, 3) within t of each plane n_b . x = off_b (unit normals nrm (B, 3)), (B,)."""
+    kernel = _jit(_plane_counts)
+    if kernel is None:  # pragma: no cover
+        return (np.abs(Q @ nrm.T - off[None, :]) < t).sum(axis=0)
+    return kernel(np.ascontiguousarray(Q), np.ascontiguousarray(nrm), np.ascontiguousarray(off), float(t))

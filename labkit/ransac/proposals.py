@@ -26,8 +26,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .._eigh3 import eigh3
-
 K_NORMALS = 12  # neighbours per normal
 MIN_VOTES = 10  # votes a candidate block needs
 MIN_SPREAD = 0.03  # smallest eigenvalue of the voters' normal scatter (plane, edge, cylinder: ~0; cap: ~0.1-0.2)
@@ -71,7 +69,7 @@ def not_flat(X, h, t, min_points=8):
     for a in range(3):
         for b in range(a, 3):
             C[:, a, b] = C[:, b, a] = np.bincount(inv, Q[:, a] * Q[:, b], m) / cnt
-    lam, _ = eigh3(C)
+    lam = np.linalg.eigvalsh(C)
     seed = (cnt >= min_points) & (np.sqrt(np.maximum(lam[:, 0], 0.0)) > 0.5 * t)
     grow = np.unique((key[seed][:, None, :] + _OFFSETS[None]).reshape(-1, 3), axis=0)
     return _member(key, grow)[inv]
@@ -104,7 +102,7 @@ def _normals(P):
     """Unit normals of P (n, 3): smallest eigenvector of the k-neighbourhood covariance."""
     _, idx = cKDTree(P).query(P, k=K_NORMALS, workers=-1)
     Q = P[idx] - P[idx].mean(axis=1, keepdims=True)
-    _, V = eigh3(np.einsum("nki,nkj->nij", Q, Q) / K_NORMALS)
+    _, V = np.linalg.eigh(np.einsum("nki,nkj->nij", Q, Q) / K_NORMALS)
     return V[:, :, 0].copy()
 
 
@@ -141,7 +139,7 @@ def _vote(V, N, b):
     T[:, 0, 1] = T[:, 1, 0] = s[:, 3]
     T[:, 0, 2] = T[:, 2, 0] = s[:, 4]
     T[:, 1, 2] = T[:, 2, 1] = s[:, 5]
-    lam, _ = eigh3(T) if len(idx) else (np.empty((0, 3)), None)
+    lam = np.linalg.eigvalsh(T) if len(idx) else np.empty((0, 3))
     idx = idx[lam[:, 0] > MIN_SPREAD]
     idx = idx[np.argsort(-block_cnt[idx], kind="stable")]
     return block_M[idx] / block_cnt[idx, None], block_cnt[idx].astype(np.int64)

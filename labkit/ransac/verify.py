@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._ball import ball_counts, ball_indices, shell_points
+from ._ball import ball_counts, ball_indices, plane_counts, shell_points
 from .config import (
     BACKFACE_SHARE, BAND_K, COARSE_CLEAR, COARSE_POINTS, CONTRAST, INTERIOR_SHARE, MIN_LEVELS, MIN_SPREAD, PLANE_RATIO,
     SHADOW_SHARE, SHAPE_POINTS, TWO_PLANES_POINTS, TWO_PLANES_SHARE, VERIFY_MAX, S,
@@ -246,12 +246,12 @@ def _two_plane_share(P, t, trials=256):
         if not ok.any():
             break
         nrm = nrm[ok] / norm[ok, None]
-        dist = np.abs(Q @ nrm.T - np.einsum("bk,bk->b", tri[ok][:, 0], nrm)[None, :])  # (m, b)
-        on = dist < t
-        best = int(np.argmax(on.sum(axis=0)))
+        off = np.einsum("bk,bk->b", tri[ok][:, 0], nrm)
+        best = int(np.argmax(plane_counts(Q, nrm, off, t)))  # points within t of each plane (a compiled pass)
+        on = np.abs(Q @ nrm[best] - off[best]) < t
         idx = np.flatnonzero(left)
-        left[idx[on[:, best]]] = False
-        held += int(on[:, best].sum())
+        left[idx[on]] = False
+        held += int(on.sum())
     return held / n
 
 
