@@ -4,8 +4,8 @@ Every notebook in notebooks/ must be a valid nbformat-4 file stored without outp
 bottom in a Jupyter kernel with matplotlib's *inline* backend (the JupyterLab default): the figures then
 arrive as ``image/png`` outputs, exactly as in the browser, and each notebook must show at least the
 figures listed in ``MIN_FIGURES`` (at least three each; every notebook must be in the table). Exercises need
-solutions: in every notebook, every numbered exercise has a collapsed solution cell tagged ``solution`` that
-runs with the rest, and notebooks 02-10 have one cell tagged ``own-file`` for the analyst's own data. pyvista stays off screen with the static
+solutions: in every notebook, every numbered exercise has a solution cell tagged ``solution`` that runs with the
+rest and keeps its code and output collapsed until the student opens it, and notebooks 02-10 have one cell tagged ``own-file`` for the analyst's own data. pyvista stays off screen with the static
 backend (``labkit.setup_notebook``); its renders reach the page through ``plt.imshow``.
 """
 
@@ -101,6 +101,30 @@ def test_every_exercise_has_a_solution(number):
     assert len(solutions) == n_ex, f"{n_ex} exercises but {len(solutions)} solution cells"
     assert all(c.cell_type == "code" and c.source.strip() for c in solutions)
     assert all(c.metadata.get("jupyter", {}).get("source_hidden") for c in solutions), "solution not collapsed"
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.name for p in NOTEBOOKS])
+def test_solutions_are_hidden_until_opened(path):
+    """Every solution cell keeps its code and its output collapsed (JupyterLab) and hidden behind a toggle (site).
+
+    After *Run All* a student must not find the answer printed under the exercise: ``jupyter.source_hidden`` and
+    ``jupyter.outputs_hidden`` collapse both in JupyterLab, the ``hide-cell`` tag folds the cell on the
+    documentation site (myst-nb), and a markdown cell before the first solution says how to open them.
+    """
+    nb = _read(path)
+    solutions = [i for i, c in enumerate(nb.cells) if "solution" in c.get("metadata", {}).get("tags", [])]
+    if not solutions:
+        pytest.skip("no solution cells")
+    for i in solutions:
+        meta = nb.cells[i].metadata
+        hidden = meta.get("jupyter", {})
+        assert hidden.get("source_hidden") is True, f"cell {i}: code of the solution is not collapsed"
+        assert hidden.get("outputs_hidden") is True, f"cell {i}: output of the solution is not collapsed"
+        assert "hide-cell" in meta.get("tags", []), f"cell {i}: solution not folded on the documentation site"
+    before = " ".join(c.source for c in nb.cells[: solutions[0]] if c.cell_type == "markdown")
+    assert "Expand All Code" in before and "Show code cell content" in before, "no text says how to open a solution"
+    text = " ".join(c.source for c in nb.cells if c.cell_type == "markdown")
+    assert "run the next cell" not in text, "a solution's text asks to run a cell whose output is already shown"
 
 
 @pytest.mark.parametrize("number", OWN_FILE)
