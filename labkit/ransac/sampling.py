@@ -18,7 +18,7 @@ def working_set(n, size, gen):
 
 def pick_sampling(sampling, known, r_max, extent):
     if sampling == "local" and not known:
-        raise LabkitError("sampling='local' needs radius_range or nominal_radius (the neighbourhood is 2 r_max)")
+        raise LabkitError("sampling='local' needs radius_range or nominal_radius (the neighbourhood is r_max + t)")
     if sampling == "auto":
         return "local" if known and extent > 10.0 * r_max else "uniform"
     return sampling
