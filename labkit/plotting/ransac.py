@@ -139,3 +139,47 @@ def render_inliers(points, result, plotter=None, max_points=200_000, show_sphere
             plotter.camera_position = [tuple(centre + close_up * r * direction), tuple(centre), (0.0, 0.0, 1.0)]
     plotter.add_legend(bcolor="white", size=(0.24, 0.12), loc="upper right")
     return plotter
+
+
+def plot_reduction(points, is_sphere, work, draws, *, axes=None):
+    """The random reduction of RANSAC's search: which points it keeps, and how many sphere points it holds.
+
+    Left, a top view of the scene below 2.5 m (the ceiling left out) with the reduced working set and
+    its sphere points; right, the hypergeometric distribution of the sphere points in a reduction
+    (``draws``, e.g. from ``numpy.random.Generator.hypergeometric``) and the count of this one
+    (notebook 02, section 9b).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.plotting.ransac import plot_reduction
+    >>> rng = np.random.default_rng(0)
+    >>> points = rng.uniform(0, 2, (500, 3))
+    >>> is_sphere = np.arange(500) < 25
+    >>> work = rng.choice(500, 100, replace=False)
+    >>> draws = rng.hypergeometric(25, 475, 100, size=1000)
+    >>> axes = plot_reduction(points, is_sphere, work, draws)
+    >>> axes[1].get_xlabel()
+    'sphere points in the reduction'
+    """
+    if axes is None:
+        import matplotlib.pyplot as plt
+
+        _, axes = plt.subplots(1, 2, figsize=(12, 4.5), layout="constrained")
+    points, is_sphere, work = np.asarray(points), np.asarray(is_sphere, bool), np.asarray(work)
+    below = points[:, 2] < 2.5
+    axes[0].scatter(*points[below][:, :2].T, s=0.3, c="0.8", label=f"all {len(points)} points (no ceiling)")
+    axes[0].scatter(*points[work][:, :2].T, s=3, c="tab:blue", label=f"reduction to {len(work)}")
+    on = work[is_sphere[work]]
+    axes[0].scatter(*points[on][:, :2].T, s=14, c=COLORS["outlier"], label=f"{len(on)} sphere points in it")
+    axes[0].set_aspect("equal")
+    axes[0].set(xlabel="x [m]", ylabel="y [m]", title="top view of the room")
+    axes[0].legend(markerscale=3, fontsize=8, loc="upper right")
+    draws = np.asarray(draws)
+    axes[1].hist(draws, bins=np.arange(draws.min(), draws.max() + 2) - 0.5, density=True, color="0.6",
+                 label=f"hypergeometric, {len(draws)} reductions")
+    axes[1].axvline(len(on), color=COLORS["outlier"], label="this reduction")
+    axes[1].set(xlabel="sphere points in the reduction", ylabel="probability",
+                title="how many sphere points a reduction keeps")
+    axes[1].legend(fontsize=8)
+    return axes
