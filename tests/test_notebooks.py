@@ -11,6 +11,7 @@ backend (``labkit.setup_notebook``); its renders reach the page through ``plt.im
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 
@@ -164,6 +165,26 @@ def test_notebook_runs_and_shows_its_figures(path, monkeypatch):
     )
     for cell in _tagged(nb, "figure"):
         assert _images(cell) >= 1, f"cell tagged 'figure' shows no image:\n{cell.source[:200]}"
+    _cache_for_docs(nb, path)
+
+
+def _cache_for_docs(nb, path):
+    """Keep the executed notebook for the documentation site when ``LABKIT_NOTEBOOK_CACHE`` names a folder.
+
+    The site (docs/conf.py, myst-nb in cache mode) looks notebooks up in that jupyter-cache by the hash of
+    their code cells and reuses the outputs, so CI executes every notebook once, here.
+    """
+    folder = os.environ.get("LABKIT_NOTEBOOK_CACHE")
+    if not folder:
+        return
+    jupyter_cache = pytest.importorskip("jupyter_cache")
+    from jupyter_cache.base import CacheBundleIn
+
+    nb.cells.pop()  # the backend probe is not part of the notebook
+    for cell in nb.cells:  # the cache matches code and cell metadata: drop the kernel's timing records
+        cell.metadata.pop("execution", None)
+    jupyter_cache.get_cache(folder).cache_notebook_bundle(CacheBundleIn(nb, str(path)), check_validity=False,
+                                                          overwrite=True)
 
 
 def _probe_cell():
