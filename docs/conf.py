@@ -9,7 +9,8 @@ public module; the course is every notebook in ``notebooks/`` (``docs/notebooks`
 by myst-nb with a per-notebook timeout. Executed notebooks are kept in a jupyter-cache
 (``docs/_build/.jupyter_cache``, or ``LABKIT_NOTEBOOK_CACHE``): a rebuild re-runs only notebooks whose
 code changed, and ``tests/test_notebooks.py`` fills the same cache when ``LABKIT_NOTEBOOK_CACHE`` is set, so
-CI executes each notebook once.
+CI executes each notebook once. The cache does not see changes of labkit itself: after those,
+``LABKIT_NB_EXECUTION=force`` (or deleting the cache folder) runs every notebook again.
 """
 
 from __future__ import annotations

@@ -216,6 +216,7 @@ def plot_degeneracy(degeneracy, *, axes=None):
     axes[1].imshow(np.abs(vectors), cmap="Greys", vmin=0, vmax=1)
     axes[1].set(xticks=range(3), xticklabels=names, yticks=range(3), yticklabels=["tx", "ty", "tz"],
                 title="|eigenvectors| (columns)")
-    for (i, j), v in np.ndenumerate(vectors):
-        axes[1].text(j, i, f"{v:+.2f}", ha="center", va="center", color=COLORS["outlier"])
+    axes[1].grid(False)
+    for (i, j), v in np.ndenumerate(vectors):  # white on the dark cells, black on the light ones
+        axes[1].text(j, i, f"{v:+.2f}", ha="center", va="center", color="white" if abs(v) > 0.5 else "black")
     return axes

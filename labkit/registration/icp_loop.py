@@ -141,7 +141,7 @@ def icp(
     source, target : array_like (n, 3) or PointCloud
         The clouds in one frame (UTM allowed). The result maps source onto target.
     dof : {'translation', 'rigid'}
-        Estimate (tx, ty, tz) only (the seed's default) or also three small angles.
+        Estimate (tx, ty, tz) only (the registration study's default) or also three small angles.
     metric : {'point_to_plane', 'point_to_point'}
         Residual per correspondence: eq. (5.2) or the three components of eq. (5.1).
     max_iterations : int
