@@ -12,7 +12,7 @@ from .iterations import required_from_probability, required_iterations
 
 
 def working_set(n, size, gen):
-    """Indices of the random reduction used for sampling and scoring (the seed: 1000 points)."""
+    """Indices of the random reduction used for sampling and scoring (the exercise sheet: 1000 points)."""
     return np.arange(n) if size >= n else np.sort(gen.choice(n, size=size, replace=False))
 
 

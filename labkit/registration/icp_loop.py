@@ -1,6 +1,6 @@
 """Iterative closest point with rejection, robust weights and a degeneracy report (notebook 05).
 
-The seed's ``ICP`` and ``Optimierung`` (seed 003, step 2): in every iteration
+The registration study's ``ICP`` and ``Optimierung`` (seed 003, step 2): in every iteration
 the correspondences of :func:`labkit.registration.match` are cleaned by iterative
 deletion beyond k robust standard deviations and down-weighted by Huber or Tukey,
 then one weighted least-squares adjustment gives the update of the

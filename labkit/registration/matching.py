@@ -1,4 +1,4 @@
-"""Correspondences between two clouds: the seed's ``Matching`` (seed 003, steps 2 and 4).
+"""Correspondences between two clouds: the registration study's ``Matching`` (seed 003, steps 2 and 4).
 
 One call of :func:`match` runs the steps of notebook 05, section 2:
 
