@@ -25,7 +25,7 @@ def scalar_bar(title: str, **extra) -> dict:
     # a second (empty) title line keeps the title clear of the top tick label of a vertical bar
     title = title if "\n" in title else title + "\n"
     args = {"title": title, "vertical": True, "position_x": 0.86, "position_y": 0.12, "width": 0.06,
-            "height": 0.76, "title_font_size": 14, "label_font_size": 12}
+            "height": 0.76, "title_font_size": 20, "label_font_size": 17}
     args.update(extra)
     return args
 
