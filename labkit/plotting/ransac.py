@@ -183,3 +183,34 @@ def plot_reduction(points, is_sphere, work, draws, *, axes=None):
                 title="how many sphere points a reduction keeps")
     axes[1].legend(fontsize=8)
     return axes
+
+
+def plot_scan_overview(scan, around, *, half=1.0, axes=None):
+    """A scan from above, whole and in a square of ``2 half`` metres around ``around`` (x, y), coloured by z.
+
+    The close-up shows what a multi-beam scanner leaves of a target: rings, not a surface
+    (notebook 09, section 1).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.plotting.ransac import plot_scan_overview
+    >>> scan = np.random.default_rng(0).uniform(-5, 5, (2000, 3))
+    >>> axes = plot_scan_overview(scan, (1.0, 1.0), half=2.0)
+    >>> axes[1].get_title()
+    '4 m x 4 m around (1, 1)'
+    """
+    if axes is None:
+        import matplotlib.pyplot as plt
+
+        _, axes = plt.subplots(1, 2, figsize=(13, 5), layout="constrained")
+    scan = np.asarray(scan, dtype=float)
+    near = (np.abs(scan[:, :2] - np.asarray(around, dtype=float)) < half).all(axis=1)
+    for ax, sel, size in ((axes[0], slice(None), 1), (axes[1], near, 6)):
+        sc = ax.scatter(scan[sel, 0], scan[sel, 1], c=scan[sel, 2], s=size, cmap="viridis")
+        ax.set_aspect("equal")
+        ax.set(xlabel="x (m)", ylabel="y (m)")
+    axes[0].figure.colorbar(sc, ax=axes, label="z (m)")
+    axes[0].set_title("the whole scan (sensor at 0, 0)")
+    axes[1].set_title(f"{2 * half:g} m x {2 * half:g} m around ({around[0]:g}, {around[1]:g})")
+    return axes
