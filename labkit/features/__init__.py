@@ -33,9 +33,6 @@ from .multiscale import MultiScaleFeatures, multiscale_features
 from .pca import LocalPCA, local_noise, local_pca, normals, pca_at
 from .robust import RobustNormals, robust_normals
 
-# A former private name, kept importable for now: notebook 04 names _sorted_eigh.
-_sorted_eigh = sorted_eigh
-
 __all__ = [
     "CHUNK_SIZE", "DUPLICATES", "LEAFSIZE", "ORIENTATIONS", "EigenFeatures", "LocalPCA", "MultiScaleFeatures",
     "Neighbourhoods", "RobustNormals", "eigen_features", "local_noise", "local_pca", "multiscale_features",
