@@ -15,7 +15,7 @@ coordinate of each node's bounding box (balanced, depth ~ log2(n / leafsize)),
 with one rule for ties: points with equal coordinates always go to the same
 side (``< v`` left, ``>= v`` right). Exact duplicates therefore share a leaf,
 where they are found in O(leafsize^2) and, on request, merged into one point
-(issue 16: a duplicate is not a second observation of the surface). Every node
+(a duplicate is not a second observation of the surface). Every node
 keeps its bounding box; a query visits the nearer child first and skips every
 node whose box is farther than the current k-th distance (Friedman, Bentley,
 Finkel 1977, ACM TOMS 3(3): 209-226).

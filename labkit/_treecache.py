@@ -1,4 +1,4 @@
-"""The target's kd-tree, kept for the next step on the same cloud (private; issue 14).
+"""The target's kd-tree, kept for the next step on the same cloud (private).
 
 ``labkit register`` builds the compiled kd-tree of a 10-million-point target for ICP and needs
 the same tree again for the distances of every point: building it twice cost 10-15 s and a

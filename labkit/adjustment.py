@@ -27,7 +27,7 @@ from .sphere import algebraic_sphere
 from .sphere_fit import SphereFit
 
 _EPS = np.finfo(np.float64).eps
-_RCOND_MIN = 1e-12  # smallest reciprocal condition of the scaled N (the seed's det test)
+_RCOND_MIN = 1e-12  # smallest reciprocal condition of the scaled N (the exercise sheet's det test)
 _BLOCK = 32_768  # points per block in the sweeps of an iteration
 _X0_SAMPLE = 20_000  # points used for the algebraic initial values
 _FLAT_RATIO = 100.0  # radius above this many times the extent of the points: no curvature
@@ -298,7 +298,7 @@ def _A_times(b, dx):
 
 
 def _factor(N):
-    """Cholesky factor of N after a conditioning check (the seed's det test)."""
+    """Cholesky factor of N after a conditioning check (the exercise sheet's det test)."""
     d = np.sqrt(np.diag(N))
     if not np.isfinite(N).all() or (d <= 0).any():
         raise DegenerateGeometryError("the normal matrix N is singular: the points do not determine a sphere")

@@ -230,7 +230,7 @@ def _scheduler_option(text: str) -> str:
 
 
 def _cmd_change(args) -> int:
-    """M3C2 change REFERENCE -> COMPARED with a LoD carrying the registration's covariance (issue 15)."""
+    """M3C2 change REFERENCE -> COMPARED with a LoD carrying the registration's covariance."""
     from .change import load_registration, m3c2  # (numba, about 0.5 s: loaded when needed)
 
     _method_options(args, [args.register] if args.register else [], "--register")

@@ -242,7 +242,7 @@ CHANGE_REGIONS = ("demolished", "new_building", "trees_felled", "trees_planted")
 
 def synthetic_cases(regions=None, cases=CASES, *, size=(60.0, 60.0), density=10.0, dim_density=None,
                     shift=(0.23, -0.17, 0.11), rotation_deg=None, rng=None) -> dict:
-    """The seed's three cases on synthetic regions: ``{(region, case): EpochPair}``.
+    """The registration study's three cases on synthetic regions: ``{(region, case): EpochPair}``.
 
     ``"als-als"``: two ALS epochs of the stable regions; ``"changes"``: two ALS
     epochs of the regions with changes (demolished, new building, trees felled

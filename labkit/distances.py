@@ -235,7 +235,7 @@ def distances_before_after(source, target, transform, *, kind: str = "point_to_p
     ``progress`` (bool, "bar", "lines" or callable, see :mod:`labkit.progress`) reports the two
     passes ("before", "after") over the source points, chunk by chunk; default silent.
 
-    Built for large clouds (issue 14): one compiled kd-tree of the target (in a local frame)
+    Built for large clouds: one compiled kd-tree of the target (in a local frame)
     serves both passes; the source is queried in chunks of :data:`CHUNK` points on all cores;
     the target normals (PCA of ``k`` neighbours, exact duplicates merged, oriented up - the
     normals of :func:`labkit.features.normals`) are computed only at the target points that are

@@ -8,7 +8,7 @@ each point, reduce them to their centroid and sum their outer products,
 - (eq. 2) covariance C = 1/m sum_j (p_j - p_bar)(p_j - p_bar)^T
 
 This module does that part once, for all of them: a :class:`SearchPlan` holds the
-compiled kd-tree (``labkit._kdtree``; exact duplicates merged on request, issue 16)
+compiled kd-tree (``labkit._kdtree``; exact duplicates merged on request)
 and the output rows, :func:`run_chunks` walks the query points chunk by chunk in
 the tree's leaf order on one thread per core, and :func:`covariances` evaluates
 eq. 1-2 per chunk. What the rows mean (normals, features) is left to the caller,
@@ -182,7 +182,7 @@ def neighbourhoods(points, k: int | None = None, radius: float | None = None, *,
 
 
 def scale_text(k, radius) -> str:
-    """The neighbourhood size as text for reports: ``k = ...`` or ``radius = ... m``.
+    """The neighbourhood size as text for reports: ``k = <k>`` or ``radius = <r> m``.
 
     Examples
     --------

@@ -2,7 +2,7 @@
 
 A reference is what a registration is checked against: the synthetic truth,
 a manual reference typed in by a user (e.g. read off CloudCompare) with its
-uncertainty, repeated manual references averaged with their spread (the seed
+uncertainty, repeated manual references averaged with their spread (the registration study
 repeats them "for certainty"), or a reference from control points: sphere-target
 centres found in both epochs, or picked point pairs, by weighted least squares.
 References are kept in a small JSON file keyed by region and case.

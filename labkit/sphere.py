@@ -1,6 +1,6 @@
 """The sphere as a geometric model: residuals, algebraic fit, minimal 4-point solution.
 
-Parameters follow the seed's eq. (3): ``x = [xc, yc, zc, r]``.
+Parameters follow the exercise sheet's eq. (3): ``x = [xc, yc, zc, r]``.
 """
 
 from __future__ import annotations

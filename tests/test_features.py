@@ -123,7 +123,7 @@ def test_eig_does_not_sort_but_eigh_does():
     # the seed's pitfall: np.linalg.eig returns eigenvalues in no guaranteed order
     C = np.array([[1.0, 0, 0], [0, 5.0, 0], [0, 0, 3.0]])
     assert list(np.linalg.eig(C)[0]) == [1.0, 5.0, 3.0]
-    lam, _ = F._sorted_eigh(C[None])
+    lam, _ = F.sorted_eigh(C[None])
     assert list(lam[0]) == [5.0, 3.0, 1.0]
 
 

@@ -4,13 +4,14 @@ Every notebook in notebooks/ must be a valid nbformat-4 file stored without outp
 bottom in a Jupyter kernel with matplotlib's *inline* backend (the JupyterLab default): the figures then
 arrive as ``image/png`` outputs, exactly as in the browser, and each notebook must show at least the
 figures listed in ``MIN_FIGURES`` (at least three each; every notebook must be in the table). Exercises need
-solutions: in every notebook, every numbered exercise has a collapsed solution cell tagged ``solution`` that
-runs with the rest, and notebooks 02-10 have one cell tagged ``own-file`` for the analyst's own data. pyvista stays off screen with the static
+solutions: in every notebook, every numbered exercise has a solution cell tagged ``solution`` that runs with the
+rest and keeps its code and output collapsed until the student opens it, and notebooks 02-10 have one cell tagged ``own-file`` for the analyst's own data. pyvista stays off screen with the static
 backend (``labkit.setup_notebook``); its renders reach the page through ``plt.imshow``.
 """
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 
@@ -104,6 +105,30 @@ def test_every_exercise_has_a_solution(number):
     assert all(c.metadata.get("jupyter", {}).get("source_hidden") for c in solutions), "solution not collapsed"
 
 
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.name for p in NOTEBOOKS])
+def test_solutions_are_hidden_until_opened(path):
+    """Every solution cell keeps its code and its output collapsed (JupyterLab) and hidden behind a toggle (site).
+
+    After *Run All* a student must not find the answer printed under the exercise: ``jupyter.source_hidden`` and
+    ``jupyter.outputs_hidden`` collapse both in JupyterLab, the ``hide-cell`` tag folds the cell on the
+    documentation site (myst-nb), and a markdown cell before the first solution says how to open them.
+    """
+    nb = _read(path)
+    solutions = [i for i, c in enumerate(nb.cells) if "solution" in c.get("metadata", {}).get("tags", [])]
+    if not solutions:
+        pytest.skip("no solution cells")
+    for i in solutions:
+        meta = nb.cells[i].metadata
+        hidden = meta.get("jupyter", {})
+        assert hidden.get("source_hidden") is True, f"cell {i}: code of the solution is not collapsed"
+        assert hidden.get("outputs_hidden") is True, f"cell {i}: output of the solution is not collapsed"
+        assert "hide-cell" in meta.get("tags", []), f"cell {i}: solution not folded on the documentation site"
+    before = " ".join(c.source for c in nb.cells[: solutions[0]] if c.cell_type == "markdown")
+    assert "Expand All Code" in before and "Show code cell content" in before, "no text says how to open a solution"
+    text = " ".join(c.source for c in nb.cells if c.cell_type == "markdown")
+    assert "run the next cell" not in text, "a solution's text asks to run a cell whose output is already shown"
+
+
 @pytest.mark.parametrize("number", OWN_FILE)
 def test_own_file_cell(number):
     """Exactly one clearly marked code cell where the user puts their own file."""
@@ -141,6 +166,26 @@ def test_notebook_runs_and_shows_its_figures(path, monkeypatch):
     )
     for cell in _tagged(nb, "figure"):
         assert _images(cell) >= 1, f"cell tagged 'figure' shows no image:\n{cell.source[:200]}"
+    _cache_for_docs(nb, path)
+
+
+def _cache_for_docs(nb, path):
+    """Keep the executed notebook for the documentation site when ``LABKIT_NOTEBOOK_CACHE`` names a folder.
+
+    The site (docs/conf.py, myst-nb in cache mode) looks notebooks up in that jupyter-cache by the hash of
+    their code cells and reuses the outputs, so CI executes every notebook once, here.
+    """
+    folder = os.environ.get("LABKIT_NOTEBOOK_CACHE")
+    if not folder:
+        return
+    jupyter_cache = pytest.importorskip("jupyter_cache")
+    from jupyter_cache.base import CacheBundleIn
+
+    nb.cells.pop()  # the backend probe is not part of the notebook
+    for cell in nb.cells:  # the cache matches code and cell metadata: drop the kernel's timing records
+        cell.metadata.pop("execution", None)
+    jupyter_cache.get_cache(folder).cache_notebook_bundle(CacheBundleIn(nb, str(path)), check_validity=False,
+                                                          overwrite=True)
 
 
 def _probe_cell():

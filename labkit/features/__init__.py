@@ -21,7 +21,7 @@ One module per concept:
 - :mod:`~labkit.features.multiscale`: :func:`multiscale_features` (least eigenentropy)
 - :mod:`~labkit.features.robust`: :func:`robust_normals` (RANSAC / LMedS planes, eq. 9)
 
-The seed warns that ``np.linalg.eig`` does not sort its eigenvalues; the PCA uses an
+The registration study warns that ``np.linalg.eig`` does not sort its eigenvalues; the PCA uses an
 eigh (``labkit._eigh3.eigh3``, the decomposition of ``np.linalg.eigh`` compiled for
 stacks of 3x3 matrices) and reverses the order once, in ``sorted_eigh``.
 """
@@ -32,9 +32,6 @@ from .eigen import EigenFeatures, eigen_features
 from .multiscale import MultiScaleFeatures, multiscale_features
 from .pca import LocalPCA, local_noise, local_pca, normals, pca_at
 from .robust import RobustNormals, robust_normals
-
-# A former private name, kept importable for now: notebook 04 names _sorted_eigh.
-_sorted_eigh = sorted_eigh
 
 __all__ = [
     "CHUNK_SIZE", "DUPLICATES", "LEAFSIZE", "ORIENTATIONS", "EigenFeatures", "LocalPCA", "MultiScaleFeatures",

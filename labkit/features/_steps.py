@@ -76,7 +76,7 @@ def sorted_eigh(C):
     """Eigenvalues (c, 3) descending and eigenvectors (c, 3, 3) in the same column order (eq. 3).
 
     ``np.linalg.eigh`` returns ascending eigenvalues of a symmetric matrix; we reverse
-    once. (``np.linalg.eig`` would return them in no particular order: the seed's pitfall.)
+    once. (``np.linalg.eig`` would return them in no particular order: the pitfall the registration study warns of.)
     :func:`labkit._eigh3.eigh3_analytic` is the same decomposition in closed form for
     stacks of 3x3 matrices, as accurate and about 10x faster than ``np.linalg.eigh``;
     matrices with NaN (too few neighbours) give NaN rows.

@@ -122,7 +122,7 @@ def multiscale_features(
         raise LabkitError("scales must contain at least one k or radius")
     checked = [check_scale(s, None, len(local)) if by == "k" else check_scale(None, s, len(local)) for s in scales]
     view = check_orientation(orient, viewpoint, len(local))
-    plan = SearchPlan(local, None, check_duplicates(duplicates))  # exact duplicates merged (issue 16)
+    plan = SearchPlan(local, None, check_duplicates(duplicates))  # exact duplicates merged
     n, s = plan.n_out, len(scales)
     lam_all = np.empty((n, s, 3))
     vec, cen, counts = np.empty((n, 3, 3)), np.empty((n, 3)), np.empty(n, dtype=np.intp)

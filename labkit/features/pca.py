@@ -10,7 +10,7 @@ centroid and summarised by their 3x3 covariance matrix:
 - (eq. 4) normal              n = v3 (eigenvector of the smallest eigenvalue)
 - (eq. 5) local noise         sigma_n = sqrt(m l3 / (m - 3)) (redundancy m - 3 of a fitted plane)
 
-Exact duplicates are merged before the search (issue 16: a copy is not a second
+Exact duplicates are merged before the search (a copy is not a second
 observation of the surface). Degenerate neighbourhoods (fewer than 3 distinct
 points, or all on one line) do not determine a plane: their normal is NaN and
 ``LocalPCA.valid`` is False.
@@ -151,7 +151,7 @@ def local_pca(
     duplicates : {'merge', 'keep'}
         'merge' (default): exact duplicates (identical coordinates) count once, so that
         k means k distinct points; a duplicate is a second copy, not a second observation
-        of the surface, and copies bias the plane toward themselves (issue 16). The
+        of the surface, and copies bias the plane toward themselves. The
         number merged is ``n_duplicates``. 'keep': every row counts.
     chunk_size : int
         Points per chunk; memory grows with chunk_size * k, not with n * k.
@@ -210,7 +210,7 @@ def _pca(points, k, radius, orient, viewpoint, at, duplicates, chunk_size, progr
     here = local if at is None else local[at]  # the points that get a PCA
     view = check_orientation(orient, viewpoint, len(here))
     merge = check_duplicates(duplicates)
-    # Exact duplicates merged into one point (issue 16), kd-tree, output rows
+    # Exact duplicates merged into one point, kd-tree, output rows
     plan = SearchPlan(local, at, merge)
     # Per chunk (in leaf order): neighbours, centroid, covariance, sorted eigh
     n = plan.n_out

@@ -25,7 +25,7 @@ class ChunkCollector:
             self.attrs = {k: np.empty(self.capacity, dtype=v.dtype) for k, v in attrs.items()}
 
     def slot(self, m: int) -> np.ndarray | None:
-        """Rows ``n .. n+m`` of the preallocated coordinates (None without a capacity)."""
+        """Rows ``n:n+m`` of the preallocated coordinates (None without a capacity)."""
         if self.capacity is None or self.n + m > self.capacity:
             return None
         if self.xyz is None:

@@ -25,7 +25,7 @@ def scalar_bar(title: str, **extra) -> dict:
     # a second (empty) title line keeps the title clear of the top tick label of a vertical bar
     title = title if "\n" in title else title + "\n"
     args = {"title": title, "vertical": True, "position_x": 0.86, "position_y": 0.12, "width": 0.06,
-            "height": 0.76, "title_font_size": 14, "label_font_size": 12}
+            "height": 0.76, "title_font_size": 20, "label_font_size": 17}
     args.update(extra)
     return args
 
@@ -62,3 +62,31 @@ def screenshot(plotter, path=None):
     (48, 64, 3)
     """
     return plotter.screenshot(str(path) if path is not None else None, return_img=True)
+
+
+def show_render(plotter, ax=None, *, width=10.0):
+    """Show an off-screen pyvista render as a matplotlib image at the width of a notebook; returns ``ax``.
+
+    A render placed beside another panel shrinks to half the width and its labels become unreadable:
+    give it its own figure (``width`` inches) or a wide ``ax``. The plotter is closed afterwards.
+
+    Examples
+    --------
+    >>> import pyvista as pv
+    >>> from labkit.plotting import new_plotter, show_render
+    >>> plotter = new_plotter(window_size=(200, 100))
+    >>> _ = plotter.add_mesh(pv.Sphere())
+    >>> ax = show_render(plotter)
+    >>> ax.images[0].get_array().shape, float(ax.figure.get_figwidth())
+    ((100, 200, 3), 10.0)
+    """
+    import matplotlib.pyplot as plt
+
+    image = screenshot(plotter)
+    plotter.close()
+    if ax is None:
+        h, w = image.shape[:2]
+        _, ax = plt.subplots(figsize=(width, width * h / w), layout="constrained")
+    ax.imshow(image)
+    ax.set_axis_off()
+    return ax

@@ -346,3 +346,38 @@ def _draw_disagreement(ax, field, test, xy, font=7.0):
         if test.areas[n] >= 0:
             ax.text(x - 0.45 * field.size, y + 0.43 * field.size, f"A{test.areas[n]}", fontsize=font, va="top",
                     color="#333333", clip_on=True)
+
+
+def plot_strips(strips, labels, cloud, *, axes=None):
+    """Overlapping strips from above (one colour each) beside the height of the whole cloud.
+
+    ``strips`` and ``cloud`` are PointClouds or (n, 3) arrays; coordinates are shown relative to the
+    cloud's minimum corner so that UTM-size numbers stay readable (notebook 09, section 3).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.plotting.compare import plot_strips
+    >>> rng = np.random.default_rng(0)
+    >>> a, b = rng.uniform(0, 10, (300, 3)), rng.uniform(5, 15, (300, 3))
+    >>> axes = plot_strips([a, b], ["1", "2"], np.vstack([a, b]))
+    >>> [t.get_text() for t in axes[0].get_legend().get_texts()]
+    ['strip 1', 'strip 2']
+    """
+    if axes is None:
+        import matplotlib.pyplot as plt
+
+        _, axes = plt.subplots(1, 2, figsize=(13, 5), layout="constrained")
+    xyz = np.asarray(getattr(cloud, "xyz", cloud), dtype=float)
+    o = xyz.min(axis=0)
+    for strip, label in zip(strips, labels):
+        axes[0].scatter(*(np.asarray(getattr(strip, "xyz", strip))[:, :2] - o[:2]).T, s=0.5, label=f"strip {label}")
+    axes[0].legend(markerscale=10)
+    axes[0].set_title("the strips")
+    sc = axes[1].scatter(*(xyz[:, :2] - o[:2]).T, c=xyz[:, 2], s=0.5, cmap="terrain")
+    axes[1].figure.colorbar(sc, ax=axes[1], label="z (m)")
+    axes[1].set_title("height")
+    for ax in axes:
+        ax.set_aspect("equal")
+        ax.set(xlabel=f"x - {o[0]:.0f} (m)", ylabel=f"y - {o[1]:.0f} (m)")
+    return axes

@@ -136,30 +136,58 @@ def plot_consensus_top_cells(cube, quantile=0.999, *, truth=None, ax=None, max_c
     return ax
 
 
-def plot_consensus_volume(cube, quantile=0.999, *, truth=None, plotter=None):
-    """pyvista view of the cells above a quantile (off screen by default); returns the plotter."""
+def plot_consensus_volume(cube, quantile=0.999, *, truth=None, plotter=None, font_size=20):
+    """pyvista view of the cells above a quantile (off screen by default); returns the plotter.
+
+    The camera frames the top cells (two grid steps around them), not the whole search box, so the
+    peak fills the view; the axes are labelled in metres of translation, and the colour bar, the
+    axis labels and the title are set in ``font_size`` points of a 1000 x 760 render - large enough
+    to read when the render is shown at the width of a notebook (:func:`labkit.plotting.show_render`).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.plotting.consensus import plot_consensus_volume
+    >>> from labkit.registration import consensus_cube
+    >>> from labkit.synthetic import wavy_surface
+    >>> rng = np.random.default_rng(1)
+    >>> target, source = wavy_surface(1500, rng), wavy_surface(300, rng) - [0.05, 0.02, 0.03]
+    >>> cube = consensus_cube(source[::2], target, extent=0.06, step=0.02, eps=0.01, center=[0.04, 0.02, 0.04],
+    ...                       use_numba=False)
+    >>> plotter = plot_consensus_volume(cube, 0.9, truth=[0.05, 0.02, 0.03])
+    >>> list(plotter.window_size)
+    [1000, 760]
+    >>> plotter.close()
+    """
     import pyvista as pv
 
-    plotter = new_plotter(plotter)
+    plotter = new_plotter(plotter, window_size=(1000, 760))
     grid = pv.ImageData(dimensions=np.array(cube.counts.shape) + 1, spacing=(cube.step,) * 3,
                         origin=[a[0] - cube.step / 2 for a in cube.axes])
     grid.cell_data["consensus"] = cube.counts.ravel(order="F").astype(float)
     top = grid.threshold(float(np.quantile(cube.counts, quantile)), scalars="consensus")
-    plotter.add_mesh(top, scalars="consensus", cmap=CMAP_SEQUENTIAL, show_edges=False,
-                     scalar_bar_args=scalar_bar("consensus\n(points)", fmt="%.0f", n_labels=5,
-                                                title_font_size=16, label_font_size=14, color="black"))
-    plotter.add_mesh(grid.outline(), color=COLORS["reference"])
+    plotter.add_mesh(top, scalars="consensus", cmap=CMAP_SEQUENTIAL, show_edges=True, edge_color="#666666",
+                     line_width=0.5,
+                     scalar_bar_args=scalar_bar("consensus\n(points)", fmt="%.0f", n_labels=4, position_x=0.84,
+                                                width=0.07, title_font_size=font_size,
+                                                label_font_size=font_size - 2, color="black"))
+    # the frame: the top cells and two grid steps around them (and the truth, if given)
+    lo = np.array(top.bounds[::2]) - 2 * cube.step
+    hi = np.array(top.bounds[1::2]) + 2 * cube.step
     if truth is not None:
-        plotter.add_mesh(pv.Sphere(radius=max(cube.step, 0.01 * _span(cube)), center=truth), color=COLORS["outlier"],
-                         label="truth")
-    # labelled axes on the bounds of the whole cube, in metres of translation
-    plotter.show_bounds(mesh=grid.outline(), xtitle="tx (m)", ytitle="ty (m)", ztitle="tz (m)", fmt="%.2f",
-                        font_size=12, color="black", grid=False, location="outer", n_xlabels=3, n_ylabels=3,
-                        n_zlabels=3)
-    plotter.add_axes(xlabel="tx", ylabel="ty", zlabel="tz")
-    plotter.add_text(f"consensus cube: cells above the {100 * quantile:g} % quantile\n{describe_peak(cube.peak)}",
-                     font_size=10, color="black")
+        truth = np.asarray(truth, dtype=float)
+        plotter.add_mesh(pv.Sphere(radius=0.4 * cube.step, center=truth), color=COLORS["outlier"], label="truth")
+        lo, hi = np.minimum(lo, truth - cube.step), np.maximum(hi, truth + cube.step)
+    frame = pv.Box(bounds=np.ravel(np.column_stack([lo, hi])))
+    plotter.add_mesh(frame.outline(), color=COLORS["reference"])
+    plotter.show_bounds(mesh=frame, xtitle="tx (m)", ytitle="ty (m)", ztitle="tz (m)", fmt="%.2f",
+                        font_size=font_size - 2, color="black", grid=False, location="outer", n_xlabels=3,
+                        n_ylabels=3, n_zlabels=3)
+    plotter.add_text(f"cells above the {100 * quantile:g} % quantile\n{describe_peak(cube.peak)}",
+                     font_size=max(font_size // 2, 8), color="black")
     plotter.set_background("white")
+    plotter.reset_camera(bounds=np.ravel(np.column_stack([lo, hi])))
+    plotter.camera.zoom(0.85)
     return plotter
 
 

@@ -139,3 +139,78 @@ def render_inliers(points, result, plotter=None, max_points=200_000, show_sphere
             plotter.camera_position = [tuple(centre + close_up * r * direction), tuple(centre), (0.0, 0.0, 1.0)]
     plotter.add_legend(bcolor="white", size=(0.24, 0.12), loc="upper right")
     return plotter
+
+
+def plot_reduction(points, is_sphere, work, draws, *, axes=None):
+    """The random reduction of RANSAC's search: which points it keeps, and how many sphere points it holds.
+
+    Left, a top view of the scene below 2.5 m (the ceiling left out) with the reduced working set and
+    its sphere points; right, the hypergeometric distribution of the sphere points in a reduction
+    (``draws``, e.g. from ``numpy.random.Generator.hypergeometric``) and the count of this one
+    (notebook 02, section 9b).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.plotting.ransac import plot_reduction
+    >>> rng = np.random.default_rng(0)
+    >>> points = rng.uniform(0, 2, (500, 3))
+    >>> is_sphere = np.arange(500) < 25
+    >>> work = rng.choice(500, 100, replace=False)
+    >>> draws = rng.hypergeometric(25, 475, 100, size=1000)
+    >>> axes = plot_reduction(points, is_sphere, work, draws)
+    >>> axes[1].get_xlabel()
+    'sphere points in the reduction'
+    """
+    if axes is None:
+        import matplotlib.pyplot as plt
+
+        _, axes = plt.subplots(1, 2, figsize=(12, 4.5), layout="constrained")
+    points, is_sphere, work = np.asarray(points), np.asarray(is_sphere, bool), np.asarray(work)
+    below = points[:, 2] < 2.5
+    axes[0].scatter(*points[below][:, :2].T, s=0.3, c="0.8", label=f"all {len(points)} points (no ceiling)")
+    axes[0].scatter(*points[work][:, :2].T, s=3, c="tab:blue", label=f"reduction to {len(work)}")
+    on = work[is_sphere[work]]
+    axes[0].scatter(*points[on][:, :2].T, s=14, c=COLORS["outlier"], label=f"{len(on)} sphere points in it")
+    axes[0].set_aspect("equal")
+    axes[0].set(xlabel="x [m]", ylabel="y [m]", title="top view of the room")
+    axes[0].legend(markerscale=3, fontsize=8, loc="upper right")
+    draws = np.asarray(draws)
+    axes[1].hist(draws, bins=np.arange(draws.min(), draws.max() + 2) - 0.5, density=True, color="0.6",
+                 label=f"hypergeometric, {len(draws)} reductions")
+    axes[1].axvline(len(on), color=COLORS["outlier"], label="this reduction")
+    axes[1].set(xlabel="sphere points in the reduction", ylabel="probability",
+                title="how many sphere points a reduction keeps")
+    axes[1].legend(fontsize=8)
+    return axes
+
+
+def plot_scan_overview(scan, around, *, half=1.0, axes=None):
+    """A scan from above, whole and in a square of ``2 half`` metres around ``around`` (x, y), coloured by z.
+
+    The close-up shows what a multi-beam scanner leaves of a target: rings, not a surface
+    (notebook 09, section 1).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.plotting.ransac import plot_scan_overview
+    >>> scan = np.random.default_rng(0).uniform(-5, 5, (2000, 3))
+    >>> axes = plot_scan_overview(scan, (1.0, 1.0), half=2.0)
+    >>> axes[1].get_title()
+    '4 m x 4 m around (1, 1)'
+    """
+    if axes is None:
+        import matplotlib.pyplot as plt
+
+        _, axes = plt.subplots(1, 2, figsize=(13, 5), layout="constrained")
+    scan = np.asarray(scan, dtype=float)
+    near = (np.abs(scan[:, :2] - np.asarray(around, dtype=float)) < half).all(axis=1)
+    for ax, sel, size in ((axes[0], slice(None), 1), (axes[1], near, 6)):
+        sc = ax.scatter(scan[sel, 0], scan[sel, 1], c=scan[sel, 2], s=size, cmap="viridis")
+        ax.set_aspect("equal")
+        ax.set(xlabel="x (m)", ylabel="y (m)")
+    axes[0].figure.colorbar(sc, ax=axes, label="z (m)")
+    axes[0].set_title("the whole scan (sensor at 0, 0)")
+    axes[1].set_title(f"{2 * half:g} m x {2 * half:g} m around ({around[0]:g}, {around[1]:g})")
+    return axes

@@ -18,7 +18,7 @@ RULE_COLORS = {
     "normal_angle": "#e6ab02",
     "duplicate": "#a6cee3",
     "outlier": COLORS["outlier"],
-    "degenerate": "#999999",  # no normal: the neighbourhood is a point or a line (issue 16)
+    "degenerate": "#999999",  # no normal: the neighbourhood is a point or a line
 }
 _AXES = {"xy": (0, 1), "xz": (0, 2), "yz": (1, 2)}
 
@@ -180,3 +180,43 @@ def plot_residuals(corr, *, ax=None, bins=80, limit=None):
     ax.set(xlabel="point-to-plane distance (mm)", ylabel="count", title="Residuals of the last iteration")
     ax.legend(fontsize=8)
     return ax
+
+
+def plot_degeneracy(degeneracy, *, axes=None):
+    """The eigen analysis of a registration: precision per eigen-direction and the directions themselves.
+
+    Left, the standard deviation along each eigen-direction v_k of the normal equations (log scale,
+    capped at 10 m) against the limit ``max_std`` of notebook 05, eq. 5.12a: green where the direction is
+    determined, orange where it is held. Right, the absolute eigenvectors as a table over tx, ty, tz
+    (which axes each direction mixes), with the signed components written in.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from types import SimpleNamespace
+    >>> from labkit.plotting.registration import plot_degeneracy
+    >>> deg = SimpleNamespace(direction_std=np.array([0.5, 0.004, 0.0002]), constrained=np.array([False, True, True]),
+    ...                       max_std=0.1, eigenvectors=np.eye(3))
+    >>> axes = plot_degeneracy(deg)
+    >>> [len(a.patches) for a in axes], len(axes[1].texts)
+    ([3, 0], 9)
+    """
+    if axes is None:
+        import matplotlib.pyplot as plt
+
+        _, axes = plt.subplots(1, 2, figsize=(12, 4), layout="constrained")
+    names = [f"v{k + 1}" for k in range(3)]
+    colors = [COLORS["inlier"] if c else COLORS["outlier"] for c in degeneracy.constrained]
+    axes[0].bar(range(3), np.minimum(degeneracy.direction_std, 10.0), color=colors)
+    axes[0].axhline(degeneracy.max_std, color="k", ls="--", lw=1, label=f"max_std = {degeneracy.max_std} m")
+    axes[0].set(yscale="log", xticks=range(3), xticklabels=names, ylabel="std along the direction (m)",
+                title="Precision of each eigen-direction (5.12a)")
+    axes[0].legend()
+    vectors = np.asarray(degeneracy.eigenvectors)
+    axes[1].imshow(np.abs(vectors), cmap="Greys", vmin=0, vmax=1)
+    axes[1].set(xticks=range(3), xticklabels=names, yticks=range(3), yticklabels=["tx", "ty", "tz"],
+                title="|eigenvectors| (columns)")
+    axes[1].grid(False)
+    for (i, j), v in np.ndenumerate(vectors):  # white on the dark cells, black on the light ones
+        axes[1].text(j, i, f"{v:+.2f}", ha="center", va="center", color="white" if abs(v) > 0.5 else "black")
+    return axes

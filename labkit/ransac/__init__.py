@@ -1,6 +1,6 @@
 """RANSAC detection of a sphere in a cluttered point cloud (notebook 02).
 
-The seed's section 2: draw minimal samples of s = 4 points that are not
+Section 2 of the exercise sheet: draw minimal samples of s = 4 points that are not
 coplanar, compute the sphere through each, count the points whose orthogonal
 distance satisfies d_i^2 < t^2 (eqs. 25-26), stop after the adaptive number
 of samples N of eq. (27), and refit the best sphere in the Gauss-Helmert model

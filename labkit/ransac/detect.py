@@ -54,7 +54,7 @@ def ransac_sphere(
         around the refitted sphere, with sigma_hat a robust (truncation-
         consistent MAD) scale of the residuals, iterated to a fixed point (or
         3 sigma when ``sigma`` is given). So the stated standard deviations
-        hold for any t between about 1 and 5 sigma. The seed sets t = sigma.
+        hold for any t between about 1 and 5 sigma. The exercise sheet (notebook 02) sets t = sigma.
     p : float
         Probability that at least one outlier-free sample is drawn (eq. 27).
     rng : int or numpy.random.Generator, optional
@@ -62,8 +62,8 @@ def ransac_sphere(
     radius_range : (r_min, r_max), optional
         Admissible radii (m). Hypotheses outside are rejected (they still count
         as samples); the radius is checked again after the refit. Default:
-        ``nominal_radius`` +- 10 %, otherwise radii up to the extent of the
-        cloud - and a sphere is then still only "found" when it passes the
+        ``nominal_radius`` +- 10 %, otherwise any radius up to the diagonal of
+        the bounding box of the working set (``preliminary_size`` points) - and a sphere is then still only "found" when it passes the
         verification below (no points inside it, a surface rather than a
         volume of points), which walls, floors or random points do not.
         Without a range the search is slower (uniform sampling only) and
@@ -75,20 +75,21 @@ def ransac_sphere(
     scoring : {'ransac', 'msac'}
         Count inliers, or MSAC: maximise sum over inliers of (t^2 - d_i^2).
     minimal_solver : {'closed_form', 'ghm'}
-        Sphere through each sample: batched closed form (fast) or the seed's
+        Sphere through each sample: batched closed form (fast) or the exercise's
         Gauss-Helmert adjustment of the 4 points (slow, for teaching).
     local_optimization : bool
         LO-RANSAC: refine each new best by least squares on its inliers.
     preliminary_size : int or None
         Hypotheses are drawn from and scored on a random reduction to this many
-        points (the seed uses 1000); the final inliers come from the full cloud.
+        points (the exercise uses 1000); the final inliers come from the full cloud.
         None uses every point.
     sampling : {'auto', 'uniform', 'local'}
         'uniform': 4 random points. 'local': a random first point and three
-        more from its neighbourhood of radius 2 r_max (needs a radius range or
+        more from its neighbourhood of radius r_max + t (needs a radius range or
         nominal radius); N is then computed with the local inlier shares.
-        'auto': local when r_max is known, the cloud is > 10 r_max wide and a
-        neighbourhood holds on average at most 10 % of the working set.
+        'auto': local when r_max is known, the working set is more than
+        10 r_max wide (bounding-box diagonal), a neighbourhood holds on average
+        at most 25 % of it and the neighbour pairs number at most 8 million.
     max_iterations : int
         Upper bound on valid samples.
     min_inliers : int

@@ -20,13 +20,13 @@ def spheres_through_samples(samples, solver):
 
 
 def _ghm_hypotheses(samples):
-    """The seed's way: a Gauss-Helmert adjustment of each 4-point sample (a Python loop)."""
+    """The exercise sheet's way: a Gauss-Helmert adjustment of each 4-point sample (a Python loop)."""
     X = np.full((len(samples), 4), np.nan)
     valid = np.zeros(len(samples), dtype=bool)
     for j, sample in enumerate(samples):
         try:
             fit = gauss_helmert_model(sample)
-        except LabkitError:  # singular N (the seed's det test), coplanar or duplicate points
+        except LabkitError:  # singular N (the exercise sheet's det test), coplanar or duplicate points
             continue
         if fit.converged and np.all(np.isfinite(fit.x)):
             X[j], valid[j] = fit.x, True

@@ -1,4 +1,4 @@
-"""The number of samples RANSAC needs: eq. (27) of the seed."""
+"""The number of samples RANSAC needs: eq. (27) of the exercise sheet (notebook 02)."""
 
 from __future__ import annotations
 

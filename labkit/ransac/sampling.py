@@ -12,13 +12,13 @@ from .iterations import required_from_probability, required_iterations
 
 
 def working_set(n, size, gen):
-    """Indices of the random reduction used for sampling and scoring (the seed: 1000 points)."""
+    """Indices of the random reduction used for sampling and scoring (the exercise sheet: 1000 points)."""
     return np.arange(n) if size >= n else np.sort(gen.choice(n, size=size, replace=False))
 
 
 def pick_sampling(sampling, known, r_max, extent):
     if sampling == "local" and not known:
-        raise LabkitError("sampling='local' needs radius_range or nominal_radius (the neighbourhood is 2 r_max)")
+        raise LabkitError("sampling='local' needs radius_range or nominal_radius (the neighbourhood is r_max + t)")
     if sampling == "auto":
         return "local" if known and extent > 10.0 * r_max else "uniform"
     return sampling

@@ -33,7 +33,7 @@ def adaptive_search(W, sampler, cfg, gen, verifier=None):
     Wsq = np.einsum("ij,ij->i", W, W)
     best = _Best(x=None, score=-np.inf)
     n_valid = n_drawn = n_invalid = 0
-    N = math.inf  # the seed starts with N = infinity
+    N = math.inf  # the exercise sheet starts with N = infinity
     history: list[tuple[int, float]] = []
     cap = max(MIN_BATCH, CELLS_PER_BATCH // len(W))
     batch = min(FIRST_BATCH, cap) if cfg.minimal_solver == "closed_form" else MIN_BATCH

@@ -13,7 +13,7 @@ import numpy as np
 from .._report import ReportMixin, fmt
 
 #: Row labels; code 0 is an accepted correspondence. 'degenerate': the source or target point has
-#: no normal (its neighbourhood is a point or a line, issue 16); it is applied with the normal angle.
+#: no normal (its neighbourhood is a point or a line); it is applied with the normal angle.
 RULES = ("accepted", "class", "noise", "distance", "normal_angle", "duplicate", "outlier", "degenerate")
 _CODE = {name: code for code, name in enumerate(RULES)}
 #: Floor for a point's standard deviation in the weights (m), keeps weights finite.

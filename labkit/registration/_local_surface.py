@@ -27,7 +27,7 @@ def _local_geometry(tree, cols, index, k):
     tree's distinct points (exact duplicates merged), evaluated only at the query points.
     Noise is sigma_n = sqrt(k lambda_min / (k - 3)). Queries run in the tree's leaf
     order, which keeps the visited leaves in cache. Where the neighbourhood is a point
-    or a line the normal and the noise are NaN (issue 16).
+    or a line the normal and the noise are NaN.
     """
     pos = tree.representative[index]  # leaf position of each point's kept copy
     order = np.argsort(pos, kind="stable")

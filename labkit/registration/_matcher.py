@@ -129,7 +129,7 @@ class _Matcher:
             off, n_s = self.geometry.foot(j, -d[live])
             fit = np.isfinite(off[:, 0])
             d[live[fit]], nt[live[fit]] = off[fit], n_s[fit]  # the quadric's normal at the foot point
-        # a target point whose neighbourhood is a point or a line has no normal (issue 16)
+        # a target point whose neighbourhood is a point or a line has no normal
         rule[live[np.isnan(nt[live, 0]) & (rule[live] == 0)]] = _CODE["degenerate"]
         # (4) gates on the target point: class, noise, normal angle
         if opt["classes"] is not None:  # prepare() made sure the target has classes

@@ -130,7 +130,8 @@ def consensus_cube(
         Weight per source point, or per class code (needs ``source['classification']``).
     radius : float, optional
         Search radius (m) around target points for point-to-plane; default: the
-        median distance of target points to their 5th neighbour.
+        median distance of target points to their 4th nearest neighbour, and never
+        less than ``eps`` (point-to-point searches within ``eps``).
     center : (3,) float, optional
         Centre of the search box (an a-priori shift); default zero.
     source_normals, target_normals : array_like (n, 3), optional

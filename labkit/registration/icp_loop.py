@@ -1,6 +1,6 @@
 """Iterative closest point with rejection, robust weights and a degeneracy report (notebook 05).
 
-The seed's ``ICP`` and ``Optimierung`` (seed 003, step 2): in every iteration
+The registration study's ``ICP`` and ``Optimierung`` (seed 003, step 2): in every iteration
 the correspondences of :func:`labkit.registration.match` are cleaned by iterative
 deletion beyond k robust standard deviations and down-weighted by Huber or Tukey,
 then one weighted least-squares adjustment gives the update of the
@@ -142,7 +142,7 @@ def icp(
     source, target : array_like (n, 3) or PointCloud
         The clouds in one frame (UTM allowed). The result maps source onto target.
     dof : {'translation', 'rigid'}
-        Estimate (tx, ty, tz) only (the seed's default) or also three small angles.
+        Estimate (tx, ty, tz) only (the registration study's default) or also three small angles.
     metric : {'point_to_plane', 'point_to_point'}
         Residual per correspondence: eq. (5.2) or the three components of eq. (5.1).
     max_iterations : int

@@ -1,4 +1,4 @@
-"""Correspondences between two clouds: the seed's ``Matching`` (seed 003, steps 2 and 4).
+"""Correspondences between two clouds: the registration study's ``Matching`` (seed 003, steps 2 and 4).
 
 One call of :func:`match` runs the steps of notebook 05, section 2:
 
@@ -12,16 +12,16 @@ One call of :func:`match` runs the steps of notebook 05, section 2:
 Every sampled source point gets one row; ``rule`` says which rule (if any)
 rejected it, so a plot can colour the points by rule and the report can count them.
 
-Speed (issue 11): the target's compiled kd-tree (``labkit._kdtree``, exact
+Speed: the target's compiled kd-tree (``labkit._kdtree``, exact
 duplicates merged) and its local geometry are built once per call and cached per
 distinct target point (the target does not move); the source is queried in its own
 leaf order; the one-source-per-target rule is one O(m) pass, not a sort of all pairs; the
 covariance of each target normal's random tilt (ICP's eq. 5.12b) is kept with the normal
 instead of being searched and decomposed again.
 Points whose neighbourhood is a point or a line have no normal and are rejected
-by the rule 'degenerate' (issue 16).
+by the rule 'degenerate'.
 
-Large clouds (issue 14): ``sample='auto'`` (ICP's default) thins a source of more than
+Large clouds: ``sample='auto'`` (ICP's default) thins a source of more than
 :data:`AUTO_LIMIT` points to about :data:`AUTO_PAIRS` (voxel, then normal-space balance); the
 geometry of both clouds is computed and stored only at the points used (compact cache); the
 matcher reads the target from its kd-tree, which ``labkit._treecache`` keeps for the distances.
@@ -84,7 +84,7 @@ def _sample(points, geometry, spec, rng):
         return np.sort(rng.choice(n, m, replace=False))
     pool = np.sort(rng.choice(n, min(n, 6 * m), replace=False))  # candidates for the normals
     coarse, _, variation = geometry.compute(pool, min(10, geometry.k))  # coarse normals suffice for the bins
-    has = np.isfinite(coarse[:, 0])  # no bin for points without a normal (a point or a line, issue 16)
+    has = np.isfinite(coarse[:, 0])  # no bin for points without a normal (a point or a line)
     if has.sum() >= m:
         pool, coarse, variation = pool[has], coarse[has], variation[has]
     else:
