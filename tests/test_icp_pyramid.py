@@ -185,7 +185,8 @@ def test_cli_register_reach_runs_the_pyramid(tmp_path, capsys):
     assert main(args + ["--reach", "2"]) == 0
     out = capsys.readouterr().out
     assert "coarse_to_fine" in out
-    shift = [float(re.search(rf"^d{a}\s+([+-][0-9.]+) m", out, flags=re.M).group(1)) for a in "XYZ"]
+    found = [re.search(rf"^d{a}\s+([+-][0-9.]+) \+- [0-9.]+ (m|mm)$", out, flags=re.M) for a in "XYZ"]
+    shift = [float(m.group(1)) * (1e-3 if m.group(2) == "mm" else 1.0) for m in found]
     np.testing.assert_allclose(shift, pair.translation, atol=0.01)
     with pytest.raises(SystemExit) as exit_:  # argparse: a clear usage error
         main(args + ["--reach", "-1"])

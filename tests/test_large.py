@@ -179,7 +179,7 @@ def test_read_clouds_skips_files_by_header_without_reading(tiles, monkeypatch):
     x0, y0 = ORIGIN[:2]
     read_clouds(folder, bbox=[x0 + 150, y0 + 150, x0 + 160, y0 + 160])
     assert read == ["t11.laz"]
-    with pytest.raises(EmptyRegionError, match="meets none"):
+    with pytest.raises(EmptyRegionError, match="keeps no point"):
         read_clouds(folder, bbox=[x0 - 50, y0 - 50, x0 - 10, y0 - 10])
 
 
