@@ -32,7 +32,7 @@ _EXPORTS = {
     "SphereFit": "labkit.sphere_fit",
     "ransac_sphere": "labkit.ransac",
     "find_spheres": "labkit.ransac",
-    # local geometry (issue 4)
+    # local geometry
     "local_pca": "labkit.features",
     "LocalPCA": "labkit.features",
     "local_noise": "labkit.features",
@@ -51,7 +51,7 @@ _EXPORTS = {
     "icp": "labkit.registration",
     "consensus_cube": "labkit.registration",
     "max_consensus": "labkit.registration",
-    # comparison and tiles (issue 7)
+    # comparison and tiles
     "cloud_to_cloud": "labkit.distances",
     "point_to_plane_distance": "labkit.distances",
     "distances_before_after": "labkit.distances",
@@ -69,11 +69,11 @@ _EXPORTS = {
     "register_tiles": "labkit.tiles",
     "neighbour_test": "labkit.tiles",
     "ShiftField": "labkit.tiles",
-    # change between epochs (issue 15)
+    # change between epochs
     "m3c2": "labkit.change",
     "M3C2Result": "labkit.change",
     "m3c2_parameters": "labkit.change_defaults",
-    # target-based registration (issue 23)
+    # target-based registration
     "helmert": "labkit.helmert_fit",
     "HelmertFit": "labkit.helmert_fit",
     "register_targets": "labkit.targets",

@@ -91,7 +91,7 @@ def test_reading_io_and_ransac_loads_no_heavy_dependency():
 
 
 # --------------------------------------------------------------------------- size of a module
-MAX_LINES = 600  # what one reads in a sitting (issue 13); most modules stay under about 400
+MAX_LINES = 600  # what one reads in a sitting; most modules stay under about 400
 
 
 def test_no_module_is_longer_than_one_reads_in_a_sitting():
@@ -103,7 +103,7 @@ def test_no_module_is_longer_than_one_reads_in_a_sitting():
 # --------------------------------------------------------------------------- private names across packages
 #: Imports of a private name from a module of another package that are known today, each with its reason.
 #: Every entry is (importing module, imported module, name). Fix the cause, then remove the entry.
-PRIVATE_IMPORTS = set()  # empty since distances takes its normals from labkit.features.pca_at (issue 13)
+PRIVATE_IMPORTS = set()  # empty since distances takes its normals from labkit.features.pca_at
 
 
 def _package_of(name, modules):
@@ -179,7 +179,7 @@ def test_every_public_function_and_class_has_a_runnable_example():
     assert without == []
 
 
-# --------------------------------------------------------------------------- references (issue 13)
+# --------------------------------------------------------------------------- references
 _SECTION = re.compile(r"^(\w[\w ]*)\n-+$", re.MULTILINE)
 
 

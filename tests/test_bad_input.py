@@ -1,4 +1,4 @@
-"""Nothing silent (issue 16): the shared validators at the entry points, tiles, distances, regions, the command line.
+"""Nothing silent: the shared validators at the entry points, tiles, distances, regions, the command line.
 
 Every case states its exact outcome: the value returned, or the error type and a
 fragment of its message. The other modules' cases live in test_bad_input_*.py.

@@ -1,4 +1,4 @@
-"""Bad and unusual input to the consensus cube and maximum consensus (issue 16 catalogue).
+"""Bad and unusual input to the consensus cube and maximum consensus.
 
 Every case gives one clear LabkitError (checked by type and message fragment) or a right
 answer; none modifies its input.

@@ -1,4 +1,4 @@
-"""Bad and unusual input to the local geometry (issue 16): degenerate neighbourhoods and exact duplicates.
+"""Bad and unusual input to the local geometry: degenerate neighbourhoods and exact duplicates.
 
 Each case states the exact outcome: NaN normals with ``valid=False`` where the
 data do not determine a plane, the same normals as the de-duplicated cloud where

@@ -1,4 +1,4 @@
-"""Large clouds (issue 14): ICP's default correspondence sampling, geometry only where it is used,
+"""Large clouds: ICP's default correspondence sampling, geometry only where it is used,
 and distances of every point. The thresholds of sample='auto' are lowered here (monkeypatch) so
 that small scenes exercise the route that 10-million-point clouds take."""
 
