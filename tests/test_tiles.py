@@ -526,3 +526,22 @@ def test_not_converged_tile_is_not_ok_and_has_no_shift():
     assert np.isnan(field.determined_translations).all()
     held = dataclasses.replace(s, converged=True, covariance=np.diag([np.inf, 1e-4, 1e-4]))
     assert held.verdict == "undetermined" and held.determined.tolist() == [False, True, True]
+
+
+def test_tiles_from_files_in_feet_cut_the_same_points_as_in_memory(realdata, tmp_path):
+    """A real ALS file in US survey feet (4_6_crop.las): the tile grid is laid out in metres, like the points that
+    read_cloud returns, so the tiles read from the files hold exactly the points of the tiles cut in memory."""
+    from labkit.io import read_cloud, write_cloud
+
+    path = realdata / "als" / "4_6_crop.las"
+    cloud = read_cloud(path)  # metres
+    half = np.random.default_rng(5).uniform(size=len(cloud)) < 0.5
+    whole = read_cloud(path, units="native")
+    a = write_cloud(whole.subset(half), tmp_path / "a.las")  # still in feet, with the file's CRS
+    b = write_cloud(whole.subset(~half), tmp_path / "b.las")
+    from_files = tiles.register_tiles(a, b, plane_translation, size=30.0, scheduler="serial", progress=False)
+    in_memory = tiles.register_tiles(cloud.subset(half), cloud.subset(~half), plane_translation, size=30.0,
+                                     scheduler="serial", progress=False)
+    n_files = [s.n_source for s in from_files.tiles]
+    assert sum(n_files) > 0.9 * half.sum()
+    assert n_files == [s.n_source for s in in_memory.tiles]

@@ -165,7 +165,7 @@ def read_clouds(paths, *, bbox=None, polygon=None, classes=None, attributes=None
     box = None if area is None else area
     if flt.box is not None and flt.box.shape[1] == 3 and flt.rings is None:
         box = flt.box  # the z range can rule out a file too
-    factors = (lambda info: _header_factors(info, units)) if units == "m" else None
+    factors = (lambda info: header_factors(info, units)) if units == "m" else None
     hits = [p for p in files if _header_meets(p, box, factors)]
     by_header = bool(hits)
     if not hits:  # before "empty" is said, the points themselves are asked: a header's bounds may be wrong
@@ -185,7 +185,7 @@ def read_clouds(paths, *, bbox=None, polygon=None, classes=None, attributes=None
     return _merge(clouds, label)
 
 
-def _header_factors(info: "CloudInfo", units: str) -> np.ndarray:
+def header_factors(info: "CloudInfo", units: str) -> np.ndarray:
     """Metres per stored unit of a header (ones when nothing is converted)."""
     try:
         _, factors = to_metres(info.units, units, info.path)

@@ -10,6 +10,7 @@ import numpy as np
 from .._checks import as_points
 from ..errors import CloudFileError, EmptyRegionError, LabkitError
 from ..io import LAS_SUFFIXES, cloud_files, cloud_info, read_cloud
+from ..io.many import header_factors
 from ..regions import merge
 from .grid import Tile
 
@@ -74,8 +75,15 @@ def _survey(data, classes=None, name: str = "survey"):
 
 
 def _extent(info) -> tuple:
-    """(xmin, ymin, xmax, ymax) from a LAS header (:func:`labkit.io.cloud_info`)."""
-    return (float(info.mins[0]), float(info.mins[1]), float(info.maxs[0]), float(info.maxs[1]))
+    """(xmin, ymin, xmax, ymax) in metres from a LAS header (:func:`labkit.io.cloud_info`).
+
+    The header stores the file's own units; the tiles cut the points that
+    :func:`labkit.io.read_cloud` returns, which are in metres (feet converted from the
+    file's CRS), so the extent is converted the same way.
+    """
+    f = header_factors(info, "m")
+    return (float(info.mins[0] * f[0]), float(info.mins[1] * f[1]),
+            float(info.maxs[0] * f[0]), float(info.maxs[1] * f[1]))
 
 
 def _bounds_of(data, name: str) -> np.ndarray:
