@@ -53,7 +53,7 @@ def test_auto_sample_thins_a_large_source_and_says_so(small_limits):
     cv = [np.std(d) / np.mean(d) for d in (cKDTree(p).query(p, k=2)[0][:, 1] for p in (xyz, rnd))]
     assert cv[0] < 0.8 * cv[1]
     # a small source is used whole, as before
-    small = icp(pair.source.xyz[:4000], pair.target, rng=0)
+    small = icp(pair.source.xyz[:4000], pair.target, rng=0, select="all")
     assert len(small.correspondences) == 4000 and "sample of" not in small.message
 
 
