@@ -16,7 +16,7 @@ from scipy.spatial import cKDTree
 from .._report import ReportMixin, fmt
 from .._stats import MAD_TO_SIGMA
 from . import _consensus_kernels as K
-from .consistency import block_consistency, widen
+from .consistency import block_consistency
 from .degeneracy import degeneracy_report
 from .result import RegistrationResult
 
@@ -436,9 +436,10 @@ def refine(bb, src_of, D, nrm, pb, reject_sigma, ext, runtime_bb, t0, max_outer:
         cov, kind = (cov, "sigma0^2 N^-1 (too few blocks for the jackknife)") if robust is None else (
             robust, f"delete-a-block jackknife over {block_size:.3g} m blocks")
         cov = cov + _held_effect(t, deg, box_var, members, src, w, tgt, tree, k, reject_sigma, max_std or E / 2)
+        # reported, not added: on smooth synthetic hills the quadrants differ (their k-neighbourhood planes
+        # are biased by the local curvature) and adding their spread doubled the stated std against a
+        # Monte Carlo spread / stated of 1.10, 0.83, 1.03 without it (tests/test_consensus.py)
         test = block_consistency(A[keep], l[keep], p[keep], src[members[keep]], cells, deg)
-        if test is not None and not test.agree:  # the blocks' spread enters the stated precision (eq. 6.14b)
-            cov, test = widen(cov, test, deg.parameter_determined)
     undetermined = deg.undetermined_axes if deg is not None else NAMES
     msg = (f"branch and bound: consensus {bb.lower:.6g}, certified upper bound {bb.upper:.6g} "
            f"(gap {bb.gap:.6g}) after {bb.splits} splits, {bb.reason}; eps {E * 1000:.1f} mm, "
@@ -451,8 +452,9 @@ def refine(bb, src_of, D, nrm, pb, reject_sigma, ext, runtime_bb, t0, max_outer:
     if deg is not None:
         msg += f"; covariance: {kind}"
     if test is not None and not test.agree:
-        msg += (f"; the spatial blocks disagree (T = {test.statistic:.0f}, dof = {test.dof}, p = {test.p_value:.1g}): "
-                f"the covariance includes the spread between them (std widened by {fmt(test.std_ratio, 2)})")
+        msg += (f"; the spatial quadrants disagree (T = {test.statistic:.0f}, dof = {test.dof}, p = "
+                f"{test.p_value:.1g}): model errors or changes suspected, not included in the covariance; "
+                "consider labkit register --method consensus+icp")
     if not ls_ok:
         msg += "; refinement did not settle"
     return RegistrationResult(

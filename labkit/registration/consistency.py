@@ -271,15 +271,3 @@ def block_consistency(A, l, P, xyz, cells, degeneracy, *, alpha=1e-3, rel_thresh
     off[:, free], std[:, free] = test.offset, test.offset_std
     return replace(test, offset=off, offset_std=std)
 
-
-def widen(cov, test, free):
-    """``cov`` (3 x 3, tx, ty, tz) with the groups' spread ``test.between`` added on the ``free`` axes (eq. 5.17),
-    and ``test`` with its ``std_ratio``."""
-    free = np.asarray(free, dtype=bool)
-    before = np.sqrt(np.clip(np.diag(cov), 0, None))
-    cov = np.array(cov, dtype=float)
-    cov[np.ix_(free, free)] += test.between
-    with np.errstate(invalid="ignore", divide="ignore"):
-        after = np.sqrt(np.clip(np.diag(cov), 0, None))
-        ratio = np.where(np.isfinite(before) & (before > 0), after / before, 1.0)
-    return cov, replace(test, std_ratio=ratio)

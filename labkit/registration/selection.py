@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._checks import choice
+from ..features import local_pca
 from ..masks import ASPRS_NAMES, STABLE_CLASSES
 from ._local_surface import _Geometry
 
@@ -66,6 +67,16 @@ class Selection:
         One line for the result's message and summary.
     source_rows, target_rows : ndarray of int or None
         The rows of the given clouds that were kept (None: all).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> ground = np.column_stack([rng.uniform(0, 20, (800, 2)), rng.normal(0, 0.02, 800)])
+    >>> crown = rng.normal([10, 10, 8], 1.5, (400, 3))  # volume scatter
+    >>> _, _, sel = select_points(np.vstack([ground, crown]), ground)
+    >>> sel.rule, sel.used_source < 900, str(sel).startswith("surface points")
+    ('surface points', True, True)
     """
 
     rule: str
@@ -110,8 +121,6 @@ def surface_mask(points, k=20):
     >>> float(keep[:800].mean()) > 0.95, float(keep[800:].mean()) < 0.1
     (True, True)
     """
-    from ..features import local_pca  # (features imports registration helpers lazily)
-
     xyz = _xyz(points)
     k = int(min(max(k, 10), len(xyz)))
     local = xyz - xyz.mean(axis=0)
