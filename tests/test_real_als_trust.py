@@ -75,11 +75,9 @@ def test_defaults_are_right_or_honest_on_real_halves(realdata, name):
 
 
 #: Files on which maximum consensus still states a confident wrong shift (measured, benchmarks/bench_trust.py):
-#: dense ground and UAV (4-10 mm off at a stated 2 mm: its consensus-set refinement is biased by the truncation
-#: at eps), the 19 m-spaced Autzen thinning (Z 14 cm off at 1 cm while X and Y are unknown) and one Autzen half.
+#: dense ground, roofs in feet and UAV, 4-8 mm off at a stated 2 mm (ICP and consensus+icp are right there).
 MC_KNOWN = {
     "als/faceraster_numerical_imprecision.laz", "als/file_with_both_wkt_and_geotiff_vlrs.las", "als/fullwave.laz",
-    "als/interesting.las", "epochs/autzen-bmx-2023.las",
 }  # fmt: skip
 
 

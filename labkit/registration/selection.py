@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._checks import choice
+from .._checks import as_points, choice
 from ..features import local_pca
 from ..masks import ASPRS_NAMES, STABLE_CLASSES
 from ._local_surface import _Geometry
@@ -172,7 +172,8 @@ def select_points(source, target, select="auto", k=20):
     ('stable classes', (2,), 400)
     """
     choice(select, SELECT, "select")
-    ns, nt = len(_xyz(source)), len(_xyz(target))
+    ns = len(as_points(source, name="source"))  # bad input is named before any neighbourhood is computed
+    nt = len(as_points(target, name="target"))
     if select == "all":
         return source, target, Selection("all points", (), ns, nt, ns, nt, "all points (select='all')")
     cs, ct = _classes(source), _classes(target)
