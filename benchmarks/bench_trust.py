@@ -22,6 +22,22 @@ component undetermined or states a std of 0.1 m or more), and the verdict:
 Last, the two real Autzen epochs (2010 onto 2023, Z converted from US survey feet): ``icp``
 against ``max_consensus``, the difference per axis in combined standard deviations.
 
+Measured (one run each, 2 cores under load; 11 files x 4 shifts = 44 rows per method; ok / miss / CONFIDENT-WRONG):
+
+- all points (select='all', the former default): icp 38 / 1 / 5, max_consensus 26 / 8 / 14, consensus+icp 41 / 0 / 3.
+  Wrong were: 4_6_crop (vegetation; max_consensus 4 of 4, 4-6 cm at +-1.5 cm; consensus+icp 3 of 4, Y 21 mm at
+  +-4 mm), MixedConifer (max_consensus Z 9-13 mm at +-3 mm), fullwave (max_consensus 4 of 4), warsaw (icp 3 of 4,
+  X 18 cm at +-6 cm; max_consensus 4 of 4) and the Autzen 2023 half (icp 2 of 4, Z 15 mm at +-4.9 mm).
+- defaults (select='auto': stable classes / surface points): icp 42 / 0 / 2, max_consensus 42 / 4 / 2,
+  consensus+icp 44 / 0 / 0. Left: icp on the Autzen 2023 half, Z 15 mm off at +-4.9 mm (3.06 std, 86 pairs,
+  one class: no group test); max_consensus on fullwave (UAV), Y 8 mm off at +-2.4 mm. The conifer plot
+  (height-normalised: flat ground once the crowns are out) and the roofs of sample_c report X and Y undetermined.
+  interesting.las (19 m point spacing) is refused by icp: no pair within the 1 m gate.
+- Open3D point-to-plane: right within 10 cm on most files, but 0.2-0.5 m off on sample_c and warsaw and metres off
+  on interesting.las, without any stated precision.
+- Autzen 2010 -> 2023: icp converges, X and Y undetermined (held), Z +0.300 +- 0.068 m; max_consensus
+  (-0.81, +0.82, +0.18) m at +-(0.06, 0.07, 0.005) m, Z within 1.8 combined std; Open3D (-0.05, 1.43, 0.43) m.
+
 Run:  python benchmarks/bench_trust.py [--realdata PATH] [--files sample_c,warsaw] [--seed 0] [--no-open3d]
 """
 
