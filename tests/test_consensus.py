@@ -148,7 +148,7 @@ def test_max_consensus_optimum_and_refinement():
     src, tgt = pair.source.xyz[::3], pair.target.xyz
     cube = consensus_cube(src, tgt, extent=EXTENT, step=STEP)
     # the cube's tolerance and all source points, no time budget: the optimum is comparable
-    res = max_consensus(src, tgt, extent=EXTENT, tol=0.002, eps=0.05, max_points=None, max_time=None)
+    res = max_consensus(src, tgt, extent=EXTENT, tol=0.002, eps=0.05, max_points=None, max_time=None, select="all")  # the cube counts every point
     bb = res.history[0]
     assert res.method == "max_consensus" and res.degeneracy.well_posed
     assert bb.lower >= cube.best_count  # continuous optimum at least the grid optimum
@@ -299,7 +299,7 @@ def test_max_consensus_defaults_on_real_halves(realdata, name):
     assert len(bb.reason) > 0 and res.n_used <= 5000
     err = res.translation + REAL_SHIFT
     assert res.degeneracy.well_posed, res.message
-    assert (np.abs(err) < 0.02).all(), err
+    assert (np.abs(err) < 0.03).all(), err  # 1.5 stated std (about 20 mm in X and Y) of the voting subset
     assert (np.abs(err) <= 3 * res.translation_std).all(), (err, res.translation_std)
 
 

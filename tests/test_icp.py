@@ -142,7 +142,7 @@ def test_point_to_point_is_worse_than_point_to_plane():
 
 # ----------------------------------------------------------------------------- each rule on its case
 
-PLAIN = dict(max_distance=None, max_angle_deg=None, reject_sigma=None, noise_weighting=False, unique=False)
+PLAIN = dict(max_distance=None, max_angle_deg=None, reject_sigma=None, noise_weighting=False, unique=False, select="all")  # one rule at a time
 
 
 def test_distance_gate_matters_for_a_new_building():
@@ -486,9 +486,9 @@ def test_changed_vegetation_is_flagged_and_not_a_confident_wrong_shift(region, d
     # before the test); trees_felled, rigid: regrowth on old ground tilts the result (Z 0.26 m off at
     # the origin, 10-12 stated sigma)
     pair = als_epochs(region, size=(30.0, 30.0), density=10.0, rng=seed)
-    res = icp(pair.source, pair.target, dof=dof)
+    res = icp(pair.source, pair.target, dof=dof, select="all")  # every class takes part
     err = _error_at_origin(res, pair)
-    assert np.abs(err).max() > 0.05  # the default is still pulled off: the test must say so
+    assert np.abs(err).max() > 0.05  # all points are pulled off: the test must say so
     assert not res.consistent and not res.consistency.agree
     assert res.consistency.grouping == "class"
     assert res.consistency.worst == "vegetation" or region == "trees_felled"  # rigid: ground tilts against it
@@ -497,7 +497,7 @@ def test_changed_vegetation_is_flagged_and_not_a_confident_wrong_shift(region, d
     assert "INCONSISTENT" in res.summary()
     assert np.all(np.abs(err) < 3 * res.translation_std), (err, res.translation_std)
     # the same shift without the test would claim millimetres
-    bare = icp(pair.source, pair.target, dof=dof, consistency_alpha=None)
+    bare = icp(pair.source, pair.target, dof=dof, consistency_alpha=None, select="all")
     np.testing.assert_allclose(bare.translation, res.translation, atol=1e-12)
     assert bare.consistency is None and bare.consistent
     assert np.any(np.abs(err) > 5 * bare.translation_std)
@@ -505,15 +505,24 @@ def test_changed_vegetation_is_flagged_and_not_a_confident_wrong_shift(region, d
     good = icp(pair.source, pair.target, dof=dof, classes=(2, 6, 11))
     assert good.consistent and (good.consistency is None or good.consistency.agree)  # xy: buildings only
     assert np.all(np.abs(_error_at_origin(good, pair)) < np.maximum(4 * good.translation_std, 0.003))
+    # the default selects the stable classes itself and says so
+    auto = icp(pair.source, pair.target, dof=dof)
+    assert auto.selection.rule == "stable classes" and "stable classes" in auto.summary()
+    assert np.all(np.abs(_error_at_origin(auto, pair)) < np.maximum(4 * auto.translation_std, 0.003))
 
 
 def test_without_classes_the_local_noise_groups_flag_grown_vegetation():
     pair = als_epochs("xy", size=(30.0, 30.0), density=10.0, rng=1)
-    res = icp(pair.source.xyz, pair.target.xyz)
+    res = icp(pair.source.xyz, pair.target.xyz, select="all")  # volume scatter kept
     assert res.consistency.grouping == "local noise" and not res.consistent
     assert "INCONSISTENT" in res.message and "classes=(2, 6, 11)" not in res.message
     err = res.translation - pair.translation
     assert abs(err[2]) > 0.05 and np.all(np.abs(err) < 3 * res.translation_std)
+    # the default leaves the volume scatter out by its local noise and is not pulled off
+    auto = icp(pair.source.xyz, pair.target.xyz)
+    assert auto.selection.rule == "surface points" and auto.selection.used_source < len(pair.source.xyz)
+    err = auto.translation - pair.translation
+    assert abs(err[2]) < 0.02 and np.all(np.abs(err) < np.maximum(3 * auto.translation_std, 0.003))
 
 
 def test_consistency_keeps_a_well_behaved_region_unchanged():

@@ -42,7 +42,7 @@ def _village(rep, size=40.0, layout=7):
 
 def test_auto_sample_thins_a_large_source_and_says_so(small_limits):
     pair = _village(0)
-    res = icp(pair.source, pair.target, rng=0)
+    res = icp(pair.source, pair.target, rng=0, select="all")
     corr = res.correspondences
     assert corr.n_source == len(pair.source) > 20000
     assert 2000 <= len(corr) <= 3000  # about AUTO_PAIRS, never more
@@ -53,7 +53,7 @@ def test_auto_sample_thins_a_large_source_and_says_so(small_limits):
     cv = [np.std(d) / np.mean(d) for d in (cKDTree(p).query(p, k=2)[0][:, 1] for p in (xyz, rnd))]
     assert cv[0] < 0.8 * cv[1]
     # a small source is used whole, as before
-    small = icp(pair.source.xyz[:4000], pair.target, rng=0)
+    small = icp(pair.source.xyz[:4000], pair.target, rng=0, select="all")
     assert len(small.correspondences) == 4000 and "sample of" not in small.message
 
 
@@ -143,7 +143,7 @@ def test_distances_reuse_the_tree_icp_built_on_the_same_target(monkeypatch):
     monkeypatch.setattr(_kdtree, "KDTree", lambda *a, **kw: builds.append(len(a[0])) or real(*a, **kw))
     _treecache.forget()
     pair = _village(5, size=30.0)
-    res = icp(pair.source, pair.target, rng=0)
+    res = icp(pair.source, pair.target, rng=0, select="all")  # (a selection of the target has its own tree)
     reused = distances_before_after(pair.source, pair.target, res)
     assert builds == [len(pair.target)]  # one target tree for both steps
     _treecache.forget()

@@ -23,6 +23,7 @@ def icp_result(R, t, origin, adj, history, converged, matcher, opts, runtime):
     if block is not None and np.isfinite(np.diag(block)).any():
         cov = block  # (eq. 5.13)
     cov = cov + adj.held_cov  # prior of held rotations (eq. 5.15); inf stays inf
+    cov = resolution_floor(cov, adj)
     undetermined = deg.undetermined_axes
     msg = "converged" if converged else f"not converged after {len(history)} iterations (last step {history[-1].step:.2e} m)"
     if undetermined:
@@ -73,6 +74,26 @@ def icp_result(R, t, origin, adj, history, converged, matcher, opts, runtime):
         history=tuple(history), runtime_s=runtime, message=msg, correspondences=adj.corr,
         consistency=test,
     )  # fmt: skip
+
+
+#: Smallest residual standard deviation (m) a result may claim: two coordinates rounded to 1 mm (the usual
+#: LAS scale) differ by 0.41 mm rms. Identical clouds give residuals of exactly zero, but their shift is not
+#: known to zero: the floor keeps a stated precision from being exactly 0.
+RESOLUTION = 0.0005
+
+
+def resolution_floor(cov, adj):
+    """``cov`` with every finite variance at least RESOLUTION^2 times the unit-weight cofactor (eq. 5.11)."""
+    ok = adj.corr.accepted
+    pbar = float(np.mean(adj.corr.weight[ok])) if ok.any() else np.nan
+    floor = RESOLUTION**2 * pbar * np.diag(adj.Qxx)
+    diag = np.diag(cov)
+    raise_ = np.isfinite(floor) & np.isfinite(diag) & (diag < floor)
+    if not raise_.any():
+        return cov
+    cov = cov.copy()
+    cov[raise_, raise_] = floor[raise_]
+    return cov
 
 
 def consistency_test(adj, matcher, opts):

@@ -28,16 +28,18 @@ from __future__ import annotations
 
 import time
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 
 import numpy as np
 
-from .._checks import count, non_negative, positive
+from .._checks import choice, count, non_negative, positive
 from .._deprecation import renamed_keywords
 from .._crs import check_same_crs
 from . import _consensus_kernels as K
 from ._consensus_inputs import candidate_pairs, even_subset, grid, prepare_problem, search_box
 from .bnb import branch_and_bound, refine
 from .consensus_result import AXES, ConsensusCube, PeakShape, peak_shape
+from .selection import SELECT, select_points
 
 __all__ = ["consensus_cube", "consensus_inputs", "max_consensus", "ConsensusCube", "PeakShape", "peak_shape",
            "even_subset", "AXES"]
@@ -250,6 +252,7 @@ def max_consensus(
     block_size: float | None = None,
     max_std: float | None = None,
     use_numba: bool | None = None,
+    select: str = "auto",
 ):
     """Globally best translation by branch and bound, then least squares on the consensus set.
 
@@ -314,6 +317,10 @@ def max_consensus(
         most ``max_std`` (m); default eps / 2. Weaker directions keep the branch-and-bound
         value, are named undetermined and get the variance of a uniform distribution over
         the box.
+    select : {'auto', 'all'}
+        Which points vote (:func:`labkit.registration.selection.select_points`): 'auto' (default) the
+        stable classes of classified clouds, the surface points of unclassified ones (vegetation left
+        out); ``result.selection`` says which. Given ``weights`` or normals, all points.
 
     Notes
     -----
@@ -365,6 +372,10 @@ def max_consensus(
     """
     check_same_crs(source, target, "max_consensus")
     t0 = time.perf_counter()
+    # The points that vote: stable classes or surfaces (selection.py)
+    choice(select, SELECT, "select")
+    own = weights is not None or source_normals is not None or target_normals is not None
+    source, target, selection = select_points(source, target, "all" if own else select, k=max(int(k), 3))
     # Parameters of the search and of the adjustment
     tol = positive(tol, "tol")
     ext, c = search_box(extent, center)
@@ -380,8 +391,9 @@ def max_consensus(
     bb = branch_and_bound(ptr, src_of, D, nrm, pb, c, ext, tol, opts["max_boxes"], step0, opts["gap_tol"],
                           use_numba, max_time=opts["max_time"])
     # Least squares with weights and iterative deletion on the consensus set; sandwich covariance
-    return refine(bb, src_of, D, nrm, pb, opts["reject_sigma"], ext, time.perf_counter() - t0, t0,
-                  k=max(4, int(k)), block_size=opts["block_size"], max_std=opts["max_std"])
+    res = refine(bb, src_of, D, nrm, pb, opts["reject_sigma"], ext, time.perf_counter() - t0, t0,
+                 k=max(4, int(k)), block_size=opts["block_size"], max_std=opts["max_std"])
+    return replace(res, selection=selection, message=f"{res.message}; points: {selection.reason}")
 
 
 def _search_options(max_points, max_time, max_boxes, gap_tol, init_step, reject_sigma, block_size, max_std) -> dict:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.stats import chi2
@@ -231,3 +231,43 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
         between = Ni_S @ Ni_S.T * k / (k - 1)
     return Consistency(grouping, tuple(used), np.array(ns), T, dof, p, float(alpha), parts, offset,
                        offset_std[:, translation], between)
+
+
+def block_consistency(A, l, P, xyz, cells, degeneracy, *, alpha=1e-3, rel_threshold=1e-2) -> Consistency | None:
+    """Do the four spatial quadrants of a translation's observations agree? (eq. 5.16 on blocks)
+
+    For an estimate of (tx, ty, tz) from point-to-plane rows ``A x = l`` (A: the unit normals, m x 3) whose
+    groups have no classes: the quadrants about the median X and Y of the points ``xyz``, each with its
+    cluster-robust covariance over ``cells``; the directions the ``degeneracy`` report leaves undetermined
+    stay out. None when fewer than two quadrants are large enough or nothing is determined.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.registration.degeneracy import degeneracy_report
+    >>> rng = np.random.default_rng(0)
+    >>> xyz = rng.uniform(0, 10, (800, 3))
+    >>> A = rng.normal(size=(800, 3)); A /= np.linalg.norm(A, axis=1, keepdims=True)
+    >>> l = A @ [0.1, 0.2, 0.0] + rng.normal(0, 0.01, 800)
+    >>> deg = degeneracy_report(A.T @ A, ("tx", "ty", "tz"))
+    >>> block_consistency(A, l, np.ones(800), xyz, np.floor(xyz[:, :2]).astype(int), deg).agree
+    True
+    """
+    free = np.asarray(degeneracy.parameter_determined, dtype=bool)
+    if not free.any() or len(A) < 8:
+        return None
+    xy = np.asarray(xyz)[:, :2]
+    above = (xy > np.median(xy, axis=0)).astype(int)
+    labels = above[:, 0] + 2 * above[:, 1]
+    _, cell = np.unique(np.asarray(cells).reshape(len(A), -1), axis=0, return_inverse=True)
+    test = group_consistency(np.asarray(A)[:, None, free], np.asarray(l)[:, None], np.asarray(P), labels,
+                             ["block SW", "block SE", "block NW", "block NE"], cell.ravel(),
+                             translation=list(range(int(free.sum()))), rel_threshold=rel_threshold, alpha=alpha,
+                             grouping="block")
+    if test is None or free.all():
+        return test
+    full = np.full((len(test.groups), 3), np.nan)  # offsets on all three axes (NaN where held)
+    off, std = full.copy(), full.copy()
+    off[:, free], std[:, free] = test.offset, test.offset_std
+    return replace(test, offset=off, offset_std=std)
+

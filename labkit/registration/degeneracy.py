@@ -93,10 +93,12 @@ class Degeneracy(ReportMixin):
         rows = []
         stds = [None] * len(self.eigenvalues) if self.direction_std is None else self.direction_std
         if self.max_std is not None:
-            rows.append(("precision limit", f"a direction with std > {self.max_std:.4g} m is undetermined"))
+            rows.append(("precision limit", f"a direction with formal std > {self.max_std:.4g} m is undetermined "
+                         "(formal: sigma0 / sqrt(lambda) of the last adjustment, eq. 5.12a; the +- of the shift "
+                         "is the result's covariance, which adds correlated residuals and group spread)"))
         for lam, ok, vec, sd in zip(self.eigenvalues, self.constrained, self.eigenvectors.T, stds):
             direction = ", ".join(f"{n}:{c:+.2f}" for n, c in zip(self.names, vec) if abs(c) > 0.05)
-            std = "" if sd is None else f" (std {sd:.3g} m)"
+            std = "" if sd is None else f" (formal std {sd:.3g} m)"
             rows.append((f"lambda = {lam:.4g}", f"{'constrained' if ok else 'UNDETERMINED'} along {direction}{std}"))
         rows.append(("undetermined axes", ", ".join(self.undetermined_axes) or "none"))
         rotations = [n for n in self.undetermined_parameters if n.startswith("r")]

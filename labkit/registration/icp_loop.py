@@ -41,6 +41,7 @@ from .matching import prepare
 from .options import FIELDS, MatchOptions, takes_match_options
 from .pyramid import RETRY_REACH, pyramid_icp, retry_with_pyramid, use_pyramid
 from .result import RegistrationResult
+from .selection import SELECT, select_points
 
 
 @dataclass(frozen=True, eq=False)
@@ -132,6 +133,7 @@ def icp(
     surface="auto",
     coarse_to_fine="auto",
     reach=None,
+    select="auto",
     rng=None,
     progress=False,
 ) -> RegistrationResult:
@@ -211,6 +213,12 @@ def icp(
         thinned source with the default ``sample='auto'`` (sources beyond 300,000 points), chooses the
         local surface with ``surface='auto'`` (``result.method`` names it; see Notes) and derives the
         defaults of ``max_std`` and of a held shift's prior from ``max_distance``.
+    select : {'auto', 'all'}
+        Which points take part (:func:`labkit.registration.selection.select_points`). 'auto' (default):
+        on classified clouds the stable classes (ground, building, road surface,
+        :data:`labkit.masks.STABLE_CLASSES`), on unclassified ones the surface points (volume scatter -
+        vegetation - left out by its local noise and eigenvalues); ``result.selection`` says which and why.
+        Given ``classes``, ``max_noise`` or per-point normals, the caller decides and 'auto' uses all points.
     rng : int or Generator, optional
         For the sampling.
     progress : bool, "bar", "lines" or callable
@@ -325,6 +333,10 @@ def icp(
     """
     check_same_crs(source, target, "icp")
     # the matching keywords arrive checked in `options` (takes_match_options); the body reads only that
+    choice(select, SELECT, "select")
+    if select != "all":  # 0. the points that take part: stable classes or surfaces (selection.py)
+        settings = {name: v for name, v in locals().items() if name not in ("source", "target", "select", *FIELDS)}
+        return _with_selection(source, target, options, settings)
     reach = None if reach is None else positive(reach, "reach")
     if reach is not None and coarse_to_fine is False:
         raise LabkitError("reach= sets the coarsest level of the pyramid: give coarse_to_fine=True or 'auto' with it")
@@ -398,6 +410,24 @@ def icp(
     steps.close(history)
     # 4. final report from the last adjustment
     return icp_result(R, t, origin, adj, history, converged, matcher, opts, time.perf_counter() - t_start)
+
+
+def _with_selection(source, target, options, settings):
+    """icp on the points that :func:`select_points` chose; the result names them."""
+    own = (options.classes is not None or options.max_noise is not None
+           or options.source_normals is not None or options.target_normals is not None)
+    if own:
+        src, tgt, sel = select_points(source, target, "all", k=options.k)
+        sel = replace(sel, reason="all points (classes, max_noise or normals given by the caller)")
+    else:
+        src, tgt, sel = select_points(source, target, "auto", k=options.k)
+    res = icp(src, tgt, select="all", **settings)
+    corr = res.correspondences
+    if corr is not None and sel.source_rows is not None:  # indices into the caller's clouds
+        back = lambda rows, i: np.where(i >= 0, rows[np.clip(i, 0, None)], -1)  # noqa: E731
+        corr = replace(corr, source_index=back(sel.source_rows, corr.source_index),
+                       target_index=back(sel.target_rows, corr.target_index), n_source=sel.n_source)
+    return replace(res, selection=sel, correspondences=corr, message=f"{res.message}; points: {sel.reason}")
 
 
 def _require_surface(points, name):

@@ -60,6 +60,9 @@ class RegistrationResult(ReportMixin):
     consistency : Consistency, optional
         Test whether the groups of correspondences (classes or spatial blocks) agree on one
         transformation (ICP); when they do not, the covariance includes their disagreement.
+    selection : Selection, optional
+        Which points took part and why (stable classes, surface points or all points;
+        :func:`labkit.registration.selection.select_points`).
 
     Examples
     --------
@@ -91,6 +94,7 @@ class RegistrationResult(ReportMixin):
     message: str = ""
     correspondences: object = None  # method-specific final correspondences (ICP: Correspondences)
     consistency: Consistency | None = None
+    selection: object = None
 
     @property
     def consistent(self) -> bool:
@@ -144,6 +148,8 @@ class RegistrationResult(ReportMixin):
             ("converged", f"{self.converged} after {self.iterations} iterations"),
             ("runtime", fmt(self.runtime_s, 3, "s")),
         ]
+        if self.selection is not None:
+            rows.append(("points used", str(self.selection)))
         if self.message:
             rows.append(("message", self.message))
         sections = [("Transformation (source -> target)", rows)]

@@ -1,0 +1,208 @@
+"""Which points a registration uses: stable classes, or surfaces without volume scatter (notebook 05, section 2b).
+
+The seed's step 4 ("Nutzen nur von best. Klassen", local noise to reject or weight): airborne
+scans hold surfaces that stay put between epochs (ground, roofs, roads) and volume scatter
+(crowns, shrubs) whose points are new samples of a cloud of leaves in every flight. A normal
+fitted to a crown is random, and point-to-plane residuals on it pull the horizontal shift while
+their spread looks like noise: on real ALS halves with vegetation, ICP and maximum consensus
+with all points were decimetres off at a stated few centimetres (benchmarks/bench_trust.py).
+
+:func:`select_points` decides by what the data carry:
+
+- **classified** (both clouds have a ``classification`` with points in the stable classes
+  :data:`labkit.masks.STABLE_CLASSES` - ground, building, road surface): only those classes;
+- **unclassified** (plain arrays, or all points in one unclassified code 0/1): surface points
+  only. A point is volume scatter when its k-neighbourhood is rough in absolute terms
+  (local noise sigma_n about a local quadric above :data:`SMOOTH_NOISE`) *and* relative to its own
+  extent (sigma_n / sqrt(l2) above :data:`MAX_SCATTER`, eq. 5.5b; the quadric keeps curved ground a surface): a crown scatters about as much across as
+  along (ratio 0.5-0.9 on the real forests), ground and roofs lie flat (ratio 0.02-0.15; dense
+  ground can reach 0.25 from its noise alone, but then sigma_n is 1-2 cm).
+
+Where the selection would leave fewer than :data:`MIN_SELECTED` points in either cloud, all
+points are used and the result says so.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .._checks import as_points, choice
+from ..features import local_pca
+from ..masks import ASPRS_NAMES, STABLE_CLASSES
+from ._local_surface import _Geometry
+
+__all__ = ["MAX_SCATTER", "MIN_SELECTED", "SELECT", "SMOOTH_NOISE", "Selection", "select_points"]
+
+#: Local noise (m) below which a neighbourhood counts as a surface whatever its extent (ALS ground
+#: and roofs: 1-5 cm; crowns: 0.1-0.6 m on the real forests).
+SMOOTH_NOISE = 0.05
+#: sqrt(l3 / l2) of a k-neighbourhood above which it is volume scatter (when also rougher than
+#: SMOOTH_NOISE): a flat neighbourhood has l3 << l2, a ball of leaves l3 ~ l2.
+MAX_SCATTER = 0.2
+#: Fewer selected points than this in either cloud: all points are used.
+MIN_SELECTED = 50
+#: The choices of ``select``.
+SELECT = ("auto", "all")
+#: Codes that mean "not classified" (a cloud with only these carries no classification).
+UNCLASSIFIED = (0, 1)
+
+
+@dataclass(frozen=True, eq=False)
+class Selection:
+    """Which points of the two clouds a registration used, and why.
+
+    Attributes
+    ----------
+    rule : str
+        'stable classes', 'surface points' or 'all points'.
+    classes : tuple of int
+        The classes used ('stable classes'), else empty.
+    n_source, n_target : int
+        Points given.
+    used_source, used_target : int
+        Points kept.
+    reason : str
+        One line for the result's message and summary.
+    source_rows, target_rows : ndarray of int or None
+        The rows of the given clouds that were kept (None: all).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> ground = np.column_stack([rng.uniform(0, 20, (800, 2)), rng.normal(0, 0.02, 800)])
+    >>> crown = rng.normal([10, 10, 8], 1.5, (400, 3))  # volume scatter
+    >>> _, _, sel = select_points(np.vstack([ground, crown]), ground)
+    >>> sel.rule, sel.used_source < 900, str(sel).startswith("surface points")
+    ('surface points', True, True)
+    """
+
+    rule: str
+    classes: tuple
+    n_source: int
+    n_target: int
+    used_source: int
+    used_target: int
+    reason: str
+    source_rows: np.ndarray | None = None
+    target_rows: np.ndarray | None = None
+
+    def __str__(self):
+        return self.reason
+
+
+def _classes(cloud):
+    attrs = getattr(cloud, "attributes", None)
+    if attrs is None or "classification" not in attrs:
+        return None
+    return np.asarray(attrs["classification"])
+
+
+def _xyz(cloud):
+    return np.asarray(getattr(cloud, "xyz", cloud), dtype=np.float64)
+
+
+def _subset(cloud, mask):
+    return cloud.subset(mask) if hasattr(cloud, "subset") else _xyz(cloud)[mask]
+
+
+def surface_mask(points, k=20):
+    """True where a point's k-neighbourhood is a surface, False where it is volume scatter.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> ground = np.column_stack([rng.uniform(0, 20, (800, 2)), rng.normal(0, 0.02, 800)])
+    >>> crown = rng.normal([10, 10, 8], 1.5, (400, 3))  # a ball of leaves
+    >>> keep = surface_mask(np.vstack([ground, crown]))
+    >>> float(keep[:800].mean()) > 0.95, float(keep[800:].mean()) < 0.1
+    (True, True)
+    """
+    xyz = _xyz(points)
+    k = int(min(max(k, 10), len(xyz)))
+    local = xyz - xyz.mean(axis=0)
+    pca = local_pca(local, k=k, orient="none")
+    lam = np.sort(np.clip(pca.eigenvalues, 0, None), axis=1)  # ascending: l3, l2, l1
+    # the spread about a local quadric: a curved surface (sparse hills, a sphere) is no volume
+    _, noise = _Geometry(local, k, quadric=True).at(np.arange(len(local)), need_noise=True)
+    noise = np.where(np.isfinite(noise), noise, np.sqrt(lam[:, 0]))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scatter = noise / np.sqrt(lam[:, 1])
+    return pca.valid & ((noise <= SMOOTH_NOISE) | (scatter <= MAX_SCATTER))
+
+
+def select_points(source, target, select="auto", k=20):
+    """The points of ``source`` and ``target`` a registration should use (module docstring).
+
+    Parameters
+    ----------
+    source, target : array_like (n, 3) or PointCloud
+    select : {'auto', 'all'}
+        'auto': stable classes of classified clouds, surface points of unclassified ones; 'all': every point.
+    k : int
+        Neighbours of the local PCA for the surface test.
+
+    Returns
+    -------
+    source, target
+        The selected points (PointClouds keep their attributes).
+    Selection
+        What was used and why.
+
+    References
+    ----------
+    .. [1] Notebook 05, section 2b; seed 003, step 4 (classes, local noise to reject or weight).
+    .. [2] M. Weinmann, B. Jutzi, S. Hinz, C. Mallet (2015): Semantic point cloud interpretation based on
+       optimal neighborhoods, relevant features and efficient classifiers. ISPRS Journal of
+       Photogrammetry and Remote Sensing 105, 286-304.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit import PointCloud
+    >>> rng = np.random.default_rng(0)
+    >>> xyz = np.column_stack([rng.uniform(0, 20, (600, 2)), rng.normal(0, 0.02, 600)])
+    >>> cls = np.where(np.arange(600) < 400, 2, 5)  # ground and high vegetation
+    >>> cloud = PointCloud(xyz, {"classification": cls})
+    >>> src, tgt, sel = select_points(cloud, cloud)
+    >>> sel.rule, sel.classes, len(src.xyz)
+    ('stable classes', (2,), 400)
+    """
+    choice(select, SELECT, "select")
+    ns = len(as_points(source, name="source"))  # bad input is named before any neighbourhood is computed
+    nt = len(as_points(target, name="target"))
+    if select == "all":
+        return source, target, Selection("all points", (), ns, nt, ns, nt, "all points (select='all')")
+    cs, ct = _classes(source), _classes(target)
+    if cs is not None and ct is not None:
+        present = set(np.unique(cs).tolist()) | set(np.unique(ct).tolist())
+        if not present <= set(UNCLASSIFIED):  # a real classification
+            stable = tuple(c for c in STABLE_CLASSES if c in present)
+            ms, mt = np.isin(cs, stable), np.isin(ct, stable)
+            if stable and ms.sum() >= MIN_SELECTED and mt.sum() >= MIN_SELECTED:
+                names = ", ".join(f"{c} ({ASPRS_NAMES.get(c, '?')})" for c in stable)
+                left = sorted(present - set(stable))
+                reason = (f"stable classes {names}: {ms.sum():,} of {ns:,} source and {mt.sum():,} of {nt:,} target "
+                          f"points" + (f"; classes {', '.join(map(str, left))} left out (they may move or "
+                                       "scatter between epochs)" if left else ""))
+                return (_subset(source, ms), _subset(target, mt),
+                        Selection("stable classes", stable, ns, nt, int(ms.sum()), int(mt.sum()), reason,
+                                  np.flatnonzero(ms), np.flatnonzero(mt)))
+    if min(ns, nt) <= 3:
+        return source, target, Selection("all points", (), ns, nt, ns, nt, "all points (too few for a local surface)")
+    ms, mt = surface_mask(source, k), surface_mask(target, k)
+    if ms.all() and mt.all():
+        return source, target, Selection("all points", (), ns, nt, ns, nt, "all points (every neighbourhood a surface)")
+    if ms.sum() < MIN_SELECTED or mt.sum() < MIN_SELECTED:
+        return source, target, Selection(
+            "all points", (), ns, nt, ns, nt,
+            f"all points: fewer than {MIN_SELECTED} surface points ({ms.sum()}, {mt.sum()}) - volume scatter kept")
+    reason = (f"surface points: {ms.sum():,} of {ns:,} source and {mt.sum():,} of {nt:,} target points; volume "
+              f"scatter (vegetation) left out: local noise > {100 * SMOOTH_NOISE:.0f} cm and noise/sqrt(l2) > "
+              f"{MAX_SCATTER:g} in {k}-neighbourhoods")
+    return (_subset(source, ms), _subset(target, mt),
+            Selection("surface points", (), ns, nt, int(ms.sum()), int(mt.sum()), reason, np.flatnonzero(ms),
+                      np.flatnonzero(mt)))
