@@ -58,7 +58,7 @@ class Correspondences(ReportMixin):
     >>> from labkit.registration import icp
     >>> from labkit.synthetic import wavy_surface
     >>> target = wavy_surface(1500, 1, noise=0.001)  # slopes in X and Y, 1 mm noise
-    >>> res = icp(target[::5] + [0.02, -0.01, 0.03], target, dof="translation")
+    >>> res = icp(target[::5] + [0.02, -0.01, 0.03], target, dof="translation", select="all")
     >>> corr = res.correspondences  # the pairs of the final adjustment (or: labkit.registration.match)
     >>> len(corr) == 300, corr.n_accepted == res.n_used, bool(np.abs(corr.plane_distance[corr.accepted]).max() < 0.01)
     (True, True, True)
