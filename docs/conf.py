@@ -45,6 +45,8 @@ extensions = [
     "sphinx.ext.autodoc",
     "sphinx.ext.autosummary",
     "sphinx.ext.mathjax",
+    # MathJax served from the site itself (no CDN): the equations render offline, in the course room too
+    "sphinx-mathjax-offline",
     "numpydoc",
 ]
 

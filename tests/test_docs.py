@@ -102,6 +102,18 @@ def test_site_speaks_without_internal_references(site):
     assert not bad, f"internal references on the site: {bad}"
 
 
+def test_site_loads_nothing_from_the_internet(site):
+    """Scripts, style sheets and MathJax come with the site, so it works offline (links may point out)."""
+    loaded = re.compile(r'<(?:script[^>]*\ssrc|link[^>]*rel="(?:stylesheet|preload)"[^>]*\shref)="(https?:[^"]*)"')
+    bad = {}
+    for page in site.rglob("*.html"):
+        hits = loaded.findall(page.read_text(encoding="utf-8"))
+        if hits:
+            bad[str(page.relative_to(site))] = sorted(set(hits))
+    assert not bad, f"pages that load from the internet: {dict(list(bad.items())[:3])}"
+    assert (site / "_static" / "mathjax" / "tex-chtml.js").exists()
+
+
 def test_front_page_and_a_notebook_render_in_chromium(site, tmp_path):
     if CHROMIUM is None:
         pytest.skip("no chromium: install Debian's 'chromium' package (apt-get install chromium)")
@@ -114,6 +126,10 @@ def test_front_page_and_a_notebook_render_in_chromium(site, tmp_path):
         browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         try:
             page = browser.new_page(viewport={"width": 1300, "height": 1600})
+            # offline, as in a course room without internet: every request that leaves the site fails
+            outside = []
+            page.route("**/*", lambda route: (route.continue_() if route.request.url.startswith("file:")
+                                              else (outside.append(route.request.url), route.abort())))
             # the front page: title, the three ways in, the navigation to the course and the API reference
             page.goto((site / "index.html").as_uri(), wait_until="domcontentloaded", timeout=60_000)
             assert "labkit" in page.title()
@@ -135,6 +151,12 @@ def test_front_page_and_a_notebook_render_in_chromium(site, tmp_path):
             assert sum(w > 200 and h > 100 for w, h in sizes) >= 3, sizes
             opened = page.eval_on_selector_all("main details.hide", "els => els.filter(e => e.open).length")
             assert opened == 0, "a solution is open on the page"
+            # its equations typeset by MathJax from the site's own files: no raw LaTeX left in the text
+            page.wait_for_function("() => document.querySelectorAll('main mjx-container').length > 10",
+                                   timeout=60_000)
+            raw = page.inner_text("main")
+            assert "\\begin{" not in raw and "\\mathbf" not in raw, "math left as raw LaTeX"
+            assert not outside, f"the site asked the internet for {outside[:3]}"
             for folder in artifacts:
                 page.screenshot(path=str(folder / "docs-notebook.png"), full_page=False)
             assert (tmp_path / "docs-notebook.png").stat().st_size > 10_000
