@@ -33,7 +33,6 @@ from dataclasses import replace
 import numpy as np
 
 from .._checks import choice, count, non_negative, positive
-from .._deprecation import renamed_keywords
 from .._crs import check_same_crs
 from . import _consensus_kernels as K
 from ._consensus_inputs import candidate_pairs, even_subset, grid, prepare_problem, search_box
@@ -44,10 +43,6 @@ from .selection import SELECT, select_points
 __all__ = ["consensus_cube", "consensus_inputs", "max_consensus", "ConsensusCube", "PeakShape", "peak_shape",
            "even_subset", "AXES"]
 
-#: Old keyword names of the consensus functions (one release, with a DeprecationWarning): one name per
-#: concept with :func:`labkit.registration.icp` and :func:`labkit.registration.match`.
-_RENAMED = dict(criterion="metric", max_angle="max_angle_deg", normals=("source_normals", "target_normals"),
-                normal_k="k")
 
 
 def consensus_inputs(source, target, metric: str = "point_to_plane", eps: float | None = 0.05,
@@ -91,7 +86,6 @@ def consensus_inputs(source, target, metric: str = "point_to_plane", eps: float 
                            (source_normals, target_normals), k)
 
 
-@renamed_keywords(**_RENAMED)
 def consensus_cube(
     source,
     target,
@@ -226,7 +220,6 @@ def _raster_parallel(ptr, U, nrm, pb, step, shape, use_numba, workers):
     return sum(parts[1:], parts[0]), "numba"
 
 
-@renamed_keywords(**_RENAMED, deletion_k="reject_sigma")
 def max_consensus(
     source,
     target,
