@@ -1,4 +1,4 @@
-"""Issue 16, the sphere cases: every bad or unusual input gets a right answer or one clear LabkitError.
+"""The sphere cases: every bad or unusual input gets a right answer or one clear LabkitError.
 
 Each case asserts its exact outcome: the error type and a fragment of its message, or found=False with a
 reason (never a large or wrong sphere), or the right sphere.
