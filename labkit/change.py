@@ -25,9 +25,10 @@ Notation (notebook 10):
 Eq. 5 without the registration term is the LoD of Lague et al. (2013, eq. 1); it
 treats the two mean positions as independent with standard errors s/sqrt(n). The
 spreads are estimated from a few dozen points per cylinder, so the ratio d / se follows
-a Student t rather than a normal distribution: with z = 1.96 and about 30 points per
-cylinder 5.7 % of unchanged cores were flagged at 95 %; the t quantile with Welch's degrees
-of freedom keeps the false-alarm rate at alpha (it tends to z for large counts).
+a Student t rather than a normal distribution: with z = 1.96 and a few dozen points per
+cylinder more than alpha of the unchanged cores are flagged (tests/test_m3c2.py); the t
+quantile with Welch's degrees of freedom keeps the false-alarm rate at alpha (it tends to
+z for large counts).
 The registration term, a stated covariance, does not reduce the degrees of freedom. A
 registration error moves the whole compared epoch: its covariance Sigma_t adds
 the variance of that displacement along the normal, so a poorly determined X
