@@ -297,13 +297,15 @@ def icp(
     if max_std is not None:
         max_std = positive(max_std, "max_std")
     max_iterations = count(max_iterations, "max_iterations")
-    # 1. shared local origin, initial transformation in the local frame
-    origin = local_origin(as_points(target, min_points=3, name="target"))
-    for cloud, name in ((source, "source"), (target, "target")):
-        _require_surface(as_points(cloud, min_points=3, name=name), name)
+    # 1. the clouds checked once; shared local origin, initial transformation in the local frame
+    tgt_xyz = as_points(target, min_points=3, name="target")
+    src_xyz = as_points(source, min_points=3, name="source")
+    _require_surface(src_xyz, "source")
+    _require_surface(tgt_xyz, "target")
+    origin = local_origin(tgt_xyz)
     R, t = _initial_local(initial, origin)
     # 2. kd-tree of the target, sampling and exclusions: once
-    matcher = prepare(source, target, options=options, rng=rng, origin=origin)
+    matcher = prepare(source, target, options=options, rng=rng, origin=origin, points=(src_xyz, tgt_xyz))
     L = max(float(np.sqrt((matcher.source**2).sum(axis=1).mean())), 1.0)
     opts = IcpSettings(
         origin=origin, dof=dof, metric=metric, robust=robust, reject_sigma=reject_sigma, L=L,
