@@ -49,8 +49,10 @@ def pytest_addoption(parser):
 
 
 def pytest_collection_modifyitems(config, items):
-    """Deselect the ``slow`` and ``notebook`` tests unless --all (or an explicit -m) is given."""
-    if config.getoption("run_all", False) or config.option.markexpr:
+    """Deselect the ``slow`` and ``notebook`` tests unless --all, an explicit -m, or a test file or test
+    named on the command line (``pytest tests/test_icp.py`` runs all of that file) asks for them."""
+    named = any(a.split("::")[0].endswith(".py") for a in config.args)
+    if config.getoption("run_all", False) or config.option.markexpr or named:
         return
     keep, left_out = [], []
     for item in items:

@@ -192,6 +192,7 @@ def _cov_at(points, scene):
     return scene.noise**2 * np.eye(3) + (scene.range_noise**2 - scene.noise**2) * u[:, :, None] * u[:, None, :]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("anisotropic", [False, True])
 def test_monte_carlo_spread_matches_Sigma_xx(anisotropic):
     truth, xs, s0, coverage, Q = _monte_carlo(anisotropic)
