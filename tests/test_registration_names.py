@@ -25,6 +25,7 @@ def test_icp_is_the_function_after_every_submodule_was_imported():
     assert labkit.icp is icp and icp.__module__ == "labkit.registration.icp_loop"
 
 
+@pytest.mark.slow
 def test_icp_is_the_function_in_a_fresh_interpreter_after_importing_the_loop_module():
     code = ("import labkit.registration.icp_loop, inspect; from labkit.registration import icp; "
             "print(inspect.isfunction(icp))")
