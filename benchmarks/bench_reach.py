@@ -31,6 +31,12 @@ Measured (2 cores under a load of about 10, shifts 0.3, 0.6, 1.0 m; errors in mm
   splits the spread / stated std was 1.6, 3.4, 3.2 (plane; 1.3, 2.5, 1.7 with surface='quadric').
   Not solved: the stated precision of gridded DIM is too small.
 
+Why ``coarse_to_fine='auto'`` runs one level first: within the gate, one level reached the same fixed
+point as the pyramid (within 1 mm or 0.1 std) 1.5-4 times faster on the rows above (shifts 0.3-1.5 m);
+on the autzen halves moved by 1.9-2.5 m one level held X and Y at 0 (undetermined, 28-39 % of the
+searched source points beyond the gate) and the pyramid recovered them. A flat field or one-way ridges
+reject only 0-0.3 % by distance, so the retry rule (more than 20 % without a partner) leaves them alone.
+
 Run:  python benchmarks/bench_reach.py [--realdata PATH] [--rows ign,conifer] [--shifts 0.3,0.6,1.0]
 """
 

@@ -101,8 +101,6 @@ def __getattr__(name: str):
         value = importlib.import_module(f"labkit.{name}")
         globals()[name] = value
         return value
-    if name == "ConvergenceError":  # deprecated: warns on every access, so it is not cached
-        return importlib.import_module("labkit.errors")._deprecated_convergence_error()
     return lazy_attribute(__name__, _EXPORTS, globals(), name)
 
 

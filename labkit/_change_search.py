@@ -60,13 +60,13 @@ def even_subsample(local: np.ndarray, spacing: float) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- public steps
-def pca_normals(local: np.ndarray, cores: np.ndarray, radius: float, *, compiled: bool = HAVE_NUMBA):
+def pca_normals(local: np.ndarray, cores: np.ndarray, radius: float, *, use_numba: bool = HAVE_NUMBA):
     """Normal and surface variation l3 / (l1 + l2 + l3) at each core from the points within ``radius``.
 
-    ``compiled``: the numba voxel-grid kernel (``labkit._change_grid``); otherwise cKDTree ball queries.
+    ``use_numba``: the numba voxel-grid kernel (``labkit._change_grid``); otherwise cKDTree ball queries.
     Fewer than 3 neighbours, or a line-like neighbourhood, give NaN.
     """
-    if not compiled:
+    if not use_numba:
         return _tree_pca_normals(cKDTree(local), local, cores, radius)
     grid = VoxelGrid(local, radius)
     counts, C = np.zeros(len(cores), dtype=np.int64), np.zeros((len(cores), 3, 3))
@@ -77,14 +77,14 @@ def pca_normals(local: np.ndarray, cores: np.ndarray, radius: float, *, compiled
 
 
 def cylinder_stats(local: np.ndarray, cores: np.ndarray, normals: np.ndarray, radius: float, depth: float,
-                   progress=None, *, compiled: bool = HAVE_NUMBA):
+                   progress=None, *, use_numba: bool = HAVE_NUMBA):
     """Count, mean and standard deviation (ddof = 1) of the axial coordinates in each cylinder.
 
     A point p belongs to the cylinder of core c with unit axis n when its axial
     coordinate d = (p - c) . n satisfies |d| <= depth and its squared distance from
     the axis |p - c|^2 - d^2 is at most radius^2. Cores with a NaN normal get count 0.
     """
-    if not compiled:
+    if not use_numba:
         return _tree_cylinder_stats(cKDTree(local), local, cores, normals, radius, depth, progress)
     grid = grid_kernels.VoxelGrid(local, cylinder_cell(radius, depth))
     out = [np.zeros(len(cores), dtype=np.int64), np.full(len(cores), np.nan), np.full(len(cores), np.nan)]

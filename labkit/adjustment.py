@@ -19,7 +19,6 @@ from scipy import stats
 from scipy.linalg import cho_factor, cho_solve
 
 from ._checks import as_points, positive, probability
-from ._deprecation import renamed_keywords
 from ._frame import local_origin
 from ._stats import GlobalTest, global_test, w_critical
 from .errors import DegenerateGeometryError, LabkitError
@@ -33,7 +32,6 @@ _X0_SAMPLE = 20_000  # points used for the algebraic initial values
 _FLAT_RATIO = 100.0  # radius above this many times the extent of the points: no curvature
 
 
-@renamed_keywords(max_iter="max_iterations")
 def gauss_helmert_model(
     points,
     x0=None,
@@ -64,8 +62,7 @@ def gauss_helmert_model(
     tol : float
         Convergence threshold on max|dx| (m); also the main-check tolerance.
     max_iterations : int
-        Maximum number of iterations (the name ICP uses; the old ``max_iter`` still works for one
-        release, with a DeprecationWarning).
+        Maximum number of iterations (the name ICP uses).
     alpha : float
         Significance level of the global test.
     sigma0_apriori : float, optional

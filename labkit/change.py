@@ -25,9 +25,10 @@ Notation (notebook 10):
 Eq. 5 without the registration term is the LoD of Lague et al. (2013, eq. 1); it
 treats the two mean positions as independent with standard errors s/sqrt(n). The
 spreads are estimated from a few dozen points per cylinder, so the ratio d / se follows
-a Student t rather than a normal distribution: with z = 1.96 and about 30 points per
-cylinder 5.7 % of unchanged cores were flagged at 95 %; the t quantile with Welch's degrees
-of freedom keeps the false-alarm rate at 1 - confidence (it tends to z for large counts).
+a Student t rather than a normal distribution: with z = 1.96 and a few dozen points per
+cylinder more than alpha of the unchanged cores are flagged (tests/test_m3c2.py); the t
+quantile with Welch's degrees of freedom keeps the false-alarm rate at alpha (it tends to
+z for large counts).
 The registration term, a stated covariance, does not reduce the degrees of freedom. A
 registration error moves the whole compared epoch: its covariance Sigma_t adds
 the variance of that displacement along the normal, so a poorly determined X
@@ -86,7 +87,7 @@ class M3C2Result(ReportMixin):
         M3C2 distance compared - reference along the normal (eq. 3), in the units of the
         input; NaN where a cylinder holds fewer than ``min_points`` points of either epoch.
     lod : ndarray (m,)
-        Level of detection at ``confidence`` (eq. 5); inf where the registration leaves the
+        Level of detection at the test level ``alpha`` (eq. 5); inf where the registration leaves the
         displacement along the normal undetermined.
     significant : ndarray of bool (m,)
         |distance| > lod (eq. 7); False where the distance is NaN.
@@ -99,9 +100,9 @@ class M3C2Result(ReportMixin):
     normal_radius : ndarray (m,)
         The normal radius chosen at each core point (NaN for given normals).
     z : ndarray (m,)
-        The two-sided quantile of ``confidence`` used at each core point (eq. 5): Student t with
+        The two-sided quantile 1 - ``alpha``/2 used at each core point (eq. 5): Student t with
         Welch's degrees of freedom, or the normal quantile for ``quantile='normal'``; NaN without a distance.
-    cylinder_radius, max_depth, confidence, min_points, quantile :
+    cylinder_radius, max_depth, alpha, min_points, quantile :
         The parameters used.
 
     Examples
@@ -129,7 +130,7 @@ class M3C2Result(ReportMixin):
     normal_radius: np.ndarray
     cylinder_radius: float
     max_depth: float
-    confidence: float
+    alpha: float
     z: np.ndarray
     min_points: int
     quantile: str = "student"
@@ -163,7 +164,7 @@ class M3C2Result(ReportMixin):
             ("core points", f"{n} ({nv} with a distance, {n - nv} without)"),
             ("cylinder", f"radius {length_text(self.cylinder_radius)}, half length {length_text(self.max_depth)}"),
             ("normal radius", _radius_text(self.normal_radius)),
-            ("confidence", f"{self.confidence:.3f} ({_quantile_text(self)}), at least {self.min_points} points "
+            ("test level", f"alpha = {self.alpha:.3f} ({_quantile_text(self)}), at least {self.min_points} points "
                            "per cylinder"),
         ]
         if nv:
@@ -198,7 +199,7 @@ def m3c2(
     max_depth: float,
     registration_covariance=None,
     normals=None,
-    confidence: float = 0.95,
+    alpha: float = 0.05,
     progress: bool = False,
     orientation=(0.0, 0.0, 1.0),
     min_points: int = 2,
@@ -229,8 +230,8 @@ def m3c2(
         An isotropic registration error sigma is ``sigma**2 * np.eye(3)``.
     normals : array_like (m, 3) or (3,), optional
         Given cylinder axes instead of PCA normals (normalised and oriented here).
-    confidence : float
-        Confidence of the level of detection (two-sided), default 0.95 (z = 1.96).
+    alpha : float
+        Test level of the level of detection (two-sided false-alarm rate), default 0.05 (z = 1.96).
     progress : bool, str or callable
         Progress of the cylinder search (see :mod:`labkit.progress`); silent by default.
     orientation : array_like (3,)
@@ -244,7 +245,7 @@ def m3c2(
         LoD is infinite wherever such a parameter moves the surface along the normal.
     quantile : {"student", "normal"}
         The quantile of eq. 5: Student t with Welch's degrees of freedom (default; holds the
-        false-alarm rate at 1 - confidence for small cylinders) or the normal quantile z
+        false-alarm rate at ``alpha`` for small cylinders) or the normal quantile z
         (PDAL, CloudCompare and py4dgeo's convention).
 
     Returns
@@ -255,7 +256,7 @@ def m3c2(
     ------
     LabkitError
         Empty clouds, NaN coordinates, radii <= 0, a covariance that is not symmetric
-        positive semi-definite, normals of the wrong shape, confidence outside (0, 1).
+        positive semi-definite, normals of the wrong shape, alpha outside (0, 1).
 
     Notes
     -----
@@ -295,7 +296,7 @@ def m3c2(
     radii = _check_radii(normal_radius) if normals is None else None
     r = positive(cylinder_radius, "cylinder_radius")
     h = positive(max_depth, "max_depth")
-    conf = probability(confidence, "confidence")
+    alpha = probability(alpha, "alpha")
     choice(quantile, ("student", "normal"), "quantile")
     min_points = _check_min_points(min_points)
     up = _check_orientation(orientation)
@@ -320,32 +321,32 @@ def m3c2(
     # Level of detection (eq. 5, 6) and significance (eq. 7)
     reg = registration_variance(registration_covariance, cores_world, nrm, held_std)
     with np.errstate(invalid="ignore", divide="ignore"):
-        z = np.where(enough, _quantile(conf, s1, n1, s2, n2, quantile), np.nan)
+        z = np.where(enough, _quantile(alpha, s1, n1, s2, n2, quantile), np.nan)
         lod = np.where(enough, z * np.sqrt(s1**2 / n1 + s2**2 / n2 + reg), np.nan)  # (eq. 5)
     significant = np.abs(np.nan_to_num(distance)) > np.where(enough, lod, np.inf)  # (eq. 7)
     nan = np.nan
     return M3C2Result(
         cores_world, nrm, distance, lod, significant,
-        np.where(enough, s1, nan), np.where(enough, s2, nan), n1, n2, reg, chosen, r, h, conf, z, min_points, quantile,
+        np.where(enough, s1, nan), np.where(enough, s2, nan), n1, n2, reg, chosen, r, h, alpha, z, min_points, quantile,
     )
 
 
 # --------------------------------------------------------------------------- private steps
-def _quantile(conf, s1, n1, s2, n2, kind):
+def _quantile(alpha, s1, n1, s2, n2, kind):
     """Two-sided quantile of eq. 5 per core: Student t with Welch-Satterthwaite degrees of freedom, or z."""
-    z = float(norm.ppf(0.5 + conf / 2))
+    z = float(norm.ppf(1 - alpha / 2))
     if kind == "normal":
         return np.full(np.shape(n1), z)
     a, b = s1**2 / n1, s2**2 / n2
     dof = (a + b) ** 2 / (a**2 / (n1 - 1) + b**2 / (n2 - 1))
     dof = np.where(np.isfinite(dof), dof, np.minimum(n1, n2) - 1.0)  # zero spreads: the smaller sample
-    return np.where(dof > 0, student_t.ppf(0.5 + conf / 2, np.maximum(dof, 1e-9)), np.nan)
+    return np.where(dof > 0, student_t.ppf(1 - alpha / 2, np.maximum(dof, 1e-9)), np.nan)
 
 
 def _quantile_text(result) -> str:
     q = result.z[np.isfinite(result.z)]
     if result.quantile == "normal" or not len(q):
-        return f"z = {float(norm.ppf(0.5 + result.confidence / 2)):.3f}"
+        return f"z = {float(norm.ppf(1 - result.alpha / 2)):.3f}"
     return f"Student t, quantile median {np.median(q):.3f}, range {q.min():.3f}..{q.max():.3f}"
 
 

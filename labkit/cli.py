@@ -251,7 +251,7 @@ def _cmd_change(args) -> int:
     held = held_priors(registration, args)
     normal_radius, cylinder_radius, max_depth = change_parameters(ref.xyz, moved, args)
     result = m3c2(ref, moved, args.spacing, normal_radius=normal_radius, cylinder_radius=cylinder_radius,
-                  max_depth=max_depth, registration_covariance=registration, confidence=args.confidence, quantile=args.quantile,
+                  max_depth=max_depth, registration_covariance=registration, alpha=args.alpha, quantile=args.quantile,
                   progress=sys.stderr.isatty(), held_std=held)
     print()
     print(result.summary())
@@ -514,7 +514,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "none, the LoD is infinite where it matters)")
     change.add_argument("--spacing", type=_positive_float,
                         help="core points: one reference point per cube of this edge (default: the cylinder radius)")
-    change.add_argument("--confidence", type=_probability, default=0.95, help="LoD confidence (default: %(default)s)")
+    change.add_argument("--alpha", type=_probability, default=0.05,
+                        help="test level of the LoD, the false-alarm rate (default: %(default)s)")
     change.add_argument("--quantile", choices=("student", "normal"), default="student",
                         help="LoD quantile: Student t with Welch's degrees of freedom, or the normal z of "
                              "PDAL/CloudCompare (default: %(default)s)")

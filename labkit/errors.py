@@ -7,13 +7,10 @@ message always says what was expected.
 An iteration that does not converge is not an input error: the estimators
 report it in their result (``converged=False`` and a ``reason``, e.g.
 :class:`~labkit.adjustment.SphereFit`), so a caller such as the RANSAC refit can
-react to it. ``ConvergenceError`` was exported but never raised; it is
-deprecated (accessing it warns) and will be removed.
+react to it.
 """
 
 from __future__ import annotations
-
-import warnings
 
 
 class LabkitError(ValueError):
@@ -48,10 +45,6 @@ class DegenerateGeometryError(LabkitError):
     ...     print("degenerate")
     degenerate
     """
-
-
-class _ConvergenceError(LabkitError):
-    """Deprecated, never raised: non-convergence is reported in the result (``converged``, ``reason``)."""
 
 
 class EmptyRegionError(LabkitError):
@@ -107,17 +100,3 @@ class CrsMismatchError(LabkitError):
 
 class CrsNote(UserWarning):
     """One input states a CRS and the other none: taken to be in the same frame (said, not refused)."""
-
-
-def _deprecated_convergence_error(stacklevel: int = 3):
-    """The deprecated class, with a DeprecationWarning pointing at the caller's line."""
-    warnings.warn("ConvergenceError is deprecated and will be removed: labkit never raises it; an iteration "
-                  "that does not converge is reported in its result (converged=False and a reason)",
-                  DeprecationWarning, stacklevel=stacklevel)
-    return _ConvergenceError
-
-
-def __getattr__(name: str):
-    if name == "ConvergenceError":
-        return _deprecated_convergence_error()
-    raise AttributeError(f"module 'labkit.errors' has no attribute {name!r}")

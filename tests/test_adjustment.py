@@ -192,6 +192,7 @@ def _cov_at(points, scene):
     return scene.noise**2 * np.eye(3) + (scene.range_noise**2 - scene.noise**2) * u[:, :, None] * u[:, None, :]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("anisotropic", [False, True])
 def test_monte_carlo_spread_matches_Sigma_xx(anisotropic):
     truth, xs, s0, coverage, Q = _monte_carlo(anisotropic)
@@ -372,12 +373,6 @@ def test_non_convergence_is_reported_not_raised():
     assert not fit.converged and not fit.ok
     assert "no convergence" in fit.reason
     assert "WARNING" in fit.summary()
-    # the old keyword name (before ICP and the GHM shared one) still works for one release, with a warning
-    with pytest.warns(DeprecationWarning, match="'max_iter' is deprecated.*'max_iterations'"):
-        old = gauss_helmert_model(pts, x0=np.r_[pts.mean(axis=0), 0.5], max_iter=2)
-    np.testing.assert_array_equal(old.x, fit.x)
-    with pytest.raises(LabkitError, match="give 'max_iterations' only"):
-        gauss_helmert_model(pts, max_iter=2, max_iterations=2)
 
 
 def test_nearly_flat_points_are_flagged():

@@ -160,6 +160,7 @@ def test_register_tiles_classes_are_honoured_for_clouds(epochs):
                        scheduler="serial", progress=False)
 
 
+@pytest.mark.slow
 def test_register_tiles_method_by_name_equals_the_callable(epochs):
     from labkit.compare import standard_methods
 

@@ -138,6 +138,7 @@ def test_consensus_cube_refuses_bad_options(clouds, kwargs, fragment):
         consensus_cube(src[::5], tgt, **kwargs)
 
 
+@pytest.mark.slow
 def test_invalid_target_normals_are_dropped_not_used(clouds):
     """Target points stacked on one spot have no normal: they must not vote; the rest still registers."""
     src, tgt = clouds

@@ -116,6 +116,7 @@ def test_two_crs_refused_naming_both(entry, a, b):
     assert name_a in str(info.value) and name_b in str(info.value)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("entry", sorted(ENTRIES))
 @pytest.mark.parametrize("side", ["source", "target"])
 def test_a_crs_on_one_side_only_is_noted(entry, side):

@@ -1,4 +1,4 @@
-"""Issue 16, the ICP part: every bad or unusual input gets a right answer or one clear LabkitError.
+"""The ICP cases: every bad or unusual input gets a right answer or one clear LabkitError.
 
 Each case asserts the exact outcome: the error type and a fragment of its message, or the value
 checked against an independent route."""

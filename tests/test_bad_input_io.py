@@ -1,4 +1,4 @@
-"""Issue 16, file cases: every bad or unusual file input gets a right answer or one clear LabkitError.
+"""File cases: every bad or unusual file input gets a right answer or one clear LabkitError.
 
 Each case states its exact outcome: an error type with a message fragment, or the value read.
 Files are built with laspy or plain bytes, never with the labkit writer under test.

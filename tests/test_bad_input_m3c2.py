@@ -45,8 +45,8 @@ def test_thin_long_cylinders_agree_with_the_tree_search(radius, depth):
     cores = local[:300] + 1e-3  # off the points: a point exactly on a slab boundary of the tree route counts twice
     normals = rng.normal(size=(300, 3))
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    fast = _change_search.cylinder_stats(local, cores, normals, radius, depth, compiled=True)
-    slow = _change_search.cylinder_stats(local, cores, normals, radius, depth, compiled=False)
+    fast = _change_search.cylinder_stats(local, cores, normals, radius, depth, use_numba=True)
+    slow = _change_search.cylinder_stats(local, cores, normals, radius, depth, use_numba=False)
     np.testing.assert_array_equal(fast[0], slow[0])
     np.testing.assert_allclose(fast[1], slow[1], rtol=0, atol=1e-12)
 

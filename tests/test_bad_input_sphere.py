@@ -1,4 +1,4 @@
-"""Issue 16, the sphere cases: every bad or unusual input gets a right answer or one clear LabkitError.
+"""The sphere cases: every bad or unusual input gets a right answer or one clear LabkitError.
 
 Each case asserts its exact outcome: the error type and a fragment of its message, or found=False with a
 reason (never a large or wrong sphere), or the right sphere.
@@ -60,6 +60,7 @@ def test_bad_arguments_raise_before_any_search(kwargs, fragment):
 
 
 # ----------------------------------------------------------------- scenes without a sphere: found=False
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", range(20))
 def test_uniform_random_points_give_no_sphere(seed):
     """3000 uniform random points (the old code returned r = 2.5 m from 25 of them). Without a radius range
@@ -70,6 +71,7 @@ def test_uniform_random_points_give_no_sphere(seed):
     assert "verification" in res.reason or "radius" in res.reason
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("station", [None, "scene"])
 def test_empty_room_gives_no_sphere(station):
     room = room_scene(n_points=5000, sphere_share=0.0, rng=2)
@@ -78,6 +80,7 @@ def test_empty_room_gives_no_sphere(station):
     assert res.found is False and res.reason
 
 
+@pytest.mark.slow
 def test_real_scan_without_radius_range_gives_no_large_sphere():
     """A real VLP-16 room scan without a radius range: the old code returned r = 17-45 m. Now the large
     spheres fail the verification (points inside them); the result is not found, with the reason."""

@@ -8,6 +8,7 @@ from labkit import _change_grid as g
 pytestmark = pytest.mark.skipif(not g.HAVE_NUMBA, reason="numba kernels only")
 
 
+@pytest.mark.slow
 def test_serial_and_parallel_kernels_agree_bitwise():
     rng = np.random.default_rng(3)
     pts = rng.uniform(-5, 5, (20_000, 3)) * [1, 1, 0.3]

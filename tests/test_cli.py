@@ -102,6 +102,7 @@ def test_register_icp_writes_moved_cloud_and_png(files, tmp_path, capsys):
     assert _no_partials(out_dir) == []
 
 
+@pytest.mark.slow
 def test_register_consensus_and_rigid(files, tmp_path, capsys):
     code = main(["register", str(files["src"]), str(files["tgt"]), "--method", "consensus", "--max-points", "800",
                  "--out", str(tmp_path)])
@@ -208,6 +209,7 @@ def test_compare_takes_the_truth_from_the_pair_file(files, tmp_path, capsys):
 
 
 # --------------------------------------------------------------------------- tiles
+@pytest.mark.slow
 def test_tiles_writes_field_png_and_csv(files, tmp_path, capsys):
     assert main(["tiles", str(files["src"]), "--target", str(files["tgt"]), "--size", "15", "--min-points", "100",
                  "--correction", "fdr", "--out", str(tmp_path)]) == 0
@@ -351,6 +353,7 @@ def test_sphere_option_errors_from_the_library(files, capsys):
 
 
 # --------------------------------------------------------------------------- as a program
+@pytest.mark.slow
 def test_python_m_labkit(files, tmp_path):
     run = subprocess.run([sys.executable, "-m", "labkit", "sphere", str(files["xyz"]), "--radius-range", "0.05",
                           "0.1"], capture_output=True, text=True, timeout=120)

@@ -49,6 +49,7 @@ def _false_alarm(test) -> bool:
     return bool((~test.agree).any() or test.n_areas > 1)
 
 
+@pytest.mark.slow
 def test_family_wise_false_alarms_at_most_alpha_over_200_fields():
     """Identical shifts everywhere: with Holm (and BH) at most alpha of the fields show any disagreement
     (a border or a split area); without correction nearly every field does."""
@@ -81,6 +82,7 @@ def test_family_wise_false_alarms_at_most_alpha_over_200_fields():
     assert np.nanmean(tile_chi2) == pytest.approx(1.0, abs=0.05)
 
 
+@pytest.mark.slow
 def test_power_a_moved_block_is_found():
     """A 3 x 3 block moved by 2 cm in X (about 6 std of a pair difference) is its own area in most fields."""
     rng = np.random.default_rng(15)
@@ -176,6 +178,7 @@ def test_correction_is_checked():
         field.neighbour_test(correction="bonferroni")
 
 
+@pytest.mark.slow
 def test_real_als_halves_one_area_with_extra_std_and_a_moved_tile_found(realdata):
     """Real flat ALS (IGN, 350 x 370 m, mostly ground): two random halves of the points as two epochs, one
     moved by a known shift, registered in 100 m tiles. Its tile shifts may scatter more than they state (most in X

@@ -87,6 +87,7 @@ def region_cubes():
     return cubes
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("region", REGIONS)
 def test_argmax_recovers_constrained_components(region_cubes, region):
     pair, cube = region_cubes[region]
@@ -228,6 +229,7 @@ def _hills(rng, n, size=40.0, noise=0.02):
     return np.column_stack([xy, z]) + rng.normal(0, noise, (n, 3))
 
 
+@pytest.mark.slow
 def test_stated_std_matches_monte_carlo_spread():
     """Monte Carlo over independent epoch pairs: spread of the error / stated std per axis.
 
@@ -253,6 +255,7 @@ def test_stated_std_matches_monte_carlo_spread():
     assert 0.8 < rms_z < 1.25, rms_z
 
 
+@pytest.mark.slow
 def test_refined_translation_on_the_village():
     """The synthetic village (roofs, trees): every component within a few stated std."""
     z = []
@@ -281,6 +284,7 @@ def _real_halves(path, n=100_000, seed=0):
     return xyz[idx[:half]] + REAL_SHIFT, xyz[idx[half:]]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["als/las_with_several_extra_byte_bloc.laz", "tls/TLS_scan_vz400i.laz"])
 def test_max_consensus_defaults_on_real_halves(realdata, name):
     """Defaults on 100,000 vs 100,000 real points: the shift within 2 cm and 3 stated std per axis.
@@ -303,6 +307,7 @@ def test_max_consensus_defaults_on_real_halves(realdata, name):
     assert (np.abs(err) <= 3 * res.translation_std).all(), (err, res.translation_std)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["als/las_with_several_extra_byte_bloc.laz", "tls/TLS_scan_vz400i.laz"])
 def test_consensus_then_icp_defaults_on_real_halves(realdata, name):
     """The large-shift route (``labkit register --method consensus+icp``) with its defaults.

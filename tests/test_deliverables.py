@@ -88,6 +88,7 @@ def test_autzen_register_then_change_with_defaults_writes_geotiff(tmp_path, caps
     _check_change_geotiff(out / f"{stem}.tif", out / f"{stem}.las", a, text)
 
 
+@pytest.mark.slow
 def test_feet_halves_register_and_change(tmp_path, capsys):
     """A file in US survey feet: the GeoTIFF's transform and bounds in feet, its CRS the file's."""
     a, b = _halves("file_with_both_wkt_and_geotiff_vlrs_every25.las", tmp_path)

@@ -3,6 +3,7 @@
 import csv
 
 import numpy as np
+import pytest
 
 from labkit import demo
 from labkit.cli import main
@@ -22,6 +23,7 @@ def test_demo_steps_are_the_three_parts():
     assert "RANSAC" in titles[0] and "ICP" in titles[1] and "Comparison" in titles[2]
 
 
+@pytest.mark.slow
 def test_demo_quick_writes_figures_and_table(tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "--quick", "--out", str(out)]) == 0

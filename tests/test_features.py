@@ -317,6 +317,7 @@ def test_reports_render():
         assert res.summary() and "<table>" in res._repr_html_()
 
 
+@pytest.mark.slow
 def test_real_tls_pca_matches_brute_force(realdata):
     """Real TLS scan (clustered density, 1 mm grid: many ties): the compiled kNN + PCA against
     an independent route (all distances, np.cov, eigh) at 300 random points of a 60,000-point crop."""

@@ -107,6 +107,7 @@ def test_tiles_figure():
     plt.close(ax.figure)
 
 
+@pytest.mark.slow
 def test_demo_sphere_figures(tmp_path, monkeypatch):
     from labkit import demo
 

@@ -28,6 +28,7 @@ def _match(spheres, truth):
     return d.min(axis=1), d.min(axis=0), d.argmin(axis=1)
 
 
+@pytest.mark.slow
 def test_every_visible_target_within_5_mm_and_nothing_else(yard, spheres):
     truth = yard.centers_in_scan(0)
     to_truth, _, which = _match(spheres, truth)
@@ -59,6 +60,7 @@ def test_ordered_by_quality_and_inliers_on_the_sphere(yard, spheres):
         assert len(np.unique(on[on >= 0])) == 1
 
 
+@pytest.mark.slow
 def test_without_station_and_max_spheres():
     small = target_stations(n_stations=1, n_points=400_000, rng=5)
     found = find_spheres(small.scans[0], RANGE, rng=1, max_spheres=3)
@@ -67,6 +69,7 @@ def test_without_station_and_max_spheres():
     assert np.all(to_truth < 0.005)
 
 
+@pytest.mark.slow
 def test_a_ball_of_another_size_and_a_thick_pole_are_not_spheres(yard):
     # the decoy (r = 0.15 m) is found when its size is asked for, never as a target
     decoy = (yard.decoy[:3] - yard.poses[0, :3, 3]) @ yard.poses[0, :3, :3]
@@ -74,6 +77,7 @@ def test_a_ball_of_another_size_and_a_thick_pole_are_not_spheres(yard):
     assert len(found) == 1 and np.linalg.norm(found[0].center - decoy) < 0.005
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 3])
 def test_sequential_scheme_on_a_multibeam_scan(seed):
     scene = multibeam_room(rng=seed)  # rings: neighbourhoods hold one scan line, normals say little
@@ -84,6 +88,7 @@ def test_sequential_scheme_on_a_multibeam_scan(seed):
     assert find_spheres(empty.points, (0.13, 0.37), station=empty.station, rng=0) == ()
 
 
+@pytest.mark.slow
 def test_real_multibeam_scans_reference_sphere_and_no_other(realdata):
     folder = realdata / "spheres"
     if not (folder / "reference.json").is_file():
@@ -106,6 +111,7 @@ def test_bad_input_raises(kwargs):
         find_spheres(points, args.pop("radius_range"), **args)
 
 
+@pytest.mark.slow
 def test_utm_coordinates_give_the_same_spheres():
     small = target_stations(n_stations=1, n_points=300_000, rng=2)
     offset = np.array([512_345.0, 5_401_234.0, 312.0])

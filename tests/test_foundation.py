@@ -71,13 +71,12 @@ def test_point_cloud_is_immutable_and_keeps_attributes():
         cloud["gps_time"]
 
 
-def test_convergence_error_is_deprecated_and_not_exported():
-    """labkit never raised ConvergenceError (non-convergence is reported in the result): accessing it warns."""
+def test_convergence_error_is_gone():
+    """Non-convergence is reported in the result, never raised: no ConvergenceError class exists."""
     assert "ConvergenceError" not in labkit.__all__
-    with pytest.warns(DeprecationWarning, match="never raises it"):
-        cls = labkit.ConvergenceError
-    assert issubclass(cls, LabkitError)
-    with pytest.warns(DeprecationWarning):
+    with pytest.raises(AttributeError):
+        labkit.ConvergenceError
+    with pytest.raises(ImportError):
         from labkit.errors import ConvergenceError  # noqa: F401
 
 

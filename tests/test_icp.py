@@ -246,6 +246,7 @@ def _agrees(est, std, rtol=0.25):
     return bool(np.all(np.abs(stated / spread - 1) < rtol) and np.all(np.abs(z - 1) < rtol)), spread / stated, z
 
 
+@pytest.mark.slow
 def test_covariance_matches_monte_carlo_spread_of_epoch_pairs():
     """Independent epoch pairs (sampling and noise of both epochs): the spread of the
     estimates must match the stated standard deviations within 25 %. Without iterative
@@ -256,6 +257,7 @@ def test_covariance_matches_monte_carlo_spread_of_epoch_pairs():
     assert np.all(np.abs(est.mean(axis=0)) < 3 * est.std(axis=0, ddof=1) / np.sqrt(len(est)) + 1e-4)  # no bias
 
 
+@pytest.mark.slow
 def test_covariance_with_deletion_matches_monte_carlo():
     # the block covariance takes the moving deletion limit into J (eq. 5.14); the formal
     # sigma0^2 N^-1 gave 1.24, 1.28, 1.19 on these 40 pairs
@@ -263,6 +265,7 @@ def test_covariance_with_deletion_matches_monte_carlo():
     assert ok, (ratio, z)
 
 
+@pytest.mark.slow
 def test_formal_covariance_is_optimistic_with_tukey_weights_and_block_is_not():
     """Robust weights: sigma0^2 N^-1 ignores psi' and the estimated weights (1.15-1.45 times too
     small); the cluster-robust sandwich agrees with the Monte Carlo spread (200 pairs: 1.12,
@@ -276,6 +279,7 @@ def test_formal_covariance_is_optimistic_with_tukey_weights_and_block_is_not():
     assert np.all(ratio > 0.9)  # and not simply inflated
 
 
+@pytest.mark.slow
 def test_covariance_matches_monte_carlo_on_the_village():
     """The synthetic village (classes ground, roofs and walls, road) at 20 pts/m^2: the
     formal covariance was 1.25-1.45 times too small here."""
@@ -658,6 +662,7 @@ def test_reach_up_to_the_matching_distance_on_sparse_terrain(shift):
     np.testing.assert_allclose(res.translation, near.translation, atol=0.2 * res.translation_std.max())
 
 
+@pytest.mark.slow
 def test_sparse_hilly_covariance_matches_monte_carlo():
     """One hilly scene (layout fixed), 40 independent samplings of both epochs at 0.8 pts/m^2:
     spread / stated std 1.15, 1.03, 0.98 (measured; three other scenes gave 0.93-1.17)."""
@@ -697,6 +702,7 @@ def _check_real(res):
     assert np.all(np.abs(err) <= 3 * res.translation_std), (err, res.translation_std)
 
 
+@pytest.mark.slow
 def test_real_als_halves_with_a_known_shift(realdata):
     # mostly flat ground (20 m of relief over 370 m): X and Y are 20-30 times weaker than Z; with
     # the old eigenvalue ratio they were held at 0 and Z came out 14 mm off at a stated 0.09 mm
@@ -707,6 +713,7 @@ def test_real_als_halves_with_a_known_shift(realdata):
     _check_real(icp(source - REAL_SHIFT, target))
 
 
+@pytest.mark.slow
 def test_real_als_halves_at_full_density_with_the_local_quadric(realdata):
     # all 700,000 points (2.7 pts/m^2 per half): the plane's sagitta on the gently curved ground
     # put X 13 mm off at a stated 3.5 mm (3.8 std, same sign over three random splits); the local

@@ -58,6 +58,7 @@ def _check(res, truth, limit=0.08):
     assert np.all(np.abs(err) <= 3 * res.translation_std), (err, res.translation_std)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1])
 def test_issue_case_sparse_hills_shifted_by_0_4_m(seed):
     # the issue's motivating case: 0.9 pts/m^2, 30-40 m relief, shift 0.4 m. X and Y come out (once they
@@ -71,6 +72,7 @@ def test_issue_case_sparse_hills_shifted_by_0_4_m(seed):
     np.testing.assert_allclose(pyramid.translation, single.translation, atol=0.25 * single.translation_std.max())
 
 
+@pytest.mark.slow
 def test_pyramid_reaches_beyond_the_gate_and_its_covariance_is_the_fine_levels():
     # a 0.5 m gate and a 1.5 m shift: the levels 4 m, 2 m, 1 m bring it within the gate
     pair = als_epochs("hills", size=(200.0, 200.0), density=0.9, shift=(1.2, -0.9, 0.3), rng=1)
@@ -126,6 +128,7 @@ REAL = {  # file, share of points kept, limit on |error| of a determined compone
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(REAL))
 def test_real_halves_reach_the_matching_distance(realdata, name):
     # halves of real sparse clouds moved by 1.0 m (the default gate): every component either within

@@ -79,6 +79,7 @@ def test_sampled_and_full_estimates_agree_within_their_std(small_limits):
     assert np.all(np.abs(part.translation - pair.translation) < 4 * part.translation_std)
 
 
+@pytest.mark.slow
 def test_covariance_under_sampling_matches_monte_carlo(small_limits):
     """Spread of the sampled estimates over independent epoch pairs / stated std within 0.8-1.25.
 

@@ -177,14 +177,14 @@ def test_compiled_grid_and_kdtree_routes_agree():
     pts = rng.uniform(-5, 5, (40_000, 3)) * [1, 1, 0.3]
     cores = rng.uniform(-4, 4, (500, 3)) * [1, 1, 0.3]
     for radius in (0.3, 1.1):
-        n_c, v_c = search.pca_normals(pts, cores, radius, compiled=True)
-        n_t, v_t = search.pca_normals(pts, cores, radius, compiled=False)
+        n_c, v_c = search.pca_normals(pts, cores, radius, use_numba=True)
+        n_t, v_t = search.pca_normals(pts, cores, radius, use_numba=False)
         assert np.allclose(np.abs(np.einsum("nd,nd->n", n_c, n_t)), 1, atol=1e-9)
         assert np.allclose(v_c, v_t, rtol=1e-8)
     nrm = search.orient(n_c, np.array([0, 0, 1.0]))
     for r, h in ((0.5, 0.3), (0.4, 2.5)):
-        c = search.cylinder_stats(pts, cores, nrm, r, h, compiled=True)
-        t = search.cylinder_stats(pts, cores, nrm, r, h, compiled=False)
+        c = search.cylinder_stats(pts, cores, nrm, r, h, use_numba=True)
+        t = search.cylinder_stats(pts, cores, nrm, r, h, use_numba=False)
         assert np.array_equal(c[0], t[0]) and c[0].min() > 2
         assert np.allclose(c[1], t[1], atol=1e-12) and np.allclose(c[2], t[2], rtol=1e-9)
 
@@ -195,11 +195,11 @@ def _no_change_epochs(rng, sigma=0.01, slope=(0.0, 0.0)):
 
 
 @pytest.mark.parametrize("radius", [0.4, 0.6])  # about 30 and 70 points per cylinder
-def test_lod_false_alarm_rate_without_change_is_one_minus_confidence(radius):
-    """Monte Carlo: no change, 95 % LoD -> about 5 % of independent cores flagged (binomial bounds).
+def test_lod_false_alarm_rate_without_change_is_alpha(radius):
+    """Monte Carlo: no change, alpha = 0.05 -> about 5 % of independent cores flagged (binomial bounds).
 
     With the normal quantile z = 1.96, 5.7 % were flagged with about 30 points per cylinder (d / se
-    follows a Student t there); the default Student t quantile holds 1 - confidence.
+    follows a Student t there); the default Student t quantile holds alpha.
     """
     rng = np.random.default_rng(5)
     cores = _grid_cores(20.0, 2.0)  # 100 cores, cylinders 1.2 m apart: independent
@@ -214,7 +214,7 @@ def test_lod_false_alarm_rate_without_change_is_one_minus_confidence(radius):
     n = len(flags)  # 2000 core tests
     rate = flags.mean()
     bound = 3 * np.sqrt(0.05 * 0.95 / n)
-    assert 0.05 - bound < rate <= 0.05 + bound / 3, (rate, bound)  # at most 1 - confidence (within 1 sigma)
+    assert 0.05 - bound < rate <= 0.05 + bound / 3, (rate, bound)  # at most alpha (within 1 sigma)
     # the stated standard error of the distance against the Monte Carlo spread
     ratio = np.std(np.concatenate(dists)) / np.sqrt(np.mean(np.concatenate(se) ** 2))
     assert 0.8 < ratio < 1.25
@@ -312,7 +312,7 @@ def test_undetermined_registration_direction_gives_infinite_lod_where_it_matters
         (dict(registration_covariance=np.array([[1.0, 0.5, 0], [0, 1, 0], [0, 0, 1]])), "symmetric"),
         (dict(registration_covariance=np.eye(2)), "shape"),
         (dict(normals=np.ones((5, 3))), "normals"),
-        (dict(confidence=1.5), "confidence"),
+        (dict(alpha=1.5), "alpha"),
         (dict(min_points=1), "min_points"),
     ],
 )

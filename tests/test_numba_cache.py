@@ -70,6 +70,7 @@ print(hits, misses, round(float(np.nanmedian(r.distance)), 3))
 """
 
 
+@pytest.mark.slow
 def test_second_process_loads_the_m3c2_kernels_from_the_cache(tmp_path):
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path), PYTHONPATH=str(ROOT))
 

@@ -204,6 +204,7 @@ def test_distances_report_before_and_after_then_normals(small_pair):
     assert [e.info for e in dist] == ["before", "after"] and dist[-1].done == 2 * len(ch.after)
 
 
+@pytest.mark.slow
 def test_cli_register_shows_progress_on_stderr_unless_quiet(small_pair, tmp_path, capsys):
     from labkit.cli import main
     from labkit.io import write_cloud

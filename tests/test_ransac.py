@@ -49,6 +49,7 @@ def test_required_iterations_closed_form_values():
         required_iterations(0.5, p=1.0)
 
 
+@pytest.mark.slow
 def test_adaptive_N_equals_eq27_for_a_known_ratio():
     # k exact sphere points among far outliers: the best hypothesis has exactly k inliers
     rng = np.random.default_rng(0)
@@ -153,6 +154,7 @@ def test_degenerate_samples_are_rejected_and_do_not_count():
     assert "degenerate" in res.reason
 
 
+@pytest.mark.slow
 def test_no_sphere_in_a_noisy_plane_or_an_empty_room():
     rng = np.random.default_rng(1)
     plane = np.column_stack([rng.uniform(size=(3000, 2)), 0.001 * rng.normal(size=3000)])
@@ -164,6 +166,7 @@ def test_no_sphere_in_a_noisy_plane_or_an_empty_room():
     assert "no" in res.summary().lower()
 
 
+@pytest.mark.slow
 def test_radius_limits_hold_after_the_refit():
     scene = sphere_on_tripod(n_sphere=500, outlier_ratio=0.5, rng=5)
     wrong = ransac_sphere(scene.points, 0.003, rng=0, radius_range=(0.074, 0.2))
@@ -277,6 +280,7 @@ def test_bad_input_raises_a_clear_error(points, kwargs):
         ransac_sphere(points, threshold, **kwargs)
 
 
+@pytest.mark.slow
 def test_report_and_plots_and_headless_widget():
     import matplotlib.pyplot as plt
 
@@ -323,6 +327,7 @@ def test_auto_sampling_is_local_only_where_neighbourhoods_are_small():
 from labkit.synthetic.multibeam import multibeam_room  # noqa: E402
 
 
+@pytest.mark.slow
 def test_multibeam_rooms_sphere_found_in_at_least_19_of_20_and_never_wrong():
     """16-beam rooms (rings, occlusion, a person-sized cylinder, a table): found in >= 19 of 20 seeds, centre
     within 2 cm when found, and never found in the same rooms without the sphere. (max_iterations is lowered
@@ -407,6 +412,7 @@ def test_ring_structure_defeats_knn_normals_but_not_the_verification():
 
 
 # ----------------------------------------------------------------- statistics at any threshold
+@pytest.mark.slow
 @pytest.mark.parametrize("k", [1, 2, 3, 5])
 def test_stated_std_matches_monte_carlo_spread_for_any_threshold(k):
     """t = k sigma for k = 1, 2, 3, 5: the Monte Carlo spread of xc, yc, zc, r over 150 scans divided by the

@@ -58,6 +58,7 @@ def _run(method, *args, **kw):
         return None
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", FILES)
 def test_defaults_are_right_or_honest_on_real_halves(realdata, name):
     path = realdata / name
@@ -81,6 +82,7 @@ MC_KNOWN = {
 }  # fmt: skip
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", FILES)
 def test_consensus_routes_are_not_confidently_wrong(realdata, name):
     path = realdata / name

@@ -5,7 +5,6 @@ import inspect
 import pkgutil
 import subprocess
 import sys
-import warnings
 
 import numpy as np
 import pytest
@@ -26,6 +25,7 @@ def test_icp_is_the_function_after_every_submodule_was_imported():
     assert labkit.icp is icp and icp.__module__ == "labkit.registration.icp_loop"
 
 
+@pytest.mark.slow
 def test_icp_is_the_function_in_a_fresh_interpreter_after_importing_the_loop_module():
     code = ("import labkit.registration.icp_loop, inspect; from labkit.registration import icp; "
             "print(inspect.isfunction(icp))")
@@ -59,39 +59,11 @@ def _plane(n, rng):
     return np.column_stack([xy, z])
 
 
-def test_old_consensus_keywords_warn_and_give_the_same_cube():
-    rng = np.random.default_rng(3)
-    tgt = _plane(1500, rng)
-    src = tgt[::3] + [0.04, -0.02, 0.0]
-    new = consensus_cube(src, tgt, extent=0.06, step=0.02, metric="point_to_point", max_angle_deg=20.0,
-                         k=10, target_normals=None)
-    with pytest.warns(DeprecationWarning) as record:
-        old = consensus_cube(src, tgt, extent=0.06, step=0.02, criterion="point_to_point", max_angle=20.0,
-                             normal_k=10, normals=(None, None))
-    said = " ".join(str(w.message) for w in record)
-    for old_name, new_name in (("criterion", "metric"), ("max_angle", "max_angle_deg"), ("normal_k", "k")):
-        assert f"'{old_name}' is deprecated" in said and f"use '{new_name}'" in said
-    np.testing.assert_array_equal(old.counts, new.counts)
-    with pytest.warns(DeprecationWarning, match="use .metric"):
-        assert old.criterion == new.metric == "point_to_point"
-    with pytest.warns(DeprecationWarning, match="use .max_angle_deg"):
-        assert old.max_angle == 20.0
-
-
-def test_old_deletion_keyword_of_max_consensus_warns_and_gives_the_same_result():
-    rng = np.random.default_rng(4)
-    tgt = _plane(1500, rng)
-    src = tgt[::3] + [0.03, 0.01, -0.02]
-    kw = dict(extent=0.1, tol=0.02, max_time=5.0, max_points=300)
-    new = max_consensus(src, tgt, reject_sigma=2.5, **kw)
-    with pytest.warns(DeprecationWarning, match="'deletion_k' is deprecated.*'reject_sigma'"):
-        old = max_consensus(src, tgt, deletion_k=2.5, **kw)
-    np.testing.assert_allclose(old.translation, new.translation, rtol=0, atol=1e-12)
-
-
-def test_new_names_do_not_warn():
+@pytest.mark.parametrize("old", OLD)
+def test_old_names_are_refused(old):
     rng = np.random.default_rng(5)
     tgt = _plane(800, rng)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", DeprecationWarning)
-        consensus_cube(tgt[::4], tgt, extent=0.04, step=0.02, metric="point_to_plane", k=8)
+    with pytest.raises(TypeError, match=old):
+        max_consensus(tgt[::4], tgt, extent=0.04, **{old: None})
+    with pytest.raises(TypeError, match=old):
+        consensus_cube(tgt[::4], tgt, extent=0.04, step=0.02, **{old: None})

@@ -274,6 +274,7 @@ def plain_icp_shift(source_xyz, target_xyz, reject=None, iterations=15):
     return t
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("region", ["demolished", "trees_felled"])
 def test_changes_pull_a_plain_icp_but_the_truth_is_recoverable(region):
     p = pair(region)
@@ -361,6 +362,7 @@ def _reference_rounded_surface(scene, x, y, epoch, radius=0.35):
 
 @pytest.mark.parametrize("region, dim", [("xyz", False), ("xyz", True), ("xz", False), ("xy", True),
                                          ("demolished", False), ("new_building", True)])
+@pytest.mark.slow
 def test_grid_route_gives_identical_epochs(region, dim, monkeypatch):
     """The per-cell building evaluation changes the cost only: every coordinate and attribute is bit-equal
     to the route that evaluates each roof on all points."""

@@ -52,6 +52,7 @@ def test_four_scans_recovered_within_their_standard_deviations_and_the_spec():
     assert net.targets.shape == (7, 3)
 
 
+@pytest.mark.slow
 def test_monte_carlo_spread_of_the_network_matches_its_standard_deviations():
     rng = np.random.default_rng(12)
     vis = np.ones((3, 6), bool)
@@ -126,6 +127,7 @@ def hall():
     return target_stations(n_stations=4, n_points=250_000, rng=3)
 
 
+@pytest.mark.slow
 def test_register_scans_finds_the_targets_and_recovers_four_stations(hall):
     net = labkit.register_scans(hall.scans, (0.09, 0.11), rng=0)
     assert len(net.spheres) == 4 and all(len(s) >= 3 for s in net.spheres)
@@ -139,6 +141,7 @@ def test_register_scans_finds_the_targets_and_recovers_four_stations(hall):
         assert (np.abs(net.parameters[s] - _params(true)) < 3 * net.std[s]).all()
 
 
+@pytest.mark.slow
 def test_register_scans_leaves_out_a_target_moved_between_set_ups(hall):
     scans = [s.copy() for s in hall.scans]
     j = int(np.flatnonzero(hall.visible[2])[0])
@@ -175,6 +178,7 @@ def test_registration_covariance_describes_the_same_displacements_as_the_euler_p
         assert np.abs(C_euler - C_file).max() < 1e-6 * np.abs(C_euler).max()
 
 
+@pytest.mark.slow
 def test_cli_targets_writes_registration_files_that_labkit_change_reads(hall, tmp_path, capsys):
     from labkit.change import load_registration  # what `labkit change --registration` reads with
     from labkit.cli import main

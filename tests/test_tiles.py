@@ -236,6 +236,7 @@ def test_undetermined_components_stay_out_of_statistics_and_arrows():
     assert any("XY undet." in t.get_text() for t in ax.texts)
 
 
+@pytest.mark.slow
 def test_distributed_worker_processes_equal_serial():
     """Worker processes (not threads): the tile jobs and labkit's ICP method travel by pickle and give
     exactly the serial numbers."""
@@ -359,6 +360,7 @@ def test_scheduler_names_and_addresses(text, ok):
             tiles.check_scheduler(text)
 
 
+@pytest.mark.slow
 def test_unreachable_scheduler_is_a_clear_error():
     pytest.importorskip("distributed")
     src, tgt, _ = _survey(n=3000)
@@ -485,6 +487,7 @@ def test_real_autzen_tiles_ok_only_when_converged_and_determined(realdata, tmp_p
     assert all(r["area"] == "-1" for r in rows) and "not converged" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_real_als_halves_tiles_flag_a_moved_tile_and_keep_verdicts(realdata, tmp_path):
     """Real ALS (IGN, mostly flat ground): random halves as two epochs with a known shift, 100 m tiles. Tiles
     that are ok recover the shift; a tile whose shift is raised by 15 cm is flagged as disagreeing with its

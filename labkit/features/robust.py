@@ -87,7 +87,7 @@ def robust_normals(
     *,
     iterations: int | None = None,
     outlier_ratio: float = 0.5,
-    confidence: float = 0.99,
+    p: float = 0.99,
     orient: str = "up",
     viewpoint=None,
     at=None,
@@ -111,8 +111,13 @@ def robust_normals(
         no threshold needed, breakdown point 50 %), and inliers lie within
         2.5 s0 with Rousseeuw's scale s0 = 1.4826 (1 + 5 / (k - 3)) sqrt(median r^2).
     iterations : int, optional
-        Hypotheses per neighbourhood; default from ``outlier_ratio`` and ``confidence``:
-        log(1 - confidence) / log(1 - (1 - outlier_ratio)^3).
+        Hypotheses per neighbourhood; default from ``outlier_ratio`` and ``p``:
+        log(1 - p) / log(1 - (1 - outlier_ratio)^3).
+    outlier_ratio : float
+        Expected share of outliers in a neighbourhood, for the default ``iterations``.
+    p : float
+        Probability that at least one outlier-free triple is drawn per neighbourhood (eq. 27),
+        as in :func:`labkit.ransac.ransac_sphere`.
     at : array_like of int, optional
         Only at these points (neighbours from the whole cloud).
     duplicates : {'merge', 'keep'}
@@ -145,7 +150,7 @@ def robust_normals(
     k, _ = check_scale(k, None, len(local))
     if threshold is not None:
         threshold = positive(threshold, "threshold")
-    T = _iterations(iterations, outlier_ratio, confidence)
+    T = _iterations(iterations, outlier_ratio, p)
     at = check_at(at, len(local))
     here = local if at is None else local[at]
     view = check_orientation(orient, viewpoint, len(here))
@@ -172,13 +177,13 @@ def robust_normals(
     return RobustNormals(normals, inl, noise, k, T, threshold, plan.n_duplicates)
 
 
-def _iterations(iterations, outlier_ratio, confidence) -> int:
+def _iterations(iterations, outlier_ratio, p) -> int:
     if iterations is not None:
         if not isinstance(iterations, numbers.Integral) or iterations < 1:
             raise LabkitError(f"iterations must be an integer >= 1, got {iterations!r}")
         return int(iterations)
     eps = probability(outlier_ratio, "outlier_ratio")  # in (0, 1): T is finite
-    return required_iterations(eps, probability(confidence, "confidence"), s=3)  # eq. 27 with 3-point planes
+    return required_iterations(eps, probability(p, "p"), s=3)  # eq. 27 with 3-point planes
 
 
 def _best_plane_inliers(X, T, threshold, rng) -> np.ndarray:

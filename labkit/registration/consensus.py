@@ -33,7 +33,6 @@ from dataclasses import replace
 import numpy as np
 
 from .._checks import choice, count, non_negative, positive
-from .._deprecation import renamed_keywords
 from .._crs import check_same_crs
 from . import _consensus_kernels as K
 from ._consensus_inputs import candidate_pairs, even_subset, grid, prepare_problem, search_box
@@ -44,10 +43,6 @@ from .selection import SELECT, select_points
 __all__ = ["consensus_cube", "consensus_inputs", "max_consensus", "ConsensusCube", "PeakShape", "peak_shape",
            "even_subset", "AXES"]
 
-#: Old keyword names of the consensus functions (one release, with a DeprecationWarning): one name per
-#: concept with :func:`labkit.registration.icp` and :func:`labkit.registration.match`.
-_RENAMED = dict(criterion="metric", max_angle="max_angle_deg", normals=("source_normals", "target_normals"),
-                normal_k="k")
 
 
 def consensus_inputs(source, target, metric: str = "point_to_plane", eps: float | None = 0.05,
@@ -91,7 +86,6 @@ def consensus_inputs(source, target, metric: str = "point_to_plane", eps: float 
                            (source_normals, target_normals), k)
 
 
-@renamed_keywords(**_RENAMED)
 def consensus_cube(
     source,
     target,
@@ -226,7 +220,6 @@ def _raster_parallel(ptr, U, nrm, pb, step, shape, use_numba, workers):
     return sum(parts[1:], parts[0]), "numba"
 
 
-@renamed_keywords(**_RENAMED, deletion_k="reject_sigma")
 def max_consensus(
     source,
     target,
@@ -292,8 +285,8 @@ def max_consensus(
         point within the search radius and within eps of their local target plane at the
         branch-and-bound optimum) instead of the consensus set of the voting points (default).
         The search needs few points, the precision of weak directions needs many: on the real
-        ALS halves at 30,000 points, 30,000 refinement points halve the stated std of X and Y
-        (Notes). The refinement's time grows in proportion.
+        ALS halves at 30,000 points, 30,000 refinement points halve the stated std of X and Y.
+        The refinement's time grows in proportion.
     max_time : float or None
         Time budget (s) of the branch and bound; when it is spent the best translation
         found so far is returned with its certified gap (converged = False).
@@ -324,17 +317,11 @@ def max_consensus(
 
     Notes
     -----
-    Measured on halves of real clouds shifted by 0.4 m (benchmarks/bench_consensus.py): TLS
-    (100,000 and 520,000 points per half) within 1.5 mm and 2 stated std; ALS
-    (las_with_several_extra_byte_bloc.laz, nearly flat open ground, X and Y fixed only by
-    gentle relief and vegetation) within 12 mm and 1 std at 100,000 points, but 4.5-5.5 cm
-    off in X or Y at 2.6-3.8 std at 30,000 and at 350,000 points: there the adjustment
-    converges to a fixed point whose horizontal offset the residuals do not show. The
-    vegetation votes cause it: the same pair with ``weights={2: 1, 6: 1}`` (ground and
-    buildings only, a PointCloud with classes) comes within 19 mm and 1.7 std, and ground
-    points alone within 13 mm and 1.5 std. On ALS with vegetation, weight by class.
-    Monte Carlo on synthetic pairs: spread / stated std 1.10, 0.83, 1.03 on smooth hills;
-    1.08, 1.72, 1.59 on the village, whose ridges and eaves bias the local planes.
+    With ``select='all'`` on ALS with vegetation the votes of the crowns can pull the horizontal
+    shift by several stated standard deviations without showing in the residuals: weight by
+    class (e.g. ``weights={2: 1, 6: 1}``, ground and buildings, on a PointCloud with classes).
+    Measurements on real clouds: benchmarks/bench_consensus.py; Monte Carlo checks of the
+    stated covariance: tests/test_consensus.py.
 
     Returns
     -------

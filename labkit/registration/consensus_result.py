@@ -7,7 +7,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from .._deprecation import renamed_attribute
 from .._report import ReportMixin, fmt
 
 AXES = ("X", "Y", "Z")
@@ -197,9 +196,6 @@ class ConsensusCube(ReportMixin):
     step: float
     kernel: str
     runtime_s: float
-
-    criterion = renamed_attribute("metric", "criterion")
-    max_angle = renamed_attribute("max_angle_deg", "max_angle")
 
     @property
     def peak_index(self) -> tuple:

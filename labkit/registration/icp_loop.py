@@ -143,161 +143,96 @@ def icp(
     ----------
     source, target : array_like (n, 3) or PointCloud
         The clouds in one frame (UTM allowed). The result maps source onto target.
+    options : MatchOptions, optional
+        The matching options in one object (:class:`labkit.registration.MatchOptions`, which documents
+        each of them). A matching keyword given as well overrides its field.
     dof : {'translation', 'rigid'}
-        Estimate (tx, ty, tz) only (the registration study's default) or also three small angles.
+        Estimate (tx, ty, tz) only (default) or also three small angles.
     metric : {'point_to_plane', 'point_to_point'}
         Residual per correspondence: eq. (5.2) or the three components of eq. (5.1).
     max_iterations : int
     tol : float
-        Convergence when the update is smaller than ``tol`` metres (at the cloud's radius for
-        rotations) or than 5 % of every component's standard deviation, when the last four iterates
-        lie within 5 % of every component's standard deviation, or when the iteration cycles between a
-        few sets of correspondences with updates below ``100 tol`` or within 25 % of every standard
-        deviation. A step that points back against the previous one is halved (down to 1/8).
+        Convergence when the update is below ``tol`` metres (rotations at the cloud's radius) or below
+        5 % of every component's standard deviation, or when the iterates settle or cycle within
+        their precision. A step that reverses the previous one is halved (down to 1/8).
     robust : {None, 'huber', 'tukey'}
         IRLS weights on the standardized residuals (eq. 5.9).
     reject_sigma : float or None
-        Iterative deletion of correspondences beyond ``reject_sigma`` robust
-        standard deviations (1.4826 MAD, eq. 5.8); None: no deletion.
+        Iterative deletion beyond ``reject_sigma`` robust standard deviations (1.4826 MAD, eq. 5.8);
+        None: no deletion.
     robust_start : float
-        Deletion and robust weights start once an update is smaller than this (m):
-        while the clouds are still far apart the residuals are not yet centred on
-        the noise, and a robust scale would throw away whole surfaces.
+        Deletion and robust weights start once an update is smaller than this (m).
     initial : ndarray (4, 4), optional
         Initial transformation in the caller's frame.
     rel_threshold : float
-        Numerical floor only: the groups of the consistency test determine the eigen-directions
-        of their normal matrix above ``rel_threshold`` times the largest one. Whether a component
-        of the result is determined is decided by its precision (``max_std``), not by a ratio of
-        eigenvalues.
+        Numerical floor of the consistency test's eigen-directions (relative to the largest).
     max_std : float, optional
-        Precision limit (m) of determinability (eq. 5.12a): an eigen-direction of the normal
-        matrix whose standard deviation ``sigma0 / sqrt(lambda)`` exceeds it is undetermined, and
-        the parameters that take part in it are held and reported with std inf. The eigenvalues
-        count only the information that survives the re-matching: the part of N that the noise
-        of the target normals fakes (a flat field's random normal tilts) is removed first
-        (eq. 5.12b). Default: a tenth of ``max_distance`` (0.1 m without a distance gate): a
-        component that the data know only to a sizeable fraction of the matching distance (a
-        3-sigma interval of more than 0.3 of it) is not determined by them. Rotations count in metres at the cloud's radius.
+        Precision limit (m) of determinability (eq. 5.12a): a direction of the normal matrix, counted
+        with the information that survives re-matching (eq. 5.12b), whose standard deviation exceeds
+        it is undetermined; its parameters are held and reported with std inf. Default: a tenth of
+        ``max_distance``. Rotations count in metres at the cloud's radius.
     held_rotation_std_deg : float
-        Prior standard deviation (degrees) of a rotation that ICP holds at its initial value
-        (``dof='rigid'``, weak direction). The translation is then conditional on that value; this
-        prior's effect on the other parameters, B sigma^2 B^T with B = N_ff^-1 N_fh, is added to
-        their stated covariance (eq. 5.15). 0 states the conditional covariance alone.
+        Prior standard deviation (degrees) of a rotation held at its initial value; its effect on the
+        other parameters is added to their covariance (eq. 5.15). 0: the conditional covariance alone.
     covariance : {'formal', 'block'}
-        ``'formal'``: sigma0^2 N^-1 of the last adjustment (eq. 5.11). ``'block'``: a
-        cluster-robust sandwich J^-1 M J^-1 (eq. 5.13) over square cells of the correspondences:
-        M from the sums of the scores a_i p_i v_i per cell (errors may be heteroscedastic,
-        wrongly weighted and correlated within a cell), J the derivative of the estimating
-        equations including the robust weights and the moving deletion boundary. It is the
-        limit of a spatial block bootstrap of the final linear system (no re-matching).
+        ``'formal'``: sigma0^2 N^-1 (eq. 5.11). ``'block'`` (default): the cluster-robust sandwich
+        J^-1 M J^-1 over square cells of the correspondences (eq. 5.13).
     block_size : float
-        Edge of the cells for ``covariance='block'`` in metres (about the diameter of the
-        k-neighbourhoods, whose shared points correlate neighbouring correspondences).
+        Cell edge (m) for ``covariance='block'``.
     consistency_alpha : float or None
-        Level of the test whether all groups of the final correspondences support one
-        transformation (eq. 5.16): groups by class (vegetation at either end, buildings,
-        ground/road, other) when both clouds have a classification, else by terciles of the
-        source points' local noise (vegetation is rough), else the four spatial quadrants. When it rejects, the result says so (``consistent`` False, message,
-        summary) and its covariance includes the spread between the groups (a delete-a-group
-        jackknife, eq. 5.17), so that a shift pulled by a changed surface does not look
-        confident. None: no test.
+        Level of the test whether all groups of the final correspondences (by class, else by local
+        noise, else by quadrant) support one transformation (eq. 5.16). When it rejects, the result
+        says so and its covariance includes the spread between the groups (jackknife, eq. 5.17).
+        None: no test.
     min_correspondences : int
         Fewer correspondences after rejection raise :class:`EmptyRegionError`.
-    options : MatchOptions, optional
-        The matching options in one object (:class:`labkit.registration.MatchOptions`, which documents
-        each of them; its defaults are those below). A keyword below given as well overrides its field.
     max_distance, max_angle_deg, classes, class_sigma, default_sigma, noise_weighting, max_noise, sample,
     unique, k, target_normals, source_normals, surface
-        The matching options as keywords, see :class:`~labkit.registration.MatchOptions`. ICP matches a
-        thinned source with the default ``sample='auto'`` (sources beyond 300,000 points), chooses the
-        local surface with ``surface='auto'`` (``result.method`` names it; see Notes) and derives the
-        defaults of ``max_std`` and of a held shift's prior from ``max_distance``.
+        The matching options as keywords, see :class:`~labkit.registration.MatchOptions`.
+        ``max_distance`` also sets the defaults of ``max_std`` and of a held shift's prior.
     select : {'auto', 'all'}
-        Which points take part (:func:`labkit.registration.selection.select_points`). 'auto' (default):
-        on classified clouds the stable classes (ground, building, road surface,
-        :data:`labkit.masks.STABLE_CLASSES`), on unclassified ones the surface points (volume scatter -
-        vegetation - left out by its local noise and eigenvalues); ``result.selection`` says which and why.
-        Given ``classes``, ``max_noise`` or per-point normals, the caller decides and 'auto' uses all points.
+        Which points take part (:func:`labkit.registration.selection.select_points`): 'auto' takes
+        the stable classes of classified clouds, else the surface points (vegetation left out);
+        ``result.selection`` says which and why. Given ``classes``, ``max_noise`` or per-point
+        normals, all points take part.
+    coarse_to_fine : {'auto', True, False}
+        Run a voxel pyramid first (:mod:`labkit.registration.pyramid`), from twice ``reach`` down to
+        ``max_distance``; the covariance and degeneracy report come from the full clouds. 'auto':
+        when ``reach`` exceeds ``max_distance``, and as a retry when one level left axes
+        undetermined for want of partners within the gate
+        (:func:`labkit.registration.pyramid.retry_with_pyramid`).
+    reach : float, optional
+        Largest expected shift (m) for the pyramid; default ``max_distance``.
     rng : int or Generator, optional
         For the sampling.
     progress : bool, "bar", "lines" or callable
         One step per iteration with the current shift and number of pairs (:mod:`labkit.progress`).
-    coarse_to_fine : {'auto', True, False}
-        Run a voxel pyramid first (:mod:`labkit.registration.pyramid`): coarse levels on voxel-thinned
-        clouds with the gate doubled per level, from twice ``reach`` down to ``max_distance``, each
-        starting from the previous estimate; then this ICP on the full clouds. The result's covariance,
-        degeneracy report and message come from the full clouds only. 'auto' (default): when ``reach``
-        exceeds ``max_distance``, and as a retry (with a reach of 2.5 ``max_distance``) when one level
-        left axes undetermined while more than 20 % of the searched source points had no partner within
-        the gate (:func:`labkit.registration.pyramid.retry_with_pyramid`; a flat field or one-way ridges
-        reject 0-0.3 % by distance and are not retried). Measured on real halves moved by 0.3-1.5 m (IGN
-        ALS, roofs, conifer forest, Autzen ground at 0.6 pts/m^2, SfM; benchmarks/bench_reach.py): within
-        the gate one level reached the same fixed point (within 1 mm or 0.1 std) 1.5-4 times faster; on
-        the Autzen halves moved by 1.9-2.5 m one level held X and Y at 0 (undetermined, 28-39 % beyond the
-        gate), the pyramid recovered them.
-    reach : float, optional
-        Largest expected shift (m) for the pyramid; default ``max_distance``. A reach beyond the gate
-        switches the pyramid on (with ``coarse_to_fine='auto'``); with ``coarse_to_fine=False`` it is an error.
 
     Returns
     -------
     RegistrationResult
-        ``translation``, ``rotation`` (about ``origin``), ``covariance`` of the last
-        adjustment (see ``covariance``) with ``inf`` variances for undetermined parameters, the degeneracy report of N (eq. 5.12), the history of
-        :class:`IterationRecord` and the final ``correspondences``.
+        ``translation``, ``rotation`` (about ``origin``), ``covariance`` (see ``covariance``) with
+        ``inf`` variances for undetermined parameters, the degeneracy report (eq. 5.12), the
+        history of :class:`IterationRecord` and the final ``correspondences``.
 
     Raises
     ------
+    LabkitError
+        Bad input (shapes, NaN, identical or collinear points, option values).
     EmptyRegionError
         Too few correspondences survive the rejection rules (e.g. no overlap).
 
     Notes
     -----
-    Sampling (``sample='auto'``) keeps the covariance honest: the block covariance (eq. 5.13) takes its
-    variance from the residuals of the pairs used (Monte Carlo spread / stated in
-    tests/test_icp_sampling.py); distances and the moved cloud are computed for every point by the
-    caller, and ``result.message`` states how many pairs were used out of how many source points.
-
-    Local surface (``surface='auto'``): on the real ALS halves at full density (2.7 pts/m^2, mostly
-    ground) the plane's X was 13 mm off at a stated 3.5 mm (3.8 std, the same sign over three random
-    splits: the sagitta on gently curved ground, weighted by the slopes that determine X); the quadric
-    gives -1.5, 3.2, 0.2 mm at a stated 2.9, 2.2, 0.12 mm. Monte Carlo spread / stated with the
-    quadric: 1.16, 0.98, 0.99 on the sparse hills, 1.16, 1.19, 1.08 on the test scene with roofs (the
-    plane's 1.15, 1.02, 0.98 and 1.15, 1.19, 1.08).
-
-    Undetermined directions (a flat field leaves X and Y free) are those whose standard deviation
-    exceeds ``max_std`` (eq. 5.12a), computed from the information that survives re-matching,
-    N_sig = N minus the part faked by the random tilts of the target normals (eq. 5.12b); weak
-    but precise directions (X and Y on gently sloped ALS terrain) are estimated. The parameters
-    that take part in undetermined directions are held fixed and the others solved from the
-    reduced normal equations; the undetermined components keep their initial value, their
-    standard deviation is reported as inf, and the result's message names them. A held
-    parameter's prior (``held_rotation_std_deg``, the matching distance for a shift) is carried
-    into the covariance of the others (eq. 5.15). The update is N_sig^-1 A^T P l, a Newton step on
-    the fixed point of the iteration, so that shifts up to ``max_distance`` converge on sparse
-    terrain; the covariance is the sandwich with N_sig as bread. For ``metric='point_to_point'``
-    only the components of the rows along the target normals count in N_sig: the offsets between
-    two samplings along the surface carry no information about the shift.
-
-    The formal covariance sigma0^2 N^-1 treats the correspondences of the last iteration as
-    fixed, independent and correctly weighted. Monte Carlo runs of independent epoch pairs
-    (tests/test_icp.py) show it optimistic: spread / stated 1.15, 1.17, 1.06 in X, Y, Z on the
-    small test scene (200 pairs, 3-sigma deletion), 1.3-1.45 in X and Y and 1.2-1.3 in Z on the village at
-    20 pts/m^2 and 1.15-1.45 with Tukey or Huber weights. Experiments traced this to the
-    weights, not to shared neighbourhoods: the weights from local noise (eq. 5.6) are estimated
-    from the same data and miss the larger errors at ridges, eaves and walls (with the true
-    noise of each material as weights the village gives 1.8, 1.6, 1.1), and sigma0^2 N^-1
-    ignores psi' of robust weights and the moving deletion limit. Not the cause: the target's
-    plane-fit noise (a target 10 times less noisy leaves the ratio unchanged), k of the normals
-    and the sampling density (no trend for k = 10-40 and 1000-16000 points), and the
-    re-selection of the pairs by the estimate (the fixed-point map has a slope of about 0.01;
-    on the village it adds about 6 % to the spread). The default ``covariance='block'``
-    (eq. 5.13) estimates the variance from the residuals themselves, summed over 2 m cells
-    (larger cells of 4-8 m were worse: the two faces of a roof have opposite scores); it gave
-    1.11, 1.15, 0.97 on the test scene, 1.16, 1.13, 0.98 and 1.06, 1.18, 1.09 on two sets of
-    village pairs, 1.12, 1.14, 1.0 with Tukey weights. The remaining 10-15 % in X and Y is not
-    visible in the residuals of one registration (about 6 % on the village is the re-selection).
+    Each iteration matches (residuals eq. 5.1-5.2, exclusions eq. 5.5), weights and deletes the
+    correspondences (eq. 5.6, 5.8-5.9), solves N dx = n (eq. 5.7) and updates R, t (eq. 5.3). Directions the data do not
+    determine (eq. 5.12a-b; a flat field leaves X and Y free) are held at their initial value,
+    reported with std inf and named in ``result.message``; a held parameter's prior enters the
+    covariance of the others (eq. 5.15). The formal covariance (eq. 5.11) is optimistic because
+    the weights are estimated from the same data; the default block covariance (eq. 5.13) takes
+    the variance from the residuals. Monte Carlo checks of the stated covariance are in
+    tests/test_icp.py; measurements on real clouds in benchmarks/bench_icp.py and
+    benchmarks/bench_reach.py.
 
     References
     ----------
@@ -310,15 +245,8 @@ def icp(
        Image and Vision Computing 10(3), 145-155.
     .. [4] S. Rusinkiewicz, M. Levoy (2001): Efficient variants of the ICP algorithm. Proc. Third
        International Conference on 3-D Digital Imaging and Modeling (3DIM), 145-152.
-    .. [5] P. J. Huber (1981): Robust Statistics. Wiley, New York.
-    .. [6] A. E. Beaton, J. W. Tukey (1974): The fitting of power series, meaning polynomials,
-       illustrated on band-spectroscopic data. Technometrics 16(2), 147-185.
-    .. [7] H. White (1980): A heteroskedasticity-consistent covariance matrix estimator and a direct
-       test for heteroskedasticity. Econometrica 48(4), 817-838.
-    .. [8] K.-Y. Liang, S. L. Zeger (1986): Longitudinal data analysis using generalized linear
+    .. [5] K.-Y. Liang, S. L. Zeger (1986): Longitudinal data analysis using generalized linear
        models. Biometrika 73(1), 13-22 (the cluster-robust sandwich).
-    .. [9] B. Efron (1982): The Jackknife, the Bootstrap and Other Resampling Plans. CBMS-NSF
-       Regional Conference Series in Applied Mathematics 38, SIAM, Philadelphia.
 
     Examples
     --------
@@ -369,13 +297,15 @@ def icp(
     if max_std is not None:
         max_std = positive(max_std, "max_std")
     max_iterations = count(max_iterations, "max_iterations")
-    # 1. shared local origin, initial transformation in the local frame
-    origin = local_origin(as_points(target, min_points=3, name="target"))
-    for cloud, name in ((source, "source"), (target, "target")):
-        _require_surface(as_points(cloud, min_points=3, name=name), name)
+    # 1. the clouds checked once; shared local origin, initial transformation in the local frame
+    tgt_xyz = as_points(target, min_points=3, name="target")
+    src_xyz = as_points(source, min_points=3, name="source")
+    _require_surface(src_xyz, "source")
+    _require_surface(tgt_xyz, "target")
+    origin = local_origin(tgt_xyz)
     R, t = _initial_local(initial, origin)
     # 2. kd-tree of the target, sampling and exclusions: once
-    matcher = prepare(source, target, options=options, rng=rng, origin=origin)
+    matcher = prepare(source, target, options=options, rng=rng, origin=origin, points=(src_xyz, tgt_xyz))
     L = max(float(np.sqrt((matcher.source**2).sum(axis=1).mean())), 1.0)
     opts = IcpSettings(
         origin=origin, dof=dof, metric=metric, robust=robust, reject_sigma=reject_sigma, L=L,

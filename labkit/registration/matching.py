@@ -118,13 +118,15 @@ def prepare(
     tree=None,
     origin=None,
     surface="plane",
+    points=None,
 ) -> _Matcher:
     """Build the fixed part of the matching once (kd-tree, sampling, exclusions).
 
     The arguments are those of :func:`match` (the matching options: see
     :class:`~labkit.registration.MatchOptions`); ``origin`` is the shared local
-    origin (default: from the target). ICP calls this once and the returned
-    matcher in every iteration.
+    origin (default: from the target); ``points`` the coordinates of source and target
+    as the caller already checked them (:func:`labkit._checks.as_points`; default:
+    checked here). ICP calls this once and the returned matcher in every iteration.
 
     Examples
     --------
@@ -138,8 +140,9 @@ def prepare(
     """
     opt = options  # checked and complete (takes_match_options); the loose keywords above are not read
     k = opt.k
-    src = as_points(source, min_points=3, name="source")
-    tgt = as_points(target, min_points=3, name="target")
+    if points is None:
+        points = as_points(source, min_points=3, name="source"), as_points(target, min_points=3, name="target")
+    src, tgt = points
     if k > len(tgt):
         raise LabkitError(f"k must lie between 3 and the number of target points ({len(tgt)}), got {k}")
     rng = as_rng(rng)

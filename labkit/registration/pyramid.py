@@ -98,12 +98,9 @@ def point_spacing(points, sample=2000):
 def use_pyramid(max_distance, reach):
     """coarse_to_fine='auto': the pyramid only for a ``reach`` beyond the matching distance.
 
-    Measured on real halves moved by 0.3-1.5 m (benchmarks/bench_reach.py: IGN ALS, sample_c roofs,
-    MixedConifer forest, Autzen ground at 0.6 pts/m^2, SfM DIM) and on sparse synthetic hills: within
-    the gate the single level reached the same fixed point (within 1 mm or 0.1 std) in 1.5-4 times less
-    time, and on most of them even from 3 m. The pyramid pays where the gate leaves too few pairs at the
-    start: Autzen halves moved by 2-3 m (single level: X and Y undetermined, 1.5-2.7 m off; pyramid with
-    reach=3: the same fixed point as from 0.3 m).
+    Within the gate one level reaches the same fixed point as the pyramid, and faster; the pyramid
+    pays where the gate leaves too few pairs at the start (a shift beyond the matching distance).
+    Measurements on real clouds: benchmarks/bench_reach.py.
 
     Examples
     --------
@@ -120,10 +117,9 @@ def retry_with_pyramid(result, max_distance):
     while many source points found no partner within the gate.
 
     Undetermined axes with few distance rejections are the geometry's verdict (a flat field, ridges in one
-    direction: 0-0.3 % of the searched points rejected by distance); with a shift near the gate or a point
-    spacing near it, a large share of the searched points has no partner within the gate (Autzen ground
-    halves, 0.6 pts/m^2, moved by 1.5-2.5 m: 28-39 %), and the single level may hold X and Y at a start
-    metres off. The pyramid's own full-cloud level decides again.
+    direction: few searched points rejected by distance); with a shift or a point spacing near the gate,
+    a large share of the searched points has no partner within it, and the single level may hold X and Y
+    at a start metres off (benchmarks/bench_reach.py). The pyramid's own full-cloud level decides again.
 
     Examples
     --------
