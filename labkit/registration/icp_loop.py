@@ -41,7 +41,7 @@ from .matching import prepare
 from .options import FIELDS, MatchOptions, takes_match_options
 from .pyramid import RETRY_REACH, pyramid_icp, retry_with_pyramid, use_pyramid
 from .result import RegistrationResult
-from .selection import SELECT, select_points
+from .selection import SELECT, check_other_classes, select_points
 
 
 @dataclass(frozen=True, eq=False)
@@ -427,7 +427,19 @@ def _with_selection(source, target, options, settings):
         back = lambda rows, i: np.where(i >= 0, rows[np.clip(i, 0, None)], -1)  # noqa: E731
         corr = replace(corr, source_index=back(sel.source_rows, corr.source_index),
                        target_index=back(sel.target_rows, corr.target_index), n_source=sel.n_source)
-    return replace(res, selection=sel, correspondences=corr, message=f"{res.message}; points: {sel.reason}")
+    checks = check_other_classes(source, target, res, sel, icp, **_class_settings(settings, options))
+    msg = f"{res.message}; points: {sel.reason}"
+    moved = [str(c.code) for c in checks if not c.agree]
+    if checks:
+        msg += (f"; classes left out tested against the shift: {', '.join(moved)} moved" if moved
+                else "; the classes left out agree with the shift")
+    return replace(res, selection=sel, correspondences=corr, message=msg, class_checks=checks)
+
+
+def _class_settings(settings, options):
+    """The caller's settings for the check of one left-out class: one level, no group test, no progress."""
+    out = {k: v for k, v in settings.items() if k not in ("initial", "coarse_to_fine", "reach", "progress")}
+    return dict(out, options=options, coarse_to_fine=False, consistency_alpha=None)
 
 
 def _require_surface(points, name):
