@@ -164,3 +164,24 @@ def test_identical_copy_never_states_zero_precision(realdata):
     std = res.translation_std
     assert np.all(std[np.isfinite(std)] > 0), std
     assert np.allclose(res.translation, 0, atol=1e-9)
+
+
+def test_stated_std_matches_the_spread_over_random_halves(realdata):
+    """Monte Carlo over random halves of the sparse Autzen ground (0.5 pts/m^2, few pairs): the errors in
+    units of the stated std have an rms of about 1 (neither confident nor inflated)."""
+    paths = [realdata / "epochs" / f"autzen-bmx-{y}.las" for y in (2010, 2023)]
+    if not all(p.is_file() for p in paths):
+        pytest.skip("Autzen epochs absent")
+    for path in paths:
+        cloud = read_cloud(path)
+        z = []
+        for seed in range(16):
+            rng = np.random.default_rng(seed)
+            half = rng.random(len(cloud.xyz)) < 0.5
+            s = SHIFTS[seed % 4]
+            res = icp(cloud.subset(~half).with_xyz(cloud.xyz[~half] - s), cloud.subset(half), rng=0)
+            std = res.translation_std
+            z.extend(((res.translation - s) / std)[np.isfinite(std)])
+        rms = float(np.sqrt(np.mean(np.square(z))))
+        assert 0.8 <= rms <= 1.25, (path.name, rms, len(z))
+        assert np.max(np.abs(z)) <= 3.0, (path.name, np.max(np.abs(z)))
