@@ -735,3 +735,23 @@ def test_real_tls_halves_with_a_known_shift(realdata):
     res = icp(source - REAL_SHIFT, target)
     _check_real(res)
     assert np.all(res.translation_std < 0.002)  # millimetres on a TLS scan
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_flat_field_with_relief_new_in_each_epoch_states_no_confident_shift(seed):
+    """Flat ground whose fine relief (5 cm at about 1.5 m; grass, crops, trodden ground) is new in each epoch:
+    the normals tilt far more than their white-noise model says, and only the tilt the data show between the
+    two epochs' normals (eq. 5.12c) keeps X and Y from a confident wrong value."""
+    rng = np.random.default_rng(seed)
+    truth = np.array([0.3, 0.2, 0.05])
+
+    def field(n):
+        xy = rng.uniform(0, 60, (n, 2))
+        k, phase = rng.normal(0, 1 / 1.5, (60, 2)), rng.uniform(0, 2 * np.pi, 60)
+        z = 0.05 * np.sqrt(2 / 60) * np.cos(xy @ k.T + phase).sum(axis=1) + rng.normal(0, 0.02, n)
+        return np.column_stack([xy, z])
+
+    res = icp(field(14400) - truth, field(14400), rng=0)
+    err, std = res.translation - truth, res.translation_std
+    assert np.all(~np.isfinite(std) | (np.abs(err) <= 3 * std)), (err, std)
+    assert np.isfinite(std[2]) and abs(err[2]) < 0.01

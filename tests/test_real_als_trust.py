@@ -130,9 +130,31 @@ def test_autzen_epochs_icp_converges_and_agrees_with_max_consensus(realdata):
     rc = max_consensus(src, tgt, max_time=None, max_boxes=1000)
     assert ri.converged, ri.message
     combined = np.hypot(ri.translation_std, rc.translation_std)
-    both = np.isfinite(combined)
-    assert both[2]  # the height change is determined by both
-    assert np.all(np.abs(ri.translation - rc.translation)[both] <= SIGMAS * combined[both])
+    assert np.all(np.isfinite(combined)), (ri.translation_std, rc.translation_std)  # X, Y and Z stated by both
+    assert np.all(np.abs(ri.translation - rc.translation) <= SIGMAS * combined)
+    # real change between the epochs: the spatial blocks disagree, and their spread is in the stated covariance
+    assert ri.consistency is not None and not ri.consistency.agree
+    assert np.all(ri.consistency.std_ratio[np.isfinite(ri.consistency.std_ratio)] >= 1.0)
+
+
+def test_left_out_classes_are_tested_against_the_shift(realdata):
+    path = realdata / "als" / "warsaw_small.las"  # ground and buildings used; vegetation and class 0 left out
+    if not path.is_file():
+        pytest.skip("warsaw_small.las absent")
+    tgt, src = _halves(path)
+    res = icp(src.with_xyz(src.xyz - SHIFTS[0]), tgt, rng=0)
+    codes = [c.code for c in res.class_checks]
+    big = [c for c in np.unique(src.attributes["classification"]) if c not in res.selection.classes
+           and min((src.attributes["classification"] == c).sum(), (tgt.attributes["classification"] == c).sum()) >= 50]
+    assert sorted(codes) == sorted(big) and 5 in codes  # every class left out with 50 points in both halves
+    assert "Other classes against the shift" in res.summary()
+    # moved vegetation is reported as moved: the same halves with class 5 lifted by 0.3 m in the source
+    cls = src.attributes["classification"]
+    lifted = src.with_xyz(src.xyz - SHIFTS[0] + np.where(cls[:, None] == 5, [0.0, 0.0, 0.3], 0.0))
+    res = icp(lifted, tgt, rng=0)
+    veg = {c.code: c for c in res.class_checks}[5]
+    assert not veg.agree and abs(veg.offset[2] + 0.3) < 3 * veg.offset_std[2], str(veg)
+    assert "5 moved" in res.message
 
 
 def test_identical_copy_never_states_zero_precision(realdata):
@@ -144,3 +166,24 @@ def test_identical_copy_never_states_zero_precision(realdata):
     std = res.translation_std
     assert np.all(std[np.isfinite(std)] > 0), std
     assert np.allclose(res.translation, 0, atol=1e-9)
+
+
+def test_stated_std_matches_the_spread_over_random_halves(realdata):
+    """Monte Carlo over random halves of the sparse Autzen ground (0.5 pts/m^2, few pairs): the errors in
+    units of the stated std have an rms of about 1 (neither confident nor inflated)."""
+    paths = [realdata / "epochs" / f"autzen-bmx-{y}.las" for y in (2010, 2023)]
+    if not all(p.is_file() for p in paths):
+        pytest.skip("Autzen epochs absent")
+    for path in paths:
+        cloud = read_cloud(path)
+        z = []
+        for seed in range(16):
+            rng = np.random.default_rng(seed)
+            half = rng.random(len(cloud.xyz)) < 0.5
+            s = SHIFTS[seed % 4]
+            res = icp(cloud.subset(~half).with_xyz(cloud.xyz[~half] - s), cloud.subset(half), rng=0)
+            std = res.translation_std
+            z.extend(((res.translation - s) / std)[np.isfinite(std)])
+        rms = float(np.sqrt(np.mean(np.square(z))))
+        assert 0.8 <= rms <= 1.25, (path.name, rms, len(z))
+        assert np.max(np.abs(z)) <= 3.0, (path.name, np.max(np.abs(z)))

@@ -89,7 +89,7 @@ def adjust(corr, R, t, opts):
     N = np.einsum("mru,m,mrv->uv", A, P, A)  # N = A^T P A  (eq. 5.7)
     nvec = np.einsum("mru,m,mr->u", A, P, l)  # n = A^T P l
     names = NAMES[opts.dof]
-    N_eps = tilt_information(corr, ok_rows[keep], P, opts)
+    N_eps = tilt_information(corr, ok_rows[keep], P, opts, R)
     N_sig = normal_information(A, P, corr.target_normal[ok_rows[keep]], N, opts) - N_eps  # (eq. 5.12b)
     deg = degeneracy_report(
         sandwich_precision(N, N_sig), names, opts.rel_threshold, slice(len(names) - 3, None), share_threshold=HELD_SHARE,

@@ -7,7 +7,31 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
+from scipy.stats import norm, t as student_t
+
 from ._icp_weights import deletion_limit, psi_prime
+
+#: The level at which a stated std is read: |error| <= 3 std (two-sided 99.73 %).
+SIGMAS = 3.0
+
+
+def few_clusters_factor(n_cells, sigmas=SIGMAS):
+    """Factor on a cluster-robust std from ``n_cells`` cells: t_(G-1) quantile / normal quantile at ``sigmas``.
+
+    A sandwich summed over G cells is a variance estimate with about G - 1 degrees of freedom; the
+    estimate divided by it follows Student's t with G - 1 of them, not the normal distribution. Scaling
+    the std by this factor keeps "+- 3 std" the 99.73 % interval: 1.04 for 74 cells (sparse ALS, 86 pairs),
+    1.003 for 1000 cells. See A. C. Cameron, D. L. Miller (2015): A practitioner's guide to
+    cluster-robust inference. Journal of Human Resources 50(2), 317-372, section VI.C.
+
+    Examples
+    --------
+    >>> round(few_clusters_factor(74), 3), round(few_clusters_factor(1000), 3)
+    (1.035, 1.003)
+    """
+    if n_cells < 3:
+        return np.inf
+    return float(student_t.ppf(norm.cdf(sigmas), n_cells - 1) / sigmas)
 
 
 def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, xy, N_eps, opts):
@@ -16,7 +40,8 @@ def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, xy, N_eps, o
     M = sum over cells c of g_c g_c^T with g_c = sum_(i in c) A_i^T p_i v_i (scores of the kept
     rows); J = -d(A^T P l)/dx: sum w A_i^T [psi'(u) e e^T + psi(u)/u (I - e e^T)] A_i over the kept
     rows minus psi(k) w A_i^T e e^T A_i times the density of |u| at the deletion limit k (the
-    boundary moves with x, eq. 5.14); e = unit direction of the standardized residual.
+    boundary moves with x, eq. 5.14); e = unit direction of the standardized residual. With few cells
+    the std is scaled by :func:`few_clusters_factor` (t_(G-1) instead of the normal quantile).
     """
     p = A.shape[2]
     fixed = ~free
@@ -52,7 +77,8 @@ def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, xy, N_eps, o
     except np.linalg.LinAlgError:
         return cov
     Ji = cho_solve(c, np.eye(len(J)))
-    cov[np.ix_(fixed, fixed)] = Ji @ M @ Ji * m / max(m - g.shape[1], 1)
+    small_sample = m / max(m - g.shape[1], 1) * few_clusters_factor(n_cells) ** 2
+    cov[np.ix_(fixed, fixed)] = Ji @ M @ Ji * small_sample
     return cov
 
 

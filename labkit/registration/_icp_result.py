@@ -97,7 +97,14 @@ def resolution_floor(cov, adj):
 
 
 def consistency_test(adj, matcher, opts):
-    """Model test of the final correspondences: one transformation for every group? (eq. 5.16)"""
+    """Model test of the final correspondences: one transformation for every group? (eq. 5.16)
+
+    Three groupings are tested where the data allow them: by class (when both clouds carry two or more
+    of the groups of :data:`CLASS_GROUPS`), by terciles of the local noise (vegetation is rough) and by
+    the four spatial quadrants (a changed or mis-modelled part of the area). The result reports the
+    grouping that disagrees with the largest spread between its groups (that spread enters the
+    covariance, eq. 5.17), or the first tested grouping when all agree.
+    """
     corr = adj.corr
     ok = corr.accepted
     A, l, P = design(corr, None, None, opts)
@@ -106,37 +113,49 @@ def consistency_test(adj, matcher, opts):
     xy = corr.source_xyz[ok, :2] - opts.origin[:2]
     cells = np.floor(xy / opts.block_size).astype(np.int64)
     _, cells = np.unique(cells, axis=0, return_inverse=True)
-    if matcher.target_class is not None and matcher.source_class is not None:
-        # a correspondence belongs to the first group that either of its points belongs to: a
-        # source point on regrowth matched to old ground counts as vegetation
-        rows = np.flatnonzero(ok)
-        cls_t = matcher.target_class[corr.target_index[ok]]
-        cls_s = matcher.source_class[rows]
-        labels = np.full(len(rows), len(CLASS_GROUPS))
-        for g, (_, codes) in reversed(list(enumerate(CLASS_GROUPS))):
-            labels[np.isin(cls_t, codes) | np.isin(cls_s, codes)] = g
-        names, grouping = [n for n, _ in CLASS_GROUPS] + ["other"], "class"
-    elif np.ptp(sigma := matcher.source_sigma[np.flatnonzero(ok)]) > 0:
-        # no classes: terciles of the source point's a priori sigma (local noise): vegetation is rough
-        labels = np.searchsorted(np.quantile(sigma, [1 / 3, 2 / 3]), sigma, side="right")
-        names, grouping = ["smooth third", "middle third", "rough third"], "local noise"
-    else:
-        above = (xy > np.median(xy, axis=0)).astype(int)
-        labels = above[:, 0] + 2 * above[:, 1]
-        names, grouping = ["block SW", "block SE", "block NW", "block NE"], "block"
     names_free = [n for n, f in zip(NAMES[opts.dof], free) if f]
     translation = [names_free.index(n) for n in ("tx", "ty", "tz") if n in names_free]
-    test = group_consistency(
-        A, l, P, labels, names, cells.ravel(), translation=translation, rel_threshold=opts.rel_threshold,
-        alpha=opts.consistency_alpha, grouping=grouping,
-    )  # fmt: skip
-    if test is not None and len(translation) < 3:  # report offsets on all three axes (NaN where held)
+    tests = []
+    for labels, names, grouping in _groupings(corr, ok, xy, matcher):
+        test = group_consistency(
+            A, l, P, labels, names, cells.ravel(), translation=translation, rel_threshold=opts.rel_threshold,
+            alpha=opts.consistency_alpha, grouping=grouping,
+        )  # fmt: skip
+        if test is not None:
+            tests.append(test)
+    if not tests:
+        return None
+    rejecting = [t for t in tests if not t.agree]
+    test = max(rejecting, key=lambda t: float(np.trace(t.between))) if rejecting else tests[0]
+    if len(translation) < 3:  # report offsets on all three axes (NaN where held)
         full = np.full((len(test.groups), 3), np.nan)
         axes = [k for k, n in enumerate(("tx", "ty", "tz")) if n in names_free]
         off, std = full.copy(), full.copy()
         off[:, axes], std[:, axes] = test.offset, test.offset_std
         test = replace(test, offset=off, offset_std=std)
     return test
+
+
+def _groupings(corr, ok, xy, matcher):
+    """(labels, names, grouping) of the tests: classes, local-noise terciles, spatial quadrants."""
+    rows = np.flatnonzero(ok)
+    if matcher.target_class is not None and matcher.source_class is not None:
+        # a correspondence belongs to the first group that either of its points belongs to: a
+        # source point on regrowth matched to old ground counts as vegetation
+        cls_t = matcher.target_class[corr.target_index[ok]]
+        cls_s = matcher.source_class[rows]
+        labels = np.full(len(rows), len(CLASS_GROUPS))
+        for g, (_, codes) in reversed(list(enumerate(CLASS_GROUPS))):
+            labels[np.isin(cls_t, codes) | np.isin(cls_s, codes)] = g
+        if len(np.unique(labels)) > 1:
+            yield labels, [n for n, _ in CLASS_GROUPS] + ["other"], "class"
+    sigma = matcher.source_sigma[rows]
+    if len(sigma) and np.ptp(sigma) > 0:  # terciles of the source point's a priori sigma: vegetation is rough
+        yield (np.searchsorted(np.quantile(sigma, [1 / 3, 2 / 3]), sigma, side="right"),
+               ["smooth third", "middle third", "rough third"], "local noise")
+    if len(xy):
+        above = (xy > np.median(xy, axis=0)).astype(int)
+        yield above[:, 0] + 2 * above[:, 1], ["block SW", "block SE", "block NW", "block NE"], "block"
 
 
 def translation_std(cov, opts):

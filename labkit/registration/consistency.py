@@ -22,7 +22,7 @@ class Consistency(ReportMixin):
     Attributes
     ----------
     grouping : str
-        'class' (class of the target point) or 'block' (spatial quadrants).
+        'class' (class of the target point), 'local noise' (terciles) or 'block' (spatial quadrants).
     groups : tuple of str
         Names of the tested groups (groups that were too small are left out).
     n : ndarray of int
@@ -57,8 +57,9 @@ class Consistency(ReportMixin):
     >>> import numpy as np
     >>> from labkit.registration import icp
     >>> from labkit.synthetic import wavy_surface
-    >>> target = wavy_surface(1500, 1, noise=0.001)  # slopes in X and Y, 1 mm noise
-    >>> res = icp(target[::5] + [0.02, -0.01, 0.03], target, dof="translation")
+    >>> rng = np.random.default_rng(1)
+    >>> target = wavy_surface(1500, rng)  # slopes in X and Y, 2 mm noise
+    >>> res = icp(wavy_surface(300, rng) - [0.05, 0.02, 0.03], target)  # another sampling, moved
     >>> c = res.consistency  # do the groups of correspondences agree on one shift?
     >>> c.grouping, len(c.groups), c.agree
     ('local noise', 3, True)

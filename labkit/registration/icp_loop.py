@@ -41,7 +41,7 @@ from .matching import prepare
 from .options import FIELDS, MatchOptions, takes_match_options
 from .pyramid import RETRY_REACH, pyramid_icp, retry_with_pyramid, use_pyramid
 from .result import RegistrationResult
-from .selection import SELECT, select_points
+from .selection import SELECT, check_other_classes, select_points
 
 
 @dataclass(frozen=True, eq=False)
@@ -180,10 +180,10 @@ def icp(
     block_size : float
         Cell edge (m) for ``covariance='block'``.
     consistency_alpha : float or None
-        Level of the test whether all groups of the final correspondences (by class, else by local
-        noise, else by quadrant) support one transformation (eq. 5.16). When it rejects, the result
-        says so and its covariance includes the spread between the groups (jackknife, eq. 5.17).
-        None: no test.
+        Level of the test whether all groups of the final correspondences support one transformation
+        (eq. 5.16), in up to three groupings: by class, by terciles of local noise and by the four
+        spatial quadrants. When one rejects, the result says so and its covariance includes the spread
+        between the groups of the grouping that disagrees most (jackknife, eq. 5.17). None: no test.
     min_correspondences : int
         Fewer correspondences after rejection raise :class:`EmptyRegionError`.
     max_distance, max_angle_deg, classes, class_sigma, default_sigma, noise_weighting, max_noise, sample,
@@ -195,6 +195,8 @@ def icp(
         the stable classes of classified clouds, else the surface points (vegetation left out);
         ``result.selection`` says which and why. Given ``classes``, ``max_noise`` or per-point
         normals, all points take part.
+        With stable classes, every class left out (50 points or more in both clouds) is registered
+        on its own from the result and tested against it: ``result.class_checks``.
     coarse_to_fine : {'auto', True, False}
         Run a voxel pyramid first (:mod:`labkit.registration.pyramid`), from twice ``reach`` down to
         ``max_distance``; the covariance and degeneracy report come from the full clouds. 'auto':
@@ -226,7 +228,8 @@ def icp(
     -----
     Each iteration matches (residuals eq. 5.1-5.2, exclusions eq. 5.5), weights and deletes the
     correspondences (eq. 5.6, 5.8-5.9), solves N dx = n (eq. 5.7) and updates R, t (eq. 5.3). Directions the data do not
-    determine (eq. 5.12a-b; a flat field leaves X and Y free) are held at their initial value,
+    determine (eq. 5.12a-b; the tilt of the target normals is the larger of its white-noise model
+    and what the two epochs' normals show, eq. 5.12c; a flat field leaves X and Y free) are held at their initial value,
     reported with std inf and named in ``result.message``; a held parameter's prior enters the
     covariance of the others (eq. 5.15). The formal covariance (eq. 5.11) is optimistic because
     the weights are estimated from the same data; the default block covariance (eq. 5.13) takes
@@ -331,7 +334,7 @@ def icp(
         R, t, step = update_transform(R, t, damping * adj.dx, dof, L)
         history.append(_record(it, R, t, adj, step))
         final_stage = robust_stage or (robust is None and reject_sigma is None)
-        cycle = cycle_period(history, 0.1 * tol)
+        cycle = cycle_period(history, max(0.1 * tol, 0.01 * _smallest_std(adj)))  # repeats within 1 % of a std
         small = step < tol or within_precision(adj)
         settled = len(history) >= 4 and cycle_converged(history[-4:], adj, tol, share=0.05)  # damped chatter
         if final_stage and (small or settled or (cycle and cycle_converged(history[-cycle:], adj, 100 * tol))):
@@ -357,7 +360,27 @@ def _with_selection(source, target, options, settings):
         back = lambda rows, i: np.where(i >= 0, rows[np.clip(i, 0, None)], -1)  # noqa: E731
         corr = replace(corr, source_index=back(sel.source_rows, corr.source_index),
                        target_index=back(sel.target_rows, corr.target_index), n_source=sel.n_source)
-    return replace(res, selection=sel, correspondences=corr, message=f"{res.message}; points: {sel.reason}")
+    checks = check_other_classes(source, target, res, sel, icp, **_class_settings(settings, options))
+    msg = f"{res.message}; points: {sel.reason}"
+    moved = [str(c.code) for c in checks if not c.agree]
+    if checks:
+        msg += (f"; classes left out tested against the shift: {', '.join(moved)} moved" if moved
+                else "; the classes left out agree with the shift")
+    return replace(res, selection=sel, correspondences=corr, message=msg, class_checks=checks)
+
+
+def _class_settings(settings, options):
+    """The caller's settings for the check of one left-out class: one level, no group test, no progress."""
+    out = {k: v for k, v in settings.items() if k not in ("initial", "coarse_to_fine", "reach", "progress")}
+    return dict(out, options=options, coarse_to_fine=False, consistency_alpha=None)
+
+
+def _smallest_std(adj):
+    """The smallest finite formal standard deviation of the shift (m; 0 when none is finite)."""
+    with np.errstate(invalid="ignore"):
+        std = adj.sigma0 * np.sqrt(np.diag(adj.Qxx)[-3:])
+    std = std[np.isfinite(std)]
+    return float(std.min()) if std.size else 0.0
 
 
 def _require_surface(points, name):

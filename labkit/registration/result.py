@@ -63,6 +63,9 @@ class RegistrationResult(ReportMixin):
     selection : Selection, optional
         Which points took part and why (stable classes, surface points or all points;
         :func:`labkit.registration.selection.select_points`).
+    class_checks : tuple of ClassCheck
+        The classes left out of a 'stable classes' selection, each tested against the result (which class
+        agrees, which moved; :func:`labkit.registration.selection.check_other_classes`). Empty otherwise.
 
     Examples
     --------
@@ -95,6 +98,7 @@ class RegistrationResult(ReportMixin):
     correspondences: object = None  # method-specific final correspondences (ICP: Correspondences)
     consistency: Consistency | None = None
     selection: object = None
+    class_checks: tuple = ()
 
     @property
     def consistent(self) -> bool:
@@ -118,6 +122,12 @@ class RegistrationResult(ReportMixin):
         """Standard deviations of tx, ty, tz."""
         idx = [self.parameter_names.index(n) for n in ("tx", "ty", "tz")]
         return self.std[idx]
+
+    @property
+    def translation_cov(self) -> np.ndarray:
+        """Covariance (3, 3) of tx, ty, tz (inf on the diagonal of an undetermined component)."""
+        idx = [self.parameter_names.index(n) for n in ("tx", "ty", "tz")]
+        return np.asarray(self.covariance)[np.ix_(idx, idx)]
 
     def apply(self, points) -> np.ndarray:
         """Map source points (n, 3) into the target frame.
@@ -153,6 +163,9 @@ class RegistrationResult(ReportMixin):
         if self.message:
             rows.append(("message", self.message))
         sections = [("Transformation (source -> target)", rows)]
+        if self.class_checks:
+            sections.append(("Other classes against the shift (left out of the estimate)",
+                             [(f"class {c.code}", str(c).split(", ", 1)[1]) for c in self.class_checks]))
         if self.consistency is not None:
             sections += self.consistency._report()[1]
         if self.degeneracy is not None:

@@ -24,16 +24,20 @@ points are used and the result says so.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace  # noqa: F401  (replace: Examples)
+
+from scipy.stats import chi2
 
 import numpy as np
 
 from .._checks import as_points, choice
+from ..errors import LabkitError
 from ..features import local_pca
 from ..masks import ASPRS_NAMES, STABLE_CLASSES
 from ._local_surface import _Geometry
 
-__all__ = ["MAX_SCATTER", "MIN_SELECTED", "SELECT", "SMOOTH_NOISE", "Selection", "select_points"]
+__all__ = ["MAX_SCATTER", "MIN_SELECTED", "SELECT", "SMOOTH_NOISE", "ClassCheck", "Selection", "check_other_classes",
+           "select_points"]
 
 #: Local noise (m) below which a neighbourhood counts as a surface whatever its extent (ALS ground
 #: and roofs: 1-5 cm; crowns: 0.1-0.6 m on the real forests).
@@ -206,3 +210,138 @@ def select_points(source, target, select="auto", k=20):
     return (_subset(source, ms), _subset(target, mt),
             Selection("surface points", (), ns, nt, int(ms.sum()), int(mt.sum()), reason, np.flatnonzero(ms),
                       np.flatnonzero(mt)))
+
+
+@dataclass(frozen=True, eq=False)
+class ClassCheck:
+    """A class left out of a registration, tested against the shift of the stable classes.
+
+    The class's points are registered on their own (source class onto target class, started at the result)
+    and its shift at the class's centre is compared with the result's: T = d^T (C_c + C)^-1 d over the axes
+    both determine, chi-square with that many degrees of freedom (eq. 5.16 for two groups).
+
+    Attributes
+    ----------
+    code : int
+        The class (ASPRS code).
+    name : str
+    n_source, n_target : int
+        Points of the class in the two clouds.
+    offset, offset_std : ndarray (3,)
+        The class's shift minus the result's (m) and its standard deviation (NaN where not determined).
+    statistic : float
+    dof : int
+    p_value : float
+    alpha : float
+    note : str
+        Why the class was not tested (empty when it was).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> c = ClassCheck(5, "high vegetation", 900, 880, np.array([0.2, -0.1, 0.0]), np.array([0.03, 0.03, 0.01]),
+    ...                 56.0, 3, 4e-12, 1e-3)
+    >>> c.agree, str(c).split(":")[0]
+    (False, '5 (high vegetation), 900 / 880 points')
+    """
+
+    code: int
+    name: str
+    n_source: int
+    n_target: int
+    offset: np.ndarray
+    offset_std: np.ndarray
+    statistic: float
+    dof: int
+    p_value: float
+    alpha: float
+    note: str = ""
+
+    @property
+    def agree(self) -> bool:
+        """True unless the class's shift differs from the result's at level ``alpha``."""
+        return not (self.dof > 0 and self.p_value < self.alpha)
+
+    def __str__(self):
+        head = f"{self.code} ({self.name}), {self.n_source} / {self.n_target} points"
+        if self.note:
+            return f"{head}: not tested ({self.note})"
+        shift = ", ".join(f"d{a} -" if not np.isfinite(s) else f"d{a} {1000 * o:+.0f}+-{1000 * s:.0f}"
+                          for a, o, s in zip("XYZ", self.offset, self.offset_std))
+        verdict = "agrees" if self.agree else "MOVED (differs from the stable classes)"
+        return f"{head}: {shift} mm against the result, T = {self.statistic:.1f} / {self.dof} -> {verdict}"
+
+
+def check_other_classes(source, target, result, selection, register, *, alpha=1e-3, **settings):
+    """Test every class the selection left out against the result of the stable classes.
+
+    Parameters
+    ----------
+    source, target : PointCloud
+        The caller's clouds (with ``classification``).
+    result : RegistrationResult
+        The registration on the stable classes.
+    selection : Selection
+        Its selection (rule 'stable classes'; otherwise nothing is tested).
+    register : callable
+        The registration run on each class (``labkit.registration.icp``), called with
+        ``select='all'`` and ``initial=result.matrix`` plus ``settings``.
+    alpha : float
+        Level of the test.
+
+    Returns
+    -------
+    tuple of ClassCheck
+        One per class present in both clouds with at least :data:`MIN_SELECTED` points in each.
+
+    References
+    ----------
+    .. [1] Notebook 05, section 2b and eq. 5.16; seed 003, step 4 (classes).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit import PointCloud
+    >>> from labkit.registration import icp
+    >>> rng = np.random.default_rng(0)
+    >>> xy = rng.uniform(0, 30, (3000, 2))
+    >>> z = 0.5 * np.sin(xy[:, 0] / 3) + 0.4 * np.cos(xy[:, 1] / 4)  # hills in X and Y
+    >>> cls = np.where(xy[:, 0] < 20, 2, 6)  # ground and, on the east side, 'buildings'
+    >>> cloud = PointCloud(np.column_stack([xy, z + rng.normal(0, 0.005, 3000)]), {"classification": cls})
+    >>> moved = cloud.with_xyz(cloud.xyz + np.where(cls[:, None] == 6, [0.0, 0.0, 0.1], 0.0))  # the roofs rise
+    >>> src, tgt, sel = select_points(cloud, moved)
+    >>> res = icp(cloud.subset(cls == 2), moved.subset(cls == 2), select="all")
+    >>> [c.agree for c in check_other_classes(cloud, moved, res, replace(sel, classes=(2,)), icp)]
+    [False]
+    """
+    if selection.rule != "stable classes":
+        return ()
+    cs, ct = _classes(source), _classes(target)
+    out = []
+    for code in sorted(set(np.unique(cs).tolist()) & set(np.unique(ct).tolist()) - set(selection.classes)):
+        ms, mt = cs == code, ct == code
+        name = ASPRS_NAMES.get(code, "?")
+        if ms.sum() < MIN_SELECTED or mt.sum() < MIN_SELECTED:
+            continue
+        nan = np.full(3, np.nan)
+        src = _subset(source, ms)
+        try:
+            own = register(src, _subset(target, mt), select="all", initial=result.matrix, **settings)
+        except LabkitError as exc:
+            out.append(ClassCheck(code, name, int(ms.sum()), int(mt.sum()), nan, nan, np.nan, 0, 1.0, alpha,
+                                  str(exc).split(";")[0]))
+            continue
+        centre = _xyz(src).mean(axis=0)[None]
+        d = (own.apply(centre) - result.apply(centre))[0]  # the class's shift minus the result's, at its centre
+        var = own.translation_std**2 + result.translation_std**2
+        both = np.isfinite(var) & (var > 0)
+        if not both.any():
+            out.append(ClassCheck(code, name, int(ms.sum()), int(mt.sum()), nan, nan, np.nan, 0, 1.0, alpha,
+                                  "the class determines no axis"))
+            continue
+        cov = (own.translation_cov + result.translation_cov)[np.ix_(both, both)]
+        T = float(d[both] @ np.linalg.solve(cov, d[both]))
+        dof = int(both.sum())
+        out.append(ClassCheck(code, name, int(ms.sum()), int(mt.sum()), np.where(both, d, np.nan),
+                              np.where(both, np.sqrt(var), np.nan), T, dof, float(chi2.sf(T, dof)), float(alpha)))
+    return tuple(out)
