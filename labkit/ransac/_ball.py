@@ -39,9 +39,12 @@ def _inside(X, c, R):  # pragma: no cover - compiled
 def _counts(X, c, radii):  # pragma: no cover - compiled
     R2 = radii * radii
     out = np.zeros(radii.shape[0], dtype=np.int64)
+    R2max = R2.max() if R2.shape[0] else -1.0
     for i in range(X.shape[0]):
         dx, dy, dz = X[i, 0] - c[0], X[i, 1] - c[1], X[i, 2] - c[2]
         d2 = dx * dx + dy * dy + dz * dz
+        if d2 > R2max:
+            continue  # outside every ball (most points): one comparison
         for j in range(radii.shape[0]):
             if d2 <= R2[j]:
                 out[j] += 1
@@ -84,6 +87,26 @@ def _shell(X, c, r, reach):  # pragma: no cover - compiled
             d[k] = np.sqrt(q) - r
             k += 1
     return idx[:k].copy(), d[:k].copy()
+
+
+def _in_shell(X, c, r, t):  # pragma: no cover - compiled
+    t2 = t * t
+    out = np.empty(X.shape[0], dtype=np.bool_)
+    for i in range(X.shape[0]):
+        dx, dy, dz = X[i, 0] - c[0], X[i, 1] - c[1], X[i, 2] - c[2]
+        d = np.sqrt(dx * dx + dy * dy + dz * dz) - r
+        out[i] = d * d < t2
+    return out
+
+
+def in_shell(X, c, r, t):
+    """Mask of the points of X (n, 3) with d^2 < t^2, d = |x - c| - r (eqs. 25-26); one compiled pass."""
+    kernel = _jit(_in_shell)
+    if kernel is None or X.dtype != np.float64 or not X.flags.c_contiguous:  # pragma: no cover
+        diff = X - c
+        d = np.sqrt(np.einsum("ij,ij->i", diff, diff)) - r
+        return d * d < t * t
+    return kernel(X, np.ascontiguousarray(c, dtype=np.float64), float(r), float(t))
 
 
 def _normal_equations(P, shift, c, r):  # pragma: no cover - compiled

@@ -11,6 +11,7 @@ from scipy.special import ndtr
 from ..adjustment import gauss_helmert_model
 from ..errors import LabkitError
 from ..sphere import sphere_residuals
+from ._ball import shell_points
 from .config import BAND_K, SNOOP_ROUNDS, S
 from .hypotheses import orthogonal_fit, shell_mask
 
@@ -92,8 +93,8 @@ def _robust_band(xyz, x, cfg, unit=None, max_rounds=12):
     sigma_hat = known if known is not None else t / BAND_K
     # only points that can ever be in a band matter: a generous neighbourhood of the hypothesis
     reach = max(8.0 * t, 8.0 * band) if unit is None else max(8.0 * t, 3.0 * BAND_K * float(unit.max()))
-    d = sphere_residuals(xyz, x)
-    near = np.flatnonzero(np.abs(d) < reach)
+    idx, d = shell_points(np.ascontiguousarray(xyz, dtype=np.float64), x[:3], x[3], reach)  # one compiled pass
+    near = idx[np.abs(d) < reach]
     P = xyz[near]
     if unit is not None:
         known, band = True, BAND_K * unit[near]

@@ -32,6 +32,7 @@ class Verifier:
         self._best_rejected_score = -np.inf
         self._rejected = []  # polished spheres that failed
         self._R = None  # the same as an array (cached)
+        self._ball = None  # (centre, radius, indices, points) of the last ball read from the cloud
 
     def ball(self, c, R):
         """Indices of the points within distance R of c (one pass over the cloud, no tree)."""
@@ -107,8 +108,23 @@ class Verifier:
         return ((dc2 < tol * tol) & (np.abs(X[:, None, 3] - R[None, :, 3]) < tol)).any(axis=1)
 
     def _local(self, x, reach):
-        """Indices and residuals d (eq. 25) of the points within r + reach of the centre."""
-        return shell_points(self.X, x[:3], x[3], reach)
+        """Indices and residuals d (eq. 25) of the points within r + reach of the centre.
+
+        The polishing rounds and checks of one candidate ask for nearly the same ball
+        again and again: the points of a somewhat larger ball are kept, and a ball inside
+        it is answered from them (the same points in the same order, the same d).
+        """
+        c, r = np.asarray(x[:3], dtype=np.float64), float(x[3])
+        if self._ball is not None:
+            c0, R0, idx0, P0 = self._ball
+            if np.linalg.norm(c - c0) + r + reach <= R0 * (1.0 - 1e-9):  # inside the kept ball
+                i, d = shell_points(P0, c, r, reach)
+                return idx0[i], d
+        R0 = r + max(reach, 2.0 * BAND_K * self.cfg.threshold * 3.0) + max(2.0 * self.cfg.threshold, 0.05 * r)
+        idx0 = ball_indices(self.X, c, R0)
+        self._ball = (c.copy(), R0, idx0, self.X[idx0])
+        i, d = shell_points(self._ball[3], c, r, reach)
+        return idx0[i], d
 
     def _polish(self, x, t):
         """Inliers -> orthogonal fit, three rounds; the band widens to k sigma_hat when t is below the noise."""
