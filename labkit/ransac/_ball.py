@@ -52,6 +52,30 @@ def _counts(X, c, radii):  # pragma: no cover - compiled
 
 
 
+def _counts3(T, c, R2):  # pragma: no cover - compiled
+    x, y, z = T[0], T[1], T[2]
+    c0, c1, c2 = c[0], c[1], c[2]
+    a, b, e = R2[0], R2[1], R2[2]
+    na = nb = ne = 0
+    for i in range(x.shape[0]):  # no branches: the compiler vectorizes the loop
+        dx, dy, dz = x[i] - c0, y[i] - c1, z[i] - c2
+        d2 = dx * dx + dy * dy + dz * dz
+        na += d2 <= a
+        nb += d2 <= b
+        ne += d2 <= e
+    return np.array([na, nb, ne], dtype=np.int64)
+
+
+def ball_counts_t(T, c, radii):
+    """:func:`ball_counts` for three radii on coordinates stored by axis, T (3, n) C-contiguous float64."""
+    c = np.asarray(c, dtype=np.float64)
+    radii = np.asarray(radii, dtype=np.float64)
+    kernel = _jit(_counts3)
+    if kernel is None:  # pragma: no cover
+        return ball_counts(np.ascontiguousarray(T.T), c, radii)
+    return kernel(T, c, radii * radii)
+
+
 def ball_indices(X, c, R):
     """Indices (ascending) of the points of X (n, 3), C-contiguous float64, within distance R of c."""
     c = np.asarray(c, dtype=np.float64)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._ball import ball_counts, ball_indices, plane_counts, shell_points
+from ._ball import ball_counts, ball_counts_t, ball_indices, plane_counts, shell_points
 from .config import (
     BACKFACE_SHARE, BAND_K, COARSE_CLEAR, COARSE_POINTS, CONTRAST, INTERIOR_SHARE, MIN_LEVELS, MIN_SPREAD, PLANE_RATIO,
     SHADOW_SHARE, SHAPE_POINTS, TWO_PLANES_POINTS, TWO_PLANES_SHARE, VERIFY_MAX, S,
@@ -25,8 +25,8 @@ class Verifier:
     def __init__(self, X, station, cfg):
         self.X, self.station, self.cfg = np.ascontiguousarray(X, dtype=np.float64), station, cfg
         step = len(self.X) // COARSE_POINTS
-        self._sub = np.ascontiguousarray(self.X[::step]) if step >= 2 else None  # for the coarse test
-        self._scale = len(self.X) / len(self._sub) if step >= 2 else 1.0
+        self._sub = np.ascontiguousarray(self.X[::step].T) if step >= 2 else None  # for the coarse test, (3, m)
+        self._scale = len(self.X) / self._sub.shape[1] if step >= 2 else 1.0
         self.n_rejected, self.n_checked = 0, 0
         self.best_rejection = ""
         self._best_rejected_score = -np.inf
@@ -75,7 +75,7 @@ class Verifier:
         radii = [r + t, r - t, r - 5.0 * t]
         about = ""
         if self._sub is not None:  # first on an even subsample: a clear verdict needs no pass over all points
-            outer, inner, deep = ball_counts(self._sub, c, radii) * self._scale
+            outer, inner, deep = ball_counts_t(self._sub, c, radii) * self._scale
             if deep >= COARSE_CLEAR * self._scale and deep > 2.0 * max(5.0 * INTERIOR_SHARE * (outer - inner), 20):
                 about = "about "
         if not about:
