@@ -25,8 +25,10 @@ class Verifier:
     def __init__(self, X, station, cfg):
         self.X, self.station, self.cfg = np.ascontiguousarray(X, dtype=np.float64), station, cfg
         step = len(self.X) // COARSE_POINTS
-        self._sub = np.ascontiguousarray(self.X[::step].T) if step >= 2 else None  # for the coarse test, (3, m)
+        # the coarse test runs on an even subsample (or, for a small cloud, on every point), stored by axis (3, m)
+        self._sub = np.ascontiguousarray(self.X[:: max(step, 1)].T)
         self._scale = len(self.X) / self._sub.shape[1] if step >= 2 else 1.0
+        self._sub_all = step < 2
         self.n_rejected, self.n_checked = 0, 0
         self.best_rejection = ""
         self._best_rejected_score = -np.inf
@@ -74,12 +76,14 @@ class Verifier:
             return ""
         radii = [r + t, r - t, r - 5.0 * t]
         about = ""
-        if self._sub is not None:  # first on an even subsample: a clear verdict needs no pass over all points
+        if self._sub_all:  # a small cloud: every point counted at once
+            outer, inner, deep = ball_counts_t(self._sub, c, radii)
+        else:  # first on an even subsample: a clear verdict needs no pass over all points
             outer, inner, deep = ball_counts_t(self._sub, c, radii) * self._scale
             if deep >= COARSE_CLEAR * self._scale and deep > 2.0 * max(5.0 * INTERIOR_SHARE * (outer - inner), 20):
                 about = "about "
-        if not about:
-            outer, inner, deep = ball_counts(self.X, c, radii)
+            else:
+                outer, inner, deep = ball_counts(self.X, c, radii)
         shell = int(outer - inner)
         if deep > max(5.0 * INTERIOR_SHARE * shell, 20):
             return (f"{about}{int(deep)} points lie deep inside it (for {about}{shell} on its shell): a solid sphere "
