@@ -113,6 +113,22 @@ def _shell(X, c, r, reach):  # pragma: no cover - compiled
     return idx[:k].copy(), d[:k].copy()
 
 
+def _residuals(X, c, r):  # pragma: no cover - compiled
+    d = np.empty(X.shape[0])
+    for i in range(X.shape[0]):
+        dx, dy, dz = X[i, 0] - c[0], X[i, 1] - c[1], X[i, 2] - c[2]
+        d[i] = np.sqrt(dx * dx + dy * dy + dz * dz) - r
+    return d
+
+
+def residuals(X, x):
+    """d = |x_i - c| - r (eq. 25) of the points X (n, 3) for the sphere x = [c, r]; one compiled pass."""
+    kernel = _jit(_residuals)
+    if kernel is None or X.dtype != np.float64 or not X.flags.c_contiguous:  # pragma: no cover
+        return np.linalg.norm(X - x[:3], axis=1) - x[3]
+    return kernel(X, np.ascontiguousarray(x[:3], dtype=np.float64), float(x[3]))
+
+
 def _in_shell(X, c, r, t):  # pragma: no cover - compiled
     t2 = t * t
     out = np.empty(X.shape[0], dtype=np.bool_)
