@@ -4,6 +4,9 @@ The verification asks a few dozen ball queries per detection; a k-d tree over
 10^6 points costs about a second to build, a pass over them a few milliseconds.
 The comparison is |x - c|^2 <= R^2, as in ``cKDTree.query_ball_point``.
 numba loads on the first call, not on import; without it numpy does the work.
+Residuals are d = sqrt(dx^2 + dy^2 + dz^2) - r summed in this order; numpy's routes
+(einsum, norm) may differ from them by an ulp (about 1e-16 m at 1 m), so a point can
+change sides of a band only within that distance of its edge.
 """
 
 from __future__ import annotations
