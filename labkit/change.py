@@ -55,7 +55,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.stats import norm, t as student_t
+from scipy.special import ndtri, stdtrit  # the quantiles of scipy.stats.norm / t, without importing scipy.stats
 
 from . import _change_search as search
 from ._change_registration import (RegistrationCovariance, load_registration, registration_variance,
@@ -334,19 +334,19 @@ def m3c2(
 # --------------------------------------------------------------------------- private steps
 def _quantile(alpha, s1, n1, s2, n2, kind):
     """Two-sided quantile of eq. 5 per core: Student t with Welch-Satterthwaite degrees of freedom, or z."""
-    z = float(norm.ppf(1 - alpha / 2))
+    z = float(ndtri(1 - alpha / 2))
     if kind == "normal":
         return np.full(np.shape(n1), z)
     a, b = s1**2 / n1, s2**2 / n2
     dof = (a + b) ** 2 / (a**2 / (n1 - 1) + b**2 / (n2 - 1))
     dof = np.where(np.isfinite(dof), dof, np.minimum(n1, n2) - 1.0)  # zero spreads: the smaller sample
-    return np.where(dof > 0, student_t.ppf(1 - alpha / 2, np.maximum(dof, 1e-9)), np.nan)
+    return np.where(dof > 0, stdtrit(np.maximum(dof, 1e-9), 1 - alpha / 2), np.nan)
 
 
 def _quantile_text(result) -> str:
     q = result.z[np.isfinite(result.z)]
     if result.quantile == "normal" or not len(q):
-        return f"z = {float(norm.ppf(1 - result.alpha / 2)):.3f}"
+        return f"z = {float(ndtri(1 - result.alpha / 2)):.3f}"
     return f"Student t, quantile median {np.median(q):.3f}, range {q.min():.3f}..{q.max():.3f}"
 
 

@@ -447,3 +447,31 @@ def test_cli_change_with_registration_json_and_all_or_nothing(epoch_files, tmp_p
     assert main(base[:-1] + [str(out2), "--registration", str(bad)]) == 2
     assert "positive semi-definite" in capsys.readouterr().err
     assert not out2.exists() or list(out2.iterdir()) == []
+
+
+def test_quantiles_are_scipy_stats_quantiles():
+    """z of every core is scipy.stats' Student t quantile at the Welch-Satterthwaite dof (eq. 5)."""
+    from scipy import stats
+
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(0, 10, (4000, 2))
+    ref = np.c_[xy, rng.normal(0, 0.01, len(xy))]
+    cmp_ = np.c_[xy[::-1], 0.03 + rng.normal(0, 0.02, len(xy))]
+    r = m3c2(ref, cmp_, ref[::100], normal_radius=1.0, cylinder_radius=0.5, max_depth=1.0, confidence=0.95)
+    a, b = r.spread1**2 / r.count1, r.spread2**2 / r.count2
+    dof = (a + b) ** 2 / (a**2 / (r.count1 - 1) + b**2 / (r.count2 - 1))
+    ok = np.isfinite(r.z)
+    assert ok.sum() > 20
+    np.testing.assert_allclose(r.z[ok], stats.t.ppf(0.975, dof[ok]), rtol=1e-12)
+    z = m3c2(ref, cmp_, ref[::100], normal_radius=1.0, cylinder_radius=0.5, max_depth=1.0, quantile="normal").z
+    np.testing.assert_allclose(z[np.isfinite(z)], stats.norm.ppf(0.975), rtol=1e-14)
+
+
+def test_importing_change_does_not_load_scipy_stats():
+    """`labkit change` starts without scipy.stats (about a second of imports)."""
+    import subprocess
+    import sys
+
+    code = "import sys, labkit.change; print('scipy.stats' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"

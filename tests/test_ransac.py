@@ -438,3 +438,52 @@ def test_stated_std_matches_monte_carlo_spread_for_any_threshold(k):
         stds.append(res.fit.std)
     ratio = np.std(xs, axis=0, ddof=1) / np.mean(stds, axis=0)
     assert np.all((ratio > 0.8) & (ratio < 1.25)), ratio
+
+
+def test_compiled_ball_kernels_equal_numpy():
+    """The compiled passes of the verification and the refit give numpy's answers (eqs. 25-26).
+
+    Counts and indices are exact; residuals agree to an ulp (numpy may sum the squares in another
+    order), so a point can change sides of a band only within 1e-15 m of its edge.
+    """
+    from labkit.ransac._ball import ball_counts, ball_counts_t, in_shell, residuals, shell_points
+
+    rng = np.random.default_rng(7)
+    X = rng.normal(size=(20_000, 3))
+    x = np.array([0.1, -0.2, 0.05, 1.3])
+    diff = X - x[:3]
+    d = np.sqrt(np.einsum("ij,ij->i", diff, diff)) - x[3]
+    np.testing.assert_allclose(residuals(X, x), np.linalg.norm(X - x[:3], axis=1) - x[3], rtol=0, atol=1e-15)
+    edge = np.abs(np.abs(d) - 0.05) < 1e-14  # (none expected; a tie within an ulp may go either way)
+    np.testing.assert_array_equal(in_shell(X, x[:3], x[3], 0.05)[~edge], (d * d < 0.05**2)[~edge])
+    radii = [1.4, 1.2, 0.8]
+    d2 = np.einsum("ij,ij->i", diff, diff)
+    expected = [np.count_nonzero(d2 <= r * r) for r in radii]
+    assert ball_counts(X, x[:3], radii).tolist() == expected
+    assert ball_counts_t(np.ascontiguousarray(X.T), x[:3], radii).tolist() == expected
+    idx, dd = shell_points(X, x[:3], x[3], 0.3)
+    np.testing.assert_array_equal(idx, np.flatnonzero(d2 <= (x[3] + 0.3) ** 2))
+    np.testing.assert_allclose(dd, d[idx], rtol=0, atol=1e-15)
+
+
+def test_verifier_answers_nested_balls_like_a_full_pass():
+    """A ball inside the one the verifier kept is answered from it: the same points, order and residuals
+    as a pass over the whole cloud."""
+    from labkit.ransac._ball import shell_points
+    from labkit.ransac.config import Config
+    from labkit.ransac.verify import Verifier
+
+    rng = np.random.default_rng(8)
+    X = rng.uniform(-1, 1, size=(30_000, 3))
+    cfg = Config(threshold=0.01, p=0.99, r_min=0.0, r_max=2.0, known=False, scoring="msac",
+                 minimal_solver="closed_form", sampling="uniform", max_iterations=1000, local_optimization=True,
+                 min_inliers=10, snooping=True, sigma=None, alpha=0.05, hold_radius=None)
+    v = Verifier(X, None, cfg)
+    x0 = np.array([0.1, 0.0, -0.1, 0.5])
+    v._local(x0, 0.05)  # reads and keeps a larger ball
+    for x, reach in [(x0, 0.03), (x0 + [0.004, -0.003, 0.002, 0.001], 0.02), (x0 + [0.3, 0, 0, 0], 0.05)]:
+        idx, d = v._local(x, reach)
+        full_idx, full_d = shell_points(v.X, x[:3], x[3], reach)
+        np.testing.assert_array_equal(idx, full_idx)
+        np.testing.assert_array_equal(d, full_d)
+        assert len(idx) > 100

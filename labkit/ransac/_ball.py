@@ -4,6 +4,9 @@ The verification asks a few dozen ball queries per detection; a k-d tree over
 10^6 points costs about a second to build, a pass over them a few milliseconds.
 The comparison is |x - c|^2 <= R^2, as in ``cKDTree.query_ball_point``.
 numba loads on the first call, not on import; without it numpy does the work.
+Residuals are d = sqrt(dx^2 + dy^2 + dz^2) - r summed in this order; numpy's routes
+(einsum, norm) may differ from them by an ulp (about 1e-16 m at 1 m), so a point can
+change sides of a band only within that distance of its edge.
 """
 
 from __future__ import annotations
@@ -39,14 +42,41 @@ def _inside(X, c, R):  # pragma: no cover - compiled
 def _counts(X, c, radii):  # pragma: no cover - compiled
     R2 = radii * radii
     out = np.zeros(radii.shape[0], dtype=np.int64)
+    R2max = R2.max() if R2.shape[0] else -1.0
     for i in range(X.shape[0]):
         dx, dy, dz = X[i, 0] - c[0], X[i, 1] - c[1], X[i, 2] - c[2]
         d2 = dx * dx + dy * dy + dz * dz
+        if d2 > R2max:
+            continue  # outside every ball (most points): one comparison
         for j in range(radii.shape[0]):
             if d2 <= R2[j]:
                 out[j] += 1
     return out
 
+
+
+def _counts3(T, c, R2):  # pragma: no cover - compiled
+    x, y, z = T[0], T[1], T[2]
+    c0, c1, c2 = c[0], c[1], c[2]
+    a, b, e = R2[0], R2[1], R2[2]
+    na = nb = ne = 0
+    for i in range(x.shape[0]):  # no branches: the compiler vectorizes the loop
+        dx, dy, dz = x[i] - c0, y[i] - c1, z[i] - c2
+        d2 = dx * dx + dy * dy + dz * dz
+        na += d2 <= a
+        nb += d2 <= b
+        ne += d2 <= e
+    return np.array([na, nb, ne], dtype=np.int64)
+
+
+def ball_counts_t(T, c, radii):
+    """:func:`ball_counts` for three radii on coordinates stored by axis, T (3, n) C-contiguous float64."""
+    c = np.asarray(c, dtype=np.float64)
+    radii = np.asarray(radii, dtype=np.float64)
+    kernel = _jit(_counts3)
+    if kernel is None:  # pragma: no cover
+        return ball_counts(np.ascontiguousarray(T.T), c, radii)
+    return kernel(T, c, radii * radii)
 
 
 def ball_indices(X, c, R):
@@ -84,6 +114,42 @@ def _shell(X, c, r, reach):  # pragma: no cover - compiled
             d[k] = np.sqrt(q) - r
             k += 1
     return idx[:k].copy(), d[:k].copy()
+
+
+def _residuals(X, c, r):  # pragma: no cover - compiled
+    d = np.empty(X.shape[0])
+    for i in range(X.shape[0]):
+        dx, dy, dz = X[i, 0] - c[0], X[i, 1] - c[1], X[i, 2] - c[2]
+        d[i] = np.sqrt(dx * dx + dy * dy + dz * dz) - r
+    return d
+
+
+def residuals(X, x):
+    """d = |x_i - c| - r (eq. 25) of the points X (n, 3) for the sphere x = [c, r]; one compiled pass."""
+    kernel = _jit(_residuals)
+    if kernel is None or X.dtype != np.float64 or not X.flags.c_contiguous:  # pragma: no cover
+        return np.linalg.norm(X - x[:3], axis=1) - x[3]
+    return kernel(X, np.ascontiguousarray(x[:3], dtype=np.float64), float(x[3]))
+
+
+def _in_shell(X, c, r, t):  # pragma: no cover - compiled
+    t2 = t * t
+    out = np.empty(X.shape[0], dtype=np.bool_)
+    for i in range(X.shape[0]):
+        dx, dy, dz = X[i, 0] - c[0], X[i, 1] - c[1], X[i, 2] - c[2]
+        d = np.sqrt(dx * dx + dy * dy + dz * dz) - r
+        out[i] = d * d < t2
+    return out
+
+
+def in_shell(X, c, r, t):
+    """Mask of the points of X (n, 3) with d^2 < t^2, d = |x - c| - r (eqs. 25-26); one compiled pass."""
+    kernel = _jit(_in_shell)
+    if kernel is None or X.dtype != np.float64 or not X.flags.c_contiguous:  # pragma: no cover
+        diff = X - c
+        d = np.sqrt(np.einsum("ij,ij->i", diff, diff)) - r
+        return d * d < t * t
+    return kernel(X, np.ascontiguousarray(c, dtype=np.float64), float(r), float(t))
 
 
 def _normal_equations(P, shift, c, r):  # pragma: no cover - compiled

@@ -7,7 +7,7 @@ import numpy as np
 from ..adjustment import gauss_helmert_model
 from ..errors import LabkitError
 from ..sphere import algebraic_sphere, circumspheres
-from ._ball import normal_equations
+from ._ball import in_shell, normal_equations
 from .config import LO_STEPS, S
 
 
@@ -53,6 +53,8 @@ def score_hypotheses(W, Wsq, X, t, scoring):
 
 
 def shell_mask(W, x, t):
+    if np.ndim(t) == 0:
+        return in_shell(W, x[:3], x[3], t)
     diff = W - x[:3]
     d = np.sqrt(np.einsum("ij,ij->i", diff, diff)) - x[3]  # (eq. 25)
     return d * d < t * t  # (eq. 26)

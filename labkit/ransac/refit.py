@@ -10,7 +10,7 @@ from scipy.special import ndtr
 
 from ..adjustment import gauss_helmert_model
 from ..errors import LabkitError
-from ..sphere import sphere_residuals
+from ._ball import residuals, shell_points
 from .config import BAND_K, SNOOP_ROUNDS, S
 from .hypotheses import orthogonal_fit, shell_mask
 
@@ -92,20 +92,20 @@ def _robust_band(xyz, x, cfg, unit=None, max_rounds=12):
     sigma_hat = known if known is not None else t / BAND_K
     # only points that can ever be in a band matter: a generous neighbourhood of the hypothesis
     reach = max(8.0 * t, 8.0 * band) if unit is None else max(8.0 * t, 3.0 * BAND_K * float(unit.max()))
-    d = sphere_residuals(xyz, x)
-    near = np.flatnonzero(np.abs(d) < reach)
-    P = xyz[near]
+    idx, d = shell_points(np.ascontiguousarray(xyz, dtype=np.float64), x[:3], x[3], reach)  # one compiled pass
+    close = np.abs(d) < reach
+    near, d = idx[close], d[close]
+    P = np.ascontiguousarray(xyz[near], dtype=np.float64)
     if unit is not None:
         known, band = True, BAND_K * unit[near]
         sigma_hat = float(np.median(unit))
-    d = sphere_residuals(P, x)
     for _ in range(max_rounds):
         inl = np.abs(d) < band
         if inl.sum() <= S:
             break
         x_new = orthogonal_fit(P[inl], x, steps=2)
         x = x if x_new is None else x_new
-        d = sphere_residuals(P, x)
+        d = residuals(P, x)
         inl_new = np.abs(d) < band
         if known is not None:  # band fixed by the given sigma: iterate the sphere until the inliers settle
             if np.array_equal(inl_new, inl):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._ball import ball_counts, ball_indices, plane_counts, shell_points
+from ._ball import ball_counts, ball_counts_t, ball_indices, plane_counts, shell_points
 from .config import (
     BACKFACE_SHARE, BAND_K, COARSE_CLEAR, COARSE_POINTS, CONTRAST, INTERIOR_SHARE, MIN_LEVELS, MIN_SPREAD, PLANE_RATIO,
     SHADOW_SHARE, SHAPE_POINTS, TWO_PLANES_POINTS, TWO_PLANES_SHARE, VERIFY_MAX, S,
@@ -25,13 +25,16 @@ class Verifier:
     def __init__(self, X, station, cfg):
         self.X, self.station, self.cfg = np.ascontiguousarray(X, dtype=np.float64), station, cfg
         step = len(self.X) // COARSE_POINTS
-        self._sub = np.ascontiguousarray(self.X[::step]) if step >= 2 else None  # for the coarse test
-        self._scale = len(self.X) / len(self._sub) if step >= 2 else 1.0
+        # the coarse test runs on an even subsample (or, for a small cloud, on every point), stored by axis (3, m)
+        self._sub = np.ascontiguousarray(self.X[:: max(step, 1)].T)
+        self._scale = len(self.X) / self._sub.shape[1] if step >= 2 else 1.0
+        self._sub_all = step < 2
         self.n_rejected, self.n_checked = 0, 0
         self.best_rejection = ""
         self._best_rejected_score = -np.inf
         self._rejected = []  # polished spheres that failed
         self._R = None  # the same as an array (cached)
+        self._ball = None  # (centre, radius, indices, points) of the last ball read from the cloud
 
     def ball(self, c, R):
         """Indices of the points within distance R of c (one pass over the cloud, no tree)."""
@@ -73,12 +76,14 @@ class Verifier:
             return ""
         radii = [r + t, r - t, r - 5.0 * t]
         about = ""
-        if self._sub is not None:  # first on an even subsample: a clear verdict needs no pass over all points
-            outer, inner, deep = ball_counts(self._sub, c, radii) * self._scale
+        if self._sub_all:  # a small cloud: every point counted at once
+            outer, inner, deep = ball_counts_t(self._sub, c, radii)
+        else:  # first on an even subsample: a clear verdict needs no pass over all points
+            outer, inner, deep = ball_counts_t(self._sub, c, radii) * self._scale
             if deep >= COARSE_CLEAR * self._scale and deep > 2.0 * max(5.0 * INTERIOR_SHARE * (outer - inner), 20):
                 about = "about "
-        if not about:
-            outer, inner, deep = ball_counts(self.X, c, radii)
+            else:
+                outer, inner, deep = ball_counts(self.X, c, radii)
         shell = int(outer - inner)
         if deep > max(5.0 * INTERIOR_SHARE * shell, 20):
             return (f"{about}{int(deep)} points lie deep inside it (for {about}{shell} on its shell): a solid sphere "
@@ -107,8 +112,23 @@ class Verifier:
         return ((dc2 < tol * tol) & (np.abs(X[:, None, 3] - R[None, :, 3]) < tol)).any(axis=1)
 
     def _local(self, x, reach):
-        """Indices and residuals d (eq. 25) of the points within r + reach of the centre."""
-        return shell_points(self.X, x[:3], x[3], reach)
+        """Indices and residuals d (eq. 25) of the points within r + reach of the centre.
+
+        The polishing rounds and checks of one candidate ask for nearly the same ball
+        again and again: the points of a somewhat larger ball are kept, and a ball inside
+        it is answered from them (the same points in the same order, the same d).
+        """
+        c, r = np.asarray(x[:3], dtype=np.float64), float(x[3])
+        if self._ball is not None:
+            c0, R0, idx0, P0 = self._ball
+            if np.linalg.norm(c - c0) + r + reach <= R0 * (1.0 - 1e-9):  # inside the kept ball
+                i, d = shell_points(P0, c, r, reach)
+                return idx0[i], d
+        R0 = r + max(reach, 2.0 * BAND_K * self.cfg.threshold * 3.0) + max(2.0 * self.cfg.threshold, 0.05 * r)
+        idx0 = ball_indices(self.X, c, R0)
+        self._ball = (c.copy(), R0, idx0, self.X[idx0])
+        i, d = shell_points(self._ball[3], c, r, reach)
+        return idx0[i], d
 
     def _polish(self, x, t):
         """Inliers -> orthogonal fit, three rounds; the band widens to k sigma_hat when t is below the noise."""

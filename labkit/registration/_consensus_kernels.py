@@ -11,7 +11,9 @@ so in every grid column (ix, iy) the consistent cells of one pair form one open
 z-interval. A source point counts once per cell however many of its pairs are
 consistent there (eq. 6.2): the kernels merge the intervals of one point per
 column before they enter a difference array along z, whose cumulative sum is
-the cube.
+the cube. Where one point has several disjoint intervals in a column, the
+compiled kernel keeps them in a buffer and enters their union once the point is
+done (sorted by column and start), instead of marking cells one by one.
 
 Two interchangeable implementations are provided: a compiled one (numba, used
 when importable) and a vectorized numpy one (sort-based deduplication). Both
@@ -39,30 +41,56 @@ def _njit(*args, **kwargs):
 
 # --------------------------------------------------------------------------- cube: compiled
 @_njit()
-def _mark_cells(diff, stamp, col, z0, z1, nz, p, wp):
-    base = col * (nz + 1)
-    for iz in range(z0, z1 + 1):
-        c = col * nz + iz
-        if stamp[c] != p:
-            stamp[c] = p
-            diff[base + iz] += wp
-            diff[base + iz + 1] -= wp
+def _push(buf, n, col, z0, z1):  # pragma: no cover - compiled
+    """Append the interval (col, z0, z1) to the (3, cap) buffer, doubling it when full."""
+    if n == buf.shape[1]:
+        bigger = np.empty((3, 2 * n), np.int64)
+        bigger[:, :n] = buf
+        buf = bigger
+    buf[0, n] = col
+    buf[1, n] = z0
+    buf[2, n] = z1
+    return buf, n + 1
+
+
+@_njit()
+def _emit_union(buf, n, nz, wp, diff):  # pragma: no cover - compiled
+    """Enter the union of the buffered intervals of one point, per column, into the difference array."""
+    B = nz + 2
+    keys = buf[0, :n] * B + buf[1, :n]
+    order = np.argsort(keys)
+    nz1 = nz + 1
+    cur, s, e = -1, 0, -1
+    for o in order:
+        c, a, b = buf[0, o], buf[1, o], buf[2, o]
+        if c == cur and a <= e + 1:  # overlapping or adjacent: one run of cells
+            if b > e:
+                e = b
+            continue
+        if cur >= 0:
+            diff[cur * nz1 + s] += wp
+            diff[cur * nz1 + e + 1] -= wp
+        cur, s, e = c, a, b
+    if cur >= 0:
+        diff[cur * nz1 + s] += wp
+        diff[cur * nz1 + e + 1] -= wp
 
 
 @_njit()
 def _raster_numba(ptr, U, Nrm, plane, R, E, w, nx, ny, nz, diff):  # pragma: no cover - compiled
     ncol = nx * ny
-    colstamp = np.full(ncol, -1, np.int64)  # p: one merged interval of point p; -2 - p: per-cell marking
+    colstamp = np.full(ncol, -1, np.int64)  # p: one merged interval of point p; -2 - p: several (buffered)
     zlo = np.zeros(ncol, np.int64)
     zhi = np.zeros(ncol, np.int64)
     touched = np.empty(ncol, np.int64)
-    stamp = np.full(ncol * nz, -1, np.int32)
+    buf = np.empty((3, 1024), np.int64)  # the intervals of columns where one point has several
     R2 = R * R
     nz1 = nz + 1
     for p in range(ptr.shape[0] - 1):
         wp = w[p]
         ntouched = 0
-        cell_mode = -2 - p
+        nbuf = 0
+        several = -2 - p
         for k in range(ptr[p], ptr[p + 1]):
             ux, uy, uz = U[k, 0], U[k, 1], U[k, 2]
             ax, ay, inv = 0.0, 0.0, 0.0
@@ -114,12 +142,12 @@ def _raster_numba(ptr, U, Nrm, plane, R, E, w, nx, ny, nz, diff):  # pragma: no 
                                 zlo[col] = z0
                             if z1 > zhi[col]:
                                 zhi[col] = z1
-                        else:  # a second, disjoint interval: switch to per-cell marking
-                            colstamp[col] = cell_mode
-                            _mark_cells(diff, stamp, col, zlo[col], zhi[col], nz, p, wp)
-                            _mark_cells(diff, stamp, col, z0, z1, nz, p, wp)
-                    elif st == cell_mode:
-                        _mark_cells(diff, stamp, col, z0, z1, nz, p, wp)
+                        else:  # a second, disjoint interval: buffer both, unite them at the end
+                            colstamp[col] = several
+                            buf, nbuf = _push(buf, nbuf, col, zlo[col], zhi[col])
+                            buf, nbuf = _push(buf, nbuf, col, z0, z1)
+                    elif st == several:
+                        buf, nbuf = _push(buf, nbuf, col, z0, z1)
                     else:  # first interval of this point in the column
                         colstamp[col] = p
                         zlo[col] = z0
@@ -131,6 +159,8 @@ def _raster_numba(ptr, U, Nrm, plane, R, E, w, nx, ny, nz, diff):  # pragma: no 
             if colstamp[col] == p:
                 diff[col * nz1 + zlo[col]] += wp
                 diff[col * nz1 + zhi[col] + 1] -= wp
+        if nbuf:
+            _emit_union(buf, nbuf, nz, wp, diff)
 
 
 # --------------------------------------------------------------------------- cube: numpy
