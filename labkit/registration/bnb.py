@@ -343,7 +343,7 @@ def _sandwich(A, l, p, x, deg, cells, box_var):
     d = np.linalg.solve(rest, G[:, :, None])[:, :, 0]
     cov_c = d.T @ d * (n_blocks - 1) / n_blocks
     Vu = deg.eigenvectors[:, ~deg.constrained]
-    return Vc @ cov_c @ Vc.T + box_var * (Vu @ Vu.T)
+    return Vc @ cov_c @ Vc.T + box_var * (Vu @ Vu.T), np.unique(cells, axis=0), d @ Vc.T
 
 
 def _held_effect(t, deg, box_var, members, src, w, tgt, tree, k, reject_sigma, max_std):
@@ -390,6 +390,8 @@ class _Side:
     records: list
     ls_ok: bool
     n_used: int
+    held: np.ndarray
+    blocks: tuple | None
 
 
 def _one_side(src, w, members, tgt, tree, t_start, t_ref, *, box_var, k, reject_sigma, max_std, block_size,
@@ -413,12 +415,35 @@ def _one_side(src, w, members, tgt, tree, t_start, t_ref, *, box_var, k, reject_
     if fit is None:
         return None
     ls_ok = bool(moved < max(1e-6, 0.05 * sigma0 / np.sqrt(deg.eigenvalues.max())))
-    cells = np.floor(src[members[keep]][:, :2] / block_size).astype(np.int64)
+    cells = np.floor((src[members[keep]] + t)[:, :2] / block_size).astype(np.int64)  # blocks in the target frame
     robust = _sandwich(A[keep], l[keep], p[keep], t, deg, cells, box_var)
-    cov, kind = (cov, "sigma0^2 N^-1 (too few blocks for the jackknife)") if robust is None else (
-        robust, f"delete-a-block jackknife over {block_size:.3g} m blocks")
-    cov = cov + _held_effect(t, deg, box_var, members, src, w, tgt, tree, k, reject_sigma, max_std)
-    return _Side(t, sigma0, cov, deg, keep, A, l, p, cells, kind, records, ls_ok, int(keep.sum()))
+    cov, kind, blocks = (cov, "sigma0^2 N^-1 (too few blocks for the jackknife)", None) if robust is None else (
+        robust[0], f"delete-a-block jackknife over {block_size:.3g} m blocks", robust[1:])
+    held = _held_effect(t, deg, box_var, members, src, w, tgt, tree, k, reject_sigma, max_std)
+    return _Side(t, sigma0, cov + held, deg, keep, A, l, p, cells, kind, records, ls_ok, int(keep.sum()), held,
+                 blocks)
+
+
+def _symmetric_cov(fwd, rev, box_var):
+    """Covariance of the mean of the forward and the (negated) reverse estimate (eq. 6.14).
+
+    Both fits see the same ground, so their errors are correlated: the delete-a-block jackknife
+    deletes a block from both at once, d_b = (d_b,fwd - d_b,rev) / 2. Without blocks on either side,
+    the mean of the two covariances (an upper bound of the covariance of the mean).
+    """
+    if fwd.blocks is None or rev.blocks is None:
+        return 0.5 * (fwd.cov + rev.cov)
+    keys = np.vstack([fwd.blocks[0], rev.blocks[0]])
+    _, inv = np.unique(keys, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    d = np.zeros((int(inv.max()) + 1, 3))
+    np.add.at(d, inv[: len(fwd.blocks[0])], 0.5 * fwd.blocks[1])
+    np.add.at(d, inv[len(fwd.blocks[0]):], -0.5 * rev.blocks[1])  # the reverse estimates -t: its shift is -d
+    n = len(d)
+    V = fwd.deg.eigenvectors
+    Vc, Vu = V[:, fwd.deg.constrained], V[:, ~fwd.deg.constrained]
+    P = Vc @ Vc.T
+    return P @ (d.T @ d) @ P * (n - 1) / n + box_var * (Vu @ Vu.T) + 0.5 * (fwd.held + rev.held)
 
 
 def _reverse_side(fwd, pb, src, tgt, R, E, bb, opts):
@@ -504,10 +529,10 @@ def refine(bb, src_of, D, nrm, pb, reject_sigma, ext, runtime_bb, t0, max_outer:
             P = P @ P.T
             bias = P @ (fwd.t + rev.t) / 2  # half the sum of the two (reverse = -t): the plane bias
             t = fwd.t - bias
-            cov = 0.5 * (fwd.cov + rev.cov)  # >= the covariance of the mean of two correlated estimates
+            cov = _symmetric_cov(fwd, rev, box_var)
             kind += (f"; symmetric: mean of the fits source->target and target->source (they differ by 2 x "
                      f"{np.array2string(1000 * bias, precision=1)} mm, the bias of the local planes), "
-                     "covariance the mean of theirs")
+                     "blocks deleted from both")
             ls_ok = ls_ok and rev.ls_ok
         elif pb.weighted or pb.src_full is None:
             kind += "; one-sided (given weights): the bias of the local planes is not cancelled"
