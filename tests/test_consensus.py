@@ -326,3 +326,25 @@ def test_consensus_then_icp_defaults_on_real_halves(realdata, name):
     assert np.isfinite(std).all() and (std > 0).all(), std
     assert (np.abs(err) < 0.02).all(), err
     assert (np.abs(err) <= 3 * std).all(), (err, std)
+
+
+def test_default_budget_is_deterministic_under_load(monkeypatch):
+    """The default budgets count work (splits, pair tests), not seconds: a clock that runs a second
+    per reading (a machine under heavy load) gives the identical result; the opt-in wall-clock
+    limit ``max_time`` under the same clock stops early, so the comparison can fail."""
+    import time
+
+    rng = np.random.default_rng(3)
+    tgt, src = _hills(rng, 3000), _hills(rng, 1500) - np.array([0.12, -0.08, 0.05])
+    kw = dict(extent=0.3, tol=0.001, max_work=3_000_000)  # small work budget: it ends the search
+    calm = max_consensus(src, tgt, **kw)
+    ticks = iter(range(10**9))
+    monkeypatch.setattr(time, "perf_counter", lambda: float(next(ticks)))  # one second per reading
+    loaded = max_consensus(src, tgt, **kw)
+    timed = max_consensus(src, tgt, max_time=20.0, **kw)
+    a, b = calm.history[0], loaded.history[0]
+    assert "work budget" in a.reason and a.reason == b.reason and a.splits == b.splits > 0
+    assert a.pair_tests == b.pair_tests >= 3_000_000
+    assert np.array_equal(calm.translation, loaded.translation)
+    assert np.array_equal(calm.covariance, loaded.covariance)
+    assert "time budget" in timed.history[0].reason and timed.history[0].splits < a.splits
