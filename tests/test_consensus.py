@@ -348,3 +348,22 @@ def test_default_budget_is_deterministic_under_load(monkeypatch):
     assert np.array_equal(calm.translation, loaded.translation)
     assert np.array_equal(calm.covariance, loaded.covariance)
     assert "time budget" in timed.history[0].reason and timed.history[0].splits < a.splits
+
+
+@pytest.mark.parametrize("truth", [[0.93, -0.96, 0.40], [1.25, 0.30, -0.20]])
+def test_shifts_near_and_beyond_the_box_face_are_reached(truth):
+    """Defaults (+-1 m): a shift near the face of the box is found; one beyond it is found by the
+    second search centred where the first one ended at the face (the message says so); the
+    consensus+icp route of ``labkit register`` starts from it and ends right."""
+    from labkit.compare import standard_methods
+
+    rng = np.random.default_rng(7)
+    truth = np.array(truth)
+    tgt, src = _hills(rng, 6000), _hills(rng, 3000) - truth
+    res = max_consensus(src, tgt)
+    assert np.all(np.abs(res.translation - truth) <= np.maximum(3 * res.translation_std, 0.002)), res.message
+    assert np.all(res.translation_std < 0.02)
+    if np.abs(truth).max() > 1.0:
+        assert "searched again" in res.message
+    both = standard_methods(("consensus+icp",))["consensus+icp"](src, tgt)
+    assert np.all(np.abs(both.translation - truth) < 0.02), both.message

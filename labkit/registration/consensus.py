@@ -257,6 +257,7 @@ def max_consensus(
     max_std: float | None = None,
     use_numba: bool | None = None,
     select: str = "auto",
+    recentre: bool = True,
 ):
     """Globally best translation by branch and bound, then least squares on the consensus set.
 
@@ -347,6 +348,12 @@ def max_consensus(
     Monte Carlo on synthetic pairs: spread / stated std 1.10, 0.83, 1.03 on smooth hills;
     1.08, 1.72, 1.59 on the village, whose ridges and eaves bias the local planes.
 
+    recentre : bool
+        When the best translation lies at a face of the box (within a first-level box or a tenth
+        of ``extent``), search once more in a box of the same size centred there along those axes
+        and keep the search with the higher consensus: shifts near or beyond ``extent`` are reached
+        (the message says so).
+
     Returns
     -------
     RegistrationResult
@@ -402,6 +409,19 @@ def max_consensus(
     # Branch and bound over continuous translations, within the budget
     bb = branch_and_bound(ptr, src_of, D, nrm, pb, c, ext, tol, opts["max_boxes"], step0, opts["gap_tol"],
                           use_numba, max_time=opts["max_time"], max_work=opts["max_work"])
+    near = np.abs(bb.translation - c) > ext - np.maximum(step0, 0.1 * ext)
+    if recentre and near.any():  # the best shift lies at a face of the box: the maximum may lie beyond it
+        c2 = np.where(near, bb.translation, c)
+        ptr2, src2, D2, nrm2 = candidate_pairs(pb, c2 - ext, c2 + ext, pb.radius + 2 * step0)
+        bb2 = branch_and_bound(ptr2, src2, D2, nrm2, pb, c2, ext, tol, opts["max_boxes"], step0, opts["gap_tol"],
+                               use_numba, max_time=opts["max_time"], max_work=opts["max_work"])
+        moved = f"best shift at the face of the box +-{ext.max():g} m around {np.round(c, 3).tolist()}: searched again"
+        if bb2.lower > bb.lower:
+            ptr, src_of, D, nrm, bb, c = ptr2, src2, D2, nrm2, bb2, c2
+            moved += f" around {np.round(c2, 3).tolist()} m and kept that search"
+        else:
+            moved += f" around {np.round(c2, 3).tolist()} m, no better consensus there"
+        bb = replace(bb, reason=f"{bb.reason}; {moved}")
     # Least squares with weights and iterative deletion on the consensus set; sandwich covariance
     res = refine(bb, src_of, D, nrm, pb, opts["reject_sigma"], ext, time.perf_counter() - t0, t0,
                  k=max(4, int(k)), block_size=opts["block_size"], max_std=opts["max_std"])
