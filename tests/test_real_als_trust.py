@@ -74,13 +74,6 @@ def test_defaults_are_right_or_honest_on_real_halves(realdata, name):
     assert sum(v in ("ok", "refused") for v in verdicts) >= 3, verdicts
 
 
-#: Files on which maximum consensus still states a confident wrong shift (measured, benchmarks/bench_trust.py):
-#: dense ground, roofs in feet and UAV, 4-8 mm off at a stated 2 mm (ICP and consensus+icp are right there).
-MC_KNOWN = {
-    "als/faceraster_numerical_imprecision.laz", "als/file_with_both_wkt_and_geotiff_vlrs.las", "als/fullwave.laz",
-}  # fmt: skip
-
-
 @pytest.mark.parametrize("name", FILES)
 def test_consensus_routes_are_not_confidently_wrong(realdata, name):
     path = realdata / name
@@ -89,12 +82,11 @@ def test_consensus_routes_are_not_confidently_wrong(realdata, name):
     tgt, src0 = _halves(path)
     s = SHIFTS[FILES.index(name) % len(SHIFTS)]
     src = src0.with_xyz(src0.xyz - s)
-    # maximum consensus (the box budget replaces the wall-clock one: deterministic), then ICP from there
-    mc = max_consensus(src, tgt, max_time=None, max_boxes=1000)
+    # maximum consensus (a smaller box budget than the default keeps the test short; both count work, so
+    # the result does not depend on the load of the machine), then ICP from there
+    mc = max_consensus(src, tgt, max_boxes=1000)
     refined = _run(icp, src, tgt, robust="tukey", initial=mc.matrix, rng=0)  # labkit register consensus+icp
     assert refined is None or _verdict(refined, s) != "WRONG", (refined.translation - s, refined.translation_std)
-    if name in MC_KNOWN and _verdict(mc, s) == "WRONG":
-        pytest.xfail(f"max_consensus overconfident: {mc.translation - s} m off at {mc.translation_std} m")
     assert _verdict(mc, s) != "WRONG", (mc.translation - s, mc.translation_std)
 
 
@@ -125,7 +117,7 @@ def test_autzen_epochs_icp_converges_and_agrees_with_max_consensus(realdata):
         pytest.skip("Autzen epochs absent")
     src, tgt = read_cloud(a), read_cloud(b)  # Z in US survey feet, converted by read_cloud
     ri = icp(src, tgt, rng=0)
-    rc = max_consensus(src, tgt, max_time=None, max_boxes=1000)
+    rc = max_consensus(src, tgt, max_boxes=1000)
     assert ri.converged, ri.message
     combined = np.hypot(ri.translation_std, rc.translation_std)
     both = np.isfinite(combined)

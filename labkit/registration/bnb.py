@@ -415,10 +415,17 @@ def _one_side(src, w, members, tgt, tree, t_start, t_ref, *, box_var, k, reject_
     if fit is None:
         return None
     ls_ok = bool(moved < max(1e-6, 0.05 * sigma0 / np.sqrt(deg.eigenvalues.max())))
-    cells = np.floor((src[members[keep]] + t)[:, :2] / block_size).astype(np.int64)  # blocks in the target frame
-    robust = _sandwich(A[keep], l[keep], p[keep], t, deg, cells, box_var)
-    cov, kind, blocks = (cov, "sigma0^2 N^-1 (too few blocks for the jackknife)", None) if robust is None else (
-        robust[0], f"delete-a-block jackknife over {block_size:.3g} m blocks", robust[1:])
+    # the jackknife over blocks of each edge (blocks in the target frame); the largest covariance counts
+    xy = (src[members[keep]] + t)[:, :2]
+    jack = [(b, _sandwich(A[keep], l[keep], p[keep], t, deg, np.floor(xy / b).astype(np.int64), box_var))
+            for b in np.atleast_1d(block_size)]
+    jack = [(b, r) for b, r in jack if r is not None]
+    cells = np.floor(xy / np.atleast_1d(block_size)[0]).astype(np.int64)
+    if jack:
+        b, r = max(jack, key=lambda br: np.trace(br[1][0]))
+        cov, kind, blocks = r[0], f"delete-a-block jackknife over {b:.3g} m blocks", [(b, *r[1:]) for b, r in jack]
+    else:
+        kind, blocks = "sigma0^2 N^-1 (too few blocks for the jackknife)", None
     held = _held_effect(t, deg, box_var, members, src, w, tgt, tree, k, reject_sigma, max_std)
     return _Side(t, sigma0, cov + held, deg, keep, A, l, p, cells, kind, records, ls_ok, int(keep.sum()), held,
                  blocks)
@@ -431,19 +438,24 @@ def _symmetric_cov(fwd, rev, box_var):
     deletes a block from both at once, d_b = (d_b,fwd - d_b,rev) / 2. Without blocks on either side,
     the mean of the two covariances (an upper bound of the covariance of the mean).
     """
-    if fwd.blocks is None or rev.blocks is None:
-        return 0.5 * (fwd.cov + rev.cov)
-    keys = np.vstack([fwd.blocks[0], rev.blocks[0]])
-    _, inv = np.unique(keys, axis=0, return_inverse=True)
-    inv = inv.ravel()
-    d = np.zeros((int(inv.max()) + 1, 3))
-    np.add.at(d, inv[: len(fwd.blocks[0])], 0.5 * fwd.blocks[1])
-    np.add.at(d, inv[len(fwd.blocks[0]):], -0.5 * rev.blocks[1])  # the reverse estimates -t: its shift is -d
-    n = len(d)
+    rev_blocks = {b: (keys, d) for b, keys, d in (rev.blocks or ())}
+    pairs = [(f, rev_blocks[f[0]]) for f in (fwd.blocks or ()) if f[0] in rev_blocks]
+    if not pairs:
+        return 0.5 * (fwd.cov + rev.cov), fwd.kind
     V = fwd.deg.eigenvectors
     Vc, Vu = V[:, fwd.deg.constrained], V[:, ~fwd.deg.constrained]
     P = Vc @ Vc.T
-    return P @ (d.T @ d) @ P * (n - 1) / n + box_var * (Vu @ Vu.T) + 0.5 * (fwd.held + rev.held)
+    covs = []
+    for (b, keys_f, d_f), (keys_r, d_r) in pairs:
+        _, inv = np.unique(np.vstack([keys_f, keys_r]), axis=0, return_inverse=True)
+        inv = inv.ravel()
+        d = np.zeros((int(inv.max()) + 1, 3))
+        np.add.at(d, inv[: len(keys_f)], 0.5 * d_f)
+        np.add.at(d, inv[len(keys_f):], -0.5 * d_r)  # the reverse estimates -t: its shift is -d
+        n = len(d)
+        covs.append((b, P @ (d.T @ d) @ P * (n - 1) / n))
+    b, cov = max(covs, key=lambda bc: np.trace(bc[1]))
+    return cov + box_var * (Vu @ Vu.T) + 0.5 * (fwd.held + rev.held), f"delete-a-block jackknife over {b:.3g} m blocks"
 
 
 def _reverse_side(fwd, pb, src, tgt, R, E, bb, opts):
@@ -514,7 +526,7 @@ def refine(bb, src_of, D, nrm, pb, reject_sigma, ext, runtime_bb, t0, max_outer:
         members = _consistent(src, bb.translation, tgt, tree, k, R, E)
     if block_size is None:  # two voting points closer than twice the radius of the k-neighbourhoods share
         d, _ = tree.query(tgt[:: max(1, len(tgt) // 5000)], k=k, workers=-1)  # target points: one block
-        block_size = max(2.0 * float(np.median(d[:, -1])), 1e-3)
+        block_size = max(2.0 * float(np.median(d[:, -1])), 1e-3) * np.array([1.0, 2.0])  # the larger one counts
     opts = dict(box_var=box_var, k=k, reject_sigma=reject_sigma, max_std=max_std, block_size=block_size,
                 max_outer=max_outer)
     fwd = _one_side(src, w, members, tgt, tree, bb.translation, bb.translation, **opts)
@@ -529,7 +541,7 @@ def refine(bb, src_of, D, nrm, pb, reject_sigma, ext, runtime_bb, t0, max_outer:
             P = P @ P.T
             bias = P @ (fwd.t + rev.t) / 2  # half the sum of the two (reverse = -t): the plane bias
             t = fwd.t - bias
-            cov = _symmetric_cov(fwd, rev, box_var)
+            cov, kind = _symmetric_cov(fwd, rev, box_var)
             kind += (f"; symmetric: mean of the fits source->target and target->source (they differ by 2 x "
                      f"{np.array2string(1000 * bias, precision=1)} mm, the bias of the local planes), "
                      "blocks deleted from both")

@@ -321,9 +321,11 @@ def max_consensus(
         Deletion threshold (> 0) for standardized residuals in the refinement, in robust standard
         deviations (as ``reject_sigma`` of :func:`icp`).
     block_size : float, optional
-        Edge (m) of the square (XY) blocks of the jackknife covariance; default: twice the
-        radius of the target's k-neighbourhoods (median distance to the k-th neighbour), the
-        distance within which the residuals of two voting points share target points.
+        Edge (m) of the square (XY) blocks of the jackknife covariance; default: twice and four
+        times the radius of the target's k-neighbourhoods (median distance to the k-th
+        neighbour; two voting points closer than twice it share target points), and the larger
+        of the two covariances counts (errors correlated over longer distances, such as the
+        shape of the terrain, show as a growth with the block edge).
     max_std : float, optional
         A direction of the translation is determined when its standard deviation is at
         most ``max_std`` (m); default eps / 2. Weaker directions keep the branch-and-bound
