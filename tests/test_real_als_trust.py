@@ -134,3 +134,31 @@ def test_identical_copy_never_states_zero_precision(realdata):
     std = res.translation_std
     assert np.all(std[np.isfinite(std)] > 0), std
     assert np.allclose(res.translation, 0, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_max_consensus_std_against_random_halves(realdata):
+    """Monte Carlo over eight random splits of the UAV scan (fullwave.laz): stated std against the spread.
+
+    The one-sided fit was 8 mm off in Y at a stated 2.4 mm for every split (the k-neighbourhood
+    planes lie inside the curved surface); the symmetric estimate removes that bias. The robust
+    spread (1.4826 x the median |error| / std) is checked: measured 1.16 for X and Y together. The
+    tail is heavier than Gaussian: one split of the eight (seed 5) leaves X and Y 7 mm off at
+    1.5 mm (the plain spread / stated is then about 2); Z is stated conservatively (0.7).
+    """
+    path = realdata / "als" / "fullwave.laz"
+    if not path.is_file():
+        pytest.skip("fullwave.laz absent")
+    cloud = read_cloud(path)
+    s = SHIFTS[1]
+    z = []
+    for seed in range(8):
+        rng = np.random.default_rng(seed)
+        half = rng.random(len(cloud.xyz)) < 0.5
+        res = max_consensus(cloud.subset(~half).with_xyz(cloud.xyz[~half] - s), cloud.subset(half))
+        assert res.degeneracy.well_posed and "symmetric" in res.message, res.message
+        z.append((res.translation - s) / res.translation_std)
+    z = np.abs(np.array(z))
+    robust = 1.4826 * np.median(z[:, :2])
+    assert 0.8 <= robust <= 1.25, robust
+    assert 1.4826 * np.median(z[:, 2]) <= 1.25, z[:, 2]

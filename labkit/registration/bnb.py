@@ -412,6 +412,11 @@ def _one_side(src, w, members, tgt, tree, t_start, t_ref, *, box_var, k, reject_
         t = x
         if moved < max(1e-6, 0.05 * sigma0 / np.sqrt(deg.eigenvalues.max())):  # a small part of the best std
             break
+        # a cycle: the deletion and the association switch between a few states; their mean is the answer
+        back = [j for j in range(2, min(5, len(records)) + 1) if np.allclose(records[-j].translation, x, atol=1e-9)]
+        if back:
+            t, moved = np.mean([r.translation for r in records[-back[0]:]], axis=0), 0.0
+            break
     if fit is None:
         return None
     ls_ok = bool(moved < max(1e-6, 0.05 * sigma0 / np.sqrt(deg.eigenvalues.max())))
