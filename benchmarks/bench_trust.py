@@ -158,6 +158,7 @@ def main(argv=None):
     ap.add_argument("--shifts", default="0,1,2,3", help="indices into SHIFTS")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-open3d", action="store_true")
+    ap.add_argument("--no-epochs", action="store_true", help="skip the Autzen 2010 -> 2023 comparison")
     args = ap.parse_args(argv)
     o3d = None
     if not args.no_open3d:
@@ -205,7 +206,8 @@ def main(argv=None):
                 right = "ok" if np.all(np.abs(err) <= RIGHT) else "wrong (no std)"
                 print(head + f"{'open3d p2plane':14s} {cells(err):60s} {right:16s}", flush=True)
     print("\ntally (ok / miss / CONFIDENT-WRONG):", {m: tuple(v) for m, v in tally.items()})
-    epoch_pair(root, o3d)
+    if not args.no_epochs:
+        epoch_pair(root, o3d)
 
 
 if __name__ == "__main__":
