@@ -440,7 +440,7 @@ def _symmetric_cov(fwd, rev, box_var):
     """Covariance of the mean of the forward and the (negated) reverse estimate (eq. 6.14).
 
     Both fits see the same ground, so their errors are correlated: the delete-a-block jackknife
-    deletes a block from both at once, d_b = (d_b,fwd - d_b,rev) / 2; at least (C_fwd + C_rev) / 4. Without blocks on either side,
+    deletes a block from both at once, d_b = (d_b,fwd - d_b,rev) / 2. Without blocks on either side,
     the mean of the two covariances (an upper bound of the covariance of the mean).
     """
     rev_blocks = {b: (keys, d) for b, keys, d in (rev.blocks or ())}
@@ -460,10 +460,6 @@ def _symmetric_cov(fwd, rev, box_var):
         n = len(d)
         covs.append((b, P @ (d.T @ d) @ P * (n - 1) / n))
     b, cov = max(covs, key=lambda bc: np.trace(bc[1]))
-    # the two fits rest on disjoint observations (the noise of the source, that of the target): their mean
-    # has at least the covariance of independent fits, unless the epochs share their noise (an identical copy)
-    floor = P @ (0.25 * (fwd.cov + rev.cov)) @ P
-    cov = floor if np.trace(cov) < np.trace(floor) else cov
     return cov + box_var * (Vu @ Vu.T) + 0.5 * (fwd.held + rev.held), f"delete-a-block jackknife over {b:.3g} m blocks"
 
 
