@@ -476,6 +476,8 @@ def _reverse_side(fwd, pb, src, tgt, R, E, bb, opts):
     """
     if pb.weighted or pb.src_full is None or len(pb.src_full) < opts["k"] + 1:
         return None
+    if pb.src_full.shape == tgt.shape and np.array_equal(pb.src_full, tgt):  # an identical copy: nothing new
+        return None
     sub = even_subset(tgt, max(len(src), 3))  # as many target points as the source side had
     tree_s = cKDTree(pb.src_full)
     members = _consistent(tgt[sub], -fwd.t, pb.src_full, tree_s, opts["k"], R, E)
