@@ -75,13 +75,6 @@ def test_defaults_are_right_or_honest_on_real_halves(realdata, name):
     assert sum(v in ("ok", "refused") for v in verdicts) >= 3, verdicts
 
 
-#: Files on which maximum consensus still states a confident wrong shift (measured, benchmarks/bench_trust.py):
-#: dense ground, roofs in feet and UAV, 4-8 mm off at a stated 2 mm (ICP and consensus+icp are right there).
-MC_KNOWN = {
-    "als/faceraster_numerical_imprecision.laz", "als/file_with_both_wkt_and_geotiff_vlrs.las", "als/fullwave.laz",
-}  # fmt: skip
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("name", FILES)
 def test_consensus_routes_are_not_confidently_wrong(realdata, name):
@@ -91,12 +84,11 @@ def test_consensus_routes_are_not_confidently_wrong(realdata, name):
     tgt, src0 = _halves(path)
     s = SHIFTS[FILES.index(name) % len(SHIFTS)]
     src = src0.with_xyz(src0.xyz - s)
-    # maximum consensus (the box budget replaces the wall-clock one: deterministic), then ICP from there
-    mc = max_consensus(src, tgt, max_time=None, max_boxes=1000)
+    # maximum consensus (a smaller box budget than the default keeps the test short; both count work, so
+    # the result does not depend on the load of the machine), then ICP from there
+    mc = max_consensus(src, tgt, max_boxes=1000)
     refined = _run(icp, src, tgt, robust="tukey", initial=mc.matrix, rng=0)  # labkit register consensus+icp
     assert refined is None or _verdict(refined, s) != "WRONG", (refined.translation - s, refined.translation_std)
-    if name in MC_KNOWN and _verdict(mc, s) == "WRONG":
-        pytest.xfail(f"max_consensus overconfident: {mc.translation - s} m off at {mc.translation_std} m")
     assert _verdict(mc, s) != "WRONG", (mc.translation - s, mc.translation_std)
 
 
@@ -127,7 +119,7 @@ def test_autzen_epochs_icp_converges_and_agrees_with_max_consensus(realdata):
         pytest.skip("Autzen epochs absent")
     src, tgt = read_cloud(a), read_cloud(b)  # Z in US survey feet, converted by read_cloud
     ri = icp(src, tgt, rng=0)
-    rc = max_consensus(src, tgt, max_time=None, max_boxes=1000)
+    rc = max_consensus(src, tgt, max_boxes=1000)
     assert ri.converged, ri.message
     combined = np.hypot(ri.translation_std, rc.translation_std)
     assert np.all(np.isfinite(combined)), (ri.translation_std, rc.translation_std)  # X, Y and Z stated by both
@@ -187,3 +179,31 @@ def test_stated_std_matches_the_spread_over_random_halves(realdata):
         rms = float(np.sqrt(np.mean(np.square(z))))
         assert 0.8 <= rms <= 1.25, (path.name, rms, len(z))
         assert np.max(np.abs(z)) <= 3.0, (path.name, np.max(np.abs(z)))
+
+
+@pytest.mark.slow
+def test_max_consensus_std_against_random_halves(realdata):
+    """Monte Carlo over eight random splits of the UAV scan (fullwave.laz): stated std against the spread.
+
+    The one-sided fit was 8 mm off in Y at a stated 2.4 mm for every split (the k-neighbourhood
+    planes lie inside the curved surface); the symmetric estimate removes that bias. The robust
+    spread (1.4826 x the median |error| / std) is checked: measured 1.16 for X and Y together. The
+    tail is heavier than Gaussian: one split of the eight (seed 5) leaves X and Y 7 mm off at
+    1.5 mm (the plain spread / stated is then about 2); Z is stated conservatively (0.7).
+    """
+    path = realdata / "als" / "fullwave.laz"
+    if not path.is_file():
+        pytest.skip("fullwave.laz absent")
+    cloud = read_cloud(path)
+    s = SHIFTS[1]
+    z = []
+    for seed in range(8):
+        rng = np.random.default_rng(seed)
+        half = rng.random(len(cloud.xyz)) < 0.5
+        res = max_consensus(cloud.subset(~half).with_xyz(cloud.xyz[~half] - s), cloud.subset(half))
+        assert res.degeneracy.well_posed and "symmetric" in res.message, res.message
+        z.append((res.translation - s) / res.translation_std)
+    z = np.abs(np.array(z))
+    robust = 1.4826 * np.median(z[:, :2])
+    assert 0.8 <= robust <= 1.25, robust
+    assert 1.4826 * np.median(z[:, 2]) <= 1.25, z[:, 2]

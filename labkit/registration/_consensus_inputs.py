@@ -52,6 +52,8 @@ class Problem:
     spacing: float = float("nan")  # spacing of the voting source points (m)
     src_ref: np.ndarray | None = None  # (r, 3) reduced source points of the least-squares refinement
     w_ref: np.ndarray | None = None  # (r,) their weights
+    src_full: np.ndarray | None = None  # (n, 3) every reduced source point (the planes of the reverse fit)
+    weighted: bool = False  # weights were given (the reverse fit has no weights for the target)
 
 
 def prepare_problem(source, target, metric, eps, radius, max_angle_deg, weights, normals, k, *,
@@ -116,7 +118,7 @@ def prepare_problem(source, target, metric, eps, radius, max_angle_deg, weights,
         src=src[keep_s], tgt=tgt, origin=origin, w=w[keep_s], tgt_normals=n_tgt, src_normals=n_src, metric=metric,
         eps=float(eps), radius=float(radius), max_angle_deg=max_angle_deg, tgt_full=tgt_full, noise=noise,
         n_source=len(src), spacing=spacing, src_ref=None if keep_r is None else src[keep_r],
-        w_ref=None if keep_r is None else w[keep_r],
+        w_ref=None if keep_r is None else w[keep_r], src_full=src, weighted=weights is not None,
     )
 
 

@@ -18,6 +18,7 @@ from .._stats import MAD_TO_SIGMA
 from . import _consensus_kernels as K
 from .consistency import block_consistency
 from .degeneracy import degeneracy_report
+from ._consensus_inputs import even_subset
 from .result import RegistrationResult
 
 NAMES = ("tx", "ty", "tz")
@@ -47,6 +48,8 @@ class BnBOutcome(ReportMixin):
     reason : str
         Why the search stopped.
     runtime_s : float
+    pair_tests : int
+        Pair tests of the splits (8 per candidate pair of a split box): the work the budget counts.
     """
 
     translation: np.ndarray
@@ -58,6 +61,7 @@ class BnBOutcome(ReportMixin):
     converged: bool
     reason: str
     runtime_s: float
+    pair_tests: int = 0
 
     def _report(self):
         rows = [
@@ -65,6 +69,7 @@ class BnBOutcome(ReportMixin):
             ("consensus (lower bound)", f"{self.lower:.6g}"),
             ("certified upper bound", f"{self.upper:.6g} (gap {self.gap:.6g})"),
             ("boxes split / left open", f"{self.splits} / {self.open_boxes}"),
+            ("pair tests (the work budget)", f"{self.pair_tests:,}"),
             ("stopped", self.reason),
             ("runtime", fmt(self.runtime_s, 3, "s")),
         ]
@@ -88,7 +93,7 @@ class AdjustmentRecord(ReportMixin):
 
 
 def branch_and_bound(ptr, src_of, D, nrm, pb, center, ext, tol, max_boxes, init_step=0.05, gap_tol=0.0,
-                     use_numba=None, *, max_time=None) -> BnBOutcome:
+                     use_numba=None, *, max_time=None, max_work=None) -> BnBOutcome:
     """Best-first branch and bound over the box ``center +- ext`` (eq. 6.7, 6.8).
 
     Upper bound of a box with centre c and half diagonal h: the consensus at c
@@ -96,8 +101,10 @@ def branch_and_bound(ptr, src_of, D, nrm, pb, center, ext, tol, max_boxes, init_
     first level (boxes of about ``init_step``) is bounded all at once by two
     rasterized cubes; a box is then split into octants, each tested only on
     the pairs that passed its parent's enlarged test. The search stops early when
-    ``max_boxes`` splits or ``max_time`` seconds are spent; the bound of every box
-    still open then enters the certified upper bound.
+    ``max_boxes`` splits or ``max_work`` pair tests are spent (counted work: the same input
+    always gives the same result), or, only if given, ``max_time`` seconds (wall time: the
+    result then depends on the load of the machine); the bound of every box still open then
+    enters the certified upper bound.
 
     Examples
     --------
@@ -140,7 +147,7 @@ def branch_and_bound(ptr, src_of, D, nrm, pb, center, ext, tol, max_boxes, init_
     def evaluate(act, centres, h):
         return K.children(act, src_of, D, nrm, centres, R, E, h, w, use_numba=use_numba)
 
-    counter, splits, small_ub, n_small = len(heap), 0, -np.inf, 0
+    counter, splits, small_ub, n_small, work = len(heap), 0, -np.inf, 0, 0
     dropped = float(ub0[ub0 <= best + gap_tol].max(initial=best))  # bounds of boxes not split (gap_tol)
     reason = "bounds met" if gap_tol == 0 else f"bounds within gap_tol = {gap_tol:g}"
     while heap:
@@ -151,6 +158,9 @@ def branch_and_bound(ptr, src_of, D, nrm, pb, center, ext, tol, max_boxes, init_
         if splits >= max_boxes:
             reason = f"box budget exhausted ({splits} splits)"
             break
+        if max_work is not None and work >= max_work:
+            reason = f"work budget of {max_work:.3g} pair tests spent ({splits} splits)"
+            break
         if max_time is not None and time.perf_counter() - t0 > max_time:
             reason = f"time budget of {max_time:g} s spent ({splits} splits)"
             break
@@ -160,13 +170,13 @@ def branch_and_bound(ptr, src_of, D, nrm, pb, center, ext, tol, max_boxes, init_
             continue
         if act is None:  # pairs that can be consistent somewhere in this first-level box (ball and slab)
             acts, _, _, sure = evaluate(every, c[None, :], float(np.linalg.norm(half)))
-            act, base = acts[0], float(sure[0])
+            act, base, work = acts[0], float(sure[0]), work + every.size
         # Split into octants and bound each
         hh = half / 2
         centres = c + OCTANTS * hh
         acts, ub, lb, sure = evaluate(act, centres, float(np.linalg.norm(hh)))
         ub, lb, sure = ub + sure + base, lb + sure + base, sure + base
-        splits += 1
+        splits, work = splits + 1, work + 8 * act.size
         j = int(np.argmax(lb))
         if lb[j] > best:
             best, best_t = float(lb[j]), centres[j].copy()
@@ -180,7 +190,7 @@ def branch_and_bound(ptr, src_of, D, nrm, pb, center, ext, tol, max_boxes, init_
     if converged and n_small and small_ub > best:
         reason = f"boxes smaller than tol = {tol} m"
     return BnBOutcome(best_t, float(best), float(upper), float(upper - best), splits, len(left) + n_small,
-                      converged, reason, time.perf_counter() - t0)
+                      converged, reason, time.perf_counter() - t0, int(work))
 
 
 def _consensus_set(t, src_of, D, nrm, R, E):
@@ -333,7 +343,7 @@ def _sandwich(A, l, p, x, deg, cells, box_var):
     d = np.linalg.solve(rest, G[:, :, None])[:, :, 0]
     cov_c = d.T @ d * (n_blocks - 1) / n_blocks
     Vu = deg.eigenvectors[:, ~deg.constrained]
-    return Vc @ cov_c @ Vc.T + box_var * (Vu @ Vu.T)
+    return Vc @ cov_c @ Vc.T + box_var * (Vu @ Vu.T), np.unique(cells, axis=0), d @ Vc.T
 
 
 def _held_effect(t, deg, box_var, members, src, w, tgt, tree, k, reject_sigma, max_std):
@@ -361,6 +371,117 @@ def _held_effect(t, deg, box_var, members, src, w, tgt, tree, k, reject_sigma, m
         s_j = Vc @ (Vc.T @ (fit[0] - t)) / step  # change of the determined part per metre of the held one
         extra += box_var * np.outer(s_j, s_j)
     return extra
+
+
+@dataclass(frozen=True, eq=False)
+class _Side:
+    """One direction of the refinement: its estimate, covariance and last design."""
+
+    t: np.ndarray
+    sigma0: float
+    cov: np.ndarray
+    deg: object
+    keep: np.ndarray
+    A: np.ndarray
+    l: np.ndarray
+    p: np.ndarray
+    cells: np.ndarray
+    kind: str
+    records: list
+    ls_ok: bool
+    n_used: int
+    held: np.ndarray
+    blocks: tuple | None
+
+
+def _one_side(src, w, members, tgt, tree, t_start, t_ref, *, box_var, k, reject_sigma, max_std, block_size,
+              max_outer):
+    """Association with the local target planes and adjustment until t settles; its covariance (eq. 6.10-6.14).
+
+    Returns None when too few points are consistent for the adjustment.
+    """
+    t, records, fit = np.array(t_start, dtype=np.float64), [], None
+    for it in range(1, (max_outer if members.size >= 3 else 0) + 1):
+        A, l, p, tilt = _design(members, src[members] + t, tgt, tree, k, w, src)
+        fit = _fit_with_deletion(A, l, p, tilt, t, t_ref, box_var, reject_sigma, max_std)
+        if fit is None:
+            return None
+        x, sigma0, cov, deg, keep = fit
+        records.append(AdjustmentRecord(it, x.copy(), sigma0, int(keep.sum()), int(members.size - keep.sum())))
+        moved = np.linalg.norm(x - t)
+        t = x
+        if moved < max(1e-6, 0.05 * sigma0 / np.sqrt(deg.eigenvalues.max())):  # a small part of the best std
+            break
+        # a cycle: the deletion and the association switch between a few states; their mean is the answer
+        back = [j for j in range(2, min(5, len(records)) + 1) if np.allclose(records[-j].translation, x, atol=1e-9)]
+        if back:
+            t, moved = np.mean([r.translation for r in records[-back[0]:]], axis=0), 0.0
+            break
+    if fit is None:
+        return None
+    ls_ok = bool(moved < max(1e-6, 0.05 * sigma0 / np.sqrt(deg.eigenvalues.max())))
+    # the jackknife over blocks of each edge (blocks in the target frame); the largest covariance counts
+    xy = (src[members[keep]] + t)[:, :2]
+    jack = [(b, _sandwich(A[keep], l[keep], p[keep], t, deg, np.floor(xy / b).astype(np.int64), box_var))
+            for b in np.atleast_1d(block_size)]
+    jack = [(b, r) for b, r in jack if r is not None]
+    cells = np.floor(xy / np.atleast_1d(block_size)[0]).astype(np.int64)
+    if jack:
+        b, r = max(jack, key=lambda br: np.trace(br[1][0]))
+        cov, kind, blocks = r[0], f"delete-a-block jackknife over {b:.3g} m blocks", [(b, *r[1:]) for b, r in jack]
+    else:
+        kind, blocks = "sigma0^2 N^-1 (too few blocks for the jackknife)", None
+    held = _held_effect(t, deg, box_var, members, src, w, tgt, tree, k, reject_sigma, max_std)
+    return _Side(t, sigma0, cov + held, deg, keep, A, l, p, cells, kind, records, ls_ok, int(keep.sum()), held,
+                 blocks)
+
+
+def _symmetric_cov(fwd, rev, box_var):
+    """Covariance of the mean of the forward and the (negated) reverse estimate (eq. 6.14).
+
+    Both fits see the same ground, so their errors are correlated: the delete-a-block jackknife
+    deletes a block from both at once, d_b = (d_b,fwd - d_b,rev) / 2. Without blocks on either side,
+    the mean of the two covariances (an upper bound of the covariance of the mean).
+    """
+    rev_blocks = {b: (keys, d) for b, keys, d in (rev.blocks or ())}
+    pairs = [(f, rev_blocks[f[0]]) for f in (fwd.blocks or ()) if f[0] in rev_blocks]
+    if not pairs:
+        return 0.5 * (fwd.cov + rev.cov), fwd.kind
+    V = fwd.deg.eigenvectors
+    Vc, Vu = V[:, fwd.deg.constrained], V[:, ~fwd.deg.constrained]
+    P = Vc @ Vc.T
+    covs = []
+    for (b, keys_f, d_f), (keys_r, d_r) in pairs:
+        _, inv = np.unique(np.vstack([keys_f, keys_r]), axis=0, return_inverse=True)
+        inv = inv.ravel()
+        d = np.zeros((int(inv.max()) + 1, 3))
+        np.add.at(d, inv[: len(keys_f)], 0.5 * d_f)
+        np.add.at(d, inv[len(keys_f):], -0.5 * d_r)  # the reverse estimates -t: its shift is -d
+        n = len(d)
+        covs.append((b, P @ (d.T @ d) @ P * (n - 1) / n))
+    b, cov = max(covs, key=lambda bc: np.trace(bc[1]))
+    return cov + box_var * (Vu @ Vu.T) + 0.5 * (fwd.held + rev.held), f"delete-a-block jackknife over {b:.3g} m blocks"
+
+
+def _reverse_side(fwd, pb, src, tgt, R, E, bb, opts):
+    """The same adjustment with the roles swapped: target points on the local planes of the source (estimates -t).
+
+    A k-neighbourhood plane lies inside a curved surface (its centroid is off the surface by about
+    curvature x radius^2 / 4), so every point-to-plane residual has a bias that depends on the local
+    shape; on slopes it becomes a horizontal bias of the translation that no resampling shows (it is
+    the same for every random half: 8 mm in Y at a stated 2.4 mm on a UAV scan). Swapping the roles
+    keeps the bias (the planes are still inside the surface) but flips the sign of t, so the mean of
+    the two estimates cancels it to first order. Only without given weights (the target has none)
+    and with the whole source at hand; None otherwise.
+    """
+    if pb.weighted or pb.src_full is None or len(pb.src_full) < opts["k"] + 1:
+        return None
+    if pb.src_full.shape == tgt.shape and np.array_equal(pb.src_full, tgt):  # an identical copy: nothing new
+        return None
+    sub = even_subset(tgt, max(len(src), 3))  # as many target points as the source side had
+    tree_s = cKDTree(pb.src_full)
+    members = _consistent(tgt[sub], -fwd.t, pb.src_full, tree_s, opts["k"], R, E)
+    return _one_side(tgt[sub], np.ones(len(sub)), members, pb.src_full, tree_s, -fwd.t, -bb.translation, **opts)
 
 
 def refine(bb, src_of, D, nrm, pb, reject_sigma, ext, runtime_bb, t0, max_outer: int = 50, k: int = 12,
@@ -404,42 +525,41 @@ def refine(bb, src_of, D, nrm, pb, reject_sigma, ext, runtime_bb, t0, max_outer:
     box_var = float((2 * ext.max()) ** 2 / 12)  # undetermined directions: uniform over the search box
     tree = cKDTree(tgt)
     k = int(min(k, len(tgt)))
+    max_std = max_std or E / 2
     src, w = (pb.src, pb.w) if pb.src_ref is None else (pb.src_ref, pb.w_ref)
     if pb.src_ref is None:  # the consensus set of the voting points
         members = np.unique(src_of[_consensus_set(bb.translation, src_of, D, nrm, R, E)])
     else:  # the refinement points consistent at the optimum: a target point within R, off its local plane by < eps
         members = _consistent(src, bb.translation, tgt, tree, k, R, E)
-    if block_size is None:  # radius of the k-neighbourhoods: residuals closer than that share target points
-        d, _ = tree.query(tgt[:: max(1, len(tgt) // 5000)], k=k, workers=-1)
-        block_size = max(float(np.median(d[:, -1])), 1e-3)
-    t, records, it, ls_ok = bb.translation.copy(), [], 0, False
-    sigma0, cov, deg, n_used, kind, test = float("nan"), np.full((3, 3), np.nan), None, 0, "none", None
-    for _ in range(max_outer if members.size >= 3 else 0):
-        # Associate every member with its local target plane at t, then adjust
-        A, l, p, tilt = _design(members, src[members] + t, tgt, tree, k, w, src)
-        fit = _fit_with_deletion(A, l, p, tilt, t, bb.translation, box_var, reject_sigma, max_std or E / 2)
-        if fit is None:
-            deg = None
-            break
-        x, sigma0, cov, deg, keep = fit
-        it += 1
-        n_used = int(keep.sum())
-        records.append(AdjustmentRecord(it, x.copy(), sigma0, n_used, int(members.size - n_used)))
-        moved = np.linalg.norm(x - t)
-        t = x
-        if moved < max(1e-6, 0.05 * sigma0 / np.sqrt(deg.eigenvalues.max())):  # a small part of the best std
-            ls_ok = True
-            break
-    if deg is not None:
-        cells = np.floor(src[members[keep]][:, :2] / block_size).astype(np.int64)
-        robust = _sandwich(A[keep], l[keep], p[keep], t, deg, cells, box_var)
-        cov, kind = (cov, "sigma0^2 N^-1 (too few blocks for the jackknife)") if robust is None else (
-            robust, f"delete-a-block jackknife over {block_size:.3g} m blocks")
-        cov = cov + _held_effect(t, deg, box_var, members, src, w, tgt, tree, k, reject_sigma, max_std or E / 2)
+    if block_size is None:  # two voting points closer than twice the radius of the k-neighbourhoods share
+        d, _ = tree.query(tgt[:: max(1, len(tgt) // 5000)], k=k, workers=-1)  # target points: one block
+        block_size = max(2.0 * float(np.median(d[:, -1])), 1e-3) * np.array([1.0, 2.0])  # the larger one counts
+    opts = dict(box_var=box_var, k=k, reject_sigma=reject_sigma, max_std=max_std, block_size=block_size,
+                max_outer=max_outer)
+    fwd = _one_side(src, w, members, tgt, tree, bb.translation, bb.translation, **opts)
+    rev = None if fwd is None else _reverse_side(fwd, pb, src, tgt, R, E, bb, opts)
+    t, sigma0, cov, deg, n_used, kind, test, records, ls_ok = (
+        bb.translation.copy(), float("nan"), np.full((3, 3), np.nan), None, 0, "none", None, [], False)
+    if fwd is not None:
+        t, sigma0, cov, deg, n_used, kind, records, ls_ok = (fwd.t, fwd.sigma0, fwd.cov, fwd.deg, fwd.n_used,
+                                                            fwd.kind, fwd.records, fwd.ls_ok)
+        if rev is not None:  # symmetric estimate: the first-order bias of the local planes cancels
+            P = fwd.deg.eigenvectors[:, fwd.deg.constrained]
+            P = P @ P.T
+            bias = P @ (fwd.t + rev.t) / 2  # half the sum of the two (reverse = -t): the plane bias
+            t = fwd.t - bias
+            cov, kind = _symmetric_cov(fwd, rev, box_var)
+            kind += (f"; symmetric: mean of the fits source->target and target->source (they differ by 2 x "
+                     f"{np.array2string(1000 * bias, precision=1)} mm, the bias of the local planes), "
+                     "blocks deleted from both")
+            ls_ok = ls_ok and rev.ls_ok
+        elif pb.weighted or pb.src_full is None:
+            kind += "; one-sided (given weights): the bias of the local planes is not cancelled"
         # reported, not added: on smooth synthetic hills the quadrants differ (their k-neighbourhood planes
         # are biased by the local curvature) and adding their spread doubled the stated std against a
         # Monte Carlo spread / stated of 1.10, 0.83, 1.03 without it (tests/test_consensus.py)
-        test = block_consistency(A[keep], l[keep], p[keep], src[members[keep]], cells, deg)
+        keep = fwd.keep
+        test = block_consistency(fwd.A[keep], fwd.l[keep], fwd.p[keep], src[members[keep]], fwd.cells, deg)
     undetermined = deg.undetermined_axes if deg is not None else NAMES
     msg = (f"branch and bound: consensus {bb.lower:.6g}, certified upper bound {bb.upper:.6g} "
            f"(gap {bb.gap:.6g}) after {bb.splits} splits, {bb.reason}; eps {E * 1000:.1f} mm, "
