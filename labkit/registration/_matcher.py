@@ -87,6 +87,11 @@ class _Matcher:
     query_order: np.ndarray | None = None  # sampled source points in spatial (leaf) order: coherent queries
     query_groups: np.ndarray | None = None  # per row of query_order: its leaf in the source's tree (ascending)
 
+    def __post_init__(self):
+        # per sampled source point: leaf position of its nearest target point in the last call (-1: none);
+        # a warm start of the next search, which changes no answer (KDTree.nearest_in_groups)
+        object.__setattr__(self, "_warm", np.full(len(self.source), -1, dtype=np.intp))
+
     def __call__(self, R=None, t=None) -> Correspondences:
         """Correspondences of the source moved by p' = R p + t (local frame)."""
         opt = self.options
@@ -108,7 +113,9 @@ class _Matcher:
         else:  # the same answer; a source leaf's points walk the target tree together
             g = self.query_groups[ok]
             starts = np.append(np.flatnonzero(np.r_[True, g[1:] != g[:-1]]), len(g))
-            dist, j = self.tree.nearest_in_groups(p[live], starts, opt["max_distance"], workers=workers)
+            warm = self._warm[live]  # each query's nearest target point in the previous call: a first bound
+            dist, j = self.tree.nearest_in_groups(p[live], starts, opt["max_distance"], workers=workers, warm=warm)
+            self._warm[live] = warm
         # back to ascending rows (one scatter), so that the steps below read and write in order
         nearest = np.full(m, -1)
         nearest[live] = np.where(np.isfinite(dist), j, -1)
