@@ -46,6 +46,20 @@ autzen 2010->2023    0.03                   -                0.01
 (all points 0.03, 0.01, -0.02 mm), Open3D -0.02, -0.27, 0.04 mm, the same before and after the speed
 work of issue 11; before it labkit took 6.2-6.7 s against Open3D's 5.8-8.0 s (machine load 6-8).
 
+Measured 2026-12-02 with ``--keep 0.5 --halves-only`` (2 shared cores, load 11.6 at the start and 16-17
+after the rows: two other heavy benchmarks ran beside it; only the ratios within a row mean much):
+
+===================  ===============  =======================  ===========  =======
+pair                 points src/tgt   labkit icp (every point)  Open3D       ratio
+===================  ===============  =======================  ===========  =======
+tls halves           261,806/261,655  38.70                    10.50        3.68
+als halves           174,322/174,605  23.14 (plane 17.83)      21.51        1.08 (0.83)
+===================  ===============  =======================  ===========  =======
+
+Below 300,000 source points the default uses every point (``select='auto'`` keeps the surface
+points: 103,914 and 105,267 pairs). About half of labkit's time on the TLS halves is that surface
+selection (a local PCA and a local quadric, each with its own k-neighbour search, on both clouds).
+
 Run:  python benchmarks/bench_icp.py [--quick] [--realdata PATH] [--repeats N]
 """
 
