@@ -10,6 +10,7 @@ Used by :mod:`labkit.registration.matching`.
 from __future__ import annotations
 
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -54,8 +55,24 @@ def _leaf_geometry(tree, cols, pos, k, quadric=False):
     k = min(k, tree.n)
     threads = -1 if len(pos) > 2000 else 1  # threads cost more than they save on small queries
     nb = tree.query_leaf_positions(pos, k, workers=threads)
-    parts = _in_row_chunks(lambda a, b: _geometry_rows(tree, cols, pos[a:b], nb[a:b], k, quadric), len(pos))
-    n, noise, variation, lam, tangents, *fit = parts[0] if len(parts) == 1 else (np.concatenate(x) for x in zip(*parts))
+    m = len(pos)
+    shapes = [(3,), (), (), (3,), (3, 2)] + ([(6,), (3, 3), (3,)] if quadric else [])
+    out = [None] * len(shapes)  # written in place by the row chunks: no second copy of large results
+
+    def work(a, b):
+        part = _geometry_rows(tree, cols, pos[a:b], nb[a:b], k, quadric)
+        if a == 0 and b == m:
+            out[:] = part
+            return
+        for i, (v, shape) in enumerate(zip(part, shapes)):
+            if out[i] is None:
+                with _alloc_lock:
+                    if out[i] is None:
+                        out[i] = np.empty((m,) + shape, dtype=v.dtype)
+            out[i][a:b] = v
+
+    _in_row_chunks(work, m)
+    n, noise, variation, lam, tangents, *fit = out
     tilt = lambda: _plane_tilt(lam, tangents, k)  # noqa: E731 - evaluated only where kept (the target)
     return (n, noise, variation, *fit, tilt)
 
@@ -70,6 +87,9 @@ def _in_row_chunks(work, m, rows=50_000):
     cut = np.linspace(0, m, threads + 1).astype(int)
     with ThreadPoolExecutor(threads, "labkit-geometry") as pool:
         return list(pool.map(work, cut[:-1], cut[1:]))
+
+
+_alloc_lock = threading.Lock()
 
 
 def _geometry_rows(tree, cols, pos, nb, k, quadric):
