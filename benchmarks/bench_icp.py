@@ -71,6 +71,20 @@ Findings behind the defaults of ``icp`` (its docstring gives the method, these t
   takes its variance from the pairs used, so the stated precision stays honest (Monte Carlo spread /
   stated in tests/test_icp_sampling.py).
 
+Measured 2026-12-02 with ``--keep 0.5 --halves-only`` (2 shared cores, load 11.6 at the start and 16-17
+after the rows: two other heavy benchmarks ran beside it; only the ratios within a row mean much):
+
+===================  ===============  =======================  ===========  =======
+pair                 points src/tgt   labkit icp (every point)  Open3D       ratio
+===================  ===============  =======================  ===========  =======
+tls halves           261,806/261,655  38.70                    10.50        3.68
+als halves           174,322/174,605  23.14 (plane 17.83)      21.51        1.08 (0.83)
+===================  ===============  =======================  ===========  =======
+
+Below 300,000 source points the default uses every point (``select='auto'`` keeps the surface
+points: 103,914 and 105,267 pairs). About half of labkit's time on the TLS halves is that surface
+selection (a local PCA and a local quadric, each with its own k-neighbour search, on both clouds).
+
 Run:  python benchmarks/bench_icp.py [--quick] [--realdata PATH] [--repeats N]
 """
 

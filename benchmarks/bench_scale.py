@@ -38,6 +38,17 @@ and 10,639,153 target points (generated and written once, 171 s under load, reus
     Open3D normals + ICP           1.7      235   -0.191, -0.293, +0.041
     labkit / Open3D = 1.28
 
+Measured 2026-12-02 (``--skip-tls``; load 10-17, other heavy jobs and two other benchmarks beside it):
+
+    step                       time (s)  peak MB  shift error (mm)         stated std (mm)
+    labkit register              744.8     4675   -0.25, -0.34, +0.11      0.36, 0.35, 0.13   (icp 256.1)
+    labkit icp (clouds in memory) 1254.9  11704   -0.42, +0.17, +0.05      0.36, 0.36, 0.13
+    Open3D normals + ICP        1097.7     2414   -371, +42, -4352  (normals alone 702.7 s)
+    labkit register / Open3D normals+ICP = 0.68
+
+``labkit icp`` here reads no classification (``attributes=[]``): ``select='auto'`` then tests the
+surface of all 10.6 million points of both clouds before sampling, which is its time and memory.
+
 The same run with 200,000 sampled pairs (the first default): register 70.4 s (0.55 of Open3D's
 128.7 s), TLS 3.2 s (1.85 x Open3D) with the Z error 4.2 stated std (-0.049 mm at 0.012 mm).
 At load 9 (other sessions' tests) register took 251 s, Open3D 138 s: compare within quiet runs.

@@ -126,10 +126,22 @@ def test_grouped_nearest_equals_the_per_point_search_index_for_index(name, bound
         for workers in (1, 2):
             d, i = tree.nearest_in_groups(Q, starts, bound, workers=workers)
             assert np.array_equal(d, d0) and np.array_equal(i, i0)
+    # a warm start (ICP: last iteration's nearest point) changes no answer: a random candidate per
+    # query, the answer itself, and (ties cloud) the answer of slightly moved queries
+    rep = tree.representative
+    found = i0 < tree.n
+    for warm0 in (rng.integers(-1, tree.n, len(Q)), np.where(found, rep[np.where(found, i0, 0)], -1),
+                  tree.nearest_in_groups(Q + 0.05, leaf_groups, bound, warm=np.full(len(Q), -1))[1]):
+        warm0 = np.where(warm0 < tree.n, warm0, -1)
+        for workers in (1, 2):
+            warm = warm0.copy()
+            d, i = tree.nearest_in_groups(Q, leaf_groups, bound, workers=workers, warm=warm)
+            assert np.array_equal(d, d0) and np.array_equal(i, i0)
+            assert np.array_equal(np.where(warm >= 0, tree.indices[warm], tree.n), i0)  # the next warm start
     if name == "ties":  # the case the fallback is for: equally near target points
         from labkit._kdtree_nn import _nn_groups
 
         n = len(Q)
         idx, d2, tie = np.empty(n, np.intp), np.empty(n), np.zeros(n, np.bool_)
-        _nn_groups(tree.data, *tree._nodes, Q, leaf_groups, np.inf, idx, d2, tie)
+        _nn_groups(tree.data, *tree._nodes, Q, leaf_groups, np.inf, idx, d2, tie, np.empty(0, np.intp))
         assert tie.sum() > 10

@@ -9,6 +9,10 @@ Used by :mod:`labkit.registration.matching`.
 
 from __future__ import annotations
 
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from .._eigh3 import HAVE_NUMBA, eigh3_analytic
@@ -51,6 +55,46 @@ def _leaf_geometry(tree, cols, pos, k, quadric=False):
     k = min(k, tree.n)
     threads = -1 if len(pos) > 2000 else 1  # threads cost more than they save on small queries
     nb = tree.query_leaf_positions(pos, k, workers=threads)
+    m = len(pos)
+    shapes = [(3,), (), (), (3,), (3, 2)] + ([(6,), (3, 3), (3,)] if quadric else [])
+    out = [None] * len(shapes)  # written in place by the row chunks: no second copy of large results
+
+    def work(a, b):
+        part = _geometry_rows(tree, cols, pos[a:b], nb[a:b], k, quadric)
+        if a == 0 and b == m:
+            out[:] = part
+            return
+        for i, (v, shape) in enumerate(zip(part, shapes)):
+            if out[i] is None:
+                with _alloc_lock:
+                    if out[i] is None:
+                        out[i] = np.empty((m,) + shape, dtype=v.dtype)
+            out[i][a:b] = v
+
+    _in_row_chunks(work, m)
+    n, noise, variation, lam, tangents, *fit = out
+    tilt = lambda: _plane_tilt(lam, tangents, k)  # noqa: E731 - evaluated only where kept (the target)
+    return (n, noise, variation, *fit, tilt)
+
+
+def _in_row_chunks(work, m, rows=50_000):
+    """``[work(a, b)]`` over consecutive row ranges, on the cores (each row's numbers are computed alone:
+    the same numbers as one call ``work(0, m)``; the compiled kernels release the GIL)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    threads = min(cores, max(1, m // rows))
+    if threads <= 1:
+        return [work(0, m)]
+    cut = np.linspace(0, m, threads + 1).astype(int)
+    with ThreadPoolExecutor(threads, "labkit-geometry") as pool:
+        return list(pool.map(work, cut[:-1], cut[1:]))
+
+
+_alloc_lock = threading.Lock()
+
+
+def _geometry_rows(tree, cols, pos, nb, k, quadric):
+    """The PCA (and quadric) of :func:`_leaf_geometry` at the points ``pos`` with neighbours ``nb``:
+    normal, noise, variation, eigenvalues, tangents (and coefficients, frame, slope covariance)."""
     _, cov = covariances(tree.data, None, nb, cols)  # the local PCA's kernel (notebook 04, eqs. 1-2)
     cov *= k / (k - 3) if k > 3 else np.nan  # redundancy k - 3 of the plane (eq. 5): lambda_min is sigma_n^2
     lam, vecs = eigh3_analytic(cov)  # as np.linalg.eigh (closed form), ascending: normal = eigenvector of lambda_min
@@ -63,7 +107,6 @@ def _leaf_geometry(tree, cols, pos, k, quadric=False):
     noise = np.where(ok, np.sqrt(lam[:, 0]), np.nan)
     variation = lam[:, 0] / np.maximum(lam.sum(axis=1), 1e-300)  # change of curvature l3 / sum(l)
     tangents = vecs[:, :, 1:].copy() if quadric else vecs[:, :, 1:]  # (the quadric's frame changes below)
-    tilt = lambda: _plane_tilt(lam, tangents, k)  # noqa: E731 - evaluated only where kept (the target)
     if quadric:
         vecs[~ok] = np.nan
         flip = vecs[:, 2, 0] < 0  # orient the frame's normal up; h and its coefficients flip with it
@@ -73,8 +116,8 @@ def _leaf_geometry(tree, cols, pos, k, quadric=False):
         fit = np.isfinite(sig)  # else (k < 7, degenerate fit) the plane stays
         _, n_q = _on_quadric(coef[fit], vecs[fit], np.zeros((int(fit.sum()), 3)))
         n[fit] = n_q  # the surface normal at the point itself
-        return n, np.where(fit, sig, noise), np.where(ok, variation, np.nan), coef, vecs, slope, tilt
-    return n, noise, np.where(ok, variation, np.nan), tilt
+        return n, np.where(fit, sig, noise), np.where(ok, variation, np.nan), lam, tangents, coef, vecs, slope
+    return n, noise, np.where(ok, variation, np.nan), lam, tangents
 
 
 def _plane_tilt(lam, tangents, k):

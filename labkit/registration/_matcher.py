@@ -87,12 +87,17 @@ class _Matcher:
     query_order: np.ndarray | None = None  # sampled source points in spatial (leaf) order: coherent queries
     query_groups: np.ndarray | None = None  # per row of query_order: its leaf in the source's tree (ascending)
 
+    def __post_init__(self):
+        # per sampled source point: leaf position of its nearest target point in the last call (-1: none);
+        # a warm start of the next search, which changes no answer (KDTree.nearest_in_groups)
+        object.__setattr__(self, "_warm", np.full(len(self.source), -1, dtype=np.intp))
+
     def __call__(self, R=None, t=None) -> Correspondences:
         """Correspondences of the source moved by p' = R p + t (local frame)."""
         opt = self.options
         R = np.eye(3) if R is None else R
         t = np.zeros(3) if t is None else t
-        p = _rotated(self.source, R) + t  # not `@`: a BLAS call per iteration (see _rotated)
+        p = _rotated(self.source, R, t)  # not `@`: a BLAS call per iteration (see _rotated)
         rule = self.source_rule.copy()
         ok = rule[self.query_order] == 0
         live = self.query_order[ok]  # in leaf order: neighbouring queries in cache
@@ -108,7 +113,9 @@ class _Matcher:
         else:  # the same answer; a source leaf's points walk the target tree together
             g = self.query_groups[ok]
             starts = np.append(np.flatnonzero(np.r_[True, g[1:] != g[:-1]]), len(g))
-            dist, j = self.tree.nearest_in_groups(p[live], starts, opt["max_distance"], workers=workers)
+            warm = self._warm[live]  # each query's nearest target point in the previous call: a first bound
+            dist, j = self.tree.nearest_in_groups(p[live], starts, opt["max_distance"], workers=workers, warm=warm)
+            self._warm[live] = warm
         # back to ascending rows (one scatter), so that the steps below read and write in order
         nearest = np.full(m, -1)
         nearest[live] = np.where(np.isfinite(dist), j, -1)
@@ -116,7 +123,7 @@ class _Matcher:
         live = np.flatnonzero(nearest >= 0)
         j = nearest[live]
         tidx[live] = j
-        d[live] = self.target[j] - p[live]
+        _differences(self.tree.data, self.tree.representative, j, p, live, d)  # d[live] = q_j - p_i
         nt[live], noise_t[live] = self.geometry.at(j, need_noise=opt["need_noise"])
         nearest_d = d  # q_j - p_i: the duplicate rule keeps the nearest source point by this
         if opt["surface"] == "quadric" and len(live):
@@ -142,7 +149,7 @@ class _Matcher:
         if self.source_normals is not None:
             rule[live[np.isnan(self.source_normals[live, 0]) & (rule[live] == 0)]] = _CODE["degenerate"]
             ns = _rotated(self.source_normals[live], R)
-            cosang = np.abs(np.einsum("ij,ij->i", ns, nt[live]))
+            cosang = np.abs(_dot_rows(ns, nt[live]))
             angle[live] = np.degrees(np.arccos(np.clip(cosang, 0, 1)))
             if opt["max_angle_deg"] is not None:
                 bad = angle[live] > opt["max_angle_deg"]
@@ -176,13 +183,68 @@ class _Matcher:
         return np.sqrt(np.maximum(var, MIN_SIGMA**2))
 
 
-def _rotated(points, R):
-    """points @ R.T for a tall (m, 3) array, by einsum.
+def _rotated_numpy(points, R, t=None):
+    """points @ R.T (+ t) for a tall (m, 3) array, by einsum.
 
     ``@`` hands a tall (m, 3) x (3, 3) product to the threaded BLAS, whose threads spin against
     the kd-tree's threads: on a loaded 2-core machine 80 ms median for 100,000 points, einsum 8 ms.
     """
-    return np.einsum("ij,kj->ik", points, R)
+    out = np.einsum("ij,kj->ik", points, R)
+    return out if t is None else out + t
+
+
+def _differences_numpy(data, rep, j, p, live, d):
+    d[live] = data[rep[j]] - p[live]
+
+
+def _dot_rows_numpy(a, b):
+    return np.einsum("ij,ij->i", a, b)
+
+
+if HAVE_NUMBA:
+    # one compiled pass each instead of numpy's temporaries (ICP calls them in every iteration on every
+    # source point); the sums in einsum's order, (x0 y0 + x2 y2) + x1 y1: the same numbers to the bit
+
+    @numba.njit(cache=True, nogil=True)
+    def _rotate_kernel(P, R, t, out):  # pragma: no cover - compiled
+        for i in range(P.shape[0]):
+            x, y, z = P[i, 0], P[i, 1], P[i, 2]
+            for k in range(3):
+                out[i, k] = ((x * R[k, 0] + z * R[k, 2]) + y * R[k, 1]) + t[k]
+
+    @numba.njit(cache=True, nogil=True)
+    def _rotate_only_kernel(P, R, out):  # pragma: no cover - compiled
+        for i in range(P.shape[0]):
+            x, y, z = P[i, 0], P[i, 1], P[i, 2]
+            for k in range(3):
+                out[i, k] = (x * R[k, 0] + z * R[k, 2]) + y * R[k, 1]
+
+    @numba.njit(cache=True, nogil=True)
+    def _differences(data, rep, j, p, live, d):  # pragma: no cover - compiled
+        """d[live] = data[rep[j]] - p[live] in one pass (the target point q_j minus the moved p_i)."""
+        for r in range(live.shape[0]):
+            q, i = rep[j[r]], live[r]
+            d[i, 0], d[i, 1], d[i, 2] = data[q, 0] - p[i, 0], data[q, 1] - p[i, 1], data[q, 2] - p[i, 2]
+
+    @numba.njit(cache=True, nogil=True)
+    def _dot_rows(a, b):  # pragma: no cover - compiled
+        out = np.empty(a.shape[0])
+        for i in range(a.shape[0]):
+            out[i] = (a[i, 0] * b[i, 0] + a[i, 2] * b[i, 2]) + a[i, 1] * b[i, 1]
+        return out
+
+    def _rotated(points, R, t=None):
+        """points @ R.T (+ t) for a tall (m, 3) array, compiled (:func:`_rotated_numpy`, the same numbers)."""
+        P = np.ascontiguousarray(points, dtype=np.float64)
+        R = np.ascontiguousarray(R, dtype=np.float64)
+        out = np.empty((len(P), 3))
+        if t is None:
+            _rotate_only_kernel(P, R, out)
+        else:
+            _rotate_kernel(P, R, np.ascontiguousarray(np.broadcast_to(t, (3,)), dtype=np.float64), out)
+        return out
+else:  # pragma: no cover - depends on the environment
+    _rotated, _differences, _dot_rows = _rotated_numpy, _differences_numpy, _dot_rows_numpy
 
 
 def _reject_duplicates(rule, tidx, d, n_target):
@@ -196,7 +258,7 @@ def _reject_duplicates(rule, tidx, d, n_target):
     live = np.flatnonzero(rule == 0)
     if live.size < 2:
         return
-    dist2 = np.einsum("ij,ij->i", d[live], d[live])
+    dist2 = _dot_rows(d[live], d[live])
     loser = _closest_per_target(live, tidx[live], dist2, n_target)
     rule[loser] = _CODE["duplicate"]
 
