@@ -233,7 +233,7 @@ def real_rows(n, repeat=3):
     its CPU time) and the result of that run (max_consensus's time budget is wall time, so under
     load its search may stop earlier and its answer vary a little between runs).
     """
-    from labkit.compare import standard_methods
+    from labkit.registration.compare import standard_methods
 
     root = realdata_dir()
     if root is None:

@@ -24,7 +24,7 @@ TLS/2 labkit 1.12 (CPU 1.00) vs Open3D 1.01 (CPU 1.08); TLS 1.98 (2.01) vs 2.09 
 ALS 1.02 (1.11) vs 1.35 (1.49). On a nearly idle machine, in one process (after a warm-up):
 TLS/2 0.56 vs 0.62 s, TLS 1.08-1.21 vs 1.20-1.23 s. Before the kd-tree work: TLS/2 1.29 s vs 0.73 s.
 
-The kd-tree (``labkit._kdtree``), measured on the real TLS scan (523,422 points, k = 20, one thread,
+The kd-tree (``labkit.neighbours.kdtree``), measured on the real TLS scan (523,422 points, k = 20, one thread,
 CPU s on a loaded 2-core machine): self-kNN 0.9-1.1 s against cKDTree's 1.5-1.8 s in leaf order; a warm
 start from the previous query's neighbours, a per-leaf candidate list and a branch-free two-pass leaf
 scan gave no further gain; the leaf-batched search brought it to 0.66 s. Building with the children's

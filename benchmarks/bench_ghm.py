@@ -29,8 +29,8 @@ import numpy as np
 from scipy.linalg import lu_factor, lu_solve
 from scipy.optimize import least_squares
 
-from labkit.adjustment import gauss_helmert_model
-from labkit.sphere import algebraic_sphere
+from labkit.sphere.ghm import gauss_helmert_model
+from labkit.sphere.model import algebraic_sphere
 from labkit.synthetic import sphere_on_tripod
 
 SIGMA = 0.001

@@ -98,9 +98,9 @@ from pathlib import Path
 import numpy as np
 
 from labkit import read_cloud
-from labkit._treecache import forget
+from labkit.neighbours.treecache import forget
 from labkit.registration import icp
-from labkit.registration.matching import AUTO_LIMIT
+from labkit.registration.matching.match import AUTO_LIMIT
 from labkit.transforms import apply_transform, make_transform
 
 SHIFT = np.array([0.31, -0.24, 0.12])  # about 0.41 m

@@ -96,9 +96,9 @@ def step_register(a):
     import contextlib
     import io as _io
 
-    import labkit.cli as cli
-    import labkit.compare as compare
-    import labkit.distances as distances
+    import labkit.cli.main as cli
+    import labkit.registration.compare as compare
+    import labkit.change.distances as distances
     import labkit.io as lio
 
     times, found = {}, {}

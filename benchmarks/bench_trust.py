@@ -9,7 +9,7 @@ refused by ``read_cloud`` and listed as skipped with the reason) is registered w
 - ``icp``: :func:`labkit.registration.icp`;
 - ``max_consensus``: :func:`labkit.registration.max_consensus`;
 - ``consensus+icp``: the route of ``labkit register --method consensus+icp``
-  (:func:`labkit.compare.standard_methods`);
+  (:func:`labkit.registration.compare.standard_methods`);
 
 beside Open3D's point-to-plane ICP (1 m correspondence distance, KNN-20 normals; it states no
 precision). Columns: error in mm per axis, the stated std in mm (``undet`` where labkit reports the
@@ -72,8 +72,8 @@ from pathlib import Path
 import numpy as np
 
 from labkit import read_cloud
-from labkit.compare import standard_methods
-from labkit.errors import LabkitError
+from labkit.registration.compare import standard_methods
+from labkit.core.errors import LabkitError
 from labkit.registration import icp, max_consensus
 
 #: four shifts of 0.2-0.8 m (the truth: source = half - shift, the result should be +shift)

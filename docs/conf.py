@@ -80,7 +80,7 @@ suppress_warnings = ["myst.header", "ref.python"]
 # API pages, generated before Sphinx reads the sources
 # ---------------------------------------------------------------------------------------------------
 
-SKIP_MODULES = {"labkit.cli", "labkit.__main__"}
+SKIP_MODULES = {"labkit.cli.main", "labkit.__main__"}
 
 
 def public_modules():

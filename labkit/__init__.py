@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import importlib
 
-from ._lazy import lazy_attribute
-from ._numba_cache import ensure_cache_dir
+from .core.lazy import lazy_attribute
+from .core.numba_cache import ensure_cache_dir
 
 ensure_cache_dir()  # before any compiled kernel is defined: numba must find a writable cache folder
 
@@ -18,18 +18,18 @@ __version__ = "0.1.0"
 # public name -> module that defines it
 _EXPORTS = {
     # errors
-    "LabkitError": "labkit.errors",
-    "DegenerateGeometryError": "labkit.errors",
-    "EmptyRegionError": "labkit.errors",
-    "CloudFileError": "labkit.errors",
-    "precision_tolerance": "labkit._checks",
+    "LabkitError": "labkit.core.errors",
+    "DegenerateGeometryError": "labkit.core.errors",
+    "EmptyRegionError": "labkit.core.errors",
+    "CloudFileError": "labkit.core.errors",
+    "precision_tolerance": "labkit.core.checks",
     # data
     "PointCloud": "labkit.cloud",
     "read_cloud": "labkit.io",
     "write_cloud": "labkit.io",
     # sphere (issues 2, 3)
-    "gauss_helmert_model": "labkit.adjustment",
-    "SphereFit": "labkit.sphere_fit",
+    "gauss_helmert_model": "labkit.sphere.ghm",
+    "SphereFit": "labkit.sphere.fit",
     "ransac_sphere": "labkit.ransac",
     "find_spheres": "labkit.ransac",
     # local geometry
@@ -52,45 +52,45 @@ _EXPORTS = {
     "consensus_cube": "labkit.registration",
     "max_consensus": "labkit.registration",
     # comparison and tiles
-    "cloud_to_cloud": "labkit.distances",
-    "point_to_plane_distance": "labkit.distances",
-    "distances_before_after": "labkit.distances",
-    "Reference": "labkit.references",
-    "truth_reference": "labkit.references",
-    "manual_reference": "labkit.references",
-    "average_references": "labkit.references",
-    "reference_from_targets": "labkit.references",
-    "reference_from_pairs": "labkit.references",
-    "load_references": "labkit.references",
-    "save_references": "labkit.references",
-    "compare_methods": "labkit.compare",
-    "synthetic_cases": "labkit.compare",
-    "ComparisonTable": "labkit.compare",
+    "cloud_to_cloud": "labkit.change.distances",
+    "point_to_plane_distance": "labkit.change.distances",
+    "distances_before_after": "labkit.change.distances",
+    "Reference": "labkit.registration.references",
+    "truth_reference": "labkit.registration.references",
+    "manual_reference": "labkit.registration.references",
+    "average_references": "labkit.registration.references",
+    "reference_from_targets": "labkit.registration.references",
+    "reference_from_pairs": "labkit.registration.references",
+    "load_references": "labkit.registration.references",
+    "save_references": "labkit.registration.references",
+    "compare_methods": "labkit.registration.compare",
+    "synthetic_cases": "labkit.registration.compare",
+    "ComparisonTable": "labkit.registration.compare",
     "register_tiles": "labkit.tiles",
     "neighbour_test": "labkit.tiles",
     "ShiftField": "labkit.tiles",
     # change between epochs
-    "m3c2": "labkit.change",
-    "M3C2Result": "labkit.change",
-    "m3c2_parameters": "labkit.change_defaults",
+    "m3c2": "labkit.change.m3c2",
+    "M3C2Result": "labkit.change.m3c2",
+    "m3c2_parameters": "labkit.change.defaults",
     # target-based registration
-    "helmert": "labkit.helmert_fit",
-    "HelmertFit": "labkit.helmert_fit",
-    "register_targets": "labkit.targets",
-    "register_scans": "labkit.targets",
-    "TargetNetwork": "labkit.targets",
+    "helmert": "labkit.targets.helmert",
+    "HelmertFit": "labkit.targets.helmert",
+    "register_targets": "labkit.targets.register",
+    "register_scans": "labkit.targets.register",
+    "TargetNetwork": "labkit.targets.register",
     # deliverables: the registration file
-    "RegistrationFile": "labkit.registration_file",
-    "save_registration": "labkit.registration_file",
-    "load_registration": "labkit.registration_file",
+    "RegistrationFile": "labkit.registration.file",
+    "save_registration": "labkit.registration.file",
+    "load_registration": "labkit.registration.file",
     # notebooks
     "setup_notebook": "labkit.notebook",
 }
 
 #: Sub-modules reachable as attributes (``labkit.registration``) without an explicit import.
 _SUBMODULES = {
-    "adjustment", "change", "compare", "distances", "errors", "features", "io", "masks", "plotting", "ransac",
-    "references", "regions", "registration", "sphere", "sphere_fit", "synthetic", "tiles", "transforms", "widgets",
+    "change", "core", "features", "io", "neighbours", "plotting", "ransac", "regions", "registration", "sphere",
+    "synthetic", "targets", "tiles", "transforms", "widgets",
 }
 
 __all__ = sorted(_EXPORTS) + ["__version__"]

@@ -9,7 +9,7 @@ Units
 Every cloud carries :class:`Units`: the units of its file's CRS and whether the
 coordinates were converted to metres when read. Metric steps (normals, ICP,
 consensus, spheres, distances, tiles) take their thresholds in metres; they
-call :meth:`PointCloud.require_metric` (through ``labkit._checks.as_points``)
+call :meth:`PointCloud.require_metric` (through ``labkit.core.checks.as_points``)
 and refuse a cloud whose coordinates are known to be in degrees or in feet.
 A cloud whose units are not stated anywhere (no CRS) is accepted as metres.
 """
@@ -22,8 +22,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._checks import as_points
-from .errors import LabkitError
+from .core.checks import as_points
+from .core.errors import LabkitError
 
 
 class UnitsError(LabkitError):
@@ -228,7 +228,7 @@ class PointCloud:
         object.__setattr__(self, "attributes", attrs)
         units = self.units
         if units is None:
-            from ._units import units_from_crs_text
+            from .core.units import units_from_crs_text
 
             units = units_from_crs_text(self.crs)
         elif not isinstance(units, Units):

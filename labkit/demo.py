@@ -15,11 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ._outputs import save_figure, save_render, staged_folder, staged_outputs
-from .adjustment import gauss_helmert_model
-from .compare import compare_methods, standard_methods, synthetic_cases
-from .distances import point_to_plane_distance
-from .errors import LabkitError
+from .core.outputs import save_figure, save_render, staged_folder, staged_outputs
+from .sphere.ghm import gauss_helmert_model
+from .registration.compare import compare_methods, standard_methods, synthetic_cases
+from .change.distances import point_to_plane_distance
+from .core.errors import LabkitError
 from .notebook import setup_headless
 from .plotting import compare as PC
 from .plotting import ransac as PR

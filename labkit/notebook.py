@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 
-from ._checks import as_seed
+from .core.checks import as_seed
 
 
 def setup_headless() -> None:

@@ -2,14 +2,14 @@
 
 Every function takes a :class:`~labkit.cloud.PointCloud` and returns a new one;
 the input is never modified. A crop that keeps no point raises
-:class:`~labkit.errors.EmptyRegionError` naming the region.
+:class:`~labkit.core.errors.EmptyRegionError` naming the region.
 
 Regions are defined in the horizontal plane (x, y) as is usual for ALS tiles:
 an axis-parallel box (optionally bounded in z too), a circle, or a polygon
 (even-odd rule, so a list of rings describes holes). All geometry runs on
 coordinates reduced to a local origin, so 7-digit UTM values lose nothing.
 
-The box, polygon and class masks live in :mod:`labkit.masks` (re-exported
+The box, polygon and class masks live in :mod:`labkit.core.masks` (re-exported
 here); :func:`labkit.io.read_cloud` applies them chunk by chunk while reading a
 large file.
 """
@@ -20,11 +20,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._checks import as_points, as_rng, choice, count, positive
-from ._report import ReportMixin, fmt
+from .core.checks import as_points, as_rng, choice, count, positive
+from .core.report import ReportMixin, fmt
 from .cloud import PointCloud
-from .errors import EmptyRegionError, LabkitError
-from .masks import (  # noqa: F401  (ASPRS_NAMES, STABLE_CLASSES and the masks are re-exported)
+from .core.errors import EmptyRegionError, LabkitError
+from .core.masks import (
     ASPRS_NAMES, STABLE_CLASSES, as_bbox, as_classes, as_rings, box_mask, circle_mask, class_mask, polygon_mask,
 )
 

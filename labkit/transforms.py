@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._checks import as_points, require_real
-from .errors import LabkitError
+from .core.checks import as_points, require_real
+from .core.errors import LabkitError
 
 
 def make_transform(rotation=None, translation=None) -> np.ndarray:
@@ -73,7 +73,7 @@ def check_transform(T) -> np.ndarray:
     >>> check_transform(np.ones((4, 4)))
     Traceback (most recent call last):
         ...
-    labkit.errors.LabkitError: the last row of a homogeneous transformation must be [0, 0, 0, 1]
+    labkit.core.errors.LabkitError: the last row of a homogeneous transformation must be [0, 0, 0, 1]
     """
     T = np.asarray(T, dtype=np.float64)
     if T.shape != (4, 4):

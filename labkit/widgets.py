@@ -12,10 +12,10 @@ import io
 
 import numpy as np
 
-from ._checks import as_rng, choice
-from .adjustment import gauss_helmert_model
-from .coherent_areas import CORRECTIONS
-from .helmert_fit import helmert
+from .core.checks import as_rng, choice
+from .sphere.ghm import gauss_helmert_model
+from .tiles.coherent import CORRECTIONS
+from .targets.helmert import helmert
 from .plotting.compare import plot_shift_field
 from .plotting.consensus import PLANES, plot_consensus_slice
 from .plotting.ransac import plot_adaptive_trace, plot_section
@@ -444,7 +444,7 @@ def matching_gates_explorer(source, target, max_distance=1.0, max_angle_deg=30.0
 
 
 def _gates_html(corr, result, truth, kw):
-    from .registration.matching import RULES
+    from .registration.matching.match import RULES
 
     counts = np.bincount(corr.rule, minlength=len(RULES))
     rows = "".join(f"<td>{RULES[c]}: {counts[c]}</td>" for c in range(len(RULES)) if counts[c])

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 import labkit
-from labkit import cli
-from labkit.cli import main
+import labkit.cli.main as cli
+from labkit.cli.main import main
 from labkit.cloud import PointCloud
-from labkit.distances import DistanceChange, point_to_plane_distance
-from labkit.errors import DegenerateGeometryError, EmptyRegionError, LabkitError
+from labkit.change.distances import DistanceChange, point_to_plane_distance
+from labkit.core.errors import DegenerateGeometryError, EmptyRegionError, LabkitError
 from labkit.io import read_cloud, write_cloud
 from labkit.regions import as_classes, crop_box, density_grid, merge, thin_random, thin_voxel
 from labkit.tiles import MAX_TILES, ShiftField, neighbour_test, register_tiles, tile_grid
@@ -33,7 +33,7 @@ def _cloud(n=200, seed=0, offset=0.0):
 
 
 # --------------------------------------------------------------------------- the shared checks at the entry points
-# (the checks themselves, labkit._checks: tests/test_checks.py)
+# (the checks themselves, labkit.core.checks: tests/test_checks.py)
 def test_float32_utm_refused_by_public_functions_and_files(tmp_path):
     pts = (_cloud() + UTM).astype(np.float32)
     with pytest.raises(LabkitError, match="float32"):
@@ -66,7 +66,7 @@ def test_float32_utm_refused_by_every_entry_point(name, call):
 
 def test_a_bad_rng_is_refused_by_a_public_function():
     with pytest.raises(LabkitError, match="rng must be a whole number >= 0"):
-        thin_random(PointCloud(_cloud()), 0.5, rng=-1)  # the checks of labkit._checks: tests/test_checks.py
+        thin_random(PointCloud(_cloud()), 0.5, rng=-1)  # the checks of labkit.core.checks: tests/test_checks.py
 
 
 # --------------------------------------------------------------------------- tiles
@@ -162,7 +162,7 @@ def test_register_tiles_classes_are_honoured_for_clouds(epochs):
 
 @pytest.mark.slow
 def test_register_tiles_method_by_name_equals_the_callable(epochs):
-    from labkit.compare import standard_methods
+    from labkit.registration.compare import standard_methods
 
     by_name = _tiles(epochs, method="icp")
     by_callable = _tiles(epochs, method=standard_methods(["icp"], dof="translation", rng=0)["icp"])
@@ -421,7 +421,7 @@ def test_cli_output_name_taken_by_a_folder(clouds, tmp_path, capsys):
 
 
 def test_cli_internal_error_is_one_line_exit_3(clouds, tmp_path, capsys, monkeypatch):
-    import labkit.compare as C
+    import labkit.registration.compare as C
 
     def bug(*args, **kwargs):
         raise TypeError("unsupported operand")
@@ -447,7 +447,7 @@ def test_cli_float32_utm_file_is_refused(tmp_path, capsys):
 def test_cli_warnings_before_an_error_do_not_add_lines(clouds, tmp_path, capsys, monkeypatch):
     import warnings
 
-    import labkit.compare as C
+    import labkit.registration.compare as C
 
     def noisy(*args, **kwargs):
         warnings.warn("Mean of empty slice", RuntimeWarning)

@@ -6,7 +6,7 @@ import pyproj
 import pytest
 
 from labkit.cloud import PointCloud
-from labkit.errors import LabkitError
+from labkit.core.errors import LabkitError
 
 XYZ = np.zeros((2, 3))
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from labkit import features as F
-from labkit.errors import LabkitError
-from labkit.registration.matching import RULES, match
+from labkit.core.errors import LabkitError
+from labkit.registration.matching.match import RULES, match
 
 UTM = np.array([600000.0, 5400000.0, 300.0])
 

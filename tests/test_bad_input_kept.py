@@ -7,7 +7,7 @@ import pyproj
 import numpy as np
 import pytest
 
-from labkit.cli import main
+from labkit.cli.main import main
 from labkit.cloud import PointCloud
 from labkit.io import read_cloud, write_cloud
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from labkit.cloud import PointCloud
-from labkit.errors import CloudFileError, LabkitError
+from labkit.core.errors import CloudFileError, LabkitError
 from labkit.io import read_cloud, write_cloud
 from labkit.notebook import setup_notebook
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from labkit.errors import LabkitError
+from labkit.core.errors import LabkitError
 from labkit.transforms import apply_transform, make_transform, rotation_from_angles
 
 R = rotation_from_angles(0.1, -0.2, 0.3)

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from labkit import load_registration, save_registration
-from labkit.cli import main
-from labkit.geotiff import STATUS_CODES
+from labkit.cli.main import main
+from labkit.io.geotiff import STATUS_CODES
 from labkit.io import read_cloud, write_cloud
 
 pyproj = pytest.importorskip("pyproj")

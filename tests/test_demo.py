@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from labkit import demo
-from labkit.cli import main
+from labkit.cli.main import main
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 EXPECTED = {
@@ -47,7 +47,7 @@ def test_demo_quick_writes_figures_and_table(tmp_path, capsys):
 
 def test_a_failing_step_leaves_nothing_new(tmp_path, monkeypatch, capsys):
     """Figures of earlier steps do not stay behind when a later step fails; an existing folder keeps its files."""
-    from labkit.errors import LabkitError
+    from labkit.core.errors import LabkitError
 
     def first(out, quick):
         return [demo._save(_figure(), out / "first.png")]

@@ -76,7 +76,7 @@ def test_change_figure_on_autzen():
 
 @pytest.mark.skipif(not (REAL / "epochs").exists(), reason="data/real not shipped")
 def test_register_figure_on_autzen(tmp_path, monkeypatch):
-    from labkit import cli
+    import labkit.cli.main as cli
 
     seen = []
 

@@ -5,9 +5,9 @@ import pytest
 
 import labkit
 from labkit import transforms as tf
-from labkit._checks import as_points, as_rng, probability
+from labkit.core.checks import as_points, as_rng, probability
 from labkit.cloud import PointCloud
-from labkit.errors import LabkitError
+from labkit.core.errors import LabkitError
 
 
 def test_as_points_rejects_bad_input():
@@ -77,7 +77,7 @@ def test_convergence_error_is_gone():
     with pytest.raises(AttributeError):
         labkit.ConvergenceError
     with pytest.raises(ImportError):
-        from labkit.errors import ConvergenceError  # noqa: F401
+        from labkit.core.errors import ConvergenceError  # noqa: F401
 
 
 def test_skew_is_the_cross_product_matrix():
@@ -96,7 +96,7 @@ def test_lazy_exports_resolve():
 
 
 def test_cli_version_and_error_exit(capsys):
-    from labkit.cli import main
+    from labkit.cli.main import main
 
     with pytest.raises(SystemExit) as exc:
         main(["--version"])

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from labkit.cloud import PointCloud
-from labkit.errors import CloudFileError, EmptyRegionError, LabkitError
+from labkit.core.errors import CloudFileError, EmptyRegionError, LabkitError
 from labkit.io import cloud_files, files_in_box, read_cloud, read_clouds, write_cloud
 
 ORIGIN = np.array([600_000.0, 5_400_000.0, 300.0])

@@ -5,7 +5,7 @@ import pytest
 from matplotlib.path import Path as MplPath
 
 from labkit.cloud import PointCloud
-from labkit.errors import EmptyRegionError, LabkitError
+from labkit.core.errors import EmptyRegionError, LabkitError
 from labkit.regions import (
     crop_box,
     crop_circle,

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from labkit.errors import LabkitError
+from labkit.core.errors import LabkitError
 from labkit.transforms import (angles_from_rotation, apply_transform, check_transform, compose, invert,
                                make_transform, rotation_from_angles, skew)
 

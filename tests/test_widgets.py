@@ -73,7 +73,7 @@ def _small_field():
     from labkit.synthetic import als_epochs
 
     pair = als_epochs("xyz", size=(60.0, 40.0), density=2.0, rng=5)
-    method = labkit.compare.standard_methods(["icp-classes"])["icp-classes"]
+    method = labkit.registration.compare.standard_methods(["icp-classes"])["icp-classes"]
     return labkit.register_tiles(pair.source, pair.target, method, size=20.0)
 
 

@@ -22,11 +22,11 @@ One module per concept:
 - :mod:`~labkit.features.robust`: :func:`robust_normals` (RANSAC / LMedS planes, eq. 9)
 
 The registration study warns that ``np.linalg.eig`` does not sort its eigenvalues; the PCA uses an
-eigh (``labkit._eigh3.eigh3``, the decomposition of ``np.linalg.eigh`` compiled for
+eigh (``labkit.neighbours.eigh3.eigh3``, the decomposition of ``np.linalg.eigh`` compiled for
 stacks of 3x3 matrices) and reverses the order once, in ``sorted_eigh``.
 """
 
-from ..neighbours import CHUNK_SIZE, LEAFSIZE, Neighbourhoods, covariances, neighbourhoods
+from ..neighbours.search import CHUNK_SIZE, LEAFSIZE, Neighbourhoods, covariances, neighbourhoods
 from ._steps import DUPLICATES, ORIENTATIONS, sorted_eigh
 from .eigen import EigenFeatures, eigen_features
 from .multiscale import MultiScaleFeatures, multiscale_features

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._checks import choice
-from .._eigh3 import eigh3_analytic
-from ..errors import LabkitError
+from ..core.checks import choice
+from ..neighbours.eigh3 import eigh3_analytic
+from ..core.errors import LabkitError
 
 DUPLICATES = ("merge", "keep")
 ORIENTATIONS = ("up", "viewpoint", "none")
@@ -77,7 +77,7 @@ def sorted_eigh(C):
 
     ``np.linalg.eigh`` returns ascending eigenvalues of a symmetric matrix; we reverse
     once. (``np.linalg.eig`` would return them in no particular order: the pitfall the registration study warns of.)
-    :func:`labkit._eigh3.eigh3_analytic` is the same decomposition in closed form for
+    :func:`labkit.neighbours.eigh3.eigh3_analytic` is the same decomposition in closed form for
     stacks of 3x3 matrices, as accurate and about 10x faster than ``np.linalg.eigh``;
     matrices with NaN (too few neighbours) give NaN rows.
     """

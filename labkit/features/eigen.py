@@ -17,8 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._report import ReportMixin, fmt
-from ..errors import LabkitError
+from ..core.report import ReportMixin, fmt
+from ..core.errors import LabkitError
 
 
 @dataclass(frozen=True, eq=False, repr=False)

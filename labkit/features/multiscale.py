@@ -15,10 +15,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._checks import choice
-from .._report import ReportMixin
-from ..errors import LabkitError
-from ..neighbours import CHUNK_SIZE, SearchPlan, check_chunk_size, check_scale, covariances, reduced, run_chunks
+from ..core.checks import choice
+from ..core.report import ReportMixin
+from ..core.errors import LabkitError
+from ..neighbours.search import CHUNK_SIZE, SearchPlan, check_chunk_size, check_scale, covariances, reduced, run_chunks
 from ._steps import check_duplicates, check_orientation, mark_undetermined, orient_normals, sorted_eigh
 from .eigen import EigenFeatures, eigen_features
 from .pca import LocalPCA

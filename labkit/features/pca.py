@@ -16,7 +16,7 @@ points, or all on one line) do not determine a plane: their normal is NaN and
 ``LocalPCA.valid`` is False.
 
 :func:`pca_at` gives the same normals and noise at chosen points of a kd-tree that a
-caller already holds (the distances of :mod:`labkit.distances` reuse ICP's target tree).
+caller already holds (the distances of :mod:`labkit.change.distances` reuse ICP's target tree).
 
 References
 ----------
@@ -30,10 +30,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._report import ReportMixin, fmt
-from ..neighbours import CHUNK_SIZE, SearchPlan, check_chunk_size, check_scale, covariances, reduced, run_chunks
-from ..neighbours import run_moment_chunks, scale_text
-from ..progress import progress_steps
+from ..core.report import ReportMixin, fmt
+from ..neighbours.search import CHUNK_SIZE, SearchPlan, check_chunk_size, check_scale, covariances, reduced, run_chunks
+from ..neighbours.search import run_moment_chunks, scale_text
+from ..core.progress import progress_steps
 from ._steps import check_at, check_duplicates, check_orientation, determined, mark_undetermined, orient_normals
 from ._steps import plane_noise, sorted_eigh
 from .eigen import EigenFeatures, eigen_features
@@ -156,7 +156,7 @@ def local_pca(
     chunk_size : int
         Points per chunk; memory grows with chunk_size * k, not with n * k.
     progress : bool, "bar", "lines" or callable
-        Report the chunks done (see :mod:`labkit.progress`); default silent.
+        Report the chunks done (see :mod:`labkit.core.progress`); default silent.
 
     Returns
     -------
@@ -269,7 +269,7 @@ def normals(
     duplicates : {'merge', 'keep'}
         Exact duplicates count once (default), see :func:`local_pca`.
     progress : bool, "bar", "lines" or callable
-        Report the chunks done (see :mod:`labkit.progress`); default silent.
+        Report the chunks done (see :mod:`labkit.core.progress`); default silent.
 
     Returns
     -------
@@ -336,13 +336,13 @@ def pca_at(tree, at, k: int, *, chunk_size: int = CHUNK_SIZE, step=None):
 
     The numbers of ``local_pca(points, k=k, at=at)`` (eqs. 1-5: the normal, and the noise
     :attr:`LocalPCA.noise`) without building a second tree: for a step that holds the
-    compiled kd-tree of a cloud (the distances of :mod:`labkit.distances` share the one ICP
+    compiled kd-tree of a cloud (the distances of :mod:`labkit.change.distances` share the one ICP
     built) and needs the local planes only at some of its points. The queries run chunk by
     chunk in the tree's leaf order (the visited leaves stay in cache).
 
     Parameters
     ----------
-    tree : labkit._kdtree.KDTree
+    tree : labkit.neighbours.kdtree.KDTree
         Tree of the (reduced) cloud; with ``merge_duplicates=True`` exact copies count once,
         as ``local_pca``'s default ``duplicates='merge'``.
     at : array_like of int
@@ -370,7 +370,7 @@ def pca_at(tree, at, k: int, *, chunk_size: int = CHUNK_SIZE, step=None):
     Examples
     --------
     >>> import numpy as np
-    >>> from labkit._kdtree import KDTree
+    >>> from labkit.neighbours.kdtree import KDTree
     >>> from labkit.features import local_pca, pca_at
     >>> rng = np.random.default_rng(0)
     >>> floor = np.column_stack([rng.uniform(0, 1, (500, 2)), rng.normal(0, 0.001, 500)])  # z = 0, 1 mm noise

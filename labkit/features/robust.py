@@ -21,11 +21,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._checks import as_rng, positive, probability
-from .._report import ReportMixin, fmt
-from .._stats import MAD_TO_SIGMA
-from ..errors import LabkitError
-from ..neighbours import SearchPlan, check_chunk_size, check_scale, masked_covariances, reduced, run_chunks
+from ..core.checks import as_rng, positive, probability
+from ..core.report import ReportMixin, fmt
+from ..core.stats import MAD_TO_SIGMA
+from ..core.errors import LabkitError
+from ..neighbours.search import SearchPlan, check_chunk_size, check_scale, masked_covariances, reduced, run_chunks
 from ..ransac.iterations import required_iterations
 from ._steps import check_at, check_duplicates, check_orientation, orient_normals, plane_noise, sorted_eigh
 

@@ -22,7 +22,7 @@ Formats
 Units
 -----
 The units of a LAS/LAZ file are read from its CRS (WKT and GeoTIFF keys, see
-``labkit._units`` for the parser and the rule when they contradict each
+``labkit.core.units`` for the parser and the rule when they contradict each
 other). By default (``units="m"``) coordinates in feet (US survey foot
 1200/3937 m, international foot 0.3048 m; horizontal and vertical may differ)
 are converted to metres, and a file in longitude/latitude degrees is refused
@@ -47,7 +47,7 @@ memory of the cloud plus one chunk. :func:`read_clouds` reads the part of many
 files (a folder, a glob) that an area needs: the LAS headers are read first and
 files whose extent misses the area are skipped without decompressing a point.
 Writing quantizes and writes one chunk at a time. ``progress=True`` reports the
-chunks (see :mod:`labkit.progress`). Files are written atomically: into a
+chunks (see :mod:`labkit.core.progress`). Files are written atomically: into a
 temporary file in the destination folder, renamed over the destination only
 when complete.
 

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import CloudFileError, LabkitError
-from ..progress import progress_steps
+from ..core.errors import CloudFileError, LabkitError
+from ..core.progress import progress_steps
 from .chunks import ChunkCollector
 from .common import SCAN_ANGLE_STEP, STANDARD_DTYPES, canonical_name, require_classification
 from .filter import ReadFilter

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import CloudFileError, LabkitError
+from ..core.errors import CloudFileError, LabkitError
 
 LAS_SUFFIXES = (".las", ".laz")
 ASCII_SUFFIXES = (".xyz", ".txt", ".csv", ".asc")

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import masks
+from ..core import masks
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""LAS / LAZ reading, the units and CRS of a LAS header (via ``labkit._units``) and the header summary."""
+"""LAS / LAZ reading, the units and CRS of a LAS header (via ``labkit.core.units``) and the header summary."""
 
 from __future__ import annotations
 
@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .._report import ReportMixin, fmt
-from .._units import decide_units, parse_wkt
+from ..core.report import ReportMixin, fmt
+from ..core.units import decide_units, parse_wkt
 from ..cloud import Units, UnitsError
-from ..errors import CloudFileError, EmptyRegionError, LabkitError
-from ..progress import progress_steps
+from ..core.errors import CloudFileError, EmptyRegionError, LabkitError
+from ..core.progress import progress_steps
 from .chunks import ChunkCollector
 from .common import LAS_SUFFIXES, existing_file, require_classification
 from .filter import ReadFilter
@@ -305,7 +305,7 @@ def las_units(header) -> tuple[Units, str | None]:
 
     The WKT governs a LAS 1.4 file with the global-encoding WKT bit set, the
     GeoTIFF keys every other file (LAS specification); the other record is used
-    when the governing one names nothing. See ``labkit._units`` for the parser.
+    when the governing one names nothing. See ``labkit.core.units`` for the parser.
 
     Examples
     --------

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 
 from ..cloud import Units
-from ..errors import LabkitError
-from ..progress import progress_steps
+from ..core.errors import LabkitError
+from ..core.progress import progress_steps
 from .common import INT32_MAX, STANDARD_DTYPES
 from .las import laz_backend
 

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import masks
+from ..core import masks
 from ..cloud import PointCloud, UnitsError
-from ..errors import CloudFileError, EmptyRegionError
+from ..core.errors import CloudFileError, EmptyRegionError
 from .common import DEFAULT_CHUNK, LAS_SUFFIXES, existing_file
 from .filter import ReadFilter
 from .las import CloudInfo, cloud_info, to_metres

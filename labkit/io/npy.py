@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .._checks import check_precision
-from .._units import units_from_crs_text
+from ..core.checks import check_precision
+from ..core.units import units_from_crs_text
 from ..cloud import PointCloud, Units
-from ..errors import CloudFileError, LabkitError
+from ..core.errors import CloudFileError, LabkitError
 from .chunks import ChunkCollector
 from .common import canonical_name, require_classification
 from .filter import ReadFilter

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import CloudFileError
+from ..core.errors import CloudFileError
 from .ascii import text_columns, wanted_column
 from .chunks import ChunkCollector
 from .common import canonical_name, require_classification

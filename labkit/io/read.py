@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._checks import choice, count
+from ..core.checks import choice, count
 from ..cloud import PointCloud, Units
-from ..errors import CloudFileError, EmptyRegionError, LabkitError
+from ..core.errors import CloudFileError, EmptyRegionError, LabkitError
 from .ascii import SCAN_ANGLE_NAMES, read_ascii
 from .common import (
     ASCII_SUFFIXES, DEFAULT_CHUNK, LAS_SUFFIXES, NUMPY_SUFFIXES, PLY_SUFFIXES, UNIT_CHOICES,
@@ -51,7 +51,7 @@ def read_cloud(
         Points (or text lines) per chunk. The filters act on each chunk, so the
         memory needed is one chunk plus the kept points.
     progress : bool, "bar", "lines" or callable
-        Report the chunks read (see :mod:`labkit.progress`): ``True`` shows a
+        Report the chunks read (see :mod:`labkit.core.progress`): ``True`` shows a
         bar (terminal, notebook) or plain lines on stderr; default silent.
     units : {"m", "native"}
         ``"m"`` (default): coordinates whose CRS states feet are converted to

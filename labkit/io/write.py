@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .._atomic import atomic_path
-from .._checks import count
+from ..core.atomic import atomic_path
+from ..core.checks import count
 from ..cloud import PointCloud
-from ..errors import CloudFileError, LabkitError
+from ..core.errors import CloudFileError, LabkitError
 from .ascii import write_ascii
 from .common import ASCII_SUFFIXES, DEFAULT_CHUNK, LAS_SUFFIXES, unsupported_format
 from .las_write import write_las
@@ -51,7 +51,7 @@ def write_cloud(cloud: PointCloud, path, *, scale=DEFAULT_SCALE, point_format: i
         Points written per chunk (LAS/LAZ and text); only one chunk of LAS
         integers is held at a time.
     progress : bool, "bar", "lines" or callable
-        Report the chunks written (see :mod:`labkit.progress`); default silent.
+        Report the chunks written (see :mod:`labkit.core.progress`); default silent.
     parallel : bool
         Compress LAZ on all cores (lazrs); ``False`` uses one core.
 
@@ -135,7 +135,7 @@ def _in_file_units(cloud: PointCloud) -> PointCloud:
 
 @contextlib.contextmanager
 def _atomic(path: Path):
-    """Write through a temporary file next to ``path`` (see ``labkit._atomic``); OS errors as CloudFileError."""
+    """Write through a temporary file next to ``path`` (see ``labkit.core.atomic``); OS errors as CloudFileError."""
     try:
         with atomic_path(path) as tmp:
             yield tmp

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._frame import local_origin
+from ..core.frame import local_origin
 from ._style import CMAP_DIVERGING, CMAP_SEQUENTIAL, COLORS
 
 NOT_SIGNIFICANT = "#c8c8c8"

@@ -12,8 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..cloud import PointCloud
-from ..errors import LabkitError
-from ..masks import ASPRS_NAMES, as_bbox, as_rings
+from ..core.errors import LabkitError
+from ..core.masks import ASPRS_NAMES, as_bbox, as_rings
 from ..regions import density_grid
 from ._style import CMAP_SEQUENTIAL, POINT_SIZE, new_plotter, scalar_bar
 

@@ -7,10 +7,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._checks import as_points
-from .._frame import local_origin
-from ..errors import LabkitError
-from ..masks import ASPRS_NAMES  # noqa: F401  (re-exported: the one table lives in labkit.masks)
+from ..core.checks import as_points
+from ..core.frame import local_origin
+from ..core.errors import LabkitError
+from ..core.masks import ASPRS_NAMES  # noqa: F401  (re-exported: the one table lives in labkit.core.masks)
 from .clouds import class_name
 from ._style import CMAP_DIVERGING, CMAP_SEQUENTIAL, COLORS, POINT_SIZE, new_plotter, scalar_bar
 
@@ -149,7 +149,7 @@ def plot_class_histograms(distances, classes, *, ax=None, bins=60, limits=None, 
 def plot_transformation_components(rows, *, axes=None, k=2.0, title=None):
     """dX, dY, dZ of every method (estimate +- k sigma) against the reference (line +- k sigma band).
 
-    ``rows`` are the :class:`labkit.compare.ComparisonRow` of one region and
+    ``rows`` are the :class:`labkit.registration.compare.ComparisonRow` of one region and
     case (e.g. ``table.select(region=..., case=...)``). Axes the data do not
     constrain are marked; an infinite standard deviation draws no error bar.
     """

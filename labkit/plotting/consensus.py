@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..registration.consensus_result import PeakShape
+from ..registration.consensus.result import PeakShape
 from ._style import CMAP_SEQUENTIAL, COLORS, new_plotter, scalar_bar
 
 PLANES = {"XY": (0, 1, 2), "XZ": (0, 2, 1), "YZ": (1, 2, 0)}
@@ -196,7 +196,7 @@ def _span(cube) -> float:
 
 
 def describe_peak(peak) -> str:
-    """The shape of a consensus peak in words (see :meth:`labkit.registration.consensus.PeakShape.describe`).
+    """The shape of a consensus peak in words (see :meth:`labkit.registration.consensus.cube.PeakShape.describe`).
 
     Works on anything with ``kind``, ``directions`` and ``free``; used in titles instead of raw eigenvector
     components.

@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._checks import as_points, as_rng
-from .._frame import local_origin
-from ..masks import ASPRS_NAMES
+from ..core.checks import as_points, as_rng
+from ..core.frame import local_origin
+from ..core.masks import ASPRS_NAMES
 from ._style import CMAP_SEQUENTIAL, COLORS, POINT_SIZE, new_plotter, scalar_bar
 
 FEATURE_LABELS = {

@@ -9,7 +9,7 @@ import numpy as np
 
 from ._style import COLORS, POINT_SIZE, new_plotter
 
-#: One colour per rule of :data:`labkit.registration.matching.RULES`.
+#: One colour per rule of :data:`labkit.registration.matching.match.RULES`.
 RULE_COLORS = {
     "accepted": COLORS["inlier"],
     "class": "#7570b3",
@@ -42,7 +42,7 @@ def plot_correspondences(corr, *, ax=None, view="xy", max_points=30000, rng=0, s
     max_points : int
         Plot a random subset if there are more rows (the legend counts all).
     """
-    from ..registration.matching import RULES
+    from ..registration.matching.match import RULES
 
     ax = _new_ax(ax, figsize=(6.5, 6.0))
     i, j = _AXES[view]
@@ -70,7 +70,7 @@ def plot_correspondences_3d(corr, target=None, *, plotter=None, point_size=POINT
     """3D view (pyvista): source points by rule, the target in light grey."""
     import pyvista as pv
 
-    from ..registration.matching import RULES
+    from ..registration.matching.match import RULES
 
     plotter = new_plotter(plotter)
     o = corr.source_xyz.min(axis=0)

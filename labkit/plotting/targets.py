@@ -18,7 +18,7 @@ def _ax(ax, figsize=(7, 5)):
 def plot_network(net, ax=None, truth=None):
     """Plan view of a registered network: stations (scan origins), targets, and which station saw which.
 
-    ``net`` is a :class:`labkit.targets.TargetNetwork`; ``truth`` optional (k, 4, 4) true poses in the
+    ``net`` is a :class:`labkit.targets.register.TargetNetwork`; ``truth`` optional (k, 4, 4) true poses in the
     reference frame (drawn as crosses). Excluded observations are dashed red.
     """
     ax = _ax(ax)

@@ -8,9 +8,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from .._checks import as_points, choice, count, positive, probability
-from .._frame import local_origin, reduce
-from ..errors import LabkitError
+from ..core.checks import as_points, choice, count, positive, probability
+from ..core.frame import local_origin, reduce
+from ..core.errors import LabkitError
 from .config import FINAL_ATTEMPTS, LOCAL_MAX_PAIRS, LOCAL_MAX_SHARE, LOCAL_REACH, S, Config
 from .refit import refit_sphere
 from .result import RansacResult, not_found

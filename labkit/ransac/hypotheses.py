@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..adjustment import gauss_helmert_model
-from ..errors import LabkitError
-from ..sphere import algebraic_sphere, circumspheres
+from ..sphere.ghm import gauss_helmert_model
+from ..core.errors import LabkitError
+from ..sphere.model import algebraic_sphere, circumspheres
 from ._ball import in_shell, normal_equations
 from .config import LO_STEPS, S
 

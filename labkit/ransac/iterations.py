@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 
-from .._checks import probability
-from ..errors import LabkitError
+from ..core.checks import probability
+from ..core.errors import LabkitError
 from .config import S
 
 

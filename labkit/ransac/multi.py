@@ -6,9 +6,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from .._checks import as_points, count, positive
-from .._frame import local_origin, reduce
-from ..errors import LabkitError
+from ..core.checks import as_points, count, positive
+from ..core.frame import local_origin, reduce
+from ..core.errors import LabkitError
 from .config import Config, S
 from .detect import _check_station, _radius_limits, _seed_and_generator, ransac_sphere
 from .proposals import sphere_proposals

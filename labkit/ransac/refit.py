@@ -8,8 +8,8 @@ import numpy as np
 from scipy.optimize import brentq
 from scipy.special import ndtr
 
-from ..adjustment import gauss_helmert_model
-from ..errors import LabkitError
+from ..sphere.ghm import gauss_helmert_model
+from ..core.errors import LabkitError
 from ._ball import residuals, shell_points
 from .config import BAND_K, SNOOP_ROUNDS, S
 from .hypotheses import orthogonal_fit, shell_mask

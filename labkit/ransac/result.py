@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._report import ReportMixin, fmt
+from ..core.report import ReportMixin, fmt
 from .config import BAND_K
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..errors import LabkitError
+from ..core.errors import LabkitError
 from .config import S
 from .hypotheses import score_hypotheses
 from .iterations import required_from_probability, required_iterations

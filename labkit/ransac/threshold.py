@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .._checks import as_points
-from .._frame import local_origin, reduce
+from ..core.checks import as_points
+from ..core.frame import local_origin, reduce
 
 __all__ = ["ThresholdEstimate", "estimate_threshold"]
 

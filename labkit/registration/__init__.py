@@ -11,22 +11,22 @@ covariance and stopping rules in the ``_icp_*`` modules next to it; the matching
 
 from __future__ import annotations
 
-from .._lazy import lazy_attribute
+from ..core.lazy import lazy_attribute
 from .consistency import Consistency, group_consistency
 from .degeneracy import Degeneracy, degeneracy_report
 from .result import RegistrationResult
 
 _EXPORTS = {
-    "match": "labkit.registration.matching",
-    "Correspondences": "labkit.registration.matching",
+    "match": "labkit.registration.matching.match",
+    "Correspondences": "labkit.registration.matching.match",
     "MatchOptions": "labkit.registration.options",
-    "icp": "labkit.registration.icp_loop",
-    "IterationRecord": "labkit.registration.icp_loop",
-    "consensus_cube": "labkit.registration.consensus",
-    "consensus_inputs": "labkit.registration.consensus",
-    "max_consensus": "labkit.registration.consensus",
-    "ConsensusCube": "labkit.registration.consensus_result",
-    "PeakShape": "labkit.registration.consensus_result",
+    "icp": "labkit.registration.closest_point.loop",
+    "IterationRecord": "labkit.registration.closest_point.loop",
+    "consensus_cube": "labkit.registration.consensus.cube",
+    "consensus_inputs": "labkit.registration.consensus.cube",
+    "max_consensus": "labkit.registration.consensus.cube",
+    "ConsensusCube": "labkit.registration.consensus.result",
+    "PeakShape": "labkit.registration.consensus.result",
 }
 
 __all__ = ["Consistency", "Degeneracy", "RegistrationResult", "degeneracy_report", "group_consistency",

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.stats import chi2
 
-from .._report import ReportMixin, fmt
+from ..core.report import ReportMixin, fmt
 
 
 @dataclass(frozen=True, eq=False, repr=False)

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._report import ReportMixin
+from ..core.report import ReportMixin
 
 AXES = ("X", "Y", "Z")
 

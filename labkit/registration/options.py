@@ -15,8 +15,8 @@ import inspect
 import numbers
 from collections.abc import Mapping
 
-from .._checks import choice, count, flag, non_negative, positive
-from ..errors import LabkitError
+from ..core.checks import choice, count, flag, non_negative, positive
+from ..core.errors import LabkitError
 
 __all__ = ["FIELDS", "SAMPLE_METHODS", "SURFACES", "MatchOptions", "takes_match_options", "with_keywords"]
 

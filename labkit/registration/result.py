@@ -10,8 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .._lengths import length_text
-from .._report import ReportMixin, fmt
+from ..core.lengths import length_text
+from ..core.report import ReportMixin, fmt
 from ..transforms import angles_from_rotation, apply_transform, make_transform
 from .consistency import Consistency, group_consistency  # noqa: F401  (re-exported: their former home)
 from .degeneracy import AXES, Degeneracy, degeneracy_report  # noqa: F401  (re-exported)

@@ -10,7 +10,7 @@ with all points were decimetres off at a stated few centimetres (benchmarks/benc
 :func:`select_points` decides by what the data carry:
 
 - **classified** (both clouds have a ``classification`` with points in the stable classes
-  :data:`labkit.masks.STABLE_CLASSES` - ground, building, road surface): only those classes;
+  :data:`labkit.core.masks.STABLE_CLASSES` - ground, building, road surface): only those classes;
 - **unclassified** (plain arrays, or all points in one unclassified code 0/1): surface points
   only. A point is volume scatter when its k-neighbourhood is rough in absolute terms
   (local noise sigma_n about a local quadric above :data:`SMOOTH_NOISE`) *and* relative to its own
@@ -30,11 +30,11 @@ from scipy.stats import chi2
 
 import numpy as np
 
-from .._checks import as_points, choice
-from ..errors import LabkitError
+from ..core.checks import as_points, choice
+from ..core.errors import LabkitError
 from ..features import local_pca
-from ..masks import ASPRS_NAMES, STABLE_CLASSES
-from ._local_surface import _Geometry
+from ..core.masks import ASPRS_NAMES, STABLE_CLASSES
+from .matching.local_surface import Geometry
 
 __all__ = ["MAX_SCATTER", "MIN_SELECTED", "SELECT", "SMOOTH_NOISE", "ClassCheck", "Selection", "check_other_classes",
            "select_points"]
@@ -131,7 +131,7 @@ def surface_mask(points, k=20):
     pca = local_pca(local, k=k, orient="none")
     lam = np.sort(np.clip(pca.eigenvalues, 0, None), axis=1)  # ascending: l3, l2, l1
     # the spread about a local quadric: a curved surface (sparse hills, a sphere) is no volume
-    _, noise = _Geometry(local, k, quadric=True).at(np.arange(len(local)), need_noise=True)
+    _, noise = Geometry(local, k, quadric=True).at(np.arange(len(local)), need_noise=True)
     noise = np.where(np.isfinite(noise), noise, np.sqrt(lam[:, 0]))
     with np.errstate(invalid="ignore", divide="ignore"):
         scatter = noise / np.sqrt(lam[:, 1])

@@ -10,7 +10,7 @@
 
 from __future__ import annotations
 
-from .._lazy import lazy_attribute
+from ..core.lazy import lazy_attribute
 
 _EXPORTS = {
     "sphere_on_tripod": "labkit.synthetic.tripod",

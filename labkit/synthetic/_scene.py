@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._report import ReportMixin
+from ..core.report import ReportMixin
 
 
 class SphereScanMixin(ReportMixin):

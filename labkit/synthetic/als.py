@@ -20,10 +20,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._checks import as_rng, choice, positive
-from .._report import ReportMixin, fmt
+from ..core.checks import as_rng, choice, positive
+from ..core.report import ReportMixin, fmt
 from ..cloud import PointCloud
-from ..errors import LabkitError
+from ..core.errors import LabkitError
 from ..transforms import angles_from_rotation, apply_transform, invert, make_transform, rotation_from_angles
 from . import _als_scene as S
 

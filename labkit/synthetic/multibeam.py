@@ -23,9 +23,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._checks import as_rng, positive
-from .._report import fmt
-from ..errors import LabkitError
+from ..core.checks import as_rng, positive
+from ..core.report import fmt
+from ..core.errors import LabkitError
 from ._scene import SphereScanMixin
 
 LABEL_NAMES = ("sphere", "walls", "floor", "ceiling", "table", "person", "stand")

@@ -21,9 +21,9 @@ from functools import partial
 
 import numpy as np
 
-from .._checks import as_rng, count, positive
-from .._report import ReportMixin, fmt
-from ..errors import LabkitError
+from ..core.checks import as_rng, count, positive
+from ..core.report import ReportMixin, fmt
+from ..core.errors import LabkitError
 from ._raycast import box_hits, ceiling_hits, cylinder_hits, first_hits, ground_hits, sphere_hits, wall_hits
 
 LABEL_NAMES = ("ground", "wall", "target", "pole", "decoy", "crate", "ceiling")

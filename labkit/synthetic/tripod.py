@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._checks import as_rng, count, non_negative, positive
-from .._report import fmt
-from ..errors import LabkitError
+from ..core.checks import as_rng, count, non_negative, positive
+from ..core.report import fmt
+from ..core.errors import LabkitError
 from ._geometry import sphere_cap, unit
 from ._scene import SphereScanMixin
 

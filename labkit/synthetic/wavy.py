@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._checks import as_rng, count, non_negative, positive
+from ..core.checks import as_rng, count, non_negative, positive
 
 
 def wavy_surface(n: int, rng=None, *, noise: float = 0.002, size: float = 6.0) -> np.ndarray:

@@ -4,7 +4,7 @@ A survey is cut into square tiles (e.g. 100 m); every tile is registered on its
 own, giving one shift per tile (the *shift field*). Neighbouring tiles whose
 shifts differ by more than their combined uncertainty do not move together;
 tiles linked by agreeing neighbours, each fitting its area's common shift, form
-*coherent areas* (the tests and their correction: :mod:`labkit.coherent_areas`).
+*coherent areas* (the tests and their correction: :mod:`labkit.tiles.coherent`).
 
 A tile is ``ok`` only when its registration converged and its data determine
 every component of its shift; otherwise it is ``undetermined`` (it gives the
@@ -40,7 +40,7 @@ Equation numbers refer to ``notebooks/08-shift-field-over-tiles.ipynb``.
 
 from __future__ import annotations
 
-from ..coherent_areas import CORRECTIONS
+from .coherent import CORRECTIONS
 from ..io import LAS_SUFFIXES
 from .field import STATUSES, NeighbourTest, ShiftField, TileShift, neighbour_test, tile_status
 from .grid import MAX_TILES, Tile, tile_grid, write_tiles

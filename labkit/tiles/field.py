@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .._atomic import atomic_write_text
-from .._checks import choice, flag, non_negative, probability
-from .._report import ReportMixin
-from ..coherent_areas import CORRECTIONS, NeighbourTest, neighbour_areas
-from ..errors import LabkitError
+from ..core.atomic import atomic_write_text
+from ..core.checks import choice, flag, non_negative, probability
+from ..core.report import ReportMixin
+from .coherent import CORRECTIONS, NeighbourTest, neighbour_areas
+from ..core.errors import LabkitError
 from .grid import Tile
 
 __all__ = ["NeighbourTest", "ShiftField", "TileShift", "neighbour_test", "tile_status"]
@@ -260,7 +260,7 @@ def neighbour_test(field: ShiftField, alpha: float = 0.05, *, extra_std: float =
     guess of the coherent areas; each tile is then tested against its area's
     common weighted shift (eqs. 5, 6), and an area with a tile that disagrees
     is split, so that a chain of small steps is not one area (see
-    :mod:`labkit.coherent_areas`).
+    :mod:`labkit.tiles.coherent`).
 
     Parameters
     ----------

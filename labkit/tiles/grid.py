@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .._checks import as_points, count, non_negative, positive
+from ..core.checks import as_points, count, non_negative, positive
 from ..cloud import PointCloud
-from ..errors import LabkitError
+from ..core.errors import LabkitError
 from ..io import LAS_SUFFIXES, write_cloud
 
 __all__ = ["MAX_TILES", "Tile", "tile_grid", "write_tiles"]

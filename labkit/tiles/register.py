@@ -7,10 +7,10 @@ from functools import partial
 
 import numpy as np
 
-from .._checks import as_points, choice, count, non_negative, output_folder, positive
-from .._crs import check_same_crs
-from ..compare import METHODS, shift_at, shift_covariance, standard_methods
-from ..errors import LabkitError
+from ..core.checks import as_points, choice, count, non_negative, output_folder, positive
+from ..core.crs import check_same_crs
+from ..registration.compare import METHODS, shift_at, shift_covariance, standard_methods
+from ..core.errors import LabkitError
 from ..regions import as_classes
 from .field import ShiftField, TileShift, tile_status
 from .grid import MAX_TILES, Tile, tile_grid
@@ -94,7 +94,7 @@ def register_tiles(source, target, method=None, *, size: float = 100.0, buffer: 
         of one epoch must name one CRS in their headers (mixed ones are refused at once).
     method : callable(source, target) -> RegistrationResult, or str, optional
         Default: ``labkit.icp`` with ``dof="translation"``. A name among
-        :data:`labkit.compare.METHODS` (``'icp'``, ``'consensus'``, ...) means that
+        :data:`labkit.registration.compare.METHODS` (``'icp'``, ``'consensus'``, ...) means that
         standard method with ``dof="translation"``. With a distributed cluster of
         processes it must be picklable by cloudpickle.
     size : float
@@ -115,7 +115,7 @@ def register_tiles(source, target, method=None, *, size: float = 100.0, buffer: 
         for this run, one single-threaded worker process per core, closed afterwards) or
         the address of a running Dask scheduler (``'tcp://HOST:PORT'``).
     progress : bool, "bar", "lines" or callable
-        Count the finished tiles (see :mod:`labkit.progress`); default silent.
+        Count the finished tiles (see :mod:`labkit.core.progress`); default silent.
     max_tiles : int
         Refuse grids of more tiles (:data:`MAX_TILES`), before anything is read.
     results : path, optional

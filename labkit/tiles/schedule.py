@@ -5,8 +5,8 @@ from __future__ import annotations
 import contextlib
 import re
 
-from ..errors import LabkitError
-from ..progress import progress_steps
+from ..core.errors import LabkitError
+from ..core.progress import progress_steps
 
 __all__ = ["SCHEDULERS", "check_scheduler"]
 

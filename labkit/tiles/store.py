@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .._atomic import atomic_write_text
-from .._checks import as_points
+from ..core.atomic import atomic_write_text
+from ..core.checks import as_points
 from .field import TileShift, tile_status
 from .grid import Tile
 from .survey import _Files

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .._checks import as_points
-from ..errors import CloudFileError, EmptyRegionError, LabkitError
+from ..core.checks import as_points
+from ..core.errors import CloudFileError, EmptyRegionError, LabkitError
 from ..io import LAS_SUFFIXES, cloud_files, cloud_info, read_cloud
 from ..io.many import header_factors
 from ..regions import merge

@@ -1,0 +1,443 @@
+"""A compiled kd-tree for k-nearest-neighbour searches in 3D (private; used by features and matching).
+
+Why not only ``scipy.spatial.cKDTree``: on the real TLS scan (523,000 points,
+clustered density) its kNN query was 85-90 % of the time of
+:func:`labkit.features.normals` and of the ICP's matching. This tree is built
+for the two searches labkit makes all the time:
+
+- the k nearest neighbours of every point of the cloud itself (local PCA), run
+  directly on the points in leaf order, so that consecutive queries visit the
+  same leaves while they are in cache, and
+- the nearest target point of every source point within a distance (ICP).
+
+Construction: the points are split recursively at the median of the widest
+coordinate of each node's bounding box (balanced, depth ~ log2(n / leafsize)),
+with one rule for ties: points with equal coordinates always go to the same
+side (``< v`` left, ``>= v`` right). Exact duplicates therefore share a leaf,
+where they are found in O(leafsize^2) and, on request, merged into one point
+(a duplicate is not a second observation of the surface). Every node
+keeps its bounding box; a query visits the nearer child first and skips every
+node whose box is farther than the current k-th distance (Friedman, Bentley,
+Finkel 1977, ACM TOMS 3(3): 209-226).
+
+Distances are Euclidean in float64 on the caller's (reduced) coordinates (float32
+was considered and left out: it would make neighbour sets differ from the exact ones
+at near-ties); the neighbours come sorted by distance, ties in any order. numba is a
+core dependency; without it the queries fall back to cKDTree (the build stays slow).
+
+Design: the search runs leaf by leaf (:meth:`KDTree.knn_of_leaves`); the build reads
+no node twice for its box (the children's boxes are taken while the points are moved)
+and selects the median in place; local PCA sums each point's moments in the search
+kernel (:meth:`KDTree.knn_moments_of_leaves`) instead of writing and gathering an
+(n, k) index array. Timings against cKDTree and Open3D: benchmarks/bench_features.py.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .eigh3 import HAVE_NUMBA
+from .kdtree_build import _build_two, _duplicates, _pool, _threads
+from .kdtree_nn import nearest
+
+if HAVE_NUMBA:
+    import numba
+
+    _njit = numba.njit(cache=True, nogil=True)
+else:  # pragma: no cover - depends on the environment
+    def _njit(f):
+        return f
+
+LEAFSIZE = 24  # measured on the real TLS scan: self-kNN (k = 20) 10-25 % faster than 8-16; k = 1 alike
+_PER_THREAD = 4000  # queries per thread at least; below, one thread is faster than starting more
+
+
+@_njit
+def _insert(bd, bi, d2, i, k):  # pragma: no cover - compiled
+    """Insert (d2, i) into the ascending list bd/bi of length k (the last entry drops out)."""
+    j = k - 1
+    while j > 0 and bd[j - 1] > d2:
+        bd[j] = bd[j - 1]
+        bi[j] = bi[j - 1]
+        j -= 1
+    bd[j] = d2
+    bi[j] = i
+
+
+@_njit
+def _knn(X, nodes, box, depth, Q, k, bound2, idx, dist2):  # pragma: no cover - compiled
+    """k nearest of every row of Q among X (leaf order), squared distance < bound2; sorted ascending.
+
+    Missing neighbours (fewer than k within the bound) get index -1 (and distance bound2).
+    Every stacked node carries a lower bound of its distance (its parent's box distance,
+    or the distance to the split plane for the far child), so most pruned nodes are
+    never loaded. (A warm start from the previous query's neighbours was measured and
+    dropped: checking candidates against the list cost more than the tighter bound saved.)
+    """
+    stack = np.empty(2 * depth + 4, np.int64)
+    lower = np.empty(2 * depth + 4)  # lower bound of the squared distance to each stacked node
+    bd = np.empty(k)
+    bi = np.empty(k, np.int64)
+    for q in range(Q.shape[0]):
+        qx, qy, qz = Q[q, 0], Q[q, 1], Q[q, 2]
+        for j in range(k):
+            bd[j] = bound2
+            bi[j] = -1
+        worst = bound2
+        sp = 1
+        stack[0] = 0
+        lower[0] = 0.0
+        while sp > 0:
+            sp -= 1
+            node = stack[sp]
+            if lower[sp] >= worst:  # pruned by a split plane: the node's memory is not touched
+                continue
+            # squared distance from q to the node's box
+            g = 0.0
+            t = box[node, 0] - qx
+            if t > 0.0:
+                g += t * t
+            else:
+                t = qx - box[node, 3]
+                if t > 0.0:
+                    g += t * t
+            t = box[node, 1] - qy
+            if t > 0.0:
+                g += t * t
+            else:
+                t = qy - box[node, 4]
+                if t > 0.0:
+                    g += t * t
+            t = box[node, 2] - qz
+            if t > 0.0:
+                g += t * t
+            else:
+                t = qz - box[node, 5]
+                if t > 0.0:
+                    g += t * t
+            if g >= worst:
+                continue
+            l = nodes[node, 2]
+            if l < 0:
+                for i in range(nodes[node, 0], nodes[node, 1]):
+                    dx, dy, dz = X[i, 0] - qx, X[i, 1] - qy, X[i, 2] - qz
+                    d2 = dx * dx + dy * dy + dz * dz
+                    if d2 < worst:
+                        _insert(bd, bi, d2, i, k)
+                        worst = bd[k - 1]
+                continue
+            # nearer child (the side of the split plane q lies on) last on the stack: visited first
+            r = nodes[node, 3]
+            d = int(box[node, 7])
+            qd = qx if d == 0 else (qy if d == 1 else qz)
+            cut = qd - box[node, 6]
+            far = max(g, cut * cut)  # the far child lies beyond the split plane
+            if cut < 0.0:
+                near, other = l, r
+            else:
+                near, other = r, l
+            if far < worst:
+                stack[sp] = other
+                lower[sp] = far
+                sp += 1
+            stack[sp] = near
+            lower[sp] = g
+            sp += 1
+        for j in range(k):
+            idx[q, j] = bi[j]
+            dist2[q, j] = bd[j]
+
+
+@_njit
+def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragma: no cover - compiled
+    """k nearest tree points of every point of the given leaves (self-queries, leaf order).
+
+    The points of one leaf are searched together: first among themselves, then the
+    tree is walked ONCE for the whole leaf, pruning every node whose box is farther
+    from the leaf's box than the largest current k-th distance of its points; at each
+    visited leaf, a point scans it only if the leaf's box is nearer to it than its own
+    k-th distance. Same neighbours as :func:`_knn` (sorted ascending, ties in any
+    order); the walk from the root is no longer paid per point. Row ``pos - start`` of
+    ``idx`` belongs to leaf-order position ``pos``, ``start`` the first leaf's start.
+
+    With ``moments`` the neighbours are not written: row ``pos - start`` of ``cen`` and ``C``
+    gets the centroid (eq. 1) and covariance (eq. 2, divided by k) of the point's k neighbours,
+    summed while they are in cache, in the order and arithmetic of
+    :func:`labkit.neighbours.search.covariances` (the same numbers); ``idx`` is then not touched.
+    """
+    most = 1
+    for t in range(len(leaves)):
+        most = max(most, nodes[leaves[t], 1] - nodes[leaves[t], 0])
+    bd = np.empty((most, k))
+    bi = np.empty((most, k), np.int64)
+    worst = np.empty(most)
+    stack = np.empty(2 * depth + 4, np.int64)
+    lower = np.empty(2 * depth + 4)  # lower bound of the squared box-to-box distance of each stacked node
+    start = nodes[leaves[0], 0]
+    for t in range(len(leaves)):
+        leaf = leaves[t]
+        a, b = nodes[leaf, 0], nodes[leaf, 1]
+        m = b - a
+        # 1. the leaf's own points
+        wmax = 0.0
+        for qi in range(m):
+            for j in range(k):
+                bd[qi, j] = np.inf
+                bi[qi, j] = -1
+            qx, qy, qz = X[a + qi, 0], X[a + qi, 1], X[a + qi, 2]
+            w = np.inf
+            filled = 0
+            for i in range(a, b):
+                dx, dy, dz = X[i, 0] - qx, X[i, 1] - qy, X[i, 2] - qz
+                d2 = dx * dx + dy * dy + dz * dz
+                if filled < k:  # still filling: shift only the entries found so far
+                    _insert(bd[qi], bi[qi], d2, i, filled + 1)
+                    filled += 1
+                    if filled == k:
+                        w = bd[qi, k - 1]
+                elif d2 < w:
+                    _insert(bd[qi], bi[qi], d2, i, k)
+                    w = bd[qi, k - 1]
+            worst[qi] = w
+            wmax = max(wmax, w)
+        # 2. one walk for the leaf: nodes nearer to its box than the largest k-th distance
+        lo0, lo1, lo2, hi0, hi1, hi2 = box[leaf, 0], box[leaf, 1], box[leaf, 2], box[leaf, 3], box[leaf, 4], box[leaf, 5]
+        sp = 1
+        stack[0] = 0
+        lower[0] = 0.0
+        while sp > 0:
+            sp -= 1
+            node = stack[sp]
+            if lower[sp] >= wmax or node == leaf:
+                continue
+            g = _gap2(box[node, 0], box[node, 3], lo0, hi0) + _gap2(box[node, 1], box[node, 4], lo1, hi1)
+            g += _gap2(box[node, 2], box[node, 5], lo2, hi2)
+            if g >= wmax:
+                continue
+            child = nodes[node, 2]
+            if child < 0:  # a leaf: scanned by the points whose k-th distance reaches its box
+                s, e = nodes[node, 0], nodes[node, 1]
+                wmax = 0.0
+                for qi in range(m):
+                    w = worst[qi]
+                    qx, qy, qz = X[a + qi, 0], X[a + qi, 1], X[a + qi, 2]
+                    gq = _gap2(box[node, 0], box[node, 3], qx, qx) + _gap2(box[node, 1], box[node, 4], qy, qy)
+                    gq += _gap2(box[node, 2], box[node, 5], qz, qz)
+                    if gq < w:
+                        for i in range(s, e):
+                            dx, dy, dz = X[i, 0] - qx, X[i, 1] - qy, X[i, 2] - qz
+                            d2 = dx * dx + dy * dy + dz * dz
+                            if d2 < w:
+                                _insert(bd[qi], bi[qi], d2, i, k)
+                                w = bd[qi, k - 1]
+                        worst[qi] = w
+                    wmax = max(wmax, w)
+                continue
+            # the child on the side of the leaf's centre first; the other beyond the split plane
+            d = int(box[node, 7])
+            v = box[node, 6]
+            lo_d, hi_d = (lo0, hi0) if d == 0 else ((lo1, hi1) if d == 1 else (lo2, hi2))
+            if lo_d + hi_d < 2.0 * v:
+                near, other, cut = child, nodes[node, 3], v - hi_d
+            else:
+                near, other, cut = nodes[node, 3], child, lo_d - v
+            far = max(g, cut * cut) if cut > 0.0 else g
+            if far < wmax:
+                stack[sp] = other
+                lower[sp] = far
+                sp += 1
+            stack[sp] = near
+            lower[sp] = g
+            sp += 1
+        if not moments:
+            for qi in range(m):
+                for j in range(k):
+                    idx[a + qi - start, j] = bi[qi, j]
+            continue
+        for qi in range(m):  # centroid, then the mean outer product of the deviations (two passes)
+            r = a + qi - start
+            sx = sy = sz = 0.0
+            for j in range(k):
+                q = bi[qi, j]
+                sx += X[q, 0]
+                sy += X[q, 1]
+                sz += X[q, 2]
+            cx, cy, cz = sx / k, sy / k, sz / k
+            xx = xy = xz = yy = yz = zz = 0.0
+            for j in range(k):
+                q = bi[qi, j]
+                dx, dy, dz = X[q, 0] - cx, X[q, 1] - cy, X[q, 2] - cz
+                xx += dx * dx
+                xy += dx * dy
+                xz += dx * dz
+                yy += dy * dy
+                yz += dy * dz
+                zz += dz * dz
+            cen[r, 0], cen[r, 1], cen[r, 2] = cx, cy, cz
+            C[r, 0, 0], C[r, 1, 1], C[r, 2, 2] = xx / k, yy / k, zz / k
+            C[r, 0, 1] = C[r, 1, 0] = xy / k
+            C[r, 0, 2] = C[r, 2, 0] = xz / k
+            C[r, 1, 2] = C[r, 2, 1] = yz / k
+
+
+@_njit
+def _gap2(lo, hi, a, b):  # pragma: no cover - compiled
+    """Squared gap between the intervals [lo, hi] and [a, b] (0 where they overlap)."""
+    t = lo - b
+    if t > 0.0:
+        return t * t
+    t = a - hi
+    return t * t if t > 0.0 else 0.0
+
+
+_NO_IDX, _NO_CEN, _NO_C = np.empty((0, 1), np.intp), np.empty((0, 3)), np.empty((0, 3, 3))  # unused outputs
+
+
+class KDTree:
+    """kd-tree over (n, 3) points; optionally with exact duplicates merged (private).
+
+    Attributes
+    ----------
+    data : ndarray (m, 3)
+        The (kept) points in leaf order, contiguous.
+    indices : ndarray (m,)
+        Input row of every leaf-order point (as ``cKDTree.indices``).
+    n : int
+        Number of points in the tree (after merging).
+    representative : ndarray (n_input,)
+        Leaf-order position of the kept copy of every input point (merge only; else None).
+    n_duplicates : int
+        Input points merged into an identical earlier point.
+    """
+
+    def __init__(self, points, leafsize: int = LEAFSIZE, merge_duplicates: bool = False):
+        P = np.ascontiguousarray(points, dtype=np.float64)
+        perm, nodes, box, depth, X = _build_two(P, int(leafsize))
+        self._representative, self._identity, self.n_duplicates = None, False, 0
+        if merge_duplicates:
+            keep, first = _duplicates(X, nodes)
+            self.n_duplicates = int(len(keep) - keep.sum())
+            if self.n_duplicates:
+                new = np.cumsum(keep) - 1  # new leaf-order position of every kept point
+                rep_leaf = new[first]
+                self._representative = np.empty(len(P), dtype=np.intp)
+                self._representative[perm] = rep_leaf
+                X, perm = X[keep], perm[keep]
+                bounds = np.concatenate([[0], np.cumsum(keep)])
+                nodes = nodes.copy()
+                nodes[:, 0], nodes[:, 1] = bounds[nodes[:, 0]], bounds[nodes[:, 1]]
+            else:  # every point is its own representative: the inverse permutation, made when first asked for
+                self._identity = True
+        self.data, self.indices = np.ascontiguousarray(X), perm.astype(np.intp, copy=False)
+        self._nodes = (nodes, box, int(depth))
+        self._leaves = None  # leaf node ids in leaf order (see leaf_bounds)
+        self.n = len(X)
+
+    @property
+    def representative(self):
+        """Leaf-order position of the kept copy of every input point (merge only; else None)."""
+        if self._representative is None and self._identity:
+            rep = np.empty(len(self.indices), dtype=np.intp)
+            rep[self.indices] = np.arange(len(self.indices))
+            self._representative = rep
+        return self._representative
+
+    def query_leaf_positions(self, pos, k: int, workers: int = 1):
+        """Leaf-order indices (m, k) of the k nearest tree points of the tree's own points ``pos``."""
+        return self._run(self.data[pos], int(k), np.inf, _threads(workers))[1]
+
+    @property
+    def leaf_bounds(self) -> np.ndarray:
+        """Leaf-order start of every non-empty leaf, then ``n``: leaf j holds positions bounds[j]:bounds[j+1]."""
+        if self._leaves is None:
+            nodes = self._nodes[0]
+            leaves = np.flatnonzero((nodes[:, 2] < 0) & (nodes[:, 1] > nodes[:, 0]))
+            self._leaves = leaves[np.argsort(nodes[leaves, 0], kind="stable")]
+        return np.append(self._nodes[0][self._leaves, 0], self.n)
+
+    def knn_of_leaves(self, a: int, b: int, k: int):
+        """Leaf-order indices (b - a, k) of the k nearest tree points of the tree's points a..b-1.
+
+        ``a`` and ``b`` must be leaf bounds (:attr:`leaf_bounds`); the points of a leaf are
+        searched together (:func:`_knn_leaves`), sorted by distance like :meth:`query`.
+        """
+        bounds = self.leaf_bounds
+        j0, j1 = np.searchsorted(bounds, [a, b])
+        if bounds[j0] != a or bounds[j1] != b:
+            raise ValueError(f"{a}:{b} does not start and end at leaf bounds")
+        idx = np.empty((b - a, k), dtype=np.intp)
+        if b > a:
+            if HAVE_NUMBA:
+                _knn_leaves(self.data, *self._nodes, self._leaves[j0:j1], k, idx, _NO_CEN, _NO_C, False)
+            else:  # pragma: no cover - depends on the environment
+                idx[:] = self._run(self.data[a:b], k, np.inf, 1)[1]
+        return idx
+
+    def knn_moments_of_leaves(self, a: int, b: int, k: int):
+        """Centroids (b - a, 3) and covariances (b - a, 3, 3) of the k nearest tree points of the
+        tree's points a..b-1 (leaf bounds), as :meth:`knn_of_leaves` followed by
+        :func:`labkit.neighbours.search.covariances` (the same numbers), without the (b - a, k) index array:
+        the moments are summed in the search kernel while the neighbours are in cache."""
+        if not HAVE_NUMBA:  # pragma: no cover - depends on the environment
+            from .search import covariances
+
+            return covariances(self.data, None, self.knn_of_leaves(a, b, k), np.ascontiguousarray(self.data.T))
+        bounds = self.leaf_bounds
+        j0, j1 = np.searchsorted(bounds, [a, b])
+        if bounds[j0] != a or bounds[j1] != b:
+            raise ValueError(f"{a}:{b} does not start and end at leaf bounds")
+        cen, C = np.empty((b - a, 3)), np.empty((b - a, 3, 3))
+        if b > a:
+            _knn_leaves(self.data, *self._nodes, self._leaves[j0:j1], k, _NO_IDX, cen, C, True)
+        return cen, C
+
+    def nearest_in_groups(self, q, starts, distance_upper_bound: float = np.inf, workers: int = 1, warm=None):
+        """As ``query(q, k=1, ...)`` (the same distances and indices, ties included), the rows
+        ``starts[g]:starts[g + 1]`` of ``q`` searched together (:func:`labkit.neighbours.kdtree_nn.nearest`):
+        fast when each group lies close together (e.g. the leaves of a tree over the queries).
+
+        ``warm`` (optional, int array per row of ``q``): a leaf-order position to try first, or -1;
+        overwritten with the leaf-order position of each row's nearest point (-1: none), the warm
+        start of the next call (ICP's next iteration). The answer is the same with or without it."""
+        d2, leaf = nearest(self, q, starts, float(distance_upper_bound), _threads(workers), warm)
+        if warm is not None:
+            warm[:] = leaf
+        found = leaf >= 0
+        return np.where(found, np.sqrt(d2), np.inf), np.where(found, self.indices[np.where(found, leaf, 0)], self.n)
+
+    def query(self, q, k: int = 1, distance_upper_bound: float = np.inf, workers: int = 1):
+        """Like ``cKDTree.query``: (distance, input index); k = 1 gives 1-D arrays.
+
+        Missing neighbours (beyond ``distance_upper_bound``) have distance inf and index ``n``.
+        """
+        Q = np.ascontiguousarray(q, dtype=np.float64).reshape(-1, 3)
+        d2, leaf = self._run(Q, int(k), float(distance_upper_bound), _threads(workers))
+        found = leaf >= 0
+        idx = np.where(found, self.indices[np.where(found, leaf, 0)], self.n)
+        d = np.where(found, np.sqrt(d2), np.inf)
+        return (d[:, 0], idx[:, 0]) if k == 1 else (d, idx)
+
+    def _run(self, Q, k, bound, threads):
+        bound2 = bound * bound if np.isfinite(bound) else np.inf
+        idx = np.empty((len(Q), k), dtype=np.intp)
+        d2 = np.empty((len(Q), k))
+        if not HAVE_NUMBA:  # pragma: no cover - depends on the environment
+            from scipy.spatial import cKDTree
+
+            d, i = cKDTree(self.data).query(Q, k=k, distance_upper_bound=bound)
+            d, i = d.reshape(len(Q), k), i.reshape(len(Q), k)
+            return d * d, np.where(i < self.n, i, -1)
+        threads = min(threads, max(1, len(Q) // _PER_THREAD))
+        args = self._nodes
+        if threads <= 1:
+            _knn(self.data, *args, Q, k, bound2, idx, d2)
+            return d2, idx
+        bounds = np.linspace(0, len(Q), threads + 1).astype(int)
+        pool = _pool(threads)
+        jobs = [
+            pool.submit(_knn, self.data, *args, Q[a:b], k, bound2, idx[a:b], d2[a:b])
+            for a, b in zip(bounds[:-1], bounds[1:])
+        ]
+        for job in jobs:
+            job.result()
+        return d2, idx

@@ -1,0 +1,359 @@
+"""Local surface of a cloud at its points for the matching: PCA plane or quadric, noise, tilt (private).
+
+The same PCA as :func:`labkit.features.local_pca` (notebook 04, eqs. 1-5) on the distinct points
+of a compiled kd-tree, computed only at the points the matching asks for and cached per point
+(:class:`Geometry`); the local quadric of ``surface='quadric'`` and the covariance of a plane
+normal's random tilt (ICP's determinability test, eq. 5.12b) come from the same neighbourhoods.
+Used by :mod:`labkit.registration.matching`.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from ...neighbours.eigh3 import HAVE_NUMBA, eigh3_analytic
+from ...neighbours.kdtree import KDTree
+from ...core.errors import LabkitError
+from ...neighbours.search import covariances  # the shared kNN covariance kernel (compiled)
+
+if HAVE_NUMBA:
+    import numba
+
+
+def _local_geometry(tree, cols, index, k):
+    """Normals, local noise and change of curvature of the input points ``index`` from k neighbours.
+
+    The same PCA as :func:`labkit.features.local_pca` (notebook 04, eqs. 1-5) on the
+    tree's distinct points (exact duplicates merged), evaluated only at the query points.
+    Noise is sigma_n = sqrt(k lambda_min / (k - 3)). Queries run in the tree's leaf
+    order, which keeps the visited leaves in cache. Where the neighbourhood is a point
+    or a line the normal and the noise are NaN.
+    """
+    pos = tree.representative[index]  # leaf position of each point's kept copy
+    order = np.argsort(pos, kind="stable")
+    out = _leaf_geometry(tree, cols, pos[order], k)[:3]
+    back = np.empty_like(order)
+    back[order] = np.arange(len(order))
+    return tuple(a[back] for a in out)
+
+
+def _leaf_geometry(tree, cols, pos, k, quadric=False):
+    """:func:`_local_geometry` at the tree's own (distinct) points, given by sorted leaf positions.
+
+    With ``quadric`` also the local quadric's coefficients and frame (the frame's normal
+    oriented up), and its noise replaces the plane's: on a curved surface the plane's
+    l3 holds the curvature too, and would down-weight and reject curved ground.
+    The last element is always a function that returns the covariance (m, 3, 3) of the plane
+    normal's random tilt (:func:`_plane_tilt`) from the same decomposition: ICP's determinability
+    test (eq. 5.12b) needs it at the matched target points and would otherwise search their
+    neighbours again.
+    """
+    k = min(k, tree.n)
+    threads = -1 if len(pos) > 2000 else 1  # threads cost more than they save on small queries
+    nb = tree.query_leaf_positions(pos, k, workers=threads)
+    m = len(pos)
+    shapes = [(3,), (), (), (3,), (3, 2)] + ([(6,), (3, 3), (3,)] if quadric else [])
+    out = [None] * len(shapes)  # written in place by the row chunks: no second copy of large results
+
+    def work(a, b):
+        part = _geometry_rows(tree, cols, pos[a:b], nb[a:b], k, quadric)
+        if a == 0 and b == m:
+            out[:] = part
+            return
+        for i, (v, shape) in enumerate(zip(part, shapes)):
+            if out[i] is None:
+                with _alloc_lock:
+                    if out[i] is None:
+                        out[i] = np.empty((m,) + shape, dtype=v.dtype)
+            out[i][a:b] = v
+
+    _in_row_chunks(work, m)
+    n, noise, variation, lam, tangents, *fit = out
+    tilt = lambda: _plane_tilt(lam, tangents, k)  # noqa: E731 - evaluated only where kept (the target)
+    return (n, noise, variation, *fit, tilt)
+
+
+def _in_row_chunks(work, m, rows=50_000):
+    """``[work(a, b)]`` over consecutive row ranges, on the cores (each row's numbers are computed alone:
+    the same numbers as one call ``work(0, m)``; the compiled kernels release the GIL)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    threads = min(cores, max(1, m // rows))
+    if threads <= 1:
+        return [work(0, m)]
+    cut = np.linspace(0, m, threads + 1).astype(int)
+    with ThreadPoolExecutor(threads, "labkit-geometry") as pool:
+        return list(pool.map(work, cut[:-1], cut[1:]))
+
+
+_alloc_lock = threading.Lock()
+
+
+def _geometry_rows(tree, cols, pos, nb, k, quadric):
+    """The PCA (and quadric) of :func:`_leaf_geometry` at the points ``pos`` with neighbours ``nb``:
+    normal, noise, variation, eigenvalues, tangents (and coefficients, frame, slope covariance)."""
+    _, cov = covariances(tree.data, None, nb, cols)  # the local PCA's kernel (notebook 04, eqs. 1-2)
+    cov *= k / (k - 3) if k > 3 else np.nan  # redundancy k - 3 of the plane (eq. 5): lambda_min is sigma_n^2
+    lam, vecs = eigh3_analytic(cov)  # as np.linalg.eigh (closed form), ascending: normal = eigenvector of lambda_min
+    lam = np.clip(lam, 0, None)
+    with np.errstate(invalid="ignore"):
+        ok = lam[:, 1] > 1e-12 * lam[:, 2]  # not a point, not a line (features._determined)
+    n = vecs[:, :, 0]
+    n = np.where(n[:, 2:3] < 0, -n, n)
+    n[~ok] = np.nan
+    noise = np.where(ok, np.sqrt(lam[:, 0]), np.nan)
+    variation = lam[:, 0] / np.maximum(lam.sum(axis=1), 1e-300)  # change of curvature l3 / sum(l)
+    tangents = vecs[:, :, 1:].copy() if quadric else vecs[:, :, 1:]  # (the quadric's frame changes below)
+    if quadric:
+        vecs[~ok] = np.nan
+        flip = vecs[:, 2, 0] < 0  # orient the frame's normal up; h and its coefficients flip with it
+        vecs[flip, :, 0] *= -1
+        coef, sig, slope = np.empty((len(pos), 6)), np.empty(len(pos)), np.empty((len(pos), 3))
+        _quadric(tree.data, nb, pos, vecs, coef, sig, slope)
+        fit = np.isfinite(sig)  # else (k < 7, degenerate fit) the plane stays
+        _, n_q = _on_quadric(coef[fit], vecs[fit], np.zeros((int(fit.sum()), 3)))
+        n[fit] = n_q  # the surface normal at the point itself
+        return n, np.where(fit, sig, noise), np.where(ok, variation, np.nan), lam, tangents, coef, vecs, slope
+    return n, noise, np.where(ok, variation, np.nan), lam, tangents
+
+
+def _plane_tilt(lam, tangents, k):
+    """Covariance of the random tilt of PCA plane normals: sum_j e_j e_j^T sigma_n^2 / (k lambda_j).
+
+    Along each tangent eigen-direction e_j (spread lambda_j) the slope of a plane fitted to k points
+    with noise sigma_n has the variance of a regression slope, sigma_n^2 / (k lambda_j); sigma_n^2 =
+    k lambda_0 / (k - 3) (notebook 04, eq. 5). ``lam`` (m, 3) ascending, already scaled by k / (k - 3)
+    as in :func:`_leaf_geometry` (lam[:, 0] = sigma_n^2), ``tangents`` (m, 3, 2) the eigenvectors e_1, e_2.
+    """
+    raw = np.maximum((k - 3) * lam[:, 1:], k * 1e-300)  # k lambda_j of the unscaled covariance
+    w = np.clip(lam[:, :1] / raw, 0.0, 1.0)  # tilt variance along e_1, e_2
+    e1, e2 = tangents[:, :, 0], tangents[:, :, 1]
+    return w[:, 0, None, None] * e1[:, :, None] * e1[:, None, :] + w[:, 1, None, None] * e2[:, :, None] * e2[:, None, :]
+
+
+def _quadric_kernel(X, nb, qpos, V, coef, sig, slope):  # pragma: no cover - compiled
+    """Local quadric h = a u^2 + b uv + c v^2 + d u + e v + f per neighbourhood, in the PCA frame at q.
+
+    (u, v) are the coordinates along the two largest eigenvectors, h along the normal
+    (V's columns: eigenvalues ascending), all relative to the query point q itself and
+    scaled by the neighbourhood's extent for conditioning. Least squares by the 6x6
+    normal equations (Gaussian elimination with partial pivoting);
+    sig = sqrt(RSS / (m - 6)), the noise about the curved surface; ``slope`` holds the
+    covariance (var d, cov de, var e) of the surface's slopes at q, sig^2 times the (d, e)
+    block of the inverse normal matrix: the random tilt of the quadric's normal.
+    """
+    m, k = nb.shape
+    N = np.empty((6, 6))
+    g = np.empty(6)
+    r = np.empty(6)
+    c = np.empty((6, 3))
+    for i in range(m):
+        q = qpos[i]
+        nx, ny, nz = V[i, 0, 0], V[i, 1, 0], V[i, 2, 0]
+        ax, ay, az = V[i, 0, 2], V[i, 1, 2], V[i, 2, 2]
+        bx, by, bz = V[i, 0, 1], V[i, 1, 1], V[i, 2, 1]
+        slope[i, :] = np.nan
+        if not (np.isfinite(nx) and np.isfinite(ax) and np.isfinite(bx)) or k < 7:
+            coef[i, :] = np.nan
+            sig[i] = np.nan
+            continue
+        s2 = 0.0
+        for j in range(k):
+            p = nb[i, j]
+            wx, wy, wz = X[p, 0] - X[q, 0], X[p, 1] - X[q, 1], X[p, 2] - X[q, 2]
+            s2 += wx * wx + wy * wy + wz * wz
+        s = np.sqrt(s2 / k)
+        if s == 0.0:
+            coef[i, :] = np.nan
+            sig[i] = np.nan
+            continue
+        N[:, :] = 0.0
+        g[:] = 0.0
+        hh = 0.0
+        for j in range(k):
+            p = nb[i, j]
+            wx, wy, wz = X[p, 0] - X[q, 0], X[p, 1] - X[q, 1], X[p, 2] - X[q, 2]
+            u = (wx * ax + wy * ay + wz * az) / s
+            v = (wx * bx + wy * by + wz * bz) / s
+            h = wx * nx + wy * ny + wz * nz
+            r[0], r[1], r[2], r[3], r[4], r[5] = u * u, u * v, v * v, u, v, 1.0
+            for a in range(6):
+                g[a] += r[a] * h
+                for b in range(a, 6):
+                    N[a, b] += r[a] * r[b]
+            hh += h * h
+        for a in range(6):
+            for b in range(a):
+                N[a, b] = N[b, a]
+        A = N.copy()
+        c[:, :] = 0.0  # right-hand sides: g, and the unit vectors of d and e (their inverse columns)
+        c[:, 0] = g
+        c[3, 1] = 1.0
+        c[4, 2] = 1.0
+        ok = True
+        for col in range(6):  # elimination with partial pivoting
+            piv = col
+            for row in range(col + 1, 6):
+                if abs(A[row, col]) > abs(A[piv, col]):
+                    piv = row
+            if abs(A[piv, col]) <= 1e-12 * abs(N[col, col]) + 1e-300:
+                ok = False
+                break
+            if piv != col:
+                for b in range(6):
+                    A[col, b], A[piv, b] = A[piv, b], A[col, b]
+                for b in range(3):
+                    c[col, b], c[piv, b] = c[piv, b], c[col, b]
+            for row in range(col + 1, 6):
+                f = A[row, col] / A[col, col]
+                for b in range(col, 6):
+                    A[row, b] -= f * A[col, b]
+                for b in range(3):
+                    c[row, b] -= f * c[col, b]
+        if not ok:
+            coef[i, :] = np.nan
+            sig[i] = np.nan
+            continue
+        for b in range(3):
+            for col in range(5, -1, -1):
+                t = c[col, b]
+                for a in range(col + 1, 6):
+                    t -= A[col, a] * c[a, b]
+                c[col, b] = t / A[col, col]
+        rss = hh
+        for a in range(6):
+            rss -= c[a, 0] * g[a]
+        sig[i] = np.sqrt(max(rss, 0.0) / (k - 6))
+        # back to metres: u_scaled = u / s
+        coef[i, 0], coef[i, 1], coef[i, 2] = c[0, 0] / (s * s), c[1, 0] / (s * s), c[2, 0] / (s * s)
+        coef[i, 3], coef[i, 4], coef[i, 5] = c[3, 0] / s, c[4, 0] / s, c[5, 0]
+        s2n = sig[i] * sig[i] / (s * s)
+        slope[i, 0], slope[i, 1], slope[i, 2] = s2n * c[3, 1], s2n * 0.5 * (c[4, 1] + c[3, 2]), s2n * c[4, 2]
+
+
+if HAVE_NUMBA:
+    _quadric = numba.njit(cache=True, nogil=True)(_quadric_kernel)
+else:  # pragma: no cover - depends on the environment
+    _quadric = _quadric_kernel
+
+
+def _on_quadric(coef, frame, w):
+    """Offset from points to the local quadric along its frame normal, and the surface normal there.
+
+    In the frame at q (columns of ``frame``: normal n, minor tangent t2, major tangent t1):
+    (u, v, h) = w . (t1, t2, n) for w = p - q; the surface height is
+    h_s(u, v) = a u^2 + b uv + c v^2 + d u + e v + f; the foot point is
+    q' = p + (h_s - h) n, and the surface normal there n - dh_s/du t1 - dh_s/dv t2 (normalised).
+    """
+    n, t2, t1 = frame[:, :, 0], frame[:, :, 1], frame[:, :, 2]
+    u = np.einsum("ij,ij->i", w, t1)
+    v = np.einsum("ij,ij->i", w, t2)
+    h = np.einsum("ij,ij->i", w, n)
+    a, b, c, d, e, f = coef.T
+    hs = a * u * u + b * u * v + c * v * v + d * u + e * v + f
+    gu, gv = 2 * a * u + b * v + d, b * u + 2 * c * v + e
+    normal = n - gu[:, None] * t1 - gv[:, None] * t2
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    normal = np.where(normal[:, 2:3] < 0, -normal, normal)
+    return (hs - h)[:, None] * n, normal
+
+
+class Geometry:
+    """Normals and noise of one cloud, computed on demand and cached (private).
+
+    ICP with a thinned source needs the target normals only at the few target
+    points that are ever matched; computing them lazily saves most of the work.
+    The cache holds one entry per distinct point (leaf position of the kd-tree, exact
+    duplicates merged) for the whole ICP call: the target does not move, so no point
+    is computed twice. Storage is compact: a slot per computed point (``slot``, -1 for
+    none) into buffers that grow with the points actually used, so that a 10-million-point
+    target whose ICP touches 300,000 points holds 300,000 normals, not 10 million.
+    ``n_computed`` counts the points whose geometry was computed (tests use it).
+    """
+
+    def __init__(self, points, k, normals=None, tree=None, quadric=False, keep_tilt=False):
+        self.tree = KDTree(points, merge_duplicates=True) if tree is None else tree
+        self.k, self.quadric, self.keep_tilt = k, quadric, keep_tilt
+        self.cols = np.ascontiguousarray(self.tree.data.T)  # coordinate columns for contiguous gathers
+        self.given = normals  # per input point, or None
+        self.slot = np.full(self.tree.n, -1, dtype=np.int32 if self.tree.n < 2**31 else np.int64)
+        self.n_computed = 0
+        self._store = {}  # name -> buffer (capacity, ...), rows 0..n_computed-1 used
+
+    def _grow(self, values):
+        """Append the rows of each named array to its buffer (doubling the capacity when full)."""
+        n_new = len(next(iter(values.values())))
+        for name, v in values.items():
+            buf = self._store.get(name)
+            need = self.n_computed + n_new
+            if buf is None or len(buf) < need:
+                cap = max(need, 2 * (0 if buf is None else len(buf)), 1024)
+                bigger = np.empty((cap,) + v.shape[1:], dtype=v.dtype)
+                if buf is not None:
+                    bigger[: self.n_computed] = buf[: self.n_computed]
+                self._store[name] = buf = bigger
+            buf[self.n_computed : need] = v
+        self.n_computed += n_new
+
+    _SHAPES = dict(normals=(3,), noise=(), coef=(6,), frame=(3, 3), slope=(3,), tilt=(3, 3))
+
+    def _get(self, name, pos):
+        if name not in self._store:  # nothing computed yet (e.g. no pairs at all)
+            return np.full((len(pos),) + self._SHAPES[name], np.nan)
+        return self._store[name][self.slot[pos]]
+
+    def at(self, index, need_noise=False):
+        pos = self.tree.representative[index]
+        if need_noise or self.given is None:
+            todo = self.slot[pos] < 0
+            if todo.any():
+                mark = np.zeros(self.tree.n, dtype=bool)
+                mark[pos[todo]] = True
+                new = np.flatnonzero(mark)  # sorted leaf positions: coherent queries, no sort
+                out = _leaf_geometry(self.tree, self.cols, new, self.k, self.quadric)
+                values = dict(normals=out[0], noise=out[1])
+                if self.keep_tilt:
+                    values["tilt"] = out[-1]()
+                if self.quadric:
+                    values.update(coef=out[3], frame=out[4], slope=out[5])
+                self.slot[new] = np.arange(self.n_computed, self.n_computed + len(new))
+                self._grow(values)
+        normals = self._get("normals", pos) if self.given is None else self.given[index]
+        noise = self._get("noise", pos) if need_noise or self.given is None else np.full(len(pos), np.nan)
+        return normals, noise
+
+    def foot(self, index, w):
+        """Offsets (m, 3) from the points ``q + w`` to the local quadric of ``q`` = point ``index``, and
+        the surface normals there (requires :meth:`at` first); rows without a quadric get NaN offsets."""
+        pos = self.tree.representative[index]
+        coef = self._get("coef", pos)  # a copy (fancy indexing)
+        coef[:, 5] = 0.0  # the surface through the measured q itself (see _Matcher.__call__)
+        return _on_quadric(coef, self._get("frame", pos), w)
+
+    def plane_tilt(self, index):
+        """Covariance (m, 3, 3) of the random tilt of the PCA plane normals at the points ``index``
+        (:func:`_plane_tilt`), stored with the normals (``keep_tilt``); computed here for points not
+        yet matched."""
+        if not self.keep_tilt:
+            raise LabkitError("this geometry keeps no tilt covariances (keep_tilt=False)")
+        self.at(index, need_noise=True)
+        return self._get("tilt", self.tree.representative[index])
+
+    def tilt(self, index):
+        """Covariance (m, 3, 3) of the random tilt of the quadric normals at the points ``index``.
+
+        The normal n - d t1 - e t2 at q tilts by -(dd t1 + de t2) with the covariance of the
+        fitted slopes (d, e) (requires :meth:`at` first; NaN where no quadric was fitted).
+        """
+        pos = self.tree.representative[index]
+        T = self._get("frame", pos)[:, :, [2, 1]]  # tangents t1 (u), t2 (v)
+        vd, cde, ve = self._get("slope", pos).T
+        C = np.stack([np.stack([vd, cde], -1), np.stack([cde, ve], -1)], -2)
+        return np.einsum("mia,mab,mjb->mij", T, C, T)
+
+    def compute(self, index, k):
+        """Normals, noise and change of curvature at ``index`` with k neighbours (no caching)."""
+        return _local_geometry(self.tree, self.cols, index, k)

@@ -1,0 +1,67 @@
+"""labkit.neighbours.treecache: the last kd-tree is reused for the same array, origin and rule, and rebuilt otherwise.
+
+That ICP and the distances share one tree through it: tests/test_icp_sampling.py.
+"""
+
+import gc
+
+import numpy as np
+import pytest
+
+from labkit.neighbours import treecache as _treecache
+from labkit.neighbours.treecache import forget, local_tree
+
+
+@pytest.fixture(autouse=True)
+def empty_cache():
+    forget()
+    yield
+    forget()
+
+
+def _cloud(n=2000, seed=0):
+    return np.random.default_rng(seed).uniform(0, 10, (n, 3)) + [500_000.0, 5_400_000.0, 300.0]
+
+
+def test_same_array_origin_and_rule_give_the_same_tree_which_is_right():
+    pts = _cloud()
+    origin = np.round(pts.mean(axis=0))
+    tree = local_tree(pts, origin, merge_duplicates=True)
+    assert local_tree(pts, origin.copy(), True) is tree  # an equal origin in another array
+    np.testing.assert_array_equal(tree.data[np.argsort(tree.indices)], pts - origin)  # the tree of pts - origin
+    q = pts[:5] - origin
+    np.testing.assert_array_equal(tree.query(q, k=1)[1], np.arange(5))
+
+
+@pytest.mark.parametrize("change", ["copy", "origin", "rule", "in place", "shape"])
+def test_anything_else_gives_a_new_tree(change):
+    pts = _cloud()
+    origin = np.round(pts.mean(axis=0))
+    tree = local_tree(pts, origin, False)
+    if change == "copy":
+        again = local_tree(pts.copy(), origin, False)  # equal values, another array: not trusted
+    elif change == "origin":
+        again = local_tree(pts, origin + 1.0, False)
+    elif change == "rule":
+        again = local_tree(pts, origin, True)
+    elif change == "in place":
+        pts[:: len(pts) // 4096 or 1] += 0.5  # the sampled rows move: the checksum changes
+        again = local_tree(pts, origin, False)
+        np.testing.assert_array_equal(again.data[np.argsort(again.indices)], pts - origin)
+    else:
+        again = local_tree(pts[:-1], origin, False)
+    assert again is not tree
+
+
+def test_one_entry_weakly_kept_and_forget_drops_it():
+    a, b = _cloud(seed=1), _cloud(seed=2)
+    origin = np.round(a.mean(axis=0))
+    ta = local_tree(a, origin, False)
+    tb = local_tree(b, origin, False)
+    assert local_tree(b, origin, False) is tb
+    assert local_tree(a, origin, False) is not ta  # only the last tree is kept
+    forget()
+    assert local_tree(a, origin, False) is not ta and _treecache._last is not None
+    del a
+    gc.collect()
+    assert _treecache._last[0]() is None  # the array is not kept alive by the cache

@@ -1,0 +1,26 @@
+"""ICP's matching step (labkit.registration.matching.matcher): the grouped nearest-neighbour search changes no result."""
+
+import numpy as np
+
+from labkit.neighbours.kdtree import KDTree
+from labkit.registration import icp
+from labkit.synthetic import wavy_surface
+
+
+def test_icp_with_grouped_search_equals_the_per_point_search(monkeypatch):
+    """The whole ICP (every source point, rigid) bitwise as with one tree walk per source point,
+    on coordinates rounded to the millimetre (as in LAS files: equally near target points occur)."""
+    rng = np.random.default_rng(5)
+    target = np.round(wavy_surface(20_000, rng, noise=0.002), 3)
+    source = np.round(wavy_surface(8_000, rng, noise=0.002), 3) - [0.021, -0.013, 0.008]
+    kw = dict(dof="rigid", sample=None, rng=0, covariance="formal", consistency_alpha=None)
+    new = icp(source, target, **kw)
+
+    def per_point(self, q, starts, distance_upper_bound=np.inf, workers=1, warm=None):
+        return self.query(q, k=1, distance_upper_bound=distance_upper_bound, workers=workers)
+
+    monkeypatch.setattr(KDTree, "nearest_in_groups", per_point)
+    old = icp(source, target, **kw)
+    assert new.iterations == old.iterations > 1
+    assert np.array_equal(new.matrix, old.matrix) and np.array_equal(new.covariance, old.covariance)
+    assert np.array_equal(new.correspondences.target_index, old.correspondences.target_index)

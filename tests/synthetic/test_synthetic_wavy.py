@@ -1,0 +1,53 @@
+"""The wavy test surface: shape, the surface it lies on, its noise, reproducibility, bad input."""
+
+import numpy as np
+import pytest
+
+from labkit.core.errors import LabkitError
+from labkit.synthetic import wavy_surface
+
+
+def _height(xy):
+    return 0.5 * np.sin(2 * xy[:, 0]) + 0.5 * np.cos(2 * xy[:, 1])
+
+
+def test_noise_free_points_lie_on_the_surface_inside_the_square():
+    pts = wavy_surface(2000, 5, noise=0.0, size=3.0)
+    assert pts.shape == (2000, 3)
+    assert np.allclose(pts[:, 2], _height(pts[:, :2]), atol=1e-15)
+    assert pts[:, :2].min() >= 0.0 and pts[:, :2].max() <= 3.0
+    assert pts[:, :2].max() > 2.9 and pts[:, :2].min() < 0.1  # the whole square is used
+
+
+def test_noise_has_the_stated_spread_in_every_coordinate():
+    clean = wavy_surface(50_000, 7, noise=0.0)
+    noisy = wavy_surface(50_000, 7, noise=0.004)  # same seed: same xy draws, then the noise
+    diff = noisy - clean
+    assert np.allclose(diff.std(axis=0), 0.004, rtol=0.02)
+    assert np.all(np.abs(diff.mean(axis=0)) < 1e-4)
+
+
+def test_one_generator_gives_independent_samplings_and_matches_the_written_out_draws():
+    rng = np.random.default_rng(1)
+    a, b = wavy_surface(100, rng), wavy_surface(100, rng)
+    assert not np.allclose(a[:, :2], b[:, :2])
+    ref = np.random.default_rng(1)  # the same draws written out, in the same order
+    xy = ref.uniform(0, 6, (100, 2))
+    expected = np.column_stack([xy, _height(xy)]) + ref.normal(0, 0.002, (100, 3))
+    assert np.array_equal(a, expected)
+    assert np.array_equal(wavy_surface(100, 3), wavy_surface(100, 3))
+
+
+def test_noise_zero_draws_nothing_for_the_noise():
+    rng = np.random.default_rng(2)
+    wavy_surface(10, rng, noise=0.0)
+    ref = np.random.default_rng(2)
+    ref.uniform(0, 6, (10, 2))
+    assert rng.random() == ref.random()
+
+
+@pytest.mark.parametrize("kwargs", [{"n": 0}, {"n": 2.5}, {"n": 10, "noise": -0.1}, {"n": 10, "size": 0.0},
+                                    {"n": 10, "rng": "seed"}])
+def test_bad_input_is_refused(kwargs):
+    with pytest.raises(LabkitError):
+        wavy_surface(**kwargs)
