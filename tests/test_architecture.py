@@ -243,9 +243,7 @@ def test_every_public_function_cites_its_equations_or_literature():
 # --------------------------------------------------------------------------- imports inside functions
 #: In-function imports of labkit's own modules, (importer, imported module) -> why it is not at the top.
 LAZY_IMPORTS = {
-    ("labkit.cloud", "labkit.core.units"): "cycle",  # _units imports cloud.Units at its top
     ("labkit.neighbours.treecache", "labkit.neighbours.kdtree"): "heavy",
-    ("labkit.neighbours.kdtree", "labkit.neighbours.search"): "cycle",  # neighbours builds on the tree
     ("labkit.cli.main", "labkit.change.m3c2"): "heavy",
     ("labkit.registration.compare", "labkit.registration"): "heavy",  # cli imports compare
     ("labkit.demo", "labkit.features"): "heavy",  # demo is imported by cli

@@ -32,8 +32,128 @@ from __future__ import annotations
 import functools
 import math
 import re
+from dataclasses import dataclass
 
-from ..cloud import Units
+import numpy as np
+
+from .errors import LabkitError
+
+
+class UnitsError(LabkitError):
+    """The coordinates are not in metres (degrees of longitude/latitude, feet) where metres are needed."""
+
+
+_SHORT = {"metre": "m", "US survey foot": "ftUS", "foot": "ft", "degree": "deg", "radian": "rad",
+          "grad": "gon", "kilometre": "km", "unknown": "?"}
+_ANGULAR = ("degree", "radian", "grad")
+
+
+@dataclass(frozen=True)
+class Units:
+    """Units of a cloud's file and of its coordinates.
+
+    Parameters
+    ----------
+    horizontal, vertical : str
+        Unit of X/Y and of Z in the file's CRS (``"metre"``, ``"US survey foot"``,
+        ``"foot"``, ``"degree"``, ... or ``"unknown"`` when the file states none).
+    horizontal_to_metre, vertical_to_metre : float or None
+        Metres per file unit (1200/3937 for the US survey foot, 0.3048 for the
+        international foot); None for angles and unknown units.
+    converted : bool
+        True when the coordinates were converted from the file's units to metres
+        (``read_cloud(units="m")``); then ``xyz`` is in metres on all axes.
+    source : str
+        Where the units come from: ``"WKT"``, ``"GeoKeys"`` or ``"none"``.
+    conflict : str or None
+        WKT and GeoKeys (or the GeoKeys among themselves) disagree: what each
+        says and which one was used.
+    note : str
+        Assumptions made (e.g. an unstated vertical unit taken equal to the horizontal one).
+    """
+
+    horizontal: str = "unknown"
+    vertical: str = "unknown"
+    horizontal_to_metre: float | None = None
+    vertical_to_metre: float | None = None
+    converted: bool = False
+    source: str = "none"
+    conflict: str | None = None
+    note: str = ""
+
+    @property
+    def angular(self) -> bool:
+        """X/Y are longitude/latitude angles."""
+        return self.horizontal in _ANGULAR or self.horizontal.startswith("angle unit")
+
+    @property
+    def angle_text(self) -> str:
+        """``degrees of longitude/latitude`` (or the angle unit's name) for messages."""
+        if self.horizontal in _ANGULAR:
+            return f"{self.horizontal}s of longitude/latitude"
+        return f"longitude/latitude ({self.horizontal})"
+
+    @property
+    def coordinates(self) -> tuple[str, str]:
+        """Units of ``xyz`` as held now: (X/Y unit, Z unit)."""
+        return ("metre", "metre") if self.converted else (self.horizontal, self.vertical)
+
+    @property
+    def is_metric(self) -> bool:
+        """The coordinates are known to be in metres on every axis."""
+        return self.coordinates == ("metre", "metre")
+
+    @property
+    def known(self) -> bool:
+        return self.horizontal != "unknown"
+
+    @property
+    def factors(self) -> "np.ndarray | None":
+        """Metres per file unit for x, y, z, or None when not convertible."""
+        if self.horizontal_to_metre is None or self.vertical_to_metre is None:
+            return None
+        h, v = self.horizontal_to_metre, self.vertical_to_metre
+        return np.array([h, h, v])
+
+    def axis_labels(self, native: bool = False) -> tuple[str, str, str]:
+        """Short unit labels of x, y, z (``m``, ``ftUS``, ``ft``, ``deg``, ``?``) now or in the file."""
+        h, v = (self.horizontal, self.vertical) if native else self.coordinates
+        h, v = _SHORT.get(h, h), _SHORT.get(v, v)
+        return h, h, v
+
+    def label(self, native: bool = False) -> str:
+        """``"m"`` or ``"m (x, y), ftUS (z)"``; ``"units not stated"`` when unknown."""
+        h, _, v = self.axis_labels(native)
+        if h == "?" and v == "?":
+            return "units not stated"
+        return h if h == v else f"{h} (x, y), {v} (z)"
+
+    def describe(self) -> str:
+        """One line for reports: file units, conversion, source, conflict."""
+        if not self.known:
+            return "not stated in the file (taken as metres)"
+        text = f"file: X/Y {self.horizontal}, Z {self.vertical} (from {self.source})"
+        if self.converted:
+            text += "; converted to metres"
+        if self.conflict:
+            text += f"; CONFLICT: {self.conflict}"
+        return text
+
+    def require_metric(self, what: str = "this step", name: str = "the cloud") -> None:
+        """Raise :class:`UnitsError` unless the coordinates may be taken as metres."""
+        if self.angular:
+            raise UnitsError(
+                f"{name} is in {self.angle_text}; {what} needs metric coordinates: "
+                "project it to a metric CRS (e.g. UTM) first"
+            )
+        h, v = self.coordinates
+        bad = [u for u in (h, v) if u not in ("metre", "unknown")]
+        if bad:
+            raise UnitsError(
+                f"{name} has coordinates in {self.label()} ({self.describe()}); {what} takes its distances in "
+                "metres: read the file with read_cloud(path) (units='m', the default) to convert"
+            )
+
 
 US_FOOT = 1200.0 / 3937.0
 FOOT = 0.3048

@@ -26,7 +26,8 @@ eigh (``labkit.neighbours.eigh3.eigh3``, the decomposition of ``np.linalg.eigh``
 stacks of 3x3 matrices) and reverses the order once, in ``sorted_eigh``.
 """
 
-from ..neighbours.search import CHUNK_SIZE, LEAFSIZE, Neighbourhoods, covariances, neighbourhoods
+from ..neighbours.moments import covariances
+from ..neighbours.search import CHUNK_SIZE, LEAFSIZE, Neighbourhoods, neighbourhoods
 from ._steps import DUPLICATES, ORIENTATIONS, sorted_eigh
 from .eigen import EigenFeatures, eigen_features
 from .multiscale import MultiScaleFeatures, multiscale_features

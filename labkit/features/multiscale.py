@@ -18,7 +18,8 @@ import numpy as np
 from ..core.checks import choice
 from ..core.report import ReportMixin
 from ..core.errors import LabkitError
-from ..neighbours.search import CHUNK_SIZE, SearchPlan, check_chunk_size, check_scale, covariances, reduced, run_chunks
+from ..neighbours.search import CHUNK_SIZE, SearchPlan, check_chunk_size, check_scale, reduced, run_chunks
+from ..neighbours.moments import covariances
 from ._steps import check_duplicates, check_orientation, mark_undetermined, orient_normals, sorted_eigh
 from .eigen import EigenFeatures, eigen_features
 from .pca import LocalPCA

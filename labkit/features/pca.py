@@ -31,7 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.report import ReportMixin, fmt
-from ..neighbours.search import CHUNK_SIZE, SearchPlan, check_chunk_size, check_scale, covariances, reduced, run_chunks
+from ..neighbours.search import CHUNK_SIZE, SearchPlan, check_chunk_size, check_scale, reduced, run_chunks
+from ..neighbours.moments import covariances
 from ..neighbours.search import run_moment_chunks, scale_text
 from ..core.progress import progress_steps
 from ._steps import check_at, check_duplicates, check_orientation, determined, mark_undetermined, orient_normals

@@ -25,7 +25,8 @@ from ..core.checks import as_rng, positive, probability
 from ..core.report import ReportMixin, fmt
 from ..core.stats import MAD_TO_SIGMA
 from ..core.errors import LabkitError
-from ..neighbours.search import SearchPlan, check_chunk_size, check_scale, masked_covariances, reduced, run_chunks
+from ..neighbours.search import SearchPlan, check_chunk_size, check_scale, reduced, run_chunks
+from ..neighbours.moments import masked_covariances
 from ..ransac.iterations import required_iterations
 from ._steps import check_at, check_duplicates, check_orientation, orient_normals, plane_noise, sorted_eigh
 

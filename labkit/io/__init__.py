@@ -26,7 +26,7 @@ The units of a LAS/LAZ file are read from its CRS (WKT and GeoTIFF keys, see
 other). By default (``units="m"``) coordinates in feet (US survey foot
 1200/3937 m, international foot 0.3048 m; horizontal and vertical may differ)
 are converted to metres, and a file in longitude/latitude degrees is refused
-with :class:`labkit.cloud.UnitsError` before any point is read. With
+with :class:`labkit.core.units.UnitsError` before any point is read. With
 ``units="native"`` the coordinates stay as stored and the cloud records its
 units, so metric steps refuse it later (:meth:`PointCloud.require_metric`).
 Either way ``cloud.units`` says what the file states, whether the

@@ -90,7 +90,7 @@ def change_geotiff(result, path, *, crs=None, units=None, cell=None, extent=None
         The ``.tif`` to write (atomically).
     crs : str, optional
         The input cloud's ``crs``.
-    units : labkit.cloud.Units, optional
+    units : labkit.core.units.Units, optional
         The input cloud's ``units``: with converted feet the raster is written in feet.
     cell : float, optional
         Cell size in m (default: the cylinder radius, the default core spacing).
@@ -155,7 +155,7 @@ def shift_field_geotiff(field, path, sources=None, *, crs=None, units=None):
         The source files, folders or globs of ``labkit tiles``: the CRS and units are read
         from the first LAS/LAZ header among them (unless ``crs``/``units`` are given).
     crs : str, optional
-    units : labkit.cloud.Units, optional
+    units : labkit.core.units.Units, optional
 
     Returns
     -------

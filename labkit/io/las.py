@@ -10,7 +10,7 @@ import numpy as np
 
 from ..core.report import ReportMixin, fmt
 from ..core.units import decide_units, parse_wkt
-from ..cloud import Units, UnitsError
+from ..core.units import Units, UnitsError
 from ..core.errors import CloudFileError, EmptyRegionError, LabkitError
 from ..core.progress import progress_steps
 from .chunks import ChunkCollector

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cloud import Units
+from ..core.units import Units
 from ..core.errors import LabkitError
 from ..core.progress import progress_steps
 from .common import INT32_MAX, STANDARD_DTYPES

@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 
 from ..core import masks
-from ..cloud import PointCloud, UnitsError
+from ..cloud import PointCloud
+from ..core.units import UnitsError
 from ..core.errors import CloudFileError, EmptyRegionError
 from .common import DEFAULT_CHUNK, LAS_SUFFIXES, existing_file
 from .filter import ReadFilter

@@ -10,7 +10,8 @@ import numpy as np
 
 from ..core.checks import check_precision
 from ..core.units import units_from_crs_text
-from ..cloud import PointCloud, Units
+from ..cloud import PointCloud
+from ..core.units import Units
 from ..core.errors import CloudFileError, LabkitError
 from .chunks import ChunkCollector
 from .common import canonical_name, require_classification

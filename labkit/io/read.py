@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..core.checks import choice, count
-from ..cloud import PointCloud, Units
+from ..cloud import PointCloud
+from ..core.units import Units
 from ..core.errors import CloudFileError, EmptyRegionError, LabkitError
 from .ascii import SCAN_ANGLE_NAMES, read_ascii
 from .common import (
@@ -56,7 +57,7 @@ def read_cloud(
     units : {"m", "native"}
         ``"m"`` (default): coordinates whose CRS states feet are converted to
         metres (per axis: X/Y and Z may differ), and a file in longitude/latitude
-        degrees raises :class:`labkit.cloud.UnitsError`. ``"native"``: keep the
+        degrees raises :class:`labkit.core.units.UnitsError`. ``"native"``: keep the
         stored values; the cloud records its units and metric steps refuse it.
         Files without a stated unit (no CRS, text, NumPy, PLY) are read as they are.
     parallel : bool
@@ -66,7 +67,7 @@ def read_cloud(
     -------
     PointCloud
         Named after the file stem; ``crs`` from the LAS header when present;
-        ``units`` (:class:`labkit.cloud.Units`) says what the file states and
+        ``units`` (:class:`labkit.core.units.Units`) says what the file states and
         whether the coordinates were converted.
 
     Raises

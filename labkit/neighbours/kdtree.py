@@ -39,6 +39,7 @@ import numpy as np
 from .eigh3 import HAVE_NUMBA
 from .kdtree_build import _build_two, _duplicates, _pool, _threads
 from .kdtree_nn import nearest
+from .moments import covariances, knn_moments
 
 if HAVE_NUMBA:
     import numba
@@ -163,7 +164,7 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragm
     With ``moments`` the neighbours are not written: row ``pos - start`` of ``cen`` and ``C``
     gets the centroid (eq. 1) and covariance (eq. 2, divided by k) of the point's k neighbours,
     summed while they are in cache, in the order and arithmetic of
-    :func:`labkit.neighbours.search.covariances` (the same numbers); ``idx`` is then not touched.
+    :func:`labkit.neighbours.moments.covariances` (the same numbers); ``idx`` is then not touched.
     """
     most = 1
     for t in range(len(leaves)):
@@ -254,30 +255,9 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragm
                 for j in range(k):
                     idx[a + qi - start, j] = bi[qi, j]
             continue
-        for qi in range(m):  # centroid, then the mean outer product of the deviations (two passes)
-            r = a + qi - start
-            sx = sy = sz = 0.0
-            for j in range(k):
-                q = bi[qi, j]
-                sx += X[q, 0]
-                sy += X[q, 1]
-                sz += X[q, 2]
-            cx, cy, cz = sx / k, sy / k, sz / k
-            xx = xy = xz = yy = yz = zz = 0.0
-            for j in range(k):
-                q = bi[qi, j]
-                dx, dy, dz = X[q, 0] - cx, X[q, 1] - cy, X[q, 2] - cz
-                xx += dx * dx
-                xy += dx * dy
-                xz += dx * dz
-                yy += dy * dy
-                yz += dy * dz
-                zz += dz * dz
-            cen[r, 0], cen[r, 1], cen[r, 2] = cx, cy, cz
-            C[r, 0, 0], C[r, 1, 1], C[r, 2, 2] = xx / k, yy / k, zz / k
-            C[r, 0, 1] = C[r, 1, 0] = xy / k
-            C[r, 0, 2] = C[r, 2, 0] = xz / k
-            C[r, 1, 2] = C[r, 2, 1] = yz / k
+        x, y, z = X[:, 0], X[:, 1], X[:, 2]
+        for qi in range(m):  # the shared kernel of labkit.neighbours.moments
+            knn_moments(x, y, z, bi[qi], k, cen, C, a + qi - start)
 
 
 @_njit
@@ -376,11 +356,9 @@ class KDTree:
     def knn_moments_of_leaves(self, a: int, b: int, k: int):
         """Centroids (b - a, 3) and covariances (b - a, 3, 3) of the k nearest tree points of the
         tree's points a..b-1 (leaf bounds), as :meth:`knn_of_leaves` followed by
-        :func:`labkit.neighbours.search.covariances` (the same numbers), without the (b - a, k) index array:
+        :func:`labkit.neighbours.moments.covariances` (the same numbers), without the (b - a, k) index array:
         the moments are summed in the search kernel while the neighbours are in cache."""
         if not HAVE_NUMBA:  # pragma: no cover - depends on the environment
-            from .search import covariances
-
             return covariances(self.data, None, self.knn_of_leaves(a, b, k), np.ascontiguousarray(self.data.T))
         bounds = self.leaf_bounds
         j0, j1 = np.searchsorted(bounds, [a, b])

@@ -14,7 +14,8 @@ from labkit.core.crs import same_crs
 from labkit.core.units import units_from_crs_text, units_from_wkt
 from labkit.change.m3c2 import m3c2
 from labkit.cli.main import main
-from labkit.cloud import PointCloud, UnitsError
+from labkit.cloud import PointCloud
+from labkit.core.units import UnitsError
 from labkit.core.errors import CrsMismatchError, CrsNote
 from labkit.io import read_cloud
 

@@ -8,7 +8,8 @@ import labkit
 from labkit.core.checks import (
     PRECISION_TOLERANCE, as_points, as_rng, as_seed, check_precision, choice, count, finite, flag, non_negative, positive, precision_tolerance, probability,
 )
-from labkit.cloud import PointCloud, Units
+from labkit.cloud import PointCloud
+from labkit.core.units import Units
 from labkit.core.errors import LabkitError
 
 UTM = np.array([540_000.0, 5_400_000.0, 300.0])

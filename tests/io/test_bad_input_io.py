@@ -14,7 +14,8 @@ import pytest
 laspy = pytest.importorskip("laspy")
 
 from labkit import regions  # noqa: E402
-from labkit.cloud import PointCloud, UnitsError  # noqa: E402
+from labkit.cloud import PointCloud  # noqa: E402
+from labkit.core.units import UnitsError  # noqa: E402
 from labkit.core.errors import CloudFileError, LabkitError  # noqa: E402
 from labkit.io import read_cloud, write_cloud  # noqa: E402
 

@@ -11,6 +11,7 @@ laspy = pytest.importorskip("laspy")
 
 from labkit import regions  # noqa: E402
 from labkit.cloud import PointCloud  # noqa: E402
+from labkit.core.units import   # noqa: E402
 from labkit.core.errors import CloudFileError, EmptyRegionError, LabkitError  # noqa: E402
 from labkit.io import cloud_info, read_cloud, write_cloud  # noqa: E402
 

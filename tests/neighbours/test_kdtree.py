@@ -77,7 +77,7 @@ def test_two_thread_build_gives_the_same_neighbours():
 @pytest.mark.parametrize("name", list(clouds()))
 def test_leaf_moments_equal_neighbours_then_covariances(name):
     # the fused search + moments kernel against the two-step route (neighbour array, then eq. 1-2)
-    from labkit.neighbours.search import covariances
+    from labkit.neighbours.moments import covariances
 
     tree = KDTree(clouds()[name], merge_duplicates=True)
     bounds = tree.leaf_bounds

@@ -92,15 +92,17 @@ def test_float32_input_agrees_with_float64():
 
 def test_compiled_and_numpy_knn_covariances_agree(monkeypatch):
     """The compiled kNN covariance kernel and the numpy route compute eq. 1-2 alike."""
-    if not NB.HAVE_NUMBA:
+    import labkit.neighbours.moments as M
+
+    if not M.HAVE_NUMBA:
         pytest.skip("numba not installed")
     rng = np.random.default_rng(5)
     local = rng.normal(size=(2000, 3)) * [30.0, 20.0, 0.05]
     idx = rng.integers(0, 2000, size=(500, 12))
     cols = local.T.copy()
-    cen_c, C_c = NB.covariances(local, None, idx, cols)
-    monkeypatch.setattr(NB, "HAVE_NUMBA", False)
-    cen_n, C_n = NB.covariances(local, None, idx, cols)
+    cen_c, C_c = M.covariances(local, None, idx, cols)
+    monkeypatch.setattr(M, "HAVE_NUMBA", False)
+    cen_n, C_n = M.covariances(local, None, idx, cols)
     X = local[idx]  # direct definition
     D = X - X.mean(axis=1, keepdims=True)
     C_ref = np.einsum("cka,ckb->cab", D, D) / idx.shape[1]

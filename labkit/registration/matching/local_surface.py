@@ -18,7 +18,7 @@ import numpy as np
 from ...neighbours.eigh3 import HAVE_NUMBA, eigh3_analytic
 from ...neighbours.kdtree import KDTree
 from ...core.errors import LabkitError
-from ...neighbours.search import covariances  # the shared kNN covariance kernel (compiled)
+from ...neighbours.moments import covariances  # the shared kNN covariance kernel (compiled)
 
 if HAVE_NUMBA:
     import numba
