@@ -24,6 +24,7 @@ from .core.checks import as_points, as_rng, choice, count, positive
 from .core.report import ReportMixin, fmt
 from .cloud import PointCloud
 from .core.errors import EmptyRegionError, LabkitError
+from .neighbours.sampling import flat_keys, voxel_thin
 from .core.masks import (
     ASPRS_NAMES, STABLE_CLASSES, as_bbox, as_classes, as_rings, box_mask, circle_mask, class_mask, polygon_mask,
 )
@@ -211,15 +212,6 @@ def _cell_keys(xy: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
     return np.floor((xy - origin) / size).astype(np.int64), origin
 
 
-def _flat_keys(cells: np.ndarray) -> np.ndarray:
-    """One int64 key per row of non-negative cell indices (mixed-radix number)."""
-    dims = cells.max(axis=0) + 1
-    if np.prod(dims.astype(float)) >= 2.0**62:
-        # too many cells for one int64: fall back to row-wise unique
-        return np.unique(cells, axis=0, return_inverse=True)[1].ravel()
-    return np.ravel_multi_index(cells.T, dims)
-
-
 def thin_voxel(cloud: PointCloud, size: float, *, keep: str = "centre") -> PointCloud:
     """One point per occupied voxel (cube of edge ``size`` metres).
 
@@ -249,17 +241,8 @@ def thin_voxel(cloud: PointCloud, size: float, *, keep: str = "centre") -> Point
     choice(keep, ("centre", "first"), "keep")
     size = positive(size, "size")
     cloud = as_cloud(cloud)
-    cells, origin = _cell_keys(cloud.xyz, size)
-    key = _flat_keys(cells)
-    if keep == "first":
-        _, first = np.unique(key, return_index=True)
-        return cloud.subset(np.sort(first))
-    # Distance to the voxel centre, then the first of each key after sorting by (key, distance)
-    centre = origin + (cells + 0.5) * size
-    d2 = np.einsum("ij,ij->i", cloud.xyz - centre, cloud.xyz - centre)
-    order = np.lexsort((d2, key))
-    starts = np.flatnonzero(np.r_[True, np.diff(key[order]) != 0])
-    return cloud.subset(np.sort(order[starts]))
+    _, origin = _cell_keys(cloud.xyz, size)  # the grid through multiples of size
+    return cloud.subset(voxel_thin(cloud.xyz, size, keep=keep, origin=origin))
 
 
 # ----------------------------------------------------------------------------- density
@@ -421,7 +404,7 @@ def equalize_density(cloud: PointCloud, target, *, cell: float = 1.0, rng=None) 
     cloud = as_cloud(cloud)
     gen = as_rng(rng)
     cells, _ = _cell_keys(cloud.xyz[:, :2], cell)
-    key = _flat_keys(cells)
+    key = flat_keys(cells)
     # Quota per cell: floor(t) plus one with probability frac(t)
     quota_mean = density * cell**2
     uniq, inverse = np.unique(key, return_inverse=True)

@@ -75,6 +75,59 @@ def test_module_level_imports_have_no_cycle():
     assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
 
 
+def _all_imports(name, path, modules):
+    """labkit modules that ``name`` imports anywhere, also inside functions (a submodule import counts as it)."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names if a.name in modules}
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            if target in modules:
+                found.add(target)
+            found |= {f"{target}.{a.name}" for a in node.names if f"{target}.{a.name}" in modules}
+    found.discard(name)
+    return found
+
+
+def test_imports_have_no_cycle_also_counting_imports_inside_functions():
+    modules = _modules()
+    graph = {name: _all_imports(name, path, modules) for name, path in modules.items()}
+    assert _cycle(graph) is None
+
+
+def test_top_level_holds_at_most_twelve_modules():
+    """The folders show the concepts: loose modules at the top are few."""
+    top = sorted(p.name for p in PACKAGE.glob("*.py"))
+    assert len(top) <= 12, top
+
+
+def test_voxel_thinning_and_point_spacing_have_one_home():
+    """Only labkit.neighbours.sampling computes one point per voxel or a median nearest-neighbour spacing."""
+    home = PACKAGE / "neighbours" / "sampling.py"
+    offenders = []
+    for path in _modules().values():
+        if path == home:
+            continue
+        text = path.read_text()
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.FunctionDef) and re.search(r"voxel|spacing|subsample|even_subset", node.name):
+                body = ast.get_source_segment(text, node) or ""
+                # a function of that name elsewhere must hand the work to the one home
+                if not re.search(r"\b(voxel_thin|voxel_sample|median_spacing|even_subset)\(", body):
+                    offenders.append(f"{path.relative_to(PACKAGE.parent)}:{node.name}")
+            if isinstance(node, ast.Call) and ast.unparse(node.func).endswith("lexsort"):
+                args = ast.unparse(node)
+                if re.search(r"d2|dist2", args) and re.search(r"key|inv", args) and "cell" in text:
+                    offenders.append(f"{path.relative_to(PACKAGE.parent)}: nearest-the-centre per cell")
+    assert offenders == []
+
+
 def test_cli_and_demo_share_output_helpers_instead_of_importing_each_other():
     modules = _modules()
     demo = _top_level_imports("labkit.demo", modules["labkit.demo"], modules)
@@ -244,6 +297,7 @@ def test_every_public_function_cites_its_equations_or_literature():
 #: In-function imports of labkit's own modules, (importer, imported module) -> why it is not at the top.
 LAZY_IMPORTS = {
     ("labkit.neighbours.treecache", "labkit.neighbours.kdtree"): "heavy",
+    ("labkit.neighbours.sampling", "labkit.neighbours.kdtree"): "heavy",  # regions thins without the compiled tree
     ("labkit.cli.main", "labkit.change.m3c2"): "heavy",
     ("labkit.registration.compare", "labkit.registration"): "heavy",  # cli imports compare
     ("labkit.demo", "labkit.features"): "heavy",  # demo is imported by cli

@@ -65,6 +65,7 @@ from ..core.frame import local_origin, reduce
 from ..core.lengths import length_text
 from ..core.report import ReportMixin
 from ..cloud import PointCloud
+from ..neighbours.sampling import voxel_thin
 from ..core.errors import LabkitError
 from ..core.progress import progress_steps
 
@@ -388,7 +389,7 @@ def _corepoints(corepoints, ref, ref_l, r):
     """Core points in the caller's frame: given, or reference points of an even subsample (copies)."""
     if corepoints is None or (isinstance(corepoints, numbers.Real) and not isinstance(corepoints, bool)):
         spacing = r if corepoints is None else positive(corepoints, "corepoints (spacing)")
-        return ref[search.even_subsample(ref_l, spacing)]
+        return ref[voxel_thin(ref_l, spacing)]
     return np.array(as_points(corepoints, min_points=1, name="corepoints"), copy=True)
 
 

@@ -42,23 +42,6 @@ def cylinder_cell(radius: float, depth: float) -> float:
 
 
 # --------------------------------------------------------------------------- core points
-def even_subsample(local: np.ndarray, spacing: float) -> np.ndarray:
-    """Indices of one point per cube of edge ``spacing``: the point nearest the cube's centre (sorted)."""
-    lo = local.min(axis=0)
-    cell = np.floor((local - lo) / spacing).astype(np.int64)
-    dims = cell.max(axis=0) + 1
-    if np.prod(dims.astype(object)) < 2**62:  # one int64 key per cube: a 1-D sort instead of a row sort
-        inv = np.unique((cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2], return_inverse=True)[1]
-    else:
-        inv = np.unique(cell, axis=0, return_inverse=True)[1]
-    inv = inv.ravel()
-    off = local - (lo + (cell + 0.5) * spacing)
-    dist2 = np.einsum("nd,nd->n", off, off)
-    order = np.lexsort((dist2, inv))  # by cube, nearest first
-    first = np.r_[True, inv[order][1:] != inv[order][:-1]]
-    return np.sort(order[first])
-
-
 # --------------------------------------------------------------------------- public steps
 def pca_normals(local: np.ndarray, cores: np.ndarray, radius: float, *, use_numba: bool = HAVE_NUMBA):
     """Normal and surface variation l3 / (l1 + l2 + l3) at each core from the points within ``radius``.

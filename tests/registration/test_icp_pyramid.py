@@ -5,7 +5,8 @@ import pytest
 
 from labkit.core.errors import LabkitError
 from labkit.registration import icp
-from labkit.registration.closest_point.pyramid import coarse_to_fine_levels, point_spacing, use_pyramid
+from labkit.neighbours.sampling import median_spacing
+from labkit.registration.closest_point.pyramid import coarse_to_fine_levels, use_pyramid
 from labkit.synthetic import als_epochs
 from labkit.transforms import make_transform
 
@@ -29,7 +30,7 @@ def test_auto_runs_the_pyramid_for_a_reach_beyond_the_gate():
 def test_point_spacing_of_a_grid():
     g = np.stack(np.meshgrid(np.arange(50) * 0.3, np.arange(40) * 0.3), -1).reshape(-1, 2)
     xyz = np.c_[g, np.zeros(len(g))]
-    assert point_spacing(xyz) == pytest.approx(0.3)
+    assert median_spacing(xyz, 2000, distinct=True) == pytest.approx(0.3)
 
 
 @pytest.mark.parametrize(

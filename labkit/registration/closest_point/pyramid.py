@@ -23,7 +23,7 @@ from dataclasses import replace
 import numpy as np
 
 from ...core.checks import as_points, positive
-from ...neighbours.kdtree import KDTree
+from ...neighbours.sampling import median_spacing, voxel_thin
 from ...core.errors import EmptyRegionError, LabkitError
 from ..options import with_keywords
 
@@ -77,25 +77,6 @@ def coarse_to_fine_levels(max_distance, reach=None, spacing=0.0):
         d *= 2
         levels.append((d, max(VOXEL_SHARE * d, spacing)))
     return levels[::-1]
-
-
-def point_spacing(points, sample=2000):
-    """Median distance to the nearest other point over an even subset of at most ``sample`` points (m).
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> g = np.arange(10) * 0.25
-    >>> grid = np.column_stack([np.repeat(g, 10), np.tile(g, 10), np.zeros(100)])
-    >>> point_spacing(grid)
-    0.25
-    """
-    pts = as_points(points, min_points=2)
-    tree = KDTree(pts, merge_duplicates=True)
-    if tree.n < 2:
-        return 0.0
-    sub = tree.data[:: max(1, tree.n // sample)]
-    return float(np.median(tree.query(sub, k=2, workers=1)[0][:, 1]))
 
 
 def use_pyramid(max_distance, reach):
@@ -153,22 +134,10 @@ def retry_with_pyramid(result, max_distance):
     return rejected.get("distance", 0) > RETRY_DISTANCE_SHARE * max(searched, 1)
 
 
-def _voxel_index(xyz, size):
-    """Per occupied voxel the index of the point nearest its centre (sorted)."""
-    lo = xyz.min(axis=0)
-    cells = np.floor((xyz - lo) / size).astype(np.int64)
-    d2 = np.einsum("ij,ij->i", xyz - lo - (cells + 0.5) * size, xyz - lo - (cells + 0.5) * size)
-    _, key = np.unique(cells, axis=0, return_inverse=True)
-    key = key.ravel()
-    order = np.lexsort((d2, key))
-    first = np.r_[True, key[order[1:]] != key[order[:-1]]]
-    return np.sort(order[first])
-
-
 def _thin(cloud, normals, size):
     """One point per voxel of a cloud (array or PointCloud) and its given normals."""
     xyz = as_points(cloud, min_points=3)
-    idx = _voxel_index(xyz, size)
+    idx = voxel_thin(xyz, size)
     thinned = cloud.subset(idx) if hasattr(cloud, "subset") else xyz[idx]
     return thinned, None if normals is None else np.asarray(normals)[idx], len(idx)
 
@@ -212,7 +181,7 @@ def pyramid_icp(source, target, *, icp_function, reach=None, **options):
     max_distance = match_options.max_distance
     if max_distance is None:
         raise LabkitError("coarse_to_fine=True needs a finite max_distance (the fine level's gate)")
-    levels = coarse_to_fine_levels(max_distance, reach, point_spacing(target))
+    levels = coarse_to_fine_levels(max_distance, reach, median_spacing(as_points(target, min_points=2), 2000, distinct=True))
     initial = options.pop("initial", None)
     history, notes = [], []
     coarse = dict(options, consistency_alpha=None, covariance="formal", progress=False,

@@ -35,7 +35,8 @@ import numpy as np
 from ...core.checks import choice, count, non_negative, positive
 from ...core.crs import check_same_crs
 from . import kernels as K
-from .inputs import candidate_pairs, even_subset, grid, prepare_problem, search_box
+from ...neighbours.sampling import even_subset
+from .inputs import candidate_pairs, grid, prepare_problem, search_box
 from .bnb import branch_and_bound, refine
 from .result import AXES, ConsensusCube, PeakShape, peak_shape
 from ..selection import SELECT, select_points

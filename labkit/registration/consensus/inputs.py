@@ -20,6 +20,7 @@ from ...core.checks import as_points, choice, count, positive
 from ...core.frame import local_origin, reduce
 from ...core.errors import DegenerateGeometryError, EmptyRegionError, LabkitError
 from ...features import local_pca
+from ...neighbours.sampling import even_subset, median_spacing, voxel_thin
 METRICS = ("point_to_plane", "point_to_point")
 MAX_CELLS = 100_000_000
 PAIR_BUDGET = 1_000_000  # candidate pairs of max_consensus before the search target is thinned
@@ -61,8 +62,8 @@ def prepare_problem(source, target, metric, eps, radius, max_angle_deg, weights,
     """Check and reduce the inputs; choose the voting points, the search target and the tolerances.
 
     ``max_points``: keep at most that many source points, spread evenly in space
-    (:func:`even_subset`); ``refine_points``: the points of the least-squares refinement, an even
-    subset of at most that many (None: the voting points). ``pair_window``: half-width (m) of the translation window
+    (:func:`labkit.neighbours.sampling.even_subset`); ``refine_points``: the points of the least-squares
+    refinement, an even subset of at most that many (None: the voting points). ``pair_window``: half-width (m) of the translation window
     searched; with it the target is thinned evenly until the candidate pairs fit
     ``pair_budget`` (dense TLS targets). Normals the local PCA cannot determine
     (identical or collinear neighbours) are dropped, never used.
@@ -122,62 +123,6 @@ def prepare_problem(source, target, metric, eps, radius, max_angle_deg, weights,
     )
 
 
-def even_subset(xyz, n: int) -> np.ndarray:
-    """Indices of at most ``n`` points spread evenly in space (one per voxel, nearest its centre).
-
-    The voxel edge is found by bisection on the number of occupied voxels, so dense
-    parts (near a TLS scanner, overlapping strips) are thinned and sparse parts kept:
-    every part of the surface gets a vote in proportion to its area, not to its density.
-
-    Examples
-    --------
-    A dense patch next to a sparse one keeps about as many points per square metre in both:
-
-    >>> import numpy as np
-    >>> rng = np.random.default_rng(0)
-    >>> dense = np.column_stack([rng.uniform(0, 1, (2000, 2)), np.zeros(2000)])
-    >>> sparse = np.column_stack([rng.uniform(1, 2, (200, 2)), np.zeros(200)])
-    >>> idx = even_subset(np.vstack([dense, sparse]), 200)
-    >>> bool(len(idx) <= 200), bool(0.3 < np.mean(idx < 2000) < 0.7)
-    (True, True)
-    """
-    xyz = np.asarray(xyz, dtype=np.float64)
-    if len(xyz) <= n:
-        return np.arange(len(xyz))
-    lo_xyz = xyz.min(axis=0)
-    span = float(np.ptp(xyz, axis=0).max()) or 1.0
-    lo, hi = span / n ** (1 / 3) / 8, span  # few voxels at hi; too many at lo (a surface fills n^(2/3) of n^3)
-    best = None
-    for _ in range(30):
-        size = np.sqrt(lo * hi)
-        idx = one_per_voxel(xyz, lo_xyz, size)
-        if idx.size > n:
-            lo = size
-        else:
-            hi, best = size, idx
-            if idx.size > 0.97 * n:
-                break
-    return best if best is not None else one_per_voxel(xyz, lo_xyz, hi)
-
-
-def one_per_voxel(xyz, lo, size):
-    cells = np.floor((xyz - lo) / size).astype(np.int64)
-    key = np.ravel_multi_index(cells.T, cells.max(axis=0) + 1)
-    centre = lo + (cells + 0.5) * size
-    d2 = np.einsum("ij,ij->i", xyz - centre, xyz - centre)
-    order = np.lexsort((d2, key))
-    first = np.flatnonzero(np.r_[True, np.diff(key[order]) != 0])
-    return np.sort(order[first])
-
-
-def median_spacing(xyz) -> float:
-    """Median distance of the points to their nearest neighbour (m)."""
-    if len(xyz) < 2:
-        return float("nan")
-    d, _ = cKDTree(xyz).query(xyz[:: max(1, len(xyz) // 5000)], k=2, workers=-1)
-    return float(np.median(d[:, 1]))
-
-
 def search_target(src, tgt, window, budget):
     """Indices of the target points the consensus is counted on.
 
@@ -198,7 +143,7 @@ def search_target(src, tgt, window, budget):
         if excess <= 1.0:
             break
         size *= max(np.sqrt(excess), 1.2)
-        keep = one_per_voxel(tgt, tgt.min(axis=0), size)
+        keep = voxel_thin(tgt, size)
     return keep
 
 
