@@ -80,14 +80,14 @@ suppress_warnings = ["myst.header", "ref.python"]
 # API pages, generated before Sphinx reads the sources
 # ---------------------------------------------------------------------------------------------------
 
-SKIP_MODULES = {"labkit.cli.main", "labkit.__main__"}
+SKIP_TOP = {"cli", "__main__"}  # labkit.<name> and its submodules: the command line, not an API
 
 
 def public_modules():
     """labkit's public modules and packages (no module or package whose name starts with '_')."""
     names = []
     for info in pkgutil.walk_packages(labkit.__path__, "labkit."):
-        if any(part.startswith("_") for part in info.name.split(".")) or info.name in SKIP_MODULES:
+        if any(part.startswith("_") for part in info.name.split(".")) or info.name.split(".")[1] in SKIP_TOP:
             continue
         names.append(info.name)
     return sorted(names)

@@ -2,10 +2,11 @@
 
 Every method returns a :class:`RegistrationResult` mapping source onto target.
 
-One module per concept: the ICP loop (:mod:`.icp_loop`) with its robust weights, adjustment,
-covariance and stopping rules in the ``_icp_*`` modules next to it; the matching
-(:mod:`.matching`); the coarse-to-fine pyramid (:mod:`.pyramid`); the consensus searches
-(:mod:`.consensus`), their records (:mod:`.consensus_result`) and branch and bound (:mod:`.bnb`).
+One package per method: the ICP (:mod:`.closest_point`: the loop, its robust weights, adjustment,
+covariance, stopping rules and the coarse-to-fine pyramid), the correspondences (:mod:`.matching`) and
+maximum consensus (:mod:`.consensus`: the cube, its records and branch and bound). Beside them what every
+method shares: the result, options, degeneracy, consistency, point selection and verdict, the registration
+file, references and the comparison of methods.
 ``labkit.registration.icp`` is always the function (no module carries that name).
 """
 

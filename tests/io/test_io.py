@@ -11,7 +11,6 @@ laspy = pytest.importorskip("laspy")
 
 from labkit import regions  # noqa: E402
 from labkit.cloud import PointCloud  # noqa: E402
-from labkit.core.units import   # noqa: E402
 from labkit.core.errors import CloudFileError, EmptyRegionError, LabkitError  # noqa: E402
 from labkit.io import cloud_info, read_cloud, write_cloud  # noqa: E402
 
@@ -403,7 +402,7 @@ def test_written_files_get_the_usual_permissions(tmp_path):
 from pathlib import Path  # noqa: E402
 
 from labkit.core.units import parse_wkt, units_from_wkt  # noqa: E402
-from labkit.cloud import UnitsError  # noqa: E402
+from labkit.core.units import UnitsError  # noqa: E402
 
 DATA_REAL = Path(__file__).resolve().parents[2] / "data" / "real"
 US_FT, FT = 1200.0 / 3937.0, 0.3048  # metres per US survey foot / international foot (definitions)
