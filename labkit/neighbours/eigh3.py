@@ -40,12 +40,27 @@ except ImportError:  # pragma: no cover - depends on the environment
     numba = None
     HAVE_NUMBA = False
 
-__all__ = ["HAVE_NUMBA", "eigh3", "eigh3_analytic"]
+__all__ = ["HAVE_NUMBA", "compiled", "eigh3", "eigh3_analytic"]
 
 _EPS2 = np.finfo(np.float64).eps ** 2
 _TINY = 1e-290  # off-diagonal elements below this (relative to the largest entry, 1) are zero
 _PER_THREAD = 5000  # matrices per thread at least (about 1.5 ms of work, well above the thread cost)
 _MAX_SWEEPS = 30  # 3-5 needed; the cap only stops NaN that slipped through
+
+
+def compiled(f):
+    """``numba.njit(cache=True, nogil=True)`` of ``f`` where numba is installed, else ``f`` itself.
+
+    The one switch of the package's compiled kernels (k-d tree, moments, eigen-solver).
+
+    Examples
+    --------
+    >>> from labkit.neighbours.eigh3 import HAVE_NUMBA
+    >>> from labkit.neighbours.moments import knn_moments  # defined under @compiled
+    >>> type(knn_moments).__name__ == ("CPUDispatcher" if HAVE_NUMBA else "function")
+    True
+    """
+    return numba.njit(cache=True, nogil=True)(f) if HAVE_NUMBA else f
 
 
 def _njit(*args, **kwargs):

@@ -36,24 +36,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from .eigh3 import HAVE_NUMBA
+from .eigh3 import HAVE_NUMBA, compiled
 from .kdtree_build import _build_two, _duplicates, _pool, _threads
 from .kdtree_nn import nearest
 from .moments import covariances, knn_moments
 
-if HAVE_NUMBA:
-    import numba
-
-    _njit = numba.njit(cache=True, nogil=True)
-else:  # pragma: no cover - depends on the environment
-    def _njit(f):
-        return f
 
 LEAFSIZE = 24  # measured on the real TLS scan: self-kNN (k = 20) 10-25 % faster than 8-16; k = 1 alike
 _PER_THREAD = 4000  # queries per thread at least; below, one thread is faster than starting more
 
 
-@_njit
+@compiled
 def _insert(bd, bi, d2, i, k):  # pragma: no cover - compiled
     """Insert (d2, i) into the ascending list bd/bi of length k (the last entry drops out)."""
     j = k - 1
@@ -65,7 +58,7 @@ def _insert(bd, bi, d2, i, k):  # pragma: no cover - compiled
     bi[j] = i
 
 
-@_njit
+@compiled
 def _knn(X, nodes, box, depth, Q, k, bound2, idx, dist2):  # pragma: no cover - compiled
     """k nearest of every row of Q among X (leaf order), squared distance < bound2; sorted ascending.
 
@@ -149,7 +142,7 @@ def _knn(X, nodes, box, depth, Q, k, bound2, idx, dist2):  # pragma: no cover - 
             dist2[q, j] = bd[j]
 
 
-@_njit
+@compiled
 def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragma: no cover - compiled
     """k nearest tree points of every point of the given leaves (self-queries, leaf order).
 
@@ -260,7 +253,7 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragm
             knn_moments(x, y, z, bi[qi], k, cen, C, a + qi - start)
 
 
-@_njit
+@compiled
 def _gap2(lo, hi, a, b):  # pragma: no cover - compiled
     """Squared gap between the intervals [lo, hi] and [a, b] (0 where they overlap)."""
     t = lo - b

@@ -12,18 +12,11 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from .eigh3 import HAVE_NUMBA
-
-if HAVE_NUMBA:
-    import numba
-
-    _njit = numba.njit(cache=True, nogil=True)
-else:  # pragma: no cover - depends on the environment
-    def _njit(f):
-        return f
+from .eigh3 import HAVE_NUMBA, compiled
 
 
-@_njit
+
+@compiled
 def _build(P, leafsize):  # pragma: no cover - compiled
     """Median kd-tree: permutation (leaf order), node ranges, children, boxes, depth, leaf-order points.
 
@@ -156,7 +149,7 @@ def _build(P, leafsize):  # pragma: no cover - compiled
     return perm, nodes, box, depth_max, W
 
 
-@_njit
+@compiled
 def _select(x, n, kth):  # pragma: no cover - compiled
     """The kth smallest of x[:n], in place (Hoare's selection with a median-of-three pivot)."""
     lo, hi = 0, n - 1
@@ -188,21 +181,21 @@ def _select(x, n, kth):  # pragma: no cover - compiled
     return x[kth]
 
 
-@_njit
+@compiled
 def _grow(a, cap, fill=0):  # pragma: no cover - compiled
     out = np.full(cap, fill, a.dtype)
     out[: len(a)] = a
     return out
 
 
-@_njit
+@compiled
 def _grow2(a, cap):  # pragma: no cover - compiled
     out = np.empty((cap, 3))
     out[: len(a)] = a
     return out
 
 
-@_njit
+@compiled
 def _duplicates(X, nodes):  # pragma: no cover - compiled
     """keep[i] False for a leaf-order point equal to an earlier one of its leaf; first[i] its kept copy."""
     n = X.shape[0]

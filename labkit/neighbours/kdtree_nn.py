@@ -25,22 +25,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from .eigh3 import HAVE_NUMBA
+from .eigh3 import compiled
 from .kdtree_build import _pool
 
-if HAVE_NUMBA:
-    import numba
-
-    _njit = numba.njit(cache=True, nogil=True)
-else:  # pragma: no cover - depends on the environment
-    def _njit(f):
-        return f
 
 
 _NO_WARM = np.empty(0, np.intp)
 
 
-@_njit
+@compiled
 def _gap2(lo, hi, a, b):  # pragma: no cover - compiled
     """Squared gap between the intervals [lo, hi] and [a, b] (0 where they overlap)."""
     t = lo - b
@@ -50,7 +43,7 @@ def _gap2(lo, hi, a, b):  # pragma: no cover - compiled
     return t * t if t > 0.0 else 0.0
 
 
-@_njit
+@compiled
 def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, idx, dist2, tie, warm):  # pragma: no cover - compiled
     """Nearest row of X (leaf order) of every row of Q, squared distance < bound2.
 

@@ -8,15 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .eigh3 import HAVE_NUMBA
+from .eigh3 import HAVE_NUMBA, compiled
 
-if HAVE_NUMBA:
-    import numba
-
-    _njit = numba.njit(cache=True, nogil=True)
-else:  # pragma: no cover - numpy route in covariances
-    def _njit(f):
-        return f
 
 __all__ = ["covariances", "knn_moments", "masked_covariances"]
 
@@ -72,7 +65,7 @@ def covariances(local, counts, flat, cols=None):
     return cen, C
 
 
-@_njit
+@compiled
 def knn_moments(x, y, z, ids, k, cen, C, r):  # pragma: no cover - compiled
     """Row ``r`` of ``cen`` and ``C``: centroid (eq. 1) and mean outer product of the deviations (eq. 2) of the
     points ``ids[:k]`` of the coordinate columns x, y, z, in two passes (no temporaries).
@@ -104,7 +97,7 @@ def knn_moments(x, y, z, ids, k, cen, C, r):  # pragma: no cover - compiled
     C[r, 1, 2] = C[r, 2, 1] = yz / k
 
 
-@_njit
+@compiled
 def _knn_covariances(cols, idx, cen, C):  # pragma: no cover - compiled
     """Compiled (eq. 1, 2) for kNN, one neighbourhood after the other (no (c, k, 3) temporaries). Same
     two-pass arithmetic as the numpy route, so both agree to rounding."""
