@@ -1,8 +1,8 @@
 """One weighted least-squares step of ICP on the current correspondences (eqs. 5.7-5.12).
 
 The design rows of the point-to-plane (eq. 5.2, 5.4) and point-to-point (eq. 5.1, 5.5) metric, the
-robust weights (:mod:`._icp_weights`), the degeneracy report on the information that survives
-re-matching (:mod:`._icp_information`) and the solution with held parameters.
+robust weights (:mod:`.weights`), the degeneracy report on the information that survives
+re-matching (:mod:`.information`) and the solution with held parameters.
 """
 
 from __future__ import annotations
