@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
-from labkit._atomic import atomic_write_text
+from labkit.core.atomic import atomic_write_text
 from labkit.cloud import PointCloud
 from labkit.io import write_cloud
-from labkit.references import save_references, truth_reference
+from labkit import save_references, truth_reference
 from labkit.synthetic import als_epochs, sphere_on_tripod
 from labkit.synthetic.tripod import UTM_OFFSET
 

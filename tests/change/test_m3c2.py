@@ -457,7 +457,7 @@ def test_quantiles_are_scipy_stats_quantiles():
     xy = rng.uniform(0, 10, (4000, 2))
     ref = np.c_[xy, rng.normal(0, 0.01, len(xy))]
     cmp_ = np.c_[xy[::-1], 0.03 + rng.normal(0, 0.02, len(xy))]
-    r = m3c2(ref, cmp_, ref[::100], normal_radius=1.0, cylinder_radius=0.5, max_depth=1.0, confidence=0.95)
+    r = m3c2(ref, cmp_, ref[::100], normal_radius=1.0, cylinder_radius=0.5, max_depth=1.0, alpha=0.05)
     a, b = r.spread1**2 / r.count1, r.spread2**2 / r.count2
     dof = (a + b) ** 2 / (a**2 / (r.count1 - 1) + b**2 / (r.count2 - 1))
     ok = np.isfinite(r.z)
