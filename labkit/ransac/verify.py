@@ -131,21 +131,25 @@ class Verifier:
         return idx0[i], d
 
     def _polish(self, x, t):
-        """Inliers -> orthogonal fit, three rounds; the band widens to k sigma_hat when t is below the noise."""
+        """Inliers -> orthogonal fit, three rounds; the band widens to k sigma_hat when t is below the noise.
+
+        The polished sphere only decides the checks (the detection's sphere comes from the final
+        refit), so fit and scale use an even subsample of at most ``SHAPE_POINTS`` inliers.
+        """
         band = t
         for _ in range(3):
             idx, d = self._local(x, band)
-            on = np.abs(d) < band
-            if on.sum() <= S:
+            on = np.flatnonzero(np.abs(d) < band)
+            if len(on) <= S:
                 return None
-            x_new = orthogonal_fit(self.X[idx[on]], x, steps=2)
+            x_new = orthogonal_fit(self.X[idx[_even(on, SHAPE_POINTS)]], x, steps=2)
             if x_new is None:
                 return None
             x = x_new
             if not 0.5 * self.cfg.r_min <= x[3] <= 2.0 * self.cfg.r_max:
                 return x  # far outside the radius range: more rounds will not bring it back (reasons() rejects)
             _, d = self._local(x, band)
-            d = d[np.abs(d) < band]
+            d = d[_even(np.flatnonzero(np.abs(d) < band), SHAPE_POINTS)]
             if len(d) > S:
                 band = max(t, min(BAND_K * truncated_mad_scale(np.abs(d), band), 3.0 * t))
         return x
@@ -175,9 +179,7 @@ class Verifier:
         if n_in < CONTRAST * outside:
             return (f"too many points just outside the shell ({outside}, for {n_in} on it): no spherical surface "
                     "stands out, the points only pass through the shell (a cylinder, plane pieces, clutter)")
-        sel = np.flatnonzero(on)
-        if len(sel) > SHAPE_POINTS:  # the shape statistics (shares, rms, spreads) on an even subsample of the shell
-            sel = sel[:: -(-len(sel) // SHAPE_POINTS)]
+        sel = _even(np.flatnonzero(on), SHAPE_POINTS)  # the shape statistics (shares, rms, spreads)
         P = self.X[idx[sel]]
         q = P - P.mean(axis=0)
         rms_plane = np.sqrt(max(np.linalg.eigvalsh(q.T @ q / len(q))[0], 0.0))
@@ -217,6 +219,11 @@ class Verifier:
             return (f"{shadow} points lie behind it seen from the station (for {n_in} on its shell): "
                     "the scanner looked through it, free space where a solid sphere would be")
         return ""
+
+
+def _even(sel, m):
+    """An even subsample of at most about m of the indices sel (all of them when there are fewer)."""
+    return sel if len(sel) <= m else sel[:: -(-len(sel) // m)]
 
 
 def _cap_spread(normals, axis):
