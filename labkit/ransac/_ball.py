@@ -187,6 +187,45 @@ def _normal_equations(P, shift, c, r):  # pragma: no cover - compiled
 
 
 
+def _band_normal_equations(P, dm, band, shift, c, r):  # pragma: no cover - compiled
+    """:func:`_normal_equations` of the points with |dm_i| < band_i (band of length 1: one for all)."""
+    JtJ = np.zeros((4, 4))
+    Jtd = np.zeros(4)
+    one = band.shape[0] == 1
+    k = 0
+    for i in range(P.shape[0]):
+        if not abs(dm[i]) < band[0 if one else i]:
+            continue
+        k += 1
+        dx = (P[i, 0] - shift[0]) - c[0]
+        dy = (P[i, 1] - shift[1]) - c[1]
+        dz = (P[i, 2] - shift[2]) - c[2]
+        dist = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if dist == 0.0:
+            JtJ[3, 3] = -1.0
+            return JtJ, Jtd
+        u0, u1, u2 = dx / dist, dy / dist, dz / dist
+        d = dist - r
+        JtJ[0, 0] += u0 * u0
+        JtJ[0, 1] += u0 * u1
+        JtJ[0, 2] += u0 * u2
+        JtJ[1, 1] += u1 * u1
+        JtJ[1, 2] += u1 * u2
+        JtJ[2, 2] += u2 * u2
+        JtJ[0, 3] += u0
+        JtJ[1, 3] += u1
+        JtJ[2, 3] += u2
+        Jtd[0] -= u0 * d
+        Jtd[1] -= u1 * d
+        Jtd[2] -= u2 * d
+        Jtd[3] -= d
+    JtJ[3, 3] = k
+    for a in range(4):
+        for b in range(a):
+            JtJ[a, b] = JtJ[b, a]
+    return JtJ, Jtd
+
+
 def shell_points(X, c, r, reach):
     """Indices of the points of X within r + reach of c and their residuals d = |x - c| - r (eq. 25)."""
     c = np.asarray(c, dtype=np.float64)
@@ -214,6 +253,18 @@ def normal_equations(P, shift, c, r):
         JtJ[:3, :3], JtJ[:3, 3], JtJ[3, :3], JtJ[3, 3] = u.T @ u, su, su, len(P)
         return JtJ, -np.append(u.T @ d, d.sum())
     JtJ, Jtd = kernel(P, np.asarray(shift, dtype=np.float64), np.asarray(c, dtype=np.float64), float(r))
+    return None if JtJ[3, 3] < 0 else (JtJ, Jtd)
+
+
+def band_normal_equations(P, dm, band, shift, c, r):
+    """:func:`normal_equations` of the points of P (C-contiguous float64) with |dm_i| < band (a scalar or
+    one per point), summed in one compiled pass in the order of P, without gathering them first."""
+    band = np.atleast_1d(np.asarray(band, dtype=np.float64))
+    kernel = _jit(_band_normal_equations)
+    if kernel is None or P.dtype != np.float64 or not P.flags.c_contiguous:  # pragma: no cover
+        return normal_equations(P[np.abs(dm) < (band if len(band) > 1 else band[0])], shift, c, r)
+    JtJ, Jtd = kernel(P, np.ascontiguousarray(dm, dtype=np.float64), band, np.asarray(shift, dtype=np.float64),
+                      np.asarray(c, dtype=np.float64), float(r))
     return None if JtJ[3, 3] < 0 else (JtJ, Jtd)
 
 

@@ -7,7 +7,7 @@ import numpy as np
 from ..sphere.ghm import gauss_helmert_model
 from ..core.errors import LabkitError
 from ..sphere.model import algebraic_sphere, circumspheres
-from ._ball import in_shell, normal_equations
+from ._ball import band_normal_equations, in_shell, normal_equations
 from .config import LO_STEPS, S
 
 
@@ -77,8 +77,12 @@ def local_optimization_step(W, Wsq, x, score, cfg):
     return x, score, improved
 
 
-def orthogonal_fit(P, x, steps=3):
-    """A few Gauss-Newton steps of the orthogonal-distance sphere fit, from x; None if it fails."""
+def orthogonal_fit(P, x, steps=3, band=None):
+    """A few Gauss-Newton steps of the orthogonal-distance sphere fit, from x; None if it fails.
+
+    With ``band = (d, b)`` only the points of P with |d_i| < b (scalar or per point) take part,
+    in one compiled pass each, as if ``P[np.abs(d) < b]`` had been passed.
+    """
     try:
         x = algebraic_sphere(P) if x is None else np.array(x, dtype=np.float64)
     except LabkitError:
@@ -87,7 +91,8 @@ def orthogonal_fit(P, x, steps=3):
     for _ in range(steps):
         # Jacobian rows J_i = -[u_i, 1] (u_i the unit radial vector); J^T J and J^T d
         # summed in one compiled pass, without forming the n x 4 matrix J
-        eqs = normal_equations(P, shift, x[:3], x[3])
+        eqs = (normal_equations(P, shift, x[:3], x[3]) if band is None
+               else band_normal_equations(P, band[0], band[1], shift, x[:3], x[3]))
         if eqs is None:
             return None
         JtJ, Jtd = eqs

@@ -103,7 +103,7 @@ def _robust_band(xyz, x, cfg, unit=None, max_rounds=12):
         inl = np.abs(d) < band
         if inl.sum() <= S:
             break
-        x_new = orthogonal_fit(P[inl], x, steps=2)
+        x_new = orthogonal_fit(P, x, steps=2, band=(d, band))  # on P[inl], without gathering it
         x = x if x_new is None else x_new
         d = residuals(P, x)
         inl_new = np.abs(d) < band
