@@ -12,6 +12,7 @@ MIN_BATCH = 64
 CELLS_PER_BATCH = 4_000_000  # hypotheses x points scored at once (about 32 MB)
 LO_STEPS = 4
 SNOOP_ROUNDS = 10
+START_STEPS = 3  # Gauss-Newton steps of the orthogonal fit that give the Gauss-Helmert refit its initial values
 PLANE_RATIO = 3.0  # a sphere must fit its inliers clearly better than a plane
 BAND_K = 3.0  # final inliers: |d| < k sigma_hat (robust scale), whatever the search threshold t
 INTERIOR_SHARE = 0.1  # points clearly inside a solid sphere, per inlier (true spheres: ~0)

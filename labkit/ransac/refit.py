@@ -11,7 +11,7 @@ from scipy.special import ndtr
 from ..sphere.ghm import gauss_helmert_model
 from ..core.errors import LabkitError
 from ._ball import residuals, shell_points
-from .config import BAND_K, SNOOP_ROUNDS, S
+from .config import BAND_K, SNOOP_ROUNDS, START_STEPS, S
 from .hypotheses import orthogonal_fit, shell_mask
 
 
@@ -40,7 +40,12 @@ def refit_sphere(xyz, x0, cfg):
 
     def adjust(mask, x_start, sig):
         sig = sig[mask] if isinstance(sig, np.ndarray) else sig
-        return gauss_helmert_model(xyz[mask], x0=x_start, sigma=sig, radius=cfg.hold_radius, alpha_w=cfg.alpha)
+        P = xyz[mask]
+        if cfg.hold_radius is None:
+            # start from the orthogonal-distance fit (compiled passes): for equal precisions it is the
+            # adjustment's own solution, so the Gauss-Helmert iteration confirms it in one or two steps
+            x_start = _start(P, x_start)
+        return gauss_helmert_model(P, x0=x_start, sigma=sig, radius=cfg.hold_radius, alpha_w=cfg.alpha)
 
     # Robust band and sphere at their fixed point (eqs. 25-26 with t -> k sigma_hat); with a
     # per-point sigma the band is k sigma_i for each point
@@ -69,6 +74,12 @@ def refit_sphere(xyz, x0, cfg):
     if not cfg.snooping:
         return _Final(fit, inliers, 0, _sigma_scalar(sigma), "", band)
     return replace(_snoop(fit, inliers, sigma, min_inliers, adjust), band=band)
+
+
+def _start(P, x, steps=START_STEPS):
+    """Initial values for the Gauss-Helmert refit: Gauss-Newton steps of the orthogonal fit from x (x if it fails)."""
+    x_ls = orthogonal_fit(np.ascontiguousarray(P, dtype=np.float64), x, steps=steps)
+    return x if x_ls is None else x_ls
 
 
 def _point_sigma(sigma):
