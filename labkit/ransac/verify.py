@@ -165,7 +165,8 @@ class Verifier:
         n_in = int(on.sum())
         if n_in < cfg.min_inliers:
             return f"only {n_in} points on its shell |d| < {t:.3g} m in the full cloud (< min_inliers = {cfg.min_inliers})"
-        sigma_hat = truncated_mad_scale(np.abs(d[on]), t)  # robust, and consistent for the cut at t
+        # robust, and consistent for the cut at t (a scale for the checks: an even subsample of the shell)
+        sigma_hat = truncated_mad_scale(np.abs(d[_even(np.flatnonzero(on), SHAPE_POINTS)]), t)
         margin = max(t, 3.5 * sigma_hat)
         # the shell: at least the noise band k sigma_hat (a t below the noise must not thin it out)
         t = max(t, min(BAND_K * sigma_hat, 2.0 * t))
