@@ -50,10 +50,10 @@ def refit_sphere(xyz, x0, cfg):
     # Robust band and sphere at their fixed point (eqs. 25-26 with t -> k sigma_hat); with a
     # per-point sigma the band is k sigma_i for each point
     unit = _point_sigma(sigma)
-    x0, band, sigma_hat = _robust_band(xyz, x0, cfg, unit)
+    x0, band, sigma_hat, near = _robust_band(xyz, x0, cfg, unit)
     if unit is not None:
         band = BAND_K * unit
-    inliers = shell_mask(xyz, x0, band)
+    inliers = _band_mask(xyz, x0, band, near)
     if sigma is None:  # a priori sigma for the adjustment and the w-test: the robust scale
         sigma = sigma_hat
     fit = None
@@ -66,7 +66,7 @@ def refit_sphere(xyz, x0, cfg):
             return _Final(None, inliers, 0, None, f"Gauss-Helmert refit failed: {exc}", band)
         if not fit.converged:
             return _Final(None, inliers, 0, None, f"Gauss-Helmert refit did not converge: {fit.reason}", band)
-        new = shell_mask(xyz, fit.x, band)
+        new = _band_mask(xyz, fit.x, band, near)
         if np.count_nonzero(new != inliers) <= 0.01 * inliers.sum() or round_ == 2:
             break  # (the fit always belongs to exactly these inliers)
         inliers = new
@@ -74,6 +74,22 @@ def refit_sphere(xyz, x0, cfg):
     if not cfg.snooping:
         return _Final(fit, inliers, 0, _sigma_scalar(sigma), "", band)
     return replace(_snoop(fit, inliers, sigma, min_inliers, adjust), band=band)
+
+
+def _band_mask(xyz, x, band, near):
+    """shell_mask(xyz, x, band), read from the points near the search's sphere where that is exact.
+
+    ``near = (x_s, reach, idx, P)``: the points P = xyz[idx] are all those with |d| < reach about
+    x_s. A sphere x that moved by |c - c_s| + |r - r_s| < reach - band keeps every other point
+    outside its band (|d| changes by at most that much), so only P needs the test.
+    """
+    x_s, reach, idx, P = near
+    move = float(np.linalg.norm(x[:3] - x_s[:3]) + abs(x[3] - x_s[3]))
+    if np.ndim(band) != 0 or not move < 0.999 * (reach - band):
+        return shell_mask(xyz, x, band)
+    mask = np.zeros(len(xyz), dtype=bool)
+    mask[idx[shell_mask(P, x, band)]] = True
+    return mask
 
 
 def _start(P, x, steps=START_STEPS):
@@ -93,7 +109,8 @@ def _point_sigma(sigma):
 def _robust_band(xyz, x, cfg, unit=None, max_rounds=12):
     """Fixed point of (band -> inliers -> orthogonal fit -> sigma_hat -> band = k sigma_hat), from t.
 
-    Returns the sphere, the band half-width and sigma_hat. With an a priori
+    Returns the sphere, the band half-width, sigma_hat and the points read (the search's sphere,
+    the reach, their indices and coordinates: every point with |d| < reach). With an a priori
     sigma the band is k sigma at once (k sigma_i per point for ``unit``, the
     per-point sigma); only the sphere is iterated.
     """
@@ -103,6 +120,7 @@ def _robust_band(xyz, x, cfg, unit=None, max_rounds=12):
     sigma_hat = known if known is not None else t / BAND_K
     # only points that can ever be in a band matter: a generous neighbourhood of the hypothesis
     reach = max(8.0 * t, 8.0 * band) if unit is None else max(8.0 * t, 3.0 * BAND_K * float(unit.max()))
+    x_s = np.array(x, dtype=np.float64)
     idx, d = shell_points(np.ascontiguousarray(xyz, dtype=np.float64), x[:3], x[3], reach)  # one compiled pass
     close = np.abs(d) < reach
     near, d = idx[close], d[close]
@@ -130,7 +148,7 @@ def _robust_band(xyz, x, cfg, unit=None, max_rounds=12):
         band = new_band
         if converged:
             break
-    return x, (float(band) if np.ndim(band) == 0 else band), float(sigma_hat)
+    return x, (float(band) if np.ndim(band) == 0 else band), float(sigma_hat), (x_s, reach, near, P)
 
 
 def truncated_mad_scale(abs_d, band):
