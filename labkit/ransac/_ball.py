@@ -268,6 +268,49 @@ def band_normal_equations(P, dm, band, shift, c, r):
     return None if JtJ[3, 3] < 0 else (JtJ, Jtd)
 
 
+def _band_median(d, band, nb):  # pragma: no cover - compiled
+    """Median of |d_i| < band and their count: buckets by value, then the one or two middle buckets only."""
+    scale = nb / band
+    counts = np.zeros(nb + 1, dtype=np.int64)
+    n = 0
+    for i in range(d.shape[0]):
+        a = abs(d[i])
+        if a < band:
+            counts[min(int(a * scale), nb)] += 1  # monotone in a: the buckets keep the order
+            n += 1
+    if n == 0:
+        return np.nan, 0
+    lo_rank, hi_rank = (n - 1) // 2, n // 2  # the middle order statistics (equal for odd n)
+    out = np.empty(2)
+    for j, rank in enumerate((lo_rank, hi_rank)):
+        below, b = 0, 0
+        while below + counts[b] <= rank:
+            below += counts[b]
+            b += 1
+        vals = np.empty(counts[b])
+        k = 0
+        for i in range(d.shape[0]):
+            a = abs(d[i])
+            if a < band and min(int(a * scale), nb) == b:
+                vals[k] = a
+                k += 1
+        vals.sort()
+        out[j] = vals[rank - below]
+    return (out[0] + out[1]) / 2.0 if lo_rank != hi_rank else out[0], n
+
+
+def band_median(d, band, buckets=1024):
+    """``(np.median(|d[|d| < band]|), count)`` in two streaming passes (no partition of a copy), exactly;
+    (nan, 0) for no such d."""
+    d = np.ascontiguousarray(d, dtype=np.float64)
+    kernel = _jit(_band_median)
+    if kernel is None:  # pragma: no cover
+        a = np.abs(d[np.abs(d) < band])
+        return (float(np.median(a)) if len(a) else float("nan")), len(a)
+    m, n = kernel(d, float(band), int(buckets))
+    return float(m), int(n)
+
+
 def _plane_counts(Q, nrm, off, t):  # pragma: no cover - compiled
     out = np.zeros(nrm.shape[0], dtype=np.int64)
     for b in range(nrm.shape[0]):

@@ -10,7 +10,7 @@ from scipy.special import ndtr
 
 from ..sphere.ghm import gauss_helmert_model
 from ..core.errors import LabkitError
-from ._ball import residuals, shell_points
+from ._ball import band_median, residuals, shell_points
 from .config import BAND_K, SNOOP_ROUNDS, START_STEPS, S
 from .hypotheses import orthogonal_fit, shell_mask
 
@@ -130,19 +130,19 @@ def _robust_band(xyz, x, cfg, unit=None, max_rounds=12):
         sigma_hat = float(np.median(unit))
     for _ in range(max_rounds):
         inl = np.abs(d) < band
-        if inl.sum() <= S:
+        if np.count_nonzero(inl) <= S:
             break
         x_new = orthogonal_fit(P, x, steps=2, band=(d, band))  # on P[inl], without gathering it
         x = x if x_new is None else x_new
         d = residuals(P, x)
-        inl_new = np.abs(d) < band
         if known is not None:  # band fixed by the given sigma: iterate the sphere until the inliers settle
-            if np.array_equal(inl_new, inl):
+            if np.array_equal(np.abs(d) < band, inl):
                 break
             continue
-        if inl_new.sum() <= S:
+        median, count = band_median(d, band)  # of the |d| inside the band, in two streaming passes
+        if count <= S:
             break
-        sigma_hat = truncated_mad_scale(np.abs(d[inl_new]), band)
+        sigma_hat = scale_from_median(median, band)
         new_band = min(BAND_K * sigma_hat, 2.0 * band, reach)  # grow at most 2x per round
         converged = abs(new_band - band) <= 0.005 * band
         band = new_band
@@ -158,7 +158,11 @@ def truncated_mad_scale(abs_d, band):
     median of b/2 or more means no peak inside the band (flat): returns 2 b / k,
     which doubles the band.
     """
-    m = float(np.median(abs_d))
+    return scale_from_median(float(np.median(abs_d)), band)
+
+
+def scale_from_median(m, band):
+    """:func:`truncated_mad_scale` from the median m of the |d| inside the band."""
     q = m / band
     if q >= 0.499:
         return 2.0 * band / BAND_K

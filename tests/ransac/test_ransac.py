@@ -520,3 +520,20 @@ def test_refit_from_the_orthogonal_fit_equals_the_adjustment_from_its_own_start(
     assert ref.iterations > res.fit.iterations
     np.testing.assert_allclose(res.fit.x, ref.x, rtol=0, atol=1e-9)
     np.testing.assert_allclose(res.fit.std, ref.std, rtol=1e-6)
+
+
+def test_band_median_equals_numpys_median_of_the_band():
+    """The streaming median of |d| < band (buckets, then the middle ones) is numpy's median, exactly:
+    odd and even counts, ties, values piled into one bucket, an empty band."""
+    from labkit.ransac._ball import band_median
+
+    rng = np.random.default_rng(10)
+    for trial in range(400):
+        n, band = int(rng.integers(1, 5000)), rng.uniform(0.001, 0.01)
+        d = [rng.normal(0, band / 3, n), rng.uniform(-2 * band, 2 * band, n), np.round(rng.normal(0, band / 3, n), 4),
+             np.full(n, 0.5 * band) * rng.choice([-1, 1], n)][trial % 4]
+        a = np.abs(d[np.abs(d) < band])
+        m, k = band_median(d, band)
+        assert k == len(a)
+        assert (m == np.median(a)) if len(a) else np.isnan(m)
+    assert band_median(np.array([0.5, -0.7]), 0.1)[1] == 0
