@@ -137,8 +137,8 @@ class Verifier:
         refit), so fit and scale use an even subsample of at most ``SHAPE_POINTS`` inliers.
         """
         band = t
+        idx, d = self._local(x, band)
         for _ in range(3):
-            idx, d = self._local(x, band)
             on = np.flatnonzero(np.abs(d) < band)
             if len(on) <= S:
                 return None
@@ -148,10 +148,10 @@ class Verifier:
             x = x_new
             if not 0.5 * self.cfg.r_min <= x[3] <= 2.0 * self.cfg.r_max:
                 return x  # far outside the radius range: more rounds will not bring it back (reasons() rejects)
-            _, d = self._local(x, band)
-            d = d[_even(np.flatnonzero(np.abs(d) < band), SHAPE_POINTS)]
-            if len(d) > S:
-                band = max(t, min(BAND_K * truncated_mad_scale(np.abs(d), band), 3.0 * t))
+            idx, d = self._local(x, 3.0 * t)  # holds every band of the next round too (band <= 3 t)
+            d_in = d[_even(np.flatnonzero(np.abs(d) < band), SHAPE_POINTS)]
+            if len(d_in) > S:
+                band = max(t, min(BAND_K * truncated_mad_scale(np.abs(d_in), band), 3.0 * t))
         return x
 
     def reasons(self, x, t):
