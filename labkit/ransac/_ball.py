@@ -311,6 +311,26 @@ def band_median(d, band, buckets=1024):
     return float(m), int(n)
 
 
+def _shell_counts(G, Wsq, Csq, lo, hi):  # pragma: no cover - compiled
+    out = np.zeros(G.shape[1], dtype=np.int64)
+    for i in range(G.shape[0]):
+        w = Wsq[i]
+        for b in range(G.shape[1]):
+            d2 = (w - 2.0 * G[i, b]) + Csq[b]  # numpy's Wsq[:, None] - 2.0 * G + Csq[None, :], term by term
+            out[b] += (d2 > lo[b]) & (d2 < hi[b])
+    return out
+
+
+def shell_counts(G, Wsq, Csq, lo, hi):
+    """For each column b: the i with lo_b < |w_i|^2 - 2 G_ib + |c_b|^2 < hi_b, G = W C^T (m, B); one pass over G,
+    the same arithmetic as the (m, B) arrays of numpy, without them."""
+    kernel = _jit(_shell_counts)
+    if kernel is None or not G.flags.c_contiguous:  # pragma: no cover
+        D2 = Wsq[:, None] - 2.0 * G + Csq[None, :]
+        return ((D2 > lo) & (D2 < hi)).sum(axis=0)
+    return kernel(G, Wsq, Csq, lo, hi)
+
+
 def _plane_counts(Q, nrm, off, t):  # pragma: no cover - compiled
     out = np.zeros(nrm.shape[0], dtype=np.int64)
     for b in range(nrm.shape[0]):

@@ -7,7 +7,7 @@ import numpy as np
 from ..sphere.ghm import gauss_helmert_model
 from ..core.errors import LabkitError
 from ..sphere.model import algebraic_sphere, circumspheres
-from ._ball import band_normal_equations, in_shell, normal_equations
+from ._ball import band_normal_equations, in_shell, normal_equations, shell_counts
 from .config import LO_STEPS, S
 
 
@@ -40,13 +40,13 @@ def squared_center_distances(W, Wsq, C):
 
 def score_hypotheses(W, Wsq, X, t, scoring):
     """Score (higher is better) and inlier count of each hypothesis X (B, 4) on W (eqs. 25-26)."""
-    D2 = squared_center_distances(W, Wsq, X[:, :3])
     r = X[:, 3]
     if scoring == "ransac":
-        # d_i^2 < t^2  <=>  (r - t)^2 < |w_i - c|^2 < (r + t)^2   (eq. 26)
-        inside = (D2 > np.maximum(r - t, 0.0) ** 2) & (D2 < (r + t) ** 2)
-        count = inside.sum(axis=0)
+        # d_i^2 < t^2  <=>  (r - t)^2 < |w_i - c|^2 < (r + t)^2   (eq. 26), counted in one compiled pass
+        C = X[:, :3]
+        count = shell_counts(W @ C.T, Wsq, np.einsum("ij,ij->i", C, C), np.maximum(r - t, 0.0) ** 2, (r + t) ** 2)
         return count.astype(np.float64), count
+    D2 = squared_center_distances(W, Wsq, X[:, :3])
     d2 = (np.sqrt(np.maximum(D2, 0.0)) - r) ** 2  # (eq. 25)
     gain = np.maximum(t * t - d2, 0.0)  # MSAC: t^2 - min(d_i^2, t^2)
     return gain.sum(axis=0), (gain > 0).sum(axis=0)

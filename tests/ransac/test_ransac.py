@@ -537,3 +537,22 @@ def test_band_median_equals_numpys_median_of_the_band():
         assert k == len(a)
         assert (m == np.median(a)) if len(a) else np.isnan(m)
     assert band_median(np.array([0.5, -0.7]), 0.1)[1] == 0
+
+
+def test_compiled_scoring_counts_what_the_numpy_arrays_count():
+    """RANSAC scores counted in one compiled pass equal the counts of numpy's (m, B) arrays (eq. 26),
+    also for radii through points of the set (every hypothesis has points on its band edges)."""
+    from labkit.ransac.hypotheses import score_hypotheses, squared_center_distances
+
+    rng = np.random.default_rng(11)
+    for _ in range(5):
+        W = rng.normal(size=(1000, 3)) * rng.uniform(0.1, 100)
+        Wsq = np.einsum("ij,ij->i", W, W)
+        C = W[rng.integers(0, 1000, 300)] + rng.normal(size=(300, 3))
+        X = np.c_[C, np.linalg.norm(W[rng.integers(0, 1000, 300)] - C, axis=1)]
+        t = rng.uniform(0.001, 0.1)
+        D2 = squared_center_distances(W, Wsq, X[:, :3])
+        expected = ((D2 > np.maximum(X[:, 3] - t, 0.0) ** 2) & (D2 < (X[:, 3] + t) ** 2)).sum(axis=0)
+        score, count = score_hypotheses(W, Wsq, X, t, "ransac")
+        np.testing.assert_array_equal(count, expected)
+        np.testing.assert_array_equal(score, expected.astype(float))
