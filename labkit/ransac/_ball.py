@@ -187,6 +187,45 @@ def _normal_equations(P, shift, c, r):  # pragma: no cover - compiled
 
 
 
+def _band_normal_equations(P, dm, band, shift, c, r):  # pragma: no cover - compiled
+    """:func:`_normal_equations` of the points with |dm_i| < band_i (band of length 1: one for all)."""
+    JtJ = np.zeros((4, 4))
+    Jtd = np.zeros(4)
+    one = band.shape[0] == 1
+    k = 0
+    for i in range(P.shape[0]):
+        if not abs(dm[i]) < band[0 if one else i]:
+            continue
+        k += 1
+        dx = (P[i, 0] - shift[0]) - c[0]
+        dy = (P[i, 1] - shift[1]) - c[1]
+        dz = (P[i, 2] - shift[2]) - c[2]
+        dist = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if dist == 0.0:
+            JtJ[3, 3] = -1.0
+            return JtJ, Jtd
+        u0, u1, u2 = dx / dist, dy / dist, dz / dist
+        d = dist - r
+        JtJ[0, 0] += u0 * u0
+        JtJ[0, 1] += u0 * u1
+        JtJ[0, 2] += u0 * u2
+        JtJ[1, 1] += u1 * u1
+        JtJ[1, 2] += u1 * u2
+        JtJ[2, 2] += u2 * u2
+        JtJ[0, 3] += u0
+        JtJ[1, 3] += u1
+        JtJ[2, 3] += u2
+        Jtd[0] -= u0 * d
+        Jtd[1] -= u1 * d
+        Jtd[2] -= u2 * d
+        Jtd[3] -= d
+    JtJ[3, 3] = k
+    for a in range(4):
+        for b in range(a):
+            JtJ[a, b] = JtJ[b, a]
+    return JtJ, Jtd
+
+
 def shell_points(X, c, r, reach):
     """Indices of the points of X within r + reach of c and their residuals d = |x - c| - r (eq. 25)."""
     c = np.asarray(c, dtype=np.float64)
@@ -215,6 +254,81 @@ def normal_equations(P, shift, c, r):
         return JtJ, -np.append(u.T @ d, d.sum())
     JtJ, Jtd = kernel(P, np.asarray(shift, dtype=np.float64), np.asarray(c, dtype=np.float64), float(r))
     return None if JtJ[3, 3] < 0 else (JtJ, Jtd)
+
+
+def band_normal_equations(P, dm, band, shift, c, r):
+    """:func:`normal_equations` of the points of P (C-contiguous float64) with |dm_i| < band (a scalar or
+    one per point), summed in one compiled pass in the order of P, without gathering them first."""
+    band = np.atleast_1d(np.asarray(band, dtype=np.float64))
+    kernel = _jit(_band_normal_equations)
+    if kernel is None or P.dtype != np.float64 or not P.flags.c_contiguous:  # pragma: no cover
+        return normal_equations(P[np.abs(dm) < (band if len(band) > 1 else band[0])], shift, c, r)
+    JtJ, Jtd = kernel(P, np.ascontiguousarray(dm, dtype=np.float64), band, np.asarray(shift, dtype=np.float64),
+                      np.asarray(c, dtype=np.float64), float(r))
+    return None if JtJ[3, 3] < 0 else (JtJ, Jtd)
+
+
+def _band_median(d, band, nb):  # pragma: no cover - compiled
+    """Median of |d_i| < band and their count: buckets by value, then the one or two middle buckets only."""
+    scale = nb / band
+    counts = np.zeros(nb + 1, dtype=np.int64)
+    n = 0
+    for i in range(d.shape[0]):
+        a = abs(d[i])
+        if a < band:
+            counts[min(int(a * scale), nb)] += 1  # monotone in a: the buckets keep the order
+            n += 1
+    if n == 0:
+        return np.nan, 0
+    lo_rank, hi_rank = (n - 1) // 2, n // 2  # the middle order statistics (equal for odd n)
+    out = np.empty(2)
+    for j, rank in enumerate((lo_rank, hi_rank)):
+        below, b = 0, 0
+        while below + counts[b] <= rank:
+            below += counts[b]
+            b += 1
+        vals = np.empty(counts[b])
+        k = 0
+        for i in range(d.shape[0]):
+            a = abs(d[i])
+            if a < band and min(int(a * scale), nb) == b:
+                vals[k] = a
+                k += 1
+        vals.sort()
+        out[j] = vals[rank - below]
+    return (out[0] + out[1]) / 2.0 if lo_rank != hi_rank else out[0], n
+
+
+def band_median(d, band, buckets=1024):
+    """``(np.median(|d[|d| < band]|), count)`` in two streaming passes (no partition of a copy), exactly;
+    (nan, 0) for no such d."""
+    d = np.ascontiguousarray(d, dtype=np.float64)
+    kernel = _jit(_band_median)
+    if kernel is None:  # pragma: no cover
+        a = np.abs(d[np.abs(d) < band])
+        return (float(np.median(a)) if len(a) else float("nan")), len(a)
+    m, n = kernel(d, float(band), int(buckets))
+    return float(m), int(n)
+
+
+def _shell_counts(G, Wsq, Csq, lo, hi):  # pragma: no cover - compiled
+    out = np.zeros(G.shape[1], dtype=np.int64)
+    for i in range(G.shape[0]):
+        w = Wsq[i]
+        for b in range(G.shape[1]):
+            d2 = (w - 2.0 * G[i, b]) + Csq[b]  # numpy's Wsq[:, None] - 2.0 * G + Csq[None, :], term by term
+            out[b] += (d2 > lo[b]) & (d2 < hi[b])
+    return out
+
+
+def shell_counts(G, Wsq, Csq, lo, hi):
+    """For each column b: the i with lo_b < |w_i|^2 - 2 G_ib + |c_b|^2 < hi_b, G = W C^T (m, B); one pass over G,
+    the same arithmetic as the (m, B) arrays of numpy, without them."""
+    kernel = _jit(_shell_counts)
+    if kernel is None or not G.flags.c_contiguous:  # pragma: no cover
+        D2 = Wsq[:, None] - 2.0 * G + Csq[None, :]
+        return ((D2 > lo) & (D2 < hi)).sum(axis=0)
+    return kernel(G, Wsq, Csq, lo, hi)
 
 
 def _plane_counts(Q, nrm, off, t):  # pragma: no cover - compiled

@@ -12,6 +12,7 @@ MIN_BATCH = 64
 CELLS_PER_BATCH = 4_000_000  # hypotheses x points scored at once (about 32 MB)
 LO_STEPS = 4
 SNOOP_ROUNDS = 10
+START_STEPS = 3  # Gauss-Newton steps of the orthogonal fit that give the Gauss-Helmert refit its initial values
 PLANE_RATIO = 3.0  # a sphere must fit its inliers clearly better than a plane
 BAND_K = 3.0  # final inliers: |d| < k sigma_hat (robust scale), whatever the search threshold t
 INTERIOR_SHARE = 0.1  # points clearly inside a solid sphere, per inlier (true spheres: ~0)
@@ -29,7 +30,7 @@ LOCAL_MAX_PAIRS = 8_000_000  # ... and the neighbour pairs stay affordable
 FINAL_ATTEMPTS = 3  # searches per working set when the final refit of the best fails its checks
 VERIFY_PER_BATCH = 16  # candidates verified per batch at most (the best-scoring ones)
 VERIFY_MAX = 400  # candidates verified per search at most
-SHAPE_POINTS = 8192  # the shape checks of a candidate use an even subsample of at most this many inliers
+SHAPE_POINTS = 8192  # polishing, scale and shape checks of a candidate: an even subsample of at most this many inliers
 COARSE_POINTS = 65_536  # the coarse interior test runs first on an even subsample of about this many points
 COARSE_CLEAR = 100  # ... and rejects there only with this many points deep inside and twice the limit
 

@@ -7,7 +7,7 @@ import numpy as np
 from ..sphere.ghm import gauss_helmert_model
 from ..core.errors import LabkitError
 from ..sphere.model import algebraic_sphere, circumspheres
-from ._ball import in_shell, normal_equations
+from ._ball import band_normal_equations, in_shell, normal_equations, shell_counts
 from .config import LO_STEPS, S
 
 
@@ -40,13 +40,13 @@ def squared_center_distances(W, Wsq, C):
 
 def score_hypotheses(W, Wsq, X, t, scoring):
     """Score (higher is better) and inlier count of each hypothesis X (B, 4) on W (eqs. 25-26)."""
-    D2 = squared_center_distances(W, Wsq, X[:, :3])
     r = X[:, 3]
     if scoring == "ransac":
-        # d_i^2 < t^2  <=>  (r - t)^2 < |w_i - c|^2 < (r + t)^2   (eq. 26)
-        inside = (D2 > np.maximum(r - t, 0.0) ** 2) & (D2 < (r + t) ** 2)
-        count = inside.sum(axis=0)
+        # d_i^2 < t^2  <=>  (r - t)^2 < |w_i - c|^2 < (r + t)^2   (eq. 26), counted in one compiled pass
+        C = X[:, :3]
+        count = shell_counts(W @ C.T, Wsq, np.einsum("ij,ij->i", C, C), np.maximum(r - t, 0.0) ** 2, (r + t) ** 2)
         return count.astype(np.float64), count
+    D2 = squared_center_distances(W, Wsq, X[:, :3])
     d2 = (np.sqrt(np.maximum(D2, 0.0)) - r) ** 2  # (eq. 25)
     gain = np.maximum(t * t - d2, 0.0)  # MSAC: t^2 - min(d_i^2, t^2)
     return gain.sum(axis=0), (gain > 0).sum(axis=0)
@@ -77,8 +77,12 @@ def local_optimization_step(W, Wsq, x, score, cfg):
     return x, score, improved
 
 
-def orthogonal_fit(P, x, steps=3):
-    """A few Gauss-Newton steps of the orthogonal-distance sphere fit, from x; None if it fails."""
+def orthogonal_fit(P, x, steps=3, band=None):
+    """A few Gauss-Newton steps of the orthogonal-distance sphere fit, from x; None if it fails.
+
+    With ``band = (d, b)`` only the points of P with |d_i| < b (scalar or per point) take part,
+    in one compiled pass each, as if ``P[np.abs(d) < b]`` had been passed.
+    """
     try:
         x = algebraic_sphere(P) if x is None else np.array(x, dtype=np.float64)
     except LabkitError:
@@ -87,7 +91,8 @@ def orthogonal_fit(P, x, steps=3):
     for _ in range(steps):
         # Jacobian rows J_i = -[u_i, 1] (u_i the unit radial vector); J^T J and J^T d
         # summed in one compiled pass, without forming the n x 4 matrix J
-        eqs = normal_equations(P, shift, x[:3], x[3])
+        eqs = (normal_equations(P, shift, x[:3], x[3]) if band is None
+               else band_normal_equations(P, band[0], band[1], shift, x[:3], x[3]))
         if eqs is None:
             return None
         JtJ, Jtd = eqs

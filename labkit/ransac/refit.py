@@ -10,8 +10,8 @@ from scipy.special import ndtr
 
 from ..sphere.ghm import gauss_helmert_model
 from ..core.errors import LabkitError
-from ._ball import residuals, shell_points
-from .config import BAND_K, SNOOP_ROUNDS, S
+from ._ball import band_median, residuals, shell_points
+from .config import BAND_K, SNOOP_ROUNDS, START_STEPS, S
 from .hypotheses import orthogonal_fit, shell_mask
 
 
@@ -40,15 +40,20 @@ def refit_sphere(xyz, x0, cfg):
 
     def adjust(mask, x_start, sig):
         sig = sig[mask] if isinstance(sig, np.ndarray) else sig
-        return gauss_helmert_model(xyz[mask], x0=x_start, sigma=sig, radius=cfg.hold_radius, alpha_w=cfg.alpha)
+        P = xyz[mask]
+        if cfg.hold_radius is None:
+            # start from the orthogonal-distance fit (compiled passes): for equal precisions it is the
+            # adjustment's own solution, so the Gauss-Helmert iteration confirms it in one or two steps
+            x_start = _start(P, x_start)
+        return gauss_helmert_model(P, x0=x_start, sigma=sig, radius=cfg.hold_radius, alpha_w=cfg.alpha)
 
     # Robust band and sphere at their fixed point (eqs. 25-26 with t -> k sigma_hat); with a
     # per-point sigma the band is k sigma_i for each point
     unit = _point_sigma(sigma)
-    x0, band, sigma_hat = _robust_band(xyz, x0, cfg, unit)
+    x0, band, sigma_hat, near = _robust_band(xyz, x0, cfg, unit)
     if unit is not None:
         band = BAND_K * unit
-    inliers = shell_mask(xyz, x0, band)
+    inliers = _band_mask(xyz, x0, band, near)
     if sigma is None:  # a priori sigma for the adjustment and the w-test: the robust scale
         sigma = sigma_hat
     fit = None
@@ -61,7 +66,7 @@ def refit_sphere(xyz, x0, cfg):
             return _Final(None, inliers, 0, None, f"Gauss-Helmert refit failed: {exc}", band)
         if not fit.converged:
             return _Final(None, inliers, 0, None, f"Gauss-Helmert refit did not converge: {fit.reason}", band)
-        new = shell_mask(xyz, fit.x, band)
+        new = _band_mask(xyz, fit.x, band, near)
         if np.count_nonzero(new != inliers) <= 0.01 * inliers.sum() or round_ == 2:
             break  # (the fit always belongs to exactly these inliers)
         inliers = new
@@ -69,6 +74,28 @@ def refit_sphere(xyz, x0, cfg):
     if not cfg.snooping:
         return _Final(fit, inliers, 0, _sigma_scalar(sigma), "", band)
     return replace(_snoop(fit, inliers, sigma, min_inliers, adjust), band=band)
+
+
+def _band_mask(xyz, x, band, near):
+    """shell_mask(xyz, x, band), read from the points near the search's sphere where that is exact.
+
+    ``near = (x_s, reach, idx, P)``: the points P = xyz[idx] are all those with |d| < reach about
+    x_s. A sphere x that moved by |c - c_s| + |r - r_s| < reach - band keeps every other point
+    outside its band (|d| changes by at most that much), so only P needs the test.
+    """
+    x_s, reach, idx, P = near
+    move = float(np.linalg.norm(x[:3] - x_s[:3]) + abs(x[3] - x_s[3]))
+    if np.ndim(band) != 0 or not move < 0.999 * (reach - band):
+        return shell_mask(xyz, x, band)
+    mask = np.zeros(len(xyz), dtype=bool)
+    mask[idx[shell_mask(P, x, band)]] = True
+    return mask
+
+
+def _start(P, x, steps=START_STEPS):
+    """Initial values for the Gauss-Helmert refit: Gauss-Newton steps of the orthogonal fit from x (x if it fails)."""
+    x_ls = orthogonal_fit(np.ascontiguousarray(P, dtype=np.float64), x, steps=steps)
+    return x if x_ls is None else x_ls
 
 
 def _point_sigma(sigma):
@@ -82,7 +109,8 @@ def _point_sigma(sigma):
 def _robust_band(xyz, x, cfg, unit=None, max_rounds=12):
     """Fixed point of (band -> inliers -> orthogonal fit -> sigma_hat -> band = k sigma_hat), from t.
 
-    Returns the sphere, the band half-width and sigma_hat. With an a priori
+    Returns the sphere, the band half-width, sigma_hat and the points read (the search's sphere,
+    the reach, their indices and coordinates: every point with |d| < reach). With an a priori
     sigma the band is k sigma at once (k sigma_i per point for ``unit``, the
     per-point sigma); only the sphere is iterated.
     """
@@ -92,6 +120,7 @@ def _robust_band(xyz, x, cfg, unit=None, max_rounds=12):
     sigma_hat = known if known is not None else t / BAND_K
     # only points that can ever be in a band matter: a generous neighbourhood of the hypothesis
     reach = max(8.0 * t, 8.0 * band) if unit is None else max(8.0 * t, 3.0 * BAND_K * float(unit.max()))
+    x_s = np.array(x, dtype=np.float64)
     idx, d = shell_points(np.ascontiguousarray(xyz, dtype=np.float64), x[:3], x[3], reach)  # one compiled pass
     close = np.abs(d) < reach
     near, d = idx[close], d[close]
@@ -101,25 +130,25 @@ def _robust_band(xyz, x, cfg, unit=None, max_rounds=12):
         sigma_hat = float(np.median(unit))
     for _ in range(max_rounds):
         inl = np.abs(d) < band
-        if inl.sum() <= S:
+        if np.count_nonzero(inl) <= S:
             break
-        x_new = orthogonal_fit(P[inl], x, steps=2)
+        x_new = orthogonal_fit(P, x, steps=2, band=(d, band))  # on P[inl], without gathering it
         x = x if x_new is None else x_new
         d = residuals(P, x)
-        inl_new = np.abs(d) < band
         if known is not None:  # band fixed by the given sigma: iterate the sphere until the inliers settle
-            if np.array_equal(inl_new, inl):
+            if np.array_equal(np.abs(d) < band, inl):
                 break
             continue
-        if inl_new.sum() <= S:
+        median, count = band_median(d, band)  # of the |d| inside the band, in two streaming passes
+        if count <= S:
             break
-        sigma_hat = truncated_mad_scale(np.abs(d[inl_new]), band)
+        sigma_hat = scale_from_median(median, band)
         new_band = min(BAND_K * sigma_hat, 2.0 * band, reach)  # grow at most 2x per round
         converged = abs(new_band - band) <= 0.005 * band
         band = new_band
         if converged:
             break
-    return x, (float(band) if np.ndim(band) == 0 else band), float(sigma_hat)
+    return x, (float(band) if np.ndim(band) == 0 else band), float(sigma_hat), (x_s, reach, near, P)
 
 
 def truncated_mad_scale(abs_d, band):
@@ -129,7 +158,11 @@ def truncated_mad_scale(abs_d, band):
     median of b/2 or more means no peak inside the band (flat): returns 2 b / k,
     which doubles the band.
     """
-    m = float(np.median(abs_d))
+    return scale_from_median(float(np.median(abs_d)), band)
+
+
+def scale_from_median(m, band):
+    """:func:`truncated_mad_scale` from the median m of the |d| inside the band."""
     q = m / band
     if q >= 0.499:
         return 2.0 * band / BAND_K

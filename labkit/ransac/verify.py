@@ -17,8 +17,9 @@ class Verifier:
     """Is a hypothesis a sphere cap seen by the scanner? Checks on the full cloud (reduced frame).
 
     ``accepts(x)`` is asked for every hypothesis that would become the best:
-    it polishes x on its inliers of the full cloud (two rounds of inliers ->
-    orthogonal fit) and runs :meth:`reasons`. Rejected spheres are remembered,
+    it polishes x on its inliers of the full cloud (rounds of inliers ->
+    orthogonal fit, on an even subsample of at most ``SHAPE_POINTS`` of them)
+    and runs :meth:`reasons`. Rejected spheres are remembered,
     and hypotheses close to one of them are rejected without a new check.
     """
 
@@ -131,23 +132,27 @@ class Verifier:
         return idx0[i], d
 
     def _polish(self, x, t):
-        """Inliers -> orthogonal fit, three rounds; the band widens to k sigma_hat when t is below the noise."""
+        """Inliers -> orthogonal fit, three rounds; the band widens to k sigma_hat when t is below the noise.
+
+        The polished sphere only decides the checks (the detection's sphere comes from the final
+        refit), so fit and scale use an even subsample of at most ``SHAPE_POINTS`` inliers.
+        """
         band = t
+        idx, d = self._local(x, band)
         for _ in range(3):
-            idx, d = self._local(x, band)
-            on = np.abs(d) < band
-            if on.sum() <= S:
+            on = np.flatnonzero(np.abs(d) < band)
+            if len(on) <= S:
                 return None
-            x_new = orthogonal_fit(self.X[idx[on]], x, steps=2)
+            x_new = orthogonal_fit(self.X[idx[_even(on, SHAPE_POINTS)]], x, steps=2)
             if x_new is None:
                 return None
             x = x_new
             if not 0.5 * self.cfg.r_min <= x[3] <= 2.0 * self.cfg.r_max:
                 return x  # far outside the radius range: more rounds will not bring it back (reasons() rejects)
-            _, d = self._local(x, band)
-            d = d[np.abs(d) < band]
-            if len(d) > S:
-                band = max(t, min(BAND_K * truncated_mad_scale(np.abs(d), band), 3.0 * t))
+            idx, d = self._local(x, 3.0 * t)  # holds every band of the next round too (band <= 3 t)
+            d_in = d[_even(np.flatnonzero(np.abs(d) < band), SHAPE_POINTS)]
+            if len(d_in) > S:
+                band = max(t, min(BAND_K * truncated_mad_scale(np.abs(d_in), band), 3.0 * t))
         return x
 
     def reasons(self, x, t):
@@ -161,7 +166,8 @@ class Verifier:
         n_in = int(on.sum())
         if n_in < cfg.min_inliers:
             return f"only {n_in} points on its shell |d| < {t:.3g} m in the full cloud (< min_inliers = {cfg.min_inliers})"
-        sigma_hat = truncated_mad_scale(np.abs(d[on]), t)  # robust, and consistent for the cut at t
+        # robust, and consistent for the cut at t (a scale for the checks: an even subsample of the shell)
+        sigma_hat = truncated_mad_scale(np.abs(d[_even(np.flatnonzero(on), SHAPE_POINTS)]), t)
         margin = max(t, 3.5 * sigma_hat)
         # the shell: at least the noise band k sigma_hat (a t below the noise must not thin it out)
         t = max(t, min(BAND_K * sigma_hat, 2.0 * t))
@@ -175,9 +181,7 @@ class Verifier:
         if n_in < CONTRAST * outside:
             return (f"too many points just outside the shell ({outside}, for {n_in} on it): no spherical surface "
                     "stands out, the points only pass through the shell (a cylinder, plane pieces, clutter)")
-        sel = np.flatnonzero(on)
-        if len(sel) > SHAPE_POINTS:  # the shape statistics (shares, rms, spreads) on an even subsample of the shell
-            sel = sel[:: -(-len(sel) // SHAPE_POINTS)]
+        sel = _even(np.flatnonzero(on), SHAPE_POINTS)  # the shape statistics (shares, rms, spreads)
         P = self.X[idx[sel]]
         q = P - P.mean(axis=0)
         rms_plane = np.sqrt(max(np.linalg.eigvalsh(q.T @ q / len(q))[0], 0.0))
@@ -217,6 +221,11 @@ class Verifier:
             return (f"{shadow} points lie behind it seen from the station (for {n_in} on its shell): "
                     "the scanner looked through it, free space where a solid sphere would be")
         return ""
+
+
+def _even(sel, m):
+    """An even subsample of at most about m of the indices sel (all of them when there are fewer)."""
+    return sel if len(sel) <= m else sel[:: -(-len(sel) // m)]
 
 
 def _cap_spread(normals, axis):

@@ -487,3 +487,72 @@ def test_verifier_answers_nested_balls_like_a_full_pass():
         np.testing.assert_array_equal(idx, full_idx)
         np.testing.assert_array_equal(d, full_d)
         assert len(idx) > 100
+
+
+def test_band_normal_equations_equal_the_sums_over_the_gathered_points():
+    """The fused pass (band test and sums in one) gives exactly the sums over P[|d| < band], in their order."""
+    from labkit.ransac._ball import band_normal_equations, normal_equations
+
+    rng = np.random.default_rng(9)
+    X = rng.normal(size=(20_000, 3))
+    c, r = np.array([0.1, -0.2, 0.05]), 1.3
+    d = np.linalg.norm(X - c, axis=1) - r
+    shift, c_rel = c - 0.01, np.array([0.01, 0.0, 0.0])
+    for band in (0.2, rng.uniform(0.1, 0.3, len(X))):
+        mask = np.abs(d) < band
+        fused = band_normal_equations(X, d, band, shift, c_rel, r)
+        gathered = normal_equations(X[mask], shift, c_rel, r)
+        assert 1000 < mask.sum() < len(X)
+        np.testing.assert_array_equal(fused[0], gathered[0])
+        np.testing.assert_array_equal(fused[1], gathered[1])
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_refit_from_the_orthogonal_fit_equals_the_adjustment_from_its_own_start(seed):
+    """The refit starts the Gauss-Helmert iteration at the orthogonal fit: one or two iterations, and the
+    same sphere and standard deviations as the adjustment of the same inliers from its algebraic start."""
+    from labkit.sphere.ghm import gauss_helmert_model
+
+    scene = sphere_on_tripod(n_sphere=20_000, outlier_ratio=0.5, rng=seed)
+    res = ransac_sphere(scene.points, 0.003, rng=seed)
+    assert res.found and res.fit.iterations <= 2
+    ref = gauss_helmert_model(scene.points[res.inliers], sigma=res.sigma, alpha_w=0.001)
+    assert ref.iterations > res.fit.iterations
+    np.testing.assert_allclose(res.fit.x, ref.x, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(res.fit.std, ref.std, rtol=1e-6)
+
+
+def test_band_median_equals_numpys_median_of_the_band():
+    """The streaming median of |d| < band (buckets, then the middle ones) is numpy's median, exactly:
+    odd and even counts, ties, values piled into one bucket, an empty band."""
+    from labkit.ransac._ball import band_median
+
+    rng = np.random.default_rng(10)
+    for trial in range(400):
+        n, band = int(rng.integers(1, 5000)), rng.uniform(0.001, 0.01)
+        d = [rng.normal(0, band / 3, n), rng.uniform(-2 * band, 2 * band, n), np.round(rng.normal(0, band / 3, n), 4),
+             np.full(n, 0.5 * band) * rng.choice([-1, 1], n)][trial % 4]
+        a = np.abs(d[np.abs(d) < band])
+        m, k = band_median(d, band)
+        assert k == len(a)
+        assert (m == np.median(a)) if len(a) else np.isnan(m)
+    assert band_median(np.array([0.5, -0.7]), 0.1)[1] == 0
+
+
+def test_compiled_scoring_counts_what_the_numpy_arrays_count():
+    """RANSAC scores counted in one compiled pass equal the counts of numpy's (m, B) arrays (eq. 26),
+    also for radii through points of the set (every hypothesis has points on its band edges)."""
+    from labkit.ransac.hypotheses import score_hypotheses, squared_center_distances
+
+    rng = np.random.default_rng(11)
+    for _ in range(5):
+        W = rng.normal(size=(1000, 3)) * rng.uniform(0.1, 100)
+        Wsq = np.einsum("ij,ij->i", W, W)
+        C = W[rng.integers(0, 1000, 300)] + rng.normal(size=(300, 3))
+        X = np.c_[C, np.linalg.norm(W[rng.integers(0, 1000, 300)] - C, axis=1)]
+        t = rng.uniform(0.001, 0.1)
+        D2 = squared_center_distances(W, Wsq, X[:, :3])
+        expected = ((D2 > np.maximum(X[:, 3] - t, 0.0) ** 2) & (D2 < (X[:, 3] + t) ** 2)).sum(axis=0)
+        score, count = score_hypotheses(W, Wsq, X, t, "ransac")
+        np.testing.assert_array_equal(count, expected)
+        np.testing.assert_array_equal(score, expected.astype(float))
