@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 from scipy import stats
+from scipy.spatial import cKDTree
 
 from ..core.atomic import atomic_write_text
 from ..core.checks import as_points, as_rng, choice, probability
@@ -29,7 +30,7 @@ from ..core.stats import chi2_test
 from ..change.distances import (
     DistanceChange, as_matrix, check_overlap, cloud_to_cloud, distances_before_after, point_to_plane_distance,
 )
-from ..core.errors import LabkitError
+from ..core.errors import EmptyRegionError, LabkitError
 from ..io import read_cloud
 from ..core.masks import STABLE_CLASSES
 from ..synthetic import REGIONS, als_epochs
@@ -325,14 +326,25 @@ def _standard(source, target, *, name, dof, extent, max_points, rng, progress=Fa
     result = max_consensus(source, target, extent=extent, max_points=max_points)  # an even subset votes
     if name == "consensus":
         return result
-    refined = icp(source, target, dof=dof, robust="tukey", initial=result.matrix, rng=rng, progress=progress,
-                  **icp_options)
+    run = partial(icp, source, target, dof=dof, robust="tukey", initial=result.matrix, rng=rng, progress=progress)
+    try:
+        refined = run(**icp_options)
+    except EmptyRegionError:  # no pair within the gate at the consensus start: a gate from the residuals there
+        gate = 2 * float(np.median(_residual_distances(source, target, result.matrix)))
+        md = icp_options.get("max_distance", 1.0)  # the precision limit stays that of the caller's gate
+        refined = run(**dict(icp_options, max_distance=max(gate, md), max_std=icp_options.get("max_std") or 0.1 * md))
     bb = result.history[0]  # the branch-and-bound outcome: how far the start is certified
     start = (f"started at max_consensus: consensus {bb.lower:.0f}, certified gap {bb.gap:.0f}, {bb.reason}, "
              f"shift {np.array2string(result.translation, precision=4)} m")
     return replace(refined, method=f"max_consensus + {refined.method}",
                    runtime_s=result.runtime_s + refined.runtime_s,
                    message="; ".join(m for m in (refined.message, start) if m))
+
+
+def _residual_distances(source, target, matrix):
+    """Distance of each moved source point to its nearest target point (m)."""
+    src, tgt = as_points(source, name="source"), as_points(target, name="target")
+    return cKDTree(tgt - tgt[0]).query(src @ matrix[:3, :3].T + matrix[:3, 3] - tgt[0], workers=-1)[0]
 
 
 @dataclass(frozen=True, eq=False)
