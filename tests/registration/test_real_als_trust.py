@@ -207,3 +207,30 @@ def test_max_consensus_std_against_random_halves(realdata):
     robust = 1.4826 * np.median(z[:, :2])
     assert 0.8 <= robust <= 1.25, robust
     assert 1.4826 * np.median(z[:, 2]) <= 1.25, z[:, 2]
+
+
+def test_flat_floor_takes_all_points_when_they_determine_the_shift(realdata):
+    path = realdata / "als" / "MixedConifer.laz"  # height-normalised forest: the ground alone is flat
+    if not path.is_file():
+        pytest.skip("MixedConifer.laz absent")
+    tgt, src = _halves(path)
+    s = SHIFTS[2]
+    ground = icp(src.with_xyz(src.xyz - s), tgt, rng=0, select="all", classes=[2])
+    assert not np.all(np.isfinite(ground.translation_std))  # the flat floor leaves X or Y free
+    res = icp(src.with_xyz(src.xyz - s), tgt, rng=0)
+    std = res.translation_std
+    assert res.selection.rule == "all points" and "undetermined" in res.message
+    assert np.all(std < CONFIDENT / 3) and np.all(np.abs(res.translation - s) <= np.minimum(RIGHT, SIGMAS * std))
+
+
+@pytest.mark.slow
+def test_consensus_icp_widens_the_gate_on_sparse_data_instead_of_refusing(realdata):
+    from labkit.registration.compare import standard_methods
+
+    path = realdata / "als" / "interesting.las"  # about 19 m between points: no pair within 1 m
+    if not path.is_file():
+        pytest.skip("interesting.las absent")
+    tgt, src = _halves(path)
+    s = SHIFTS[0]
+    res = standard_methods(("consensus+icp",), rng=0)["consensus+icp"](src.with_xyz(src.xyz - s), tgt)
+    assert _verdict(res, s) != "WRONG", (res.translation - s, res.translation_std)
