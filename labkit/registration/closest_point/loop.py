@@ -196,9 +196,7 @@ def icp(
         ``result.selection`` says which and why. Given ``classes``, ``max_noise`` or per-point
         normals, all points take part.
         With stable classes, every class left out (50 points or more in both clouds) is registered
-        on its own from the result and tested against it: ``result.class_checks``. When the chosen
-        points leave a shift component undetermined (a flat floor), all points are used instead if
-        they determine every component to a third of ``max_std`` and agree with the chosen points.
+        on its own from the result and tested against it: ``result.class_checks``.
     coarse_to_fine : {'auto', True, False}
         Run a voxel pyramid first (:mod:`labkit.registration.closest_point.pyramid`), from twice ``reach`` down to
         ``max_distance``; the covariance and degeneracy report come from the full clouds. 'auto':
