@@ -209,20 +209,6 @@ def test_max_consensus_std_against_random_halves(realdata):
     assert 1.4826 * np.median(z[:, 2]) <= 1.25, z[:, 2]
 
 
-def test_flat_floor_takes_all_points_when_they_determine_the_shift(realdata):
-    path = realdata / "als" / "MixedConifer.laz"  # height-normalised forest: the ground alone is flat
-    if not path.is_file():
-        pytest.skip("MixedConifer.laz absent")
-    tgt, src = _halves(path)
-    s = SHIFTS[2]
-    ground = icp(src.with_xyz(src.xyz - s), tgt, rng=0, select="all", classes=[2])
-    assert not np.all(np.isfinite(ground.translation_std))  # the flat floor leaves X or Y free
-    res = icp(src.with_xyz(src.xyz - s), tgt, rng=0)
-    std = res.translation_std
-    assert res.selection.rule == "all points" and "undetermined" in res.message
-    assert np.all(std < CONFIDENT / 3) and np.all(np.abs(res.translation - s) <= np.minimum(RIGHT, SIGMAS * std))
-
-
 @pytest.mark.slow
 def test_consensus_icp_widens_the_gate_on_sparse_data_instead_of_refusing(realdata):
     from labkit.registration.compare import standard_methods

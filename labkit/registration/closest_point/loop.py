@@ -355,8 +355,6 @@ def _with_selection(source, target, options, settings):
     else:
         src, tgt, sel = select_points(source, target, "auto", k=options.k)
     res = icp(src, tgt, select="all", **settings)
-    if not own and sel.source_rows is not None:  # points were left out: do they hold what the rest lacks?
-        res, sel = _all_points_if_sharper(source, target, res, sel, settings, options)
     corr = res.correspondences
     if corr is not None and sel.source_rows is not None:  # indices into the caller's clouds
         back = lambda rows, i: np.where(i >= 0, rows[np.clip(i, 0, None)], -1)  # noqa: E731
@@ -369,34 +367,6 @@ def _with_selection(source, target, options, settings):
         msg += (f"; classes left out tested against the shift: {', '.join(moved)} moved" if moved
                 else "; the classes left out agree with the shift")
     return replace(res, selection=sel, correspondences=corr, message=msg, class_checks=checks)
-
-
-def _all_points_if_sharper(source, target, res, sel, settings, options):
-    """All points instead of the selection, when the selection leaves shift components undetermined.
-
-    On a flat floor (a height-normalised forest, a field) the stable classes hold no horizontal
-    information; the points left out (crowns, stems, walls) may hold it, but as volume scatter they
-    can bias the shift beyond what the covariance says. All points are taken only when they determine
-    every shift component to a third of the precision limit ``max_std`` (3 std then stay within it)
-    and agree with the selection's determined components within 3 combined std.
-    """
-    std = res.translation_std
-    if np.all(np.isfinite(std)):
-        return res, sel
-    limit = default_max_std(settings.get("max_std"), options.max_distance) / 3.0
-    try:
-        full = icp(source, target, select="all", **settings)
-    except LabkitError:
-        return res, sel
-    fstd, seen = full.translation_std, np.isfinite(std)
-    agree = np.all(np.abs(full.translation - res.translation)[seen] <= 3 * np.hypot(std, fstd)[seen])
-    if not (np.all(fstd <= limit) and agree):
-        return res, sel
-    axes = ", ".join("XYZ"[i] for i in np.flatnonzero(~seen))
-    why = (f"all points: {sel.reason} left {axes} undetermined; all points determine every component "
-           f"within a third of the precision limit and agree with them")
-    _, _, everything = select_points(source, target, "all", k=options.k)
-    return replace(full, runtime_s=full.runtime_s + res.runtime_s), replace(everything, reason=why)
 
 
 def _class_settings(settings, options):
