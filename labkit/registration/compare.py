@@ -21,7 +21,6 @@ from pathlib import Path
 
 import numpy as np
 from scipy import stats
-from scipy.spatial import cKDTree
 
 from ..core.atomic import atomic_write_text
 from ..core.checks import as_points, as_rng, choice, probability
@@ -33,6 +32,7 @@ from ..change.distances import (
 from ..core.errors import EmptyRegionError, LabkitError
 from ..io import read_cloud
 from ..core.masks import STABLE_CLASSES
+from ..neighbours.sampling import median_spacing
 from ..synthetic import REGIONS, als_epochs
 from ..transforms import check_transform, skew
 from .references import (
@@ -294,7 +294,7 @@ def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "tra
     a translation within +-``extent`` m, on at most ``max_points`` source points spread
     evenly); ``consensus+icp`` (consensus, then a Tukey ICP with ``dof`` from there: the
     route for shifts larger than ICP's matching distance; with no pair within the gate there, the gate is
-    twice the median distance at the start, the precision limit stays). ``reach`` (m, optional) is passed to the ICP
+    twice the target's point spacing when that is wider, the precision limit stays). ``reach`` (m, optional) is passed to the ICP
     methods: a reach beyond the matching distance runs ICP's coarse-to-fine pyramid first.
     ``max_iterations`` (optional) is passed to every ICP run (default: ICP's own).
     The callables are picklable (for Dask workers in other processes).
@@ -330,22 +330,18 @@ def _standard(source, target, *, name, dof, extent, max_points, rng, progress=Fa
     run = partial(icp, source, target, dof=dof, robust="tukey", initial=result.matrix, rng=rng, progress=progress)
     try:
         refined = run(**icp_options)
-    except EmptyRegionError:  # no pair within the gate at the consensus start: a gate from the residuals there
-        gate = 2 * float(np.median(_residual_distances(source, target, result.matrix)))
+    except EmptyRegionError:  # no pair within the gate at the consensus start: points too sparse for the gate?
+        gate = 2 * median_spacing(as_points(target, name="target"), distinct=True)
         md = icp_options.get("max_distance", 1.0)  # the precision limit stays that of the caller's gate
-        refined = run(**dict(icp_options, max_distance=max(gate, md), max_std=icp_options.get("max_std") or 0.1 * md))
+        if not gate > md:  # dense clouds that do not overlap: refused
+            raise
+        refined = run(**dict(icp_options, max_distance=gate, max_std=icp_options.get("max_std") or 0.1 * md))
     bb = result.history[0]  # the branch-and-bound outcome: how far the start is certified
     start = (f"started at max_consensus: consensus {bb.lower:.0f}, certified gap {bb.gap:.0f}, {bb.reason}, "
              f"shift {np.array2string(result.translation, precision=4)} m")
     return replace(refined, method=f"max_consensus + {refined.method}",
                    runtime_s=result.runtime_s + refined.runtime_s,
                    message="; ".join(m for m in (refined.message, start) if m))
-
-
-def _residual_distances(source, target, matrix):
-    """Distance of each moved source point to its nearest target point (m)."""
-    src, tgt = as_points(source, name="source"), as_points(target, name="target")
-    return cKDTree(tgt - tgt[0]).query(src @ matrix[:3, :3].T + matrix[:3, 3] - tgt[0], workers=-1)[0]
 
 
 @dataclass(frozen=True, eq=False)
