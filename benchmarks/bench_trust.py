@@ -76,7 +76,8 @@ Why X and Y stay undetermined where they do (icp defaults, 2026-12-02; seed 0, a
 - interesting.las (27 m spacing in a half): no pair within ICP's 1 m gate. ``consensus+icp`` now
   widens the gate at the consensus start to twice the target's point spacing, keeping the precision
   limit of the 1 m gate: it reports X, Y, Z undetermined (4 of 4 rows ok; 0.9-1.5 m off in X, Y and
-  0.3 m in Z) instead of refusing. consensus+icp over all 44 rows: 44 / 0 / 0 (was 39 ok, 4 refused).
+  0.3 m in Z) instead of refusing. consensus+icp over all 48 rows (12 files incl. the Autzen halves):
+  48 / 0 / 0 (before: 44 / 0 / 0 and 4 refused); icp unchanged, 44 / 0 / 0 and 4 refused.
 
 Run:  python benchmarks/bench_trust.py [--realdata PATH] [--files sample_c,warsaw] [--seed 0] [--no-open3d]
 """
