@@ -29,9 +29,10 @@ from ..core.stats import chi2_test
 from ..change.distances import (
     DistanceChange, as_matrix, check_overlap, cloud_to_cloud, distances_before_after, point_to_plane_distance,
 )
-from ..core.errors import LabkitError
+from ..core.errors import EmptyRegionError, LabkitError
 from ..io import read_cloud
 from ..core.masks import STABLE_CLASSES
+from ..neighbours.sampling import median_spacing
 from ..synthetic import REGIONS, als_epochs
 from ..transforms import check_transform, skew
 from .references import (
@@ -292,7 +293,8 @@ def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "tra
     "Nutzen nur von best. Klassen"); ``consensus`` (maximum consensus,
     a translation within +-``extent`` m, on at most ``max_points`` source points spread
     evenly); ``consensus+icp`` (consensus, then a Tukey ICP with ``dof`` from there: the
-    route for shifts larger than ICP's matching distance). ``reach`` (m, optional) is passed to the ICP
+    route for shifts larger than ICP's matching distance; with no pair within the gate there, the gate is
+    twice the target's point spacing when that is wider, the precision limit stays). ``reach`` (m, optional) is passed to the ICP
     methods: a reach beyond the matching distance runs ICP's coarse-to-fine pyramid first.
     ``max_iterations`` (optional) is passed to every ICP run (default: ICP's own).
     The callables are picklable (for Dask workers in other processes).
@@ -325,8 +327,15 @@ def _standard(source, target, *, name, dof, extent, max_points, rng, progress=Fa
     result = max_consensus(source, target, extent=extent, max_points=max_points)  # an even subset votes
     if name == "consensus":
         return result
-    refined = icp(source, target, dof=dof, robust="tukey", initial=result.matrix, rng=rng, progress=progress,
-                  **icp_options)
+    run = partial(icp, source, target, dof=dof, robust="tukey", initial=result.matrix, rng=rng, progress=progress)
+    try:
+        refined = run(**icp_options)
+    except EmptyRegionError:  # no pair within the gate at the consensus start: points too sparse for the gate?
+        gate = 2 * median_spacing(as_points(target, name="target"), distinct=True)
+        md = icp_options.get("max_distance", 1.0)  # the precision limit stays that of the caller's gate
+        if not gate > md:  # dense clouds that do not overlap: refused
+            raise
+        refined = run(**dict(icp_options, max_distance=gate, max_std=icp_options.get("max_std") or 0.1 * md))
     bb = result.history[0]  # the branch-and-bound outcome: how far the start is certified
     start = (f"started at max_consensus: consensus {bb.lower:.0f}, certified gap {bb.gap:.0f}, {bb.reason}, "
              f"shift {np.array2string(result.translation, precision=4)} m")

@@ -435,3 +435,28 @@ def test_consensus_then_icp_recovers_a_large_shift_and_says_where_it_started():
     assert row.ok and row.converged and row.missed == "", row.message
     assert row.error_norm < 0.01 and row.inside, (row.error, row.message)
     assert "started at max_consensus" in row.message and "certified gap" in row.message
+
+
+def _terrain(n, rng, size):
+    """Smooth hills (wavelengths of 60-75 m) sampled at ``n`` random places of a square."""
+    xy = rng.uniform(0, size, (n, 2))
+    z = 3 * np.sin(xy[:, 0] / 10) + 3 * np.cos(xy[:, 1] / 12) + rng.normal(0, 0.02, n)
+    return np.column_stack([xy, z])
+
+
+def test_consensus_then_icp_widens_the_gate_on_sparse_points_and_refuses_clouds_apart():
+    """Points about 10 m apart have no pair within ICP's 1 m gate: consensus+icp takes twice the target's
+    spacing as the gate (the precision limit stays a tenth of 1 m) and states nothing wrong; two dense clouds
+    50 m apart are still refused."""
+    from labkit.core.errors import LabkitError
+
+    rng = np.random.default_rng(3)
+    method = compare.standard_methods(["consensus+icp"], max_points=2000)["consensus+icp"]
+    shift = np.array([0.3, -0.2, 0.1])
+    res = method(_terrain(400, rng, 200.0) - shift, _terrain(400, rng, 200.0))
+    std = res.translation_std
+    stated = np.isfinite(std) & (std < 0.1)
+    assert np.all(np.abs(res.translation - shift)[stated] <= 3 * std[stated]), (res.translation, std)
+    dense = _terrain(3000, rng, 20.0)
+    with pytest.raises(LabkitError):
+        method(dense + [50.0, 0, 0], _terrain(3000, rng, 20.0))

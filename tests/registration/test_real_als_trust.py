@@ -207,3 +207,16 @@ def test_max_consensus_std_against_random_halves(realdata):
     robust = 1.4826 * np.median(z[:, :2])
     assert 0.8 <= robust <= 1.25, robust
     assert 1.4826 * np.median(z[:, 2]) <= 1.25, z[:, 2]
+
+
+@pytest.mark.slow
+def test_consensus_icp_widens_the_gate_on_sparse_data_instead_of_refusing(realdata):
+    from labkit.registration.compare import standard_methods
+
+    path = realdata / "als" / "interesting.las"  # about 19 m between points: no pair within 1 m
+    if not path.is_file():
+        pytest.skip("interesting.las absent")
+    tgt, src = _halves(path)
+    s = SHIFTS[0]
+    res = standard_methods(("consensus+icp",), rng=0)["consensus+icp"](src.with_xyz(src.xyz - s), tgt)
+    assert _verdict(res, s) != "WRONG", (res.translation - s, res.translation_std)
