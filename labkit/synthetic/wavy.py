@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..core.checks import as_rng, count, non_negative, positive
+from ..core.errors import LabkitError
 
 
 def wavy_surface(n: int, rng=None, *, noise: float = 0.002, size: float = 6.0) -> np.ndarray:
@@ -54,3 +55,40 @@ def wavy_surface(n: int, rng=None, *, noise: float = 0.002, size: float = 6.0) -
     if noise > 0:
         points = points + rng.normal(0, noise, (n, 3))
     return points
+
+
+def wavy_pair(n_source: int = 300, n_target: int = 1500, rng=1, *, shift=(0.05, 0.02, 0.03),
+              noise: float = 0.002) -> tuple[np.ndarray, np.ndarray]:
+    """Two samplings of :func:`wavy_surface`, the source moved by ``-shift``: a registration test case.
+
+    The target is drawn first, then the source from the same generator, so the pair equals
+    ``wavy_surface(n_target, rng)`` followed by ``wavy_surface(n_source, rng) - shift``.
+
+    Parameters
+    ----------
+    n_source, n_target : int
+        Number of points of each sampling (>= 1).
+    rng : int or numpy.random.Generator, optional
+        Seed or generator (default 1, the seed of the registration examples).
+    shift : array_like (3,)
+        The translation (m) that maps the source back onto the surface: what a registration should find.
+    noise : float
+        Standard deviation (m) of the noise of both samplings.
+
+    Returns
+    -------
+    source, target : ndarray (n_source, 3), ndarray (n_target, 3)
+
+    Examples
+    --------
+    >>> from labkit.synthetic import wavy_pair
+    >>> source, target = wavy_pair(300)
+    >>> source.shape, target.shape
+    ((300, 3), (1500, 3))
+    """
+    rng = as_rng(rng)
+    shift = np.asarray(shift, dtype=np.float64)
+    if shift.shape != (3,) or not np.all(np.isfinite(shift)):
+        raise LabkitError(f"shift must be 3 finite numbers (m), got {shift.tolist()!r}")
+    target = wavy_surface(n_target, rng, noise=noise)
+    return wavy_surface(n_source, rng, noise=noise) - shift, target

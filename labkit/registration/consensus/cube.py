@@ -167,10 +167,8 @@ def consensus_cube(
     Examples
     --------
     >>> import numpy as np
-    >>> from labkit.synthetic import wavy_surface  # slopes in X and Y; 2 mm noise unless told
-    >>> rng = np.random.default_rng(1)
-    >>> target = wavy_surface(1500, rng)
-    >>> source = wavy_surface(300, rng) - [0.05, 0.02, 0.03]  # another sampling, moved
+    >>> from labkit.synthetic import wavy_pair
+    >>> source, target = wavy_pair(300)  # wavy surface sampled twice, the source moved by -[0.05, 0.02, 0.03]
     >>> cube = consensus_cube(source[::2], target, extent=0.06, step=0.02, eps=0.01, center=[0.04, 0.02, 0.04],
     ...                       use_numba=False)
     >>> cube.counts.shape, cube.peak.kind
@@ -374,10 +372,8 @@ def max_consensus(
     Examples
     --------
     >>> import numpy as np
-    >>> from labkit.synthetic import wavy_surface  # slopes in X and Y; 2 mm noise unless told
-    >>> rng = np.random.default_rng(1)
-    >>> target = wavy_surface(1500, rng)
-    >>> source = wavy_surface(300, rng) - [0.05, 0.02, 0.03]  # another sampling, moved
+    >>> from labkit.synthetic import wavy_pair
+    >>> source, target = wavy_pair(300)  # wavy surface sampled twice, the source moved by -[0.05, 0.02, 0.03]
     >>> res = max_consensus(source, target, extent=0.08, eps=0.01, tol=0.02, max_points=100, use_numba=False)
     >>> bool(np.allclose(res.translation, [0.05, 0.02, 0.03], atol=0.01))
     True
