@@ -44,8 +44,8 @@ class MultiScaleFeatures(ReportMixin):
     --------
     >>> import numpy as np
     >>> from labkit.features import multiscale_features
-    >>> rng = np.random.default_rng(0)
-    >>> floor = np.column_stack([rng.uniform(0, 1, (200, 2)), rng.normal(0, 0.001, 200)])
+    >>> from labkit.synthetic import flat_floor
+    >>> floor = flat_floor(200, 0)
     >>> ms = multiscale_features(floor, scales=(10, 20))
     >>> ms.scales, ms.best.shape, ms.entropy.shape
     ((10, 20), (200,), (200, 2))
@@ -108,8 +108,8 @@ def multiscale_features(
     Examples
     --------
     >>> import numpy as np
-    >>> rng = np.random.default_rng(0)
-    >>> floor = np.column_stack([rng.uniform(0, 1, (200, 2)), rng.normal(0, 0.001, 200)])  # z = 0, 1 mm noise
+    >>> from labkit.synthetic import flat_floor
+    >>> floor = flat_floor(200, 0)  # z = 0, 1 mm noise
     >>> ms = multiscale_features(floor, scales=(10, 20, 40))
     >>> ms.eigenvalues.shape, sorted(set(ms.best.tolist()))  # (n, scales, 3); chosen scale per point
     ((200, 3, 3), [0, 1, 2])

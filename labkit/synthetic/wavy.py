@@ -1,4 +1,4 @@
-"""A smooth wavy surface: the small test object of the registration examples.
+"""Small test surfaces: a smooth wavy surface (the registration examples) and a flat floor.
 
 Its slopes run in X and in Y, so a registration of two samplings determines every
 direction of the shift (a plane would leave the shift along it free).
@@ -92,3 +92,39 @@ def wavy_pair(n_source: int = 300, n_target: int = 1500, rng=1, *, shift=(0.05, 
         raise LabkitError(f"shift must be 3 finite numbers (m), got {shift.tolist()!r}")
     target = wavy_surface(n_target, rng, noise=noise)
     return wavy_surface(n_source, rng, noise=noise) - shift, target
+
+
+def flat_floor(n: int, rng=None, *, noise: float = 0.001, size: float = 1.0) -> np.ndarray:
+    """Sample the plane ``z = 0`` at ``n`` random places of a square, with noise in z only.
+
+    The flat counterpart of :func:`wavy_surface`: its normal is ``(0, 0, 1)`` everywhere and it
+    fixes only the height of a registration.
+
+    Parameters
+    ----------
+    n : int
+        Number of points (>= 1).
+    rng : int or numpy.random.Generator, optional
+        Seed or generator (drawn from, not copied).
+    noise : float
+        Standard deviation (m) of the Gaussian noise of z.
+    size : float
+        Edge of the square ``[0, size]^2`` (m) in which x and y are drawn uniformly.
+
+    Returns
+    -------
+    ndarray (n, 3)
+        The sampled points (m).
+
+    Examples
+    --------
+    >>> from labkit.synthetic import flat_floor
+    >>> floor = flat_floor(200, 0)  # 1 mm noise in z
+    >>> floor.shape, bool(abs(floor[:, 2]).max() < 0.005), bool(floor[:, :2].max() <= 1.0)
+    ((200, 3), True, True)
+    """
+    n = count(n, "n")
+    noise = non_negative(noise, "noise")
+    size = positive(size, "size")
+    rng = as_rng(rng)
+    return np.column_stack([rng.uniform(0, size, (n, 2)), rng.normal(0, noise, n)])

@@ -80,8 +80,8 @@ def consensus_inputs(source, target, metric: str = "point_to_plane", eps: float 
     --------
     >>> import numpy as np
     >>> from labkit.registration import consensus_inputs
-    >>> rng = np.random.default_rng(0)
-    >>> floor = np.column_stack([rng.uniform(0, 5, (400, 2)), rng.normal(0, 0.002, 400)])
+    >>> from labkit.synthetic import flat_floor
+    >>> floor = flat_floor(400, 0, size=5, noise=0.002)
     >>> pb = consensus_inputs(floor[:200], floor[200:], eps=0.02)
     >>> pb.src.shape, pb.tgt.shape, round(pb.eps, 3), bool(np.allclose(abs(pb.tgt_normals[:, 2]), 1, atol=0.01))
     ((200, 3), (200, 3), 0.02, True)

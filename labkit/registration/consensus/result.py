@@ -50,7 +50,6 @@ class PeakShape(ReportMixin):
 
     Examples
     --------
-    >>> import numpy as np
     >>> from labkit.registration import consensus_cube
     >>> from labkit.synthetic import wavy_pair
     >>> source, target = wavy_pair(150)  # wavy surface sampled twice, the source moved by -[0.05, 0.02, 0.03]
