@@ -102,14 +102,9 @@ def flat_floor(n: int, rng=None, *, noise: float = 0.001, size: float = 1.0) -> 
 
     Parameters
     ----------
-    n : int
-        Number of points (>= 1).
-    rng : int or numpy.random.Generator, optional
-        Seed or generator (drawn from, not copied).
+    n, rng, size : as in :func:`wavy_surface`
     noise : float
         Standard deviation (m) of the Gaussian noise of z.
-    size : float
-        Edge of the square ``[0, size]^2`` (m) in which x and y are drawn uniformly.
 
     Returns
     -------
