@@ -284,11 +284,8 @@ def normals(
     ----------
     .. [1] Notebook 04, section 2, eqs. 1-4; seed 003, step 4 (normal = eigenvector of the smallest
        eigenvalue).
-    .. [2] H. Hoppe, T. DeRose, T. Duchamp, J. McDonald, W. Stuetzle (1992): Surface reconstruction
-       from unorganized points. Computer Graphics (Proc. SIGGRAPH '92) 26(2), 71-78.
-    .. [3] J. H. Friedman, J. L. Bentley, R. A. Finkel (1977): An algorithm for finding best matches
-       in logarithmic expected time. ACM Transactions on Mathematical Software 3(3), 209-226,
-       doi:10.1145/355744.355745.
+    .. [2] H. Hoppe et al. (1992): Surface reconstruction from unorganized points (SIGGRAPH '92).
+    .. [3] J. H. Friedman, J. L. Bentley, R. A. Finkel (1977): k-d tree search, doi:10.1145/355744.355745.
 
     Examples
     --------
@@ -315,8 +312,7 @@ def local_noise(points, k: int = 20, radius: float | None = None, *, chunk_size:
     References
     ----------
     .. [1] Notebook 04, section 6, eq. 5; seed 003, step 4 ('lokales Rauschen' with PCA).
-    .. [2] H. Hoppe, T. DeRose, T. Duchamp, J. McDonald, W. Stuetzle (1992): Surface reconstruction
-       from unorganized points. Computer Graphics (Proc. SIGGRAPH '92) 26(2), 71-78.
+    .. [2] H. Hoppe et al. (1992): Surface reconstruction from unorganized points (SIGGRAPH '92).
 
     Examples
     --------
@@ -364,8 +360,7 @@ def pca_at(tree, at, k: int, *, chunk_size: int = CHUNK_SIZE, step=None):
     References
     ----------
     .. [1] Notebook 04, section 2, eqs. 1-4.
-    .. [2] H. Hoppe, T. DeRose, T. Duchamp, J. McDonald, W. Stuetzle (1992): Surface reconstruction
-       from unorganized points. Computer Graphics (Proc. SIGGRAPH '92) 26(2), 71-78.
+    .. [2] H. Hoppe et al. (1992): Surface reconstruction from unorganized points (SIGGRAPH '92).
 
     Examples
     --------

@@ -73,8 +73,7 @@ def consensus_inputs(source, target, metric: str = "point_to_plane", eps: float 
     References
     ----------
     .. [1] Notebook 06, section 1, eqs. 6.3-6.4a, and section 5, eq. 6.11.
-    .. [2] H. Hoppe, T. DeRose, T. Duchamp, J. McDonald, W. Stuetzle (1992): Surface reconstruction
-       from unorganized points. Computer Graphics (Proc. SIGGRAPH '92) 26(2), 71-78.
+    .. [2] H. Hoppe et al. (1992): Surface reconstruction from unorganized points (SIGGRAPH '92).
 
     Examples
     --------
