@@ -94,7 +94,6 @@ def compose(*transforms) -> np.ndarray:
     References
     ----------
     .. [1] Notebook 07, section 1 (rigid transforms as 4x4 matrices mapping source onto target).
-    .. [2] R. Hartley, A. Zisserman (2004): Multiple View Geometry in Computer Vision, 2nd ed.
 
     Examples
     --------
@@ -115,7 +114,6 @@ def invert(T) -> np.ndarray:
     References
     ----------
     .. [1] Notebook 07, section 1 (rigid transforms as 4x4 matrices mapping source onto target).
-    .. [2] R. Hartley, A. Zisserman (2004): Multiple View Geometry in Computer Vision, 2nd ed.
 
     Examples
     --------

@@ -5,8 +5,7 @@ scale whose eigenvalues are most "decided" (least eigenentropy) is kept.
 
 References
 ----------
-Weinmann, Jutzi, Hinz, Mallet (2015): Semantic point cloud interpretation based on
-optimal neighborhoods, relevant features and efficient classifiers. ISPRS J. 105, 286-304.
+Weinmann et al. (2015), cited in full in :mod:`labkit.features.eigen`.
 """
 
 from __future__ import annotations

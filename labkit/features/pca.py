@@ -174,9 +174,7 @@ def local_pca(
     .. [1] Notebook 04, section 2, eqs. 1-4; seed 003, step 4 (kd-tree, centred covariance, PCA).
     .. [2] H. Hoppe, T. DeRose, T. Duchamp, J. McDonald, W. Stuetzle (1992): Surface reconstruction
        from unorganized points. Computer Graphics (Proc. SIGGRAPH '92) 26(2), 71-78.
-    .. [3] J. H. Friedman, J. L. Bentley, R. A. Finkel (1977): An algorithm for finding best matches
-       in logarithmic expected time. ACM Transactions on Mathematical Software 3(3), 209-226,
-       doi:10.1145/355744.355745.
+    .. [3] J. H. Friedman, J. L. Bentley, R. A. Finkel (1977): k-d tree search, doi:10.1145/355744.355745.
 
     Examples
     --------

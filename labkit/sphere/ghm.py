@@ -18,7 +18,7 @@ import numpy as np
 from scipy import stats
 from scipy.linalg import cho_factor, cho_solve
 
-from ..core.checks import as_points, positive, probability
+from ..core.checks import as_points, numeric_array, positive, probability
 from ..core.frame import local_origin
 from ..core.stats import GlobalTest, global_test, w_critical
 from ..core.errors import DegenerateGeometryError, LabkitError
@@ -188,12 +188,7 @@ def _parse_sigma(sigma, n):
     """(kind, variances) from the user's sigma; kinds: scalar, point, axis, full."""
     if sigma is None:
         return "scalar", 1.0
-    try:
-        s = np.asarray(sigma, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise LabkitError(f"sigma must be numeric, got {type(sigma).__name__}") from None
-    if not np.isfinite(s).all():
-        raise LabkitError("sigma contains NaN or infinite values")
+    s = numeric_array(sigma, "sigma")
     if s.ndim == 0 or s.shape in ((n,), (n, 3)):
         if (s <= 0).any():
             raise LabkitError("sigma (standard deviations) must be > 0")

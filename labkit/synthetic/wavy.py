@@ -109,7 +109,7 @@ def flat_floor(n: int, rng=None, *, noise: float = 0.001, size: float = 1.0) -> 
     Returns
     -------
     ndarray (n, 3)
-        The sampled points (m).
+        Points (m) of the floor, z being the noise alone.
 
     Examples
     --------
