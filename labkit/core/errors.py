@@ -69,13 +69,10 @@ class CloudFileError(LabkitError):
 
     Examples
     --------
-    >>> from labkit.core.errors import CloudFileError
     >>> from labkit.io import read_cloud
-    >>> try:
-    ...     read_cloud("no/such/file.laz")
-    ... except CloudFileError:
-    ...     print("no file")
-    no file
+    >>> read_cloud("no/such/file.laz")
+    Traceback (most recent call last):
+    labkit.core.errors.CloudFileError: ...
     """
 
 

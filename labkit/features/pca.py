@@ -283,7 +283,6 @@ def normals(
     .. [1] Notebook 04, section 2, eqs. 1-4; seed 003, step 4 (normal = eigenvector of the smallest
        eigenvalue).
     .. [2] H. Hoppe et al. (1992): Surface reconstruction from unorganized points (SIGGRAPH '92).
-    .. [3] J. H. Friedman, J. L. Bentley, R. A. Finkel (1977): k-d tree search, doi:10.1145/355744.355745.
 
     Examples
     --------
