@@ -8,7 +8,7 @@ import numpy as np
 from scipy.optimize import brentq
 from scipy.special import ndtr
 
-from ..sphere.ghm import gauss_helmert_model
+from ..sphere.ghm import adjust_sphere, check_sigma
 from ..core.errors import LabkitError
 from ._ball import residuals, shell_points
 from .config import BAND_K, SNOOP_ROUNDS, S
@@ -38,9 +38,9 @@ def refit_sphere(xyz, x0, cfg):
     """
     sigma, min_inliers = cfg.sigma, cfg.min_inliers
 
-    def adjust(mask, x_start, sig):
+    def adjust(mask, x_start, sig):  # xyz and sig checked once (rows of a checked sigma stay valid)
         sig = sig[mask] if isinstance(sig, np.ndarray) else sig
-        return gauss_helmert_model(xyz[mask], x0=x_start, sigma=sig, radius=cfg.hold_radius, alpha_w=cfg.alpha)
+        return adjust_sphere(xyz[mask], x0=x_start, sigma=sig, radius=cfg.hold_radius, alpha_w=cfg.alpha)
 
     # Robust band and sphere at their fixed point (eqs. 25-26 with t -> k sigma_hat); with a
     # per-point sigma the band is k sigma_i for each point
@@ -56,6 +56,8 @@ def refit_sphere(xyz, x0, cfg):
         if inliers.sum() < min_inliers:
             return _Final(None, inliers, 0, None, f"only {inliers.sum()} inliers (< min_inliers = {min_inliers})", band)
         try:
+            if fit is None:
+                sigma = check_sigma(sigma, len(xyz))  # once for every refit and snooping round
             fit = adjust(inliers, x0 if fit is None else fit.x, sigma)
         except LabkitError as exc:
             return _Final(None, inliers, 0, None, f"Gauss-Helmert refit failed: {exc}", band)

@@ -26,7 +26,7 @@ def tile_row(n: int = 3, *, size: float = 10.0, suffix: str = ".laz", folder=Non
     size : float
         Edge (m) of a tile along x.
     suffix : str
-        File type written: ``'.laz'``, ``'.las'``, ``'.ply'`` or ``'.csv'``.
+        File type written: ``'.laz'``, ``'.las'`` or ``'.csv'``.
     folder : str or Path, optional
         Where to write; default a new temporary folder.
 
@@ -43,8 +43,8 @@ def tile_row(n: int = 3, *, size: float = 10.0, suffix: str = ".laz", folder=Non
     """
     n = count(n, "n")
     size = positive(size, "size")
-    if suffix not in (".laz", ".las", ".ply", ".csv"):
-        raise LabkitError(f"suffix must be '.laz', '.las', '.ply' or '.csv', got {suffix!r}")
+    if suffix not in (".laz", ".las", ".csv"):
+        raise LabkitError(f"suffix must be '.laz', '.las' or '.csv', got {suffix!r}")
     folder = Path(tempfile.mkdtemp() if folder is None else folder)
     steps = size * np.arange(10) / 10
     for i in range(n):
