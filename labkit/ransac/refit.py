@@ -38,8 +38,15 @@ def refit_sphere(xyz, x0, cfg):
     """
     sigma, min_inliers = cfg.sigma, cfg.min_inliers
 
-    def adjust(mask, x_start, sig):  # xyz and sig checked once (rows of a checked sigma stay valid)
-        sig = sig[mask] if isinstance(sig, np.ndarray) else sig
+    checked = np.zeros(len(xyz), dtype=bool)  # rows of a sigma array checked so far
+
+    def adjust(mask, x_start, sig):  # xyz is checked; each row of sig is checked once, when first used
+        if isinstance(sig, np.ndarray):
+            new = mask & ~checked
+            if new.any():
+                check_sigma(sig[new], int(np.count_nonzero(new)))
+                checked[new] = True
+            sig = sig[mask]
         return adjust_sphere(xyz[mask], x0=x_start, sigma=sig, radius=cfg.hold_radius, alpha_w=cfg.alpha)
 
     # Robust band and sphere at their fixed point (eqs. 25-26 with t -> k sigma_hat); with a
@@ -56,8 +63,8 @@ def refit_sphere(xyz, x0, cfg):
         if inliers.sum() < min_inliers:
             return _Final(None, inliers, 0, None, f"only {inliers.sum()} inliers (< min_inliers = {min_inliers})", band)
         try:
-            if fit is None:
-                sigma = check_sigma(sigma, len(xyz))  # once for every refit and snooping round
+            if fit is None and not isinstance(sigma, np.ndarray):
+                sigma = check_sigma(sigma, len(xyz))  # a scalar (or the robust scale): once
             fit = adjust(inliers, x0 if fit is None else fit.x, sigma)
         except LabkitError as exc:
             return _Final(None, inliers, 0, None, f"Gauss-Helmert refit failed: {exc}", band)

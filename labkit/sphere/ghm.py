@@ -116,10 +116,8 @@ def gauss_helmert_model(
     --------
     >>> import numpy as np
     >>> from labkit.sphere.ghm import gauss_helmert_model
-    >>> rng = np.random.default_rng(1)
-    >>> u = rng.normal(size=(300, 3))
-    >>> u /= np.linalg.norm(u, axis=1, keepdims=True)
-    >>> points = np.array([2.0, 1.0, 0.5]) + 0.15 * u + rng.normal(0.0, 0.001, (300, 3))
+    >>> from labkit.synthetic import sphere_points
+    >>> points = sphere_points(300, 1, center=[2.0, 1.0, 0.5], radius=0.15, noise=0.001)
     >>> fit = gauss_helmert_model(points, sigma=0.001)
     >>> fit.converged, fit.x.round(3).tolist()
     (True, [2.0, 1.0, 0.5, 0.15])
@@ -181,9 +179,8 @@ def adjust_sphere(
     >>> import numpy as np
     >>> from labkit.core.checks import as_points
     >>> from labkit.sphere.ghm import adjust_sphere, check_sigma, gauss_helmert_model
-    >>> rng = np.random.default_rng(1)
-    >>> u = rng.normal(size=(300, 3))
-    >>> points = as_points(2.0 + 0.15 * u / np.linalg.norm(u, axis=1, keepdims=True) + rng.normal(0, 0.001, (300, 3)))
+    >>> from labkit.synthetic import sphere_points
+    >>> points = as_points(sphere_points(300, 1, center=[2.0, 1.0, 0.5], radius=0.15, noise=0.001))
     >>> sigma = check_sigma(np.full(300, 0.001), 300)  # checked once ...
     >>> half = adjust_sphere(points[::2], sigma=sigma[::2])  # ... for every subset
     >>> bool(np.array_equal(half.x, gauss_helmert_model(points[::2], sigma=0.001).x))

@@ -7,6 +7,7 @@
 - ``wavy_surface``: a smooth surface sloping in X and Y (the registration examples' test object).
 - ``wavy_pair``: two samplings of it, one moved (source, target): the registration examples.
 - ``flat_floor``: the plane z = 0 with noise in z (the normals examples).
+- ``sphere_points``: points on a sphere with noise (the sphere-fit examples).
 - ``target_stations``: TLS panoramas of sphere targets in a yard from several stations with known poses.
 - ``tile_row``: a row of small point-cloud files in a fresh folder (the file examples).
 """
@@ -29,6 +30,7 @@ _EXPORTS = {
     "wavy_surface": "labkit.synthetic.wavy",
     "wavy_pair": "labkit.synthetic.wavy",
     "flat_floor": "labkit.synthetic.wavy",
+    "sphere_points": "labkit.synthetic.wavy",
     "tile_row": "labkit.synthetic.files",
     "target_stations": "labkit.synthetic.stations",
     "TargetStations": "labkit.synthetic.stations",

@@ -1,4 +1,4 @@
-"""Small test surfaces: a smooth wavy surface (the registration examples) and a flat floor.
+"""Small test surfaces: a smooth wavy surface (the registration examples), a flat floor and a sphere.
 
 Its slopes run in X and in Y, so a registration of two samplings determines every
 direction of the shift (a plane would leave the shift along it free).
@@ -123,3 +123,44 @@ def flat_floor(n: int, rng=None, *, noise: float = 0.001, size: float = 1.0) -> 
     size = positive(size, "size")
     rng = as_rng(rng)
     return np.column_stack([rng.uniform(0, size, (n, 2)), rng.normal(0, noise, n)])
+
+
+def sphere_points(n: int, rng=None, *, center=(0.0, 0.0, 0.0), radius: float = 1.0,
+                  noise: float = 0.0) -> np.ndarray:
+    """Sample a sphere at ``n`` directions drawn uniformly, with isotropic noise: the sphere examples' test object.
+
+    The directions are normalised Gaussian draws; the noise (if any) is drawn after them.
+
+    Parameters
+    ----------
+    n, rng : as in :func:`wavy_surface`
+    center : array_like (3,)
+        Centre (m).
+    radius : float
+        Radius (m), > 0.
+    noise : float
+        Standard deviation (m) of the Gaussian noise of x, y and z; 0 draws none.
+
+    Returns
+    -------
+    ndarray (n, 3)
+        Points (m) on (or, with noise, near) the sphere.
+
+    Examples
+    --------
+    >>> from labkit.synthetic import sphere_points
+    >>> pts = sphere_points(100, 0, center=[1.0, 2.0, 3.0], radius=0.5)
+    >>> bool(abs(((pts - [1.0, 2.0, 3.0]) ** 2).sum(axis=1) - 0.25).max() < 1e-12)
+    True
+    """
+    n = count(n, "n")
+    radius = positive(radius, "radius")
+    noise = non_negative(noise, "noise")
+    center = np.asarray(center, dtype=np.float64)
+    if center.shape != (3,) or not np.all(np.isfinite(center)):
+        raise LabkitError(f"center must be 3 finite numbers (m), got {center.tolist()!r}")
+    rng = as_rng(rng)
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    points = center + radius * u
+    return points + rng.normal(0.0, noise, (n, 3)) if noise > 0 else points

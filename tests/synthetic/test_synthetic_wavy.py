@@ -76,3 +76,17 @@ def test_flat_floor_has_its_noise_in_z_only_and_refuses_bad_input():
     for kwargs in ({"n": 0}, {"n": 5, "noise": -1.0}, {"n": 5, "size": 0.0}):
         with pytest.raises(LabkitError):
             flat_floor(**kwargs)
+
+
+def test_sphere_points_lie_on_the_sphere_with_the_stated_noise_and_bad_input_is_refused():
+    from labkit.synthetic import sphere_points
+
+    exact = sphere_points(500, 2, center=[1.0, -2.0, 3.0], radius=0.3)
+    assert np.allclose(np.linalg.norm(exact - [1.0, -2.0, 3.0], axis=1), 0.3, atol=1e-14)
+    assert np.allclose(exact.mean(axis=0), [1.0, -2.0, 3.0], atol=0.05)  # directions spread over the sphere
+    noisy = sphere_points(50_000, 2, radius=0.3, noise=0.002)
+    clean = sphere_points(50_000, 2, radius=0.3)  # same directions, then the noise
+    assert abs((noisy - clean).std() / 0.002 - 1) < 0.02
+    for kwargs in ({"radius": 0.0}, {"noise": -0.1}, {"center": [0, 0]}, {"center": [0, np.nan, 0]}):
+        with pytest.raises(LabkitError):
+            sphere_points(10, **kwargs)
