@@ -94,8 +94,6 @@ def compose(*transforms) -> np.ndarray:
     References
     ----------
     .. [1] Notebook 07, section 1 (rigid transforms as 4x4 matrices mapping source onto target).
-    .. [2] R. Hartley, A. Zisserman (2004): Multiple View Geometry in Computer Vision, 2nd edition,
-       Cambridge University Press (rigid motions as 4x4 matrices in homogeneous coordinates).
 
     Examples
     --------
@@ -116,8 +114,6 @@ def invert(T) -> np.ndarray:
     References
     ----------
     .. [1] Notebook 07, section 1 (rigid transforms as 4x4 matrices mapping source onto target).
-    .. [2] R. Hartley, A. Zisserman (2004): Multiple View Geometry in Computer Vision, 2nd edition,
-       Cambridge University Press (rigid motions as 4x4 matrices in homogeneous coordinates).
 
     Examples
     --------
@@ -143,8 +139,7 @@ def apply_transform(T, points, *, origin=None) -> np.ndarray:
     ----------
     .. [1] Notebook 05, section 3 (the source moved by the adjusted shift); notebook 07, section 1
        (the 4x4 truth of a case).
-    .. [2] R. Hartley, A. Zisserman (2004): Multiple View Geometry in Computer Vision, 2nd edition,
-       Cambridge University Press (rigid motions as 4x4 matrices in homogeneous coordinates).
+    .. [2] R. Hartley, A. Zisserman (2004): Multiple View Geometry in Computer Vision, 2nd ed.
 
     Examples
     --------

@@ -7,6 +7,7 @@ from matplotlib.path import Path as MplPath
 from labkit.cloud import PointCloud
 from labkit.core.errors import EmptyRegionError, LabkitError
 from labkit.regions import (
+    as_classes,
     crop_box,
     crop_circle,
     crop_classes,
@@ -218,3 +219,36 @@ def test_class_colours_are_the_asprs_table():
     assert rgb.shape == (4, 3) and rgb.dtype == np.uint8
     assert "#%02x%02x%02x" % tuple(rgb[1]) == ASPRS_COLORS[6]
     assert (rgb[3] == 0).all()  # user-defined codes are black
+
+
+# --------------------------------------------------------------------------- bad input
+def _cloud(n=200, seed=0, offset=0.0):
+    return np.random.default_rng(seed).uniform(0, 10, (n, 3)) + offset
+
+
+@pytest.mark.parametrize("call, error, fragment", [
+    (lambda c: thin_random(c, n=20.5), LabkitError, "n must be a whole number >= 0, got 20.5"),
+    (lambda c: thin_random(c, n="5"), LabkitError, "got '5' (str)"),
+    (lambda c: thin_random(c, n=True), LabkitError, "got True (bool)"),
+    (lambda c: thin_random(c, n=0), EmptyRegionError, "between 1 and 200 points, asked for 0"),
+    (lambda c: thin_voxel(c, "0.5"), LabkitError, "size must be a number > 0, got '0.5' (str)"),
+    (lambda c: thin_voxel(c, 1e-300), LabkitError, "too small for the cloud's extent"),
+    (lambda c: density_grid(c, 1e-4), LabkitError, "cells, more than 50,000,000; is the cell in metres?"),
+    (lambda c: as_classes([300]), LabkitError, "class codes lie in 0..255"),
+    (lambda c: as_classes([-1, 2]), LabkitError, "class codes lie in 0..255"),
+    (lambda c: as_classes("ground"), LabkitError, "got the string 'ground'"),
+    (lambda c: as_classes([2.5]), LabkitError, "integer class codes"),
+    (lambda c: merge(c, c.xyz), LabkitError, "merge takes PointClouds"),
+    (lambda c: crop_box("cloud.laz", (0, 0, 1, 1)), LabkitError, "got a string"),
+])
+def test_regions_refuse(call, error, fragment):
+    with pytest.raises(error) as exc:
+        call(PointCloud(_cloud()))
+    assert fragment in str(exc.value)
+
+
+def test_regions_accept_arrays_as_clouds():
+    pts = _cloud()
+    inside = np.all((pts[:, :2] >= 2) & (pts[:, :2] <= 6), axis=1)
+    np.testing.assert_array_equal(crop_box(pts, (2, 2, 6, 6)).xyz, pts[inside])
+    assert len(thin_random(pts, n=20, rng=1)) == 20

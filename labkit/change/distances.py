@@ -70,9 +70,7 @@ def cloud_to_cloud(source, target, transform=None) -> np.ndarray:
     .. [2] D. Girardeau-Montaut, M. Roux, R. Marc, G. Thibault (2005): Change detection on points
        cloud data acquired with a ground laser scanner. International Archives of the
        Photogrammetry, Remote Sensing and Spatial Information Sciences 36(3/W19), 30-35.
-    .. [3] J. H. Friedman, J. L. Bentley, R. A. Finkel (1977): An algorithm for finding best matches
-       in logarithmic expected time. ACM Transactions on Mathematical Software 3(3), 209-226,
-       doi:10.1145/355744.355745.
+    .. [3] J. H. Friedman, J. L. Bentley, R. A. Finkel (1977): k-d tree search, doi:10.1145/355744.355745.
 
     Examples
     --------
@@ -105,8 +103,7 @@ def point_to_plane_distance(source, target, target_normals=None, *, k: int = 10,
     .. [1] Notebook 07, eq. 4; notebook 04, eqs. 1-4 (the PCA normals).
     .. [2] Y. Chen, G. Medioni (1992): Object modelling by registration of multiple range images.
        Image and Vision Computing 10(3), 145-155.
-    .. [3] H. Hoppe, T. DeRose, T. Duchamp, J. McDonald, W. Stuetzle (1992): Surface reconstruction
-       from unorganized points. Computer Graphics (Proc. SIGGRAPH '92) 26(2), 71-78.
+    .. [3] H. Hoppe et al. (1992): Surface reconstruction from unorganized points (SIGGRAPH '92).
 
     Examples
     --------

@@ -5,7 +5,7 @@ conversion is needed, so callers may write into the result freely only after an
 explicit ``copy`` (``as_points(..., copy=True)``).
 
 Numbers are checked here once, for the whole package: ``positive``,
-``non_negative``, ``finite``, ``probability``, ``count`` (a whole number, never a
+``non_negative``, ``finite``, ``numeric_array``, ``probability``, ``count`` (a whole number, never a
 silently truncated 20.5), ``as_seed`` and ``as_rng``. A string or a bool where a
 number is expected is refused (``buffer='1'`` is a bug at the caller, not a 1).
 
@@ -150,6 +150,24 @@ def check_precision(values, name: str = "points", tolerance: float | None = None
 
 
 # --------------------------------------------------------------------------- numbers
+def numeric_array(value, name: str, *, finite: bool = True) -> np.ndarray:
+    """``value`` as a float64 array; a non-numeric value, and NaN or inf unless ``finite=False``, is refused.
+
+    Examples
+    --------
+    >>> from labkit.core.checks import numeric_array
+    >>> numeric_array([1, 2], "sigma").tolist()
+    [1.0, 2.0]
+    """
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise LabkitError(f"{name} must be numeric, got {type(value).__name__}") from None
+    if finite and not np.isfinite(arr).all():
+        raise LabkitError(f"{name} contains NaN or infinite values")
+    return arr
+
+
 def _number(value, name: str, what: str) -> float:
     """``value`` as float; strings, bools and non-numbers are refused with ``what`` in the message."""
     if isinstance(value, (str, bytes, bool, np.bool_)) or not isinstance(value, (numbers.Real, np.ndarray)) \

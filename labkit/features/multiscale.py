@@ -5,8 +5,7 @@ scale whose eigenvalues are most "decided" (least eigenentropy) is kept.
 
 References
 ----------
-Weinmann, Jutzi, Hinz, Mallet (2015): Semantic point cloud interpretation based on
-optimal neighborhoods, relevant features and efficient classifiers. ISPRS J. 105, 286-304.
+Weinmann et al. (2015), cited in full in :mod:`labkit.features.eigen`.
 """
 
 from __future__ import annotations
@@ -44,8 +43,8 @@ class MultiScaleFeatures(ReportMixin):
     --------
     >>> import numpy as np
     >>> from labkit.features import multiscale_features
-    >>> rng = np.random.default_rng(0)
-    >>> floor = np.column_stack([rng.uniform(0, 1, (200, 2)), rng.normal(0, 0.001, 200)])
+    >>> from labkit.synthetic import flat_floor
+    >>> floor = flat_floor(200, 0)
     >>> ms = multiscale_features(floor, scales=(10, 20))
     >>> ms.scales, ms.best.shape, ms.entropy.shape
     ((10, 20), (200,), (200, 2))
@@ -99,17 +98,15 @@ def multiscale_features(
     References
     ----------
     .. [1] Notebook 04, section 9, eqs. 6-8; seed 003, step 4 (repeat with several radii / k).
-    .. [2] M. Weinmann, B. Jutzi, S. Hinz, C. Mallet (2015): Semantic point cloud interpretation
-       based on optimal neighborhoods, relevant features and efficient classifiers. ISPRS Journal of
-       Photogrammetry and Remote Sensing 105, 286-304.
+    .. [2] M. Weinmann et al. (2015): eigenentropy, ISPRS J. 105, 286-304.
     .. [3] K. F. West, B. N. Webb, J. R. Lersch, S. Pothier, J. M. Triscari, A. E. Iverson (2004):
        Context-driven automated target detection in 3D data. Proc. SPIE 5426, 133-143.
 
     Examples
     --------
     >>> import numpy as np
-    >>> rng = np.random.default_rng(0)
-    >>> floor = np.column_stack([rng.uniform(0, 1, (200, 2)), rng.normal(0, 0.001, 200)])  # z = 0, 1 mm noise
+    >>> from labkit.synthetic import flat_floor
+    >>> floor = flat_floor(200, 0)  # z = 0, 1 mm noise
     >>> ms = multiscale_features(floor, scales=(10, 20, 40))
     >>> ms.eigenvalues.shape, sorted(set(ms.best.tolist()))  # (n, scales, 3); chosen scale per point
     ((200, 3, 3), [0, 1, 2])

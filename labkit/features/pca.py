@@ -63,10 +63,9 @@ class LocalPCA(ReportMixin):
 
     Examples
     --------
-    >>> import numpy as np
     >>> from labkit.features import local_pca
-    >>> rng = np.random.default_rng(0)
-    >>> floor = np.column_stack([rng.uniform(0, 1, (200, 2)), rng.normal(0, 0.001, 200)])  # z = 0, 1 mm noise
+    >>> from labkit.synthetic import flat_floor
+    >>> floor = flat_floor(200, 0)  # z = 0, 1 mm noise
     >>> pca = local_pca(floor, k=20)
     >>> pca.eigenvalues.shape, pca.eigenvectors.shape, int(pca.counts[0]), bool(pca.valid.all())
     ((200, 3), (200, 3, 3), 20, True)
@@ -175,15 +174,13 @@ def local_pca(
     .. [1] Notebook 04, section 2, eqs. 1-4; seed 003, step 4 (kd-tree, centred covariance, PCA).
     .. [2] H. Hoppe, T. DeRose, T. Duchamp, J. McDonald, W. Stuetzle (1992): Surface reconstruction
        from unorganized points. Computer Graphics (Proc. SIGGRAPH '92) 26(2), 71-78.
-    .. [3] J. H. Friedman, J. L. Bentley, R. A. Finkel (1977): An algorithm for finding best matches
-       in logarithmic expected time. ACM Transactions on Mathematical Software 3(3), 209-226,
-       doi:10.1145/355744.355745.
+    .. [3] J. H. Friedman, J. L. Bentley, R. A. Finkel (1977): k-d tree search, doi:10.1145/355744.355745.
 
     Examples
     --------
     >>> import numpy as np
-    >>> rng = np.random.default_rng(0)
-    >>> floor = np.column_stack([rng.uniform(0, 1, (200, 2)), rng.normal(0, 0.001, 200)])  # z = 0, 1 mm noise
+    >>> from labkit.synthetic import flat_floor
+    >>> floor = flat_floor(200, 0)  # z = 0, 1 mm noise
     >>> pca = local_pca(floor, k=20)
     >>> np.round(abs(pca.normals[0]), 2)  # the normal of the plane z = 0
     array([0., 0., 1.])
@@ -285,17 +282,13 @@ def normals(
     ----------
     .. [1] Notebook 04, section 2, eqs. 1-4; seed 003, step 4 (normal = eigenvector of the smallest
        eigenvalue).
-    .. [2] H. Hoppe, T. DeRose, T. Duchamp, J. McDonald, W. Stuetzle (1992): Surface reconstruction
-       from unorganized points. Computer Graphics (Proc. SIGGRAPH '92) 26(2), 71-78.
-    .. [3] J. H. Friedman, J. L. Bentley, R. A. Finkel (1977): An algorithm for finding best matches
-       in logarithmic expected time. ACM Transactions on Mathematical Software 3(3), 209-226,
-       doi:10.1145/355744.355745.
+    .. [2] H. Hoppe et al. (1992): Surface reconstruction from unorganized points (SIGGRAPH '92).
 
     Examples
     --------
     >>> import numpy as np
-    >>> rng = np.random.default_rng(0)
-    >>> floor = np.column_stack([rng.uniform(0, 1, (200, 2)), rng.normal(0, 0.001, 200)])  # z = 0, 1 mm noise
+    >>> from labkit.synthetic import flat_floor
+    >>> floor = flat_floor(200, 0)  # z = 0, 1 mm noise
     >>> n = normals(floor, k=20)  # orient='up': n_z >= 0
     >>> n.shape, np.round(abs(n[0]), 2), bool((n[:, 2] > 0).all())
     ((200, 3), array([0., 0., 1.]), True)
@@ -316,14 +309,13 @@ def local_noise(points, k: int = 20, radius: float | None = None, *, chunk_size:
     References
     ----------
     .. [1] Notebook 04, section 6, eq. 5; seed 003, step 4 ('lokales Rauschen' with PCA).
-    .. [2] H. Hoppe, T. DeRose, T. Duchamp, J. McDonald, W. Stuetzle (1992): Surface reconstruction
-       from unorganized points. Computer Graphics (Proc. SIGGRAPH '92) 26(2), 71-78.
+    .. [2] H. Hoppe et al. (1992): Surface reconstruction from unorganized points (SIGGRAPH '92).
 
     Examples
     --------
     >>> import numpy as np
-    >>> rng = np.random.default_rng(0)
-    >>> floor = np.column_stack([rng.uniform(0, 1, (200, 2)), rng.normal(0, 0.005, 200)])  # z = 0, 5 mm noise
+    >>> from labkit.synthetic import flat_floor
+    >>> floor = flat_floor(200, 0, noise=0.005)  # z = 0, 5 mm noise
     >>> sigma = local_noise(floor, k=20)
     >>> sigma.shape, round(float(np.median(sigma)), 3)
     ((200,), 0.005)
@@ -365,16 +357,15 @@ def pca_at(tree, at, k: int, *, chunk_size: int = CHUNK_SIZE, step=None):
     References
     ----------
     .. [1] Notebook 04, section 2, eqs. 1-4.
-    .. [2] H. Hoppe, T. DeRose, T. Duchamp, J. McDonald, W. Stuetzle (1992): Surface reconstruction
-       from unorganized points. Computer Graphics (Proc. SIGGRAPH '92) 26(2), 71-78.
+    .. [2] H. Hoppe et al. (1992): Surface reconstruction from unorganized points (SIGGRAPH '92).
 
     Examples
     --------
     >>> import numpy as np
     >>> from labkit.neighbours.kdtree import KDTree
     >>> from labkit.features import local_pca, pca_at
-    >>> rng = np.random.default_rng(0)
-    >>> floor = np.column_stack([rng.uniform(0, 1, (500, 2)), rng.normal(0, 0.001, 500)])  # z = 0, 1 mm noise
+    >>> from labkit.synthetic import flat_floor
+    >>> floor = flat_floor(500, 0)  # z = 0, 1 mm noise
     >>> tree = KDTree(floor, merge_duplicates=True)
     >>> n, sigma = pca_at(tree, [3, 7, 11], k=20)
     >>> n.shape, bool((n[:, 2] > 0.999).all()), bool(np.allclose(n, local_pca(floor, k=20, at=[3, 7, 11]).normals))

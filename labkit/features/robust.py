@@ -52,9 +52,8 @@ class RobustNormals(ReportMixin):
     --------
     >>> import numpy as np
     >>> from labkit.features import robust_normals
-    >>> rng = np.random.default_rng(0)
-    >>> floor = np.column_stack([rng.uniform(0, 1, (200, 2)), rng.normal(0, 0.001, 200)])
-    >>> rn = robust_normals(floor, k=30, rng=0)
+    >>> from labkit.synthetic import flat_floor
+    >>> rn = robust_normals(flat_floor(200, 0), k=30, rng=0)  # a floor z = 0 with 1 mm noise
     >>> rn.normals.shape, rn.inliers.shape, rn.k, bool(np.nanmedian(rn.noise) < 0.002)
     ((200, 3), (200,), 30, True)
     """
@@ -137,9 +136,8 @@ def robust_normals(
 
     Examples
     --------
-    >>> import numpy as np
-    >>> rng = np.random.default_rng(0)
-    >>> floor = np.column_stack([rng.uniform(0, 1, (200, 2)), rng.normal(0, 0.001, 200)])  # z = 0, 1 mm noise
+    >>> from labkit.synthetic import flat_floor
+    >>> floor = flat_floor(200, 0)  # z = 0, 1 mm noise
     >>> floor[:20, 2] += 0.05  # 10 % gross errors, 5 cm above the floor
     >>> rn = robust_normals(floor, k=30, rng=0)
     >>> from labkit.features import normals

@@ -169,7 +169,6 @@ def shift_field_geotiff(field, path, sources=None, *, crs=None, units=None):
     Examples
     --------
     >>> import tempfile
-    >>> from pathlib import Path
     >>> import numpy as np
     >>> import rasterio
     >>> from labkit.io.geotiff import shift_field_geotiff
@@ -177,8 +176,7 @@ def shift_field_geotiff(field, path, sources=None, *, crs=None, units=None):
     >>> tiles = tuple(TileShift(Tile(0, c, (100.0 * c, 0.0, 100.0 * c + 100, 100.0)), np.array([0.01 * c, 0, 0]),
     ...                         np.eye(3) * 1e-6, np.ones(3, bool), 900, 950, 800, 1.0, True, 0.1, "ok")
     ...               for c in range(2))
-    >>> path = shift_field_geotiff(ShiftField(tiles, 100.0), Path(tempfile.mkdtemp()) / "shift.tif",
-    ...                            crs="EPSG:25832")
+    >>> path = shift_field_geotiff(ShiftField(tiles, 100.0), f"{tempfile.mkdtemp()}/shift.tif", crs="EPSG:25832")
     >>> with rasterio.open(path) as ds:
     ...     print(ds.shape, ds.read(1).tolist(), ds.read(4)[0, 0], ds.bounds.right)
     (1, 2) [[0.0, 0.009999999776482582]] 0.001 200.0

@@ -342,15 +342,11 @@ class CloudInfo(ReportMixin):
 
     Examples
     --------
-    >>> import tempfile
-    >>> from pathlib import Path
-    >>> import numpy as np
-    >>> from labkit.cloud import PointCloud
-    >>> from labkit.io import cloud_info, write_cloud
-    >>> path = write_cloud(PointCloud(np.array([[0.0, 0, 0], [4, 3, 1]])), Path(tempfile.mkdtemp()) / "a.laz")
-    >>> info = cloud_info(path)
+    >>> from labkit.io import cloud_info
+    >>> from labkit.synthetic import tile_row
+    >>> info = cloud_info(tile_row(1) / "t0.laz")
     >>> info.point_count, info.mins.tolist(), info.compressed
-    (2, [0.0, 0.0, 0.0], True)
+    (10, [0.0, 0.0, 0.0], True)
     """
 
     path: Path
@@ -405,15 +401,11 @@ def cloud_info(path) -> CloudInfo:
 
     Examples
     --------
-    >>> import tempfile
-    >>> from pathlib import Path
-    >>> import numpy as np
-    >>> from labkit.cloud import PointCloud
-    >>> from labkit.io import cloud_info, write_cloud
-    >>> path = write_cloud(PointCloud(np.array([[0.0, 0, 0], [10, 20, 5]])), Path(tempfile.mkdtemp()) / "a.las")
-    >>> info = cloud_info(path)
+    >>> from labkit.io import cloud_info
+    >>> from labkit.synthetic import tile_row
+    >>> info = cloud_info(tile_row(2, suffix=".las") / "t1.las")
     >>> info.point_count, info.maxs.tolist(), info.version
-    (2, [10.0, 20.0, 5.0], '1.2')
+    (10, [19.0, 0.0, 0.0], '1.2')
     """
     path = existing_file(path)
     if path.suffix.lower() not in LAS_SUFFIXES:

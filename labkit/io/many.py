@@ -25,18 +25,13 @@ def cloud_files(paths) -> list[Path]:
 
     Examples
     --------
-    >>> import tempfile
-    >>> from pathlib import Path
-    >>> import numpy as np
-    >>> from labkit.cloud import PointCloud
-    >>> from labkit.io import cloud_files, write_cloud
-    >>> folder = Path(tempfile.mkdtemp())
-    >>> for name in ("b.laz", "a.las"):
-    ...     _ = write_cloud(PointCloud(np.zeros((1, 3))), folder / name)
+    >>> from labkit.io import cloud_files
+    >>> from labkit.synthetic import tile_row
+    >>> folder = tile_row(3)  # t0.laz, t1.laz, t2.laz
     >>> [p.name for p in cloud_files(folder)]
-    ['a.las', 'b.laz']
-    >>> [p.name for p in cloud_files(str(folder / "*.laz"))]
-    ['b.laz']
+    ['t0.laz', 't1.laz', 't2.laz']
+    >>> [p.name for p in cloud_files(str(folder / "t[12].laz"))]
+    ['t1.laz', 't2.laz']
     """
     entries = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
     if not entries:
@@ -83,14 +78,9 @@ def files_in_box(paths, bbox) -> list[Path]:
 
     Examples
     --------
-    >>> import tempfile
-    >>> from pathlib import Path
-    >>> import numpy as np
-    >>> from labkit.cloud import PointCloud
-    >>> from labkit.io import files_in_box, write_cloud
-    >>> folder = Path(tempfile.mkdtemp())
-    >>> for i in range(3):  # three 10 m tiles in a row
-    ...     _ = write_cloud(PointCloud(np.array([[10.0 * i, 0, 0], [10.0 * i + 9, 9, 1]])), folder / f"t{i}.laz")
+    >>> from labkit.io import files_in_box
+    >>> from labkit.synthetic import tile_row
+    >>> folder = tile_row(3)  # three 10 m tiles in a row along x
     >>> [p.name for p in files_in_box(folder, (12, 0, 25, 5))]
     ['t1.laz', 't2.laz']
     """
@@ -147,15 +137,9 @@ def read_clouds(paths, *, bbox=None, polygon=None, classes=None, attributes=None
 
     Examples
     --------
-    >>> import tempfile
-    >>> from pathlib import Path
-    >>> import numpy as np
-    >>> from labkit.cloud import PointCloud
-    >>> from labkit.io import read_clouds, write_cloud
-    >>> folder = Path(tempfile.mkdtemp())
-    >>> for i in range(3):  # three 10 m tiles in a row
-    ...     xyz = np.column_stack([np.arange(10.0) + 10 * i, np.zeros(10), np.zeros(10)])
-    ...     _ = write_cloud(PointCloud(xyz, name=f"t{i}"), folder / f"t{i}.laz")
+    >>> from labkit.io import read_clouds
+    >>> from labkit.synthetic import tile_row
+    >>> folder = tile_row(3)  # three 10 m tiles in a row along x, a point every metre
     >>> part = read_clouds(folder, bbox=(8, -1, 12, 1))
     >>> part.xyz[:, 0].tolist(), part.name
     ([8.0, 9.0, 10.0, 11.0, 12.0], 't0+1 files')

@@ -90,7 +90,6 @@ def read_cloud(
     --------
     >>> import tempfile
     >>> from pathlib import Path
-    >>> import numpy as np
     >>> from labkit.io import read_cloud
     >>> path = Path(tempfile.mkdtemp()) / "points.csv"
     >>> _ = path.write_text("x,y,z,classification\\n0,0,0,2\\n1,0,0,6\\n5,5,1,2\\n")

@@ -76,20 +76,17 @@ def write_cloud(cloud: PointCloud, path, *, scale=DEFAULT_SCALE, point_format: i
     ----------
     .. [1] Notebook 03, section 8 (CSV export, the registration study's step) and eqs. 1-3 (the LAS scale and
        offset); seed 003, step 1.
-    .. [2] ASPRS (2019): LAS Specification 1.4 - R15. American Society for Photogrammetry and Remote
-       Sensing.
+    .. [2] ASPRS (2019): LAS Specification 1.4 - R15.
 
     Examples
     --------
     >>> import tempfile
-    >>> from pathlib import Path
     >>> import numpy as np
     >>> from labkit.cloud import PointCloud
     >>> from labkit.io import read_cloud, write_cloud
-    >>> folder = Path(tempfile.mkdtemp())
     >>> cloud = PointCloud(np.array([[600000.0, 5400000.0, 300.0], [600001.5, 5400002.25, 301.0]]),
     ...                {"intensity": np.array([10, 20], dtype=np.uint16)}, crs="EPSG:25832")
-    >>> path = write_cloud(cloud, folder / "two.laz")
+    >>> path = write_cloud(cloud, f"{tempfile.mkdtemp()}/two.laz")
     >>> back = read_cloud(path)
     >>> back.xyz.tolist(), back["intensity"].tolist(), back.crs
     ([[600000.0, 5400000.0, 300.0], [600001.5, 5400002.25, 301.0]], [10, 20], 'EPSG:25832')

@@ -379,8 +379,8 @@ def run_moment_chunks(plan, k, chunk_size, work, step=None) -> None:
     Examples
     --------
     >>> import numpy as np
-    >>> rng = np.random.default_rng(0)
-    >>> floor = np.column_stack([rng.uniform(0, 1, (200, 2)), rng.normal(0, 0.001, 200)])  # z = 0
+    >>> from labkit.synthetic import flat_floor
+    >>> floor = flat_floor(200, 0)  # z = 0
     >>> cen, var_z = np.empty((len(floor), 3)), np.empty(len(floor))
     >>> def work(rows, counts, centroids, C):
     ...     cen[rows], var_z[rows] = centroids, C[:, 2, 2]

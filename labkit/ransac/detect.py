@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..core.checks import as_points, choice, count, positive, probability
+from ..core.checks import as_points, choice, count, numeric_array, positive, probability
 from ..core.frame import local_origin, reduce
 from ..core.errors import LabkitError
 from .config import FINAL_ATTEMPTS, LOCAL_MAX_PAIRS, LOCAL_MAX_SHARE, LOCAL_REACH, S, Config
@@ -302,10 +302,7 @@ def _check_sigma(sigma, n):
     """The a priori sigma: None, a finite scalar > 0, (n,) > 0 or (n, 3, 3); checked before any search."""
     if sigma is None or np.ndim(sigma) == 0:
         return None if sigma is None else positive(sigma, "sigma")
-    try:
-        arr = np.asarray(sigma, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise LabkitError(f"sigma must be numeric, got {type(sigma).__name__}") from None
+    arr = numeric_array(sigma, "sigma", finite=False)
     if arr.shape not in ((n,), (n, 3, 3)):
         raise LabkitError(f"sigma must be a scalar, shape ({n},) or ({n}, 3, 3), got {arr.shape}")
     if not np.isfinite(arr).all():

@@ -8,7 +8,7 @@ import numpy as np
 from scipy.optimize import brentq
 from scipy.special import ndtr
 
-from ..sphere.ghm import gauss_helmert_model
+from ..sphere.ghm import adjust_sphere, check_sigma
 from ..core.errors import LabkitError
 from ._ball import band_median, residuals, shell_points
 from .config import BAND_K, SNOOP_ROUNDS, START_STEPS, S
@@ -38,14 +38,21 @@ def refit_sphere(xyz, x0, cfg):
     """
     sigma, min_inliers = cfg.sigma, cfg.min_inliers
 
-    def adjust(mask, x_start, sig):
-        sig = sig[mask] if isinstance(sig, np.ndarray) else sig
+    checked = np.zeros(len(xyz), dtype=bool)  # rows of a sigma array checked so far
+
+    def adjust(mask, x_start, sig):  # xyz is checked; each row of sig is checked once, when first used
+        if isinstance(sig, np.ndarray):
+            new = mask & ~checked
+            if new.any():
+                check_sigma(sig[new], int(np.count_nonzero(new)))
+                checked[new] = True
+            sig = sig[mask]
         P = xyz[mask]
         if cfg.hold_radius is None:
             # start from the orthogonal-distance fit (compiled passes): for equal precisions it is the
             # adjustment's own solution, so the Gauss-Helmert iteration confirms it in one or two steps
             x_start = _start(P, x_start)
-        return gauss_helmert_model(P, x0=x_start, sigma=sig, radius=cfg.hold_radius, alpha_w=cfg.alpha)
+        return adjust_sphere(P, x0=x_start, sigma=sig, radius=cfg.hold_radius, alpha_w=cfg.alpha)
 
     # Robust band and sphere at their fixed point (eqs. 25-26 with t -> k sigma_hat); with a
     # per-point sigma the band is k sigma_i for each point
@@ -61,6 +68,8 @@ def refit_sphere(xyz, x0, cfg):
         if inliers.sum() < min_inliers:
             return _Final(None, inliers, 0, None, f"only {inliers.sum()} inliers (< min_inliers = {min_inliers})", band)
         try:
+            if fit is None and not isinstance(sigma, np.ndarray):
+                sigma = check_sigma(sigma, len(xyz))  # a scalar (or the robust scale): once
             fit = adjust(inliers, x0 if fit is None else fit.x, sigma)
         except LabkitError as exc:
             return _Final(None, inliers, 0, None, f"Gauss-Helmert refit failed: {exc}", band)

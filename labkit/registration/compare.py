@@ -436,11 +436,8 @@ def compare_methods(pairs, methods, *, references=None, alpha: float = 0.05) -> 
     ----------
     .. [1] Notebook 07, section 4, eqs. 5-6; seed 003, step 5 (compare the transformations visually
        and quantitatively).
-    .. [2] P. J. Besl, N. D. McKay (1992): A method for registration of 3-D shapes. IEEE
-       Transactions on Pattern Analysis and Machine Intelligence 14(2), 239-256,
-       doi:10.1109/34.121791.
-    .. [3] Y. Chen, G. Medioni (1992): Object modelling by registration of multiple range images.
-       Image and Vision Computing 10(3), 145-155.
+    .. [2] P. J. Besl, N. D. McKay (1992): ICP, doi:10.1109/34.121791.
+    .. [3] Y. Chen, G. Medioni (1992): point-to-plane registration, Image and Vision Computing 10(3).
 
     Examples
     --------

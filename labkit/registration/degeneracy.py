@@ -51,10 +51,9 @@ class Degeneracy(ReportMixin):
 
     Examples
     --------
-    >>> import numpy as np
     >>> from labkit.registration import icp
-    >>> rng = np.random.default_rng(1)
-    >>> floor = np.column_stack([rng.uniform(0, 6, (1500, 2)), rng.normal(0, 0.001, 1500)])  # a flat floor
+    >>> from labkit.synthetic import flat_floor
+    >>> floor = flat_floor(1500, 1, size=6)  # a flat floor
     >>> res = icp(floor[::5] + [0.02, 0.0, 0.03], floor, dof="translation")
     >>> deg = res.degeneracy  # a floor fixes the height only
     >>> deg.well_posed, deg.undetermined_axes, round(float(res.translation[2]), 3)

@@ -69,14 +69,12 @@ class RegistrationResult(ReportMixin):
 
     Examples
     --------
-    >>> import numpy as np
     >>> from labkit.registration import icp
-    >>> from labkit.synthetic import wavy_surface
-    >>> target = wavy_surface(1500, 1, noise=0.001)  # slopes in X and Y, 1 mm noise
-    >>> res = icp(target[::5] + [0.02, -0.01, 0.03], target, dof="translation")  # a shifted subset
+    >>> from labkit.synthetic import wavy_pair
+    >>> res = icp(*wavy_pair(300, noise=0.001, shift=[-0.02, 0.01, -0.03]), dof="translation")  # two samplings
     >>> res.method.split()[0], res.parameter_names, res.converged
     ('icp', ('tx', 'ty', 'tz'), True)
-    >>> np.round(res.translation, 3)  # the shift back
+    >>> res.translation.round(2)  # the shift back
     array([-0.02,  0.01, -0.03])
     """
 

@@ -18,7 +18,7 @@ import numpy as np
 from scipy import stats
 from scipy.linalg import cho_factor, cho_solve
 
-from ..core.checks import as_points, positive, probability
+from ..core.checks import as_points, numeric_array, positive, probability
 from ..core.frame import local_origin
 from ..core.stats import GlobalTest, global_test, w_critical
 from ..core.errors import DegenerateGeometryError, LabkitError
@@ -116,31 +116,87 @@ def gauss_helmert_model(
     --------
     >>> import numpy as np
     >>> from labkit.sphere.ghm import gauss_helmert_model
-    >>> rng = np.random.default_rng(1)
-    >>> u = rng.normal(size=(300, 3))
-    >>> u /= np.linalg.norm(u, axis=1, keepdims=True)
-    >>> points = np.array([2.0, 1.0, 0.5]) + 0.15 * u + rng.normal(0.0, 0.001, (300, 3))
+    >>> from labkit.synthetic import sphere_points
+    >>> points = sphere_points(300, 1, center=[2.0, 1.0, 0.5], radius=0.15, noise=0.001)
     >>> fit = gauss_helmert_model(points, sigma=0.001)
     >>> fit.converged, fit.x.round(3).tolist()
     (True, [2.0, 1.0, 0.5, 0.15])
     >>> bool(np.all(fit.std < 2e-4)), fit.global_test.passed
     (True, True)
     """
-    # Check input and reduce to a local origin
+    # Check input, once
     l_in = as_points(points, min_points=4)
-    origin = local_origin(l_in)
-    # reduced coordinates, one row per coordinate (contiguous, cache-friendly sweeps), in one pass
-    L = np.empty((3, len(l_in)))
-    np.subtract(l_in.T, origin[:, None], out=L)
-    l = L.T  # (n, 3) view of the same numbers
-    cov = _Stochastic(sigma, len(l))
-    r_fix = None if radius is None else positive(radius, "radius")
-    sigma_known = sigma is not None or sigma0_apriori is not None
-    sigma0_apriori = 1.0 if sigma0_apriori is None else positive(sigma0_apriori, "sigma0_apriori")
+    sigma = check_sigma(sigma, len(l_in))
+    radius = None if radius is None else positive(radius, "radius")
+    sigma0_apriori = None if sigma0_apriori is None else positive(sigma0_apriori, "sigma0_apriori")
     tol = positive(tol, "tol")
     alpha, alpha_w = probability(alpha, "alpha"), probability(alpha_w, "alpha_w")
     if int(max_iterations) != max_iterations or max_iterations < 1:
         raise LabkitError(f"max_iterations must be a whole number >= 1, got {max_iterations!r}")
+    return adjust_sphere(l_in, x0, sigma, radius=radius, tol=tol, max_iterations=int(max_iterations), alpha=alpha,
+                         sigma0_apriori=sigma0_apriori, alpha_w=alpha_w)
+
+
+def adjust_sphere(
+    points: np.ndarray,
+    x0=None,
+    sigma=None,
+    *,
+    radius: float | None = None,
+    tol: float = 1e-10,
+    max_iterations: int = 50,
+    alpha: float = 0.05,
+    sigma0_apriori: float | None = None,
+    alpha_w: float = 0.001,
+) -> SphereFit:
+    """The adjustment of :func:`gauss_helmert_model` on inputs that are checked already.
+
+    For a caller that adjusts many subsets of one checked cloud (the refit and snooping
+    rounds of RANSAC): nothing is validated again, so every argument must be what
+    :func:`gauss_helmert_model` would have passed on.
+
+    Parameters
+    ----------
+    points : ndarray (n, 3) float64
+        Finite coordinates (m), n >= 4, as returned by :func:`labkit.core.checks.as_points`.
+    x0 : array_like (4,) or (3,), optional
+        Initial values as in :func:`gauss_helmert_model` (their shape is still checked: it costs nothing).
+    sigma : None, float or ndarray
+        The value of :func:`check_sigma` for these points (rows of a checked array stay valid).
+    radius, tol, max_iterations, alpha, sigma0_apriori, alpha_w
+        Checked values of the options of :func:`gauss_helmert_model`.
+
+    Returns
+    -------
+    SphereFit
+
+    References
+    ----------
+    .. [1] Seed 000, section 1 (eqs. 1-24), as :func:`gauss_helmert_model`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from labkit.core.checks import as_points
+    >>> from labkit.sphere.ghm import adjust_sphere, check_sigma, gauss_helmert_model
+    >>> from labkit.synthetic import sphere_points
+    >>> points = as_points(sphere_points(300, 1, center=[2.0, 1.0, 0.5], radius=0.15, noise=0.001))
+    >>> sigma = check_sigma(np.full(300, 0.001), 300)  # checked once ...
+    >>> half = adjust_sphere(points[::2], sigma=sigma[::2])  # ... for every subset
+    >>> bool(np.array_equal(half.x, gauss_helmert_model(points[::2], sigma=0.001).x))
+    True
+    """
+    if len(points) < 4:
+        raise LabkitError(f"points must hold at least 4 points, got {len(points)}")
+    # Reduce to a local origin: one row per coordinate (contiguous, cache-friendly sweeps), in one pass
+    origin = local_origin(points)
+    L = np.empty((3, len(points)))
+    np.subtract(points.T, origin[:, None], out=L)
+    l = L.T  # (n, 3) view of the same numbers
+    cov = _Stochastic(sigma)
+    r_fix = radius
+    sigma_known = sigma is not None or sigma0_apriori is not None
+    sigma0_apriori = 1.0 if sigma0_apriori is None else sigma0_apriori
     x_start = _initial_values(l, x0, origin, r_fix)
 
     # Iterate (eqs. 6-22)
@@ -157,8 +213,8 @@ class _Stochastic:
     The rows b_i of B come as a (3, m) array for the points of the slice ``sl``.
     """
 
-    def __init__(self, sigma, n):
-        self.kind, self.C = _parse_sigma(sigma, n)
+    def __init__(self, sigma):
+        self.kind, self.C = _variances(sigma)
 
     def qbb(self, b, sl):
         """Diagonal of B Sigma_ll B^T: b_i^T Sigma_i b_i, shape (m,) (a scalar if all are equal)."""
@@ -184,21 +240,39 @@ class _Stochastic:
         return np.einsum("nij,jn->in", self.C[sl], b)
 
 
-def _parse_sigma(sigma, n):
-    """(kind, variances) from the user's sigma; kinds: scalar, point, axis, full."""
-    if sigma is None:
+def _variances(s):
+    """(kind, variances) from a checked sigma (:func:`check_sigma`); kinds: scalar, point, axis, full."""
+    if s is None:
         return "scalar", 1.0
-    try:
-        s = np.asarray(sigma, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise LabkitError(f"sigma must be numeric, got {type(sigma).__name__}") from None
-    if not np.isfinite(s).all():
-        raise LabkitError("sigma contains NaN or infinite values")
+    if np.ndim(s) == 0:
+        return "scalar", float(s) ** 2
+    if s.ndim < 3:
+        return ("point" if s.ndim == 1 else "axis"), np.ascontiguousarray((s**2).T)
+    return "full", s
+
+
+def check_sigma(sigma, n: int):
+    """The a priori sigma of ``n`` points checked: None, a float > 0, or a float64 array (n,), (n, 3) > 0 or (n, 3, 3).
+
+    Covariance matrices (n, 3, 3) must be symmetric and positive definite; NaN/inf are refused.
+
+    References
+    ----------
+    .. [1] Seed 000, section 1 (the stochastic model Sigma_ll of the Gauss-Helmert model).
+
+    Examples
+    --------
+    >>> from labkit.sphere.ghm import check_sigma
+    >>> check_sigma(0.002, 10), check_sigma([0.001] * 4, 4).shape
+    (0.002, (4,))
+    """
+    if sigma is None:
+        return None
+    s = numeric_array(sigma, "sigma")
     if s.ndim == 0 or s.shape in ((n,), (n, 3)):
         if (s <= 0).any():
             raise LabkitError("sigma (standard deviations) must be > 0")
-        kind = {0: "scalar", 1: "point", 2: "axis"}[s.ndim]
-        return kind, float(s**2) if s.ndim == 0 else np.ascontiguousarray((s**2).T)
+        return float(s) if s.ndim == 0 else s
     if s.shape == (n, 3, 3):
         scale = np.abs(s).max(axis=(1, 2))
         if (np.abs(s - s.transpose(0, 2, 1)).max(axis=(1, 2)) > 1e-9 * scale).any():
@@ -207,7 +281,7 @@ def _parse_sigma(sigma, n):
             np.linalg.cholesky(s)
         except np.linalg.LinAlgError:
             raise LabkitError("sigma covariance matrices (n, 3, 3) must be positive definite") from None
-        return "full", s
+        return s
     raise LabkitError(
         f"sigma must be None, a scalar, or of shape ({n},), ({n}, 3) or ({n}, 3, 3); got {s.shape}"
     )

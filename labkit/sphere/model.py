@@ -52,11 +52,9 @@ def algebraic_sphere(points) -> np.ndarray:
 
     Examples
     --------
-    >>> import numpy as np
     >>> from labkit.sphere.model import algebraic_sphere
-    >>> rng = np.random.default_rng(0)
-    >>> u = rng.normal(size=(50, 3))
-    >>> points = [1.0, 2.0, 3.0] + 0.5 * u / np.linalg.norm(u, axis=1, keepdims=True)
+    >>> from labkit.synthetic import sphere_points
+    >>> points = sphere_points(50, 0, center=[1.0, 2.0, 3.0], radius=0.5)
     >>> algebraic_sphere(points).round(9).tolist()
     [1.0, 2.0, 3.0, 0.5]
     """

@@ -5,7 +5,11 @@
 - ``multibeam_room``: a sphere in a room scanned by a 16-beam lidar (rings, occlusion).
 - ``als_epochs``: two airborne laser scanning epochs of a named test region.
 - ``wavy_surface``: a smooth surface sloping in X and Y (the registration examples' test object).
+- ``wavy_pair``: two samplings of it, one moved (source, target): the registration examples.
+- ``flat_floor``: the plane z = 0 with noise in z (the normals examples).
+- ``sphere_points``: points on a sphere with noise (the sphere-fit examples).
 - ``target_stations``: TLS panoramas of sphere targets in a yard from several stations with known poses.
+- ``tile_row``: a row of small point-cloud files in a fresh folder (the file examples).
 """
 
 from __future__ import annotations
@@ -24,6 +28,10 @@ _EXPORTS = {
     "REGIONS": "labkit.synthetic.als",
     "SPARSE_REGIONS": "labkit.synthetic.als",
     "wavy_surface": "labkit.synthetic.wavy",
+    "wavy_pair": "labkit.synthetic.wavy",
+    "flat_floor": "labkit.synthetic.wavy",
+    "sphere_points": "labkit.synthetic.wavy",
+    "tile_row": "labkit.synthetic.files",
     "target_stations": "labkit.synthetic.stations",
     "TargetStations": "labkit.synthetic.stations",
 }

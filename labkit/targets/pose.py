@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import linalg, stats
 
+from ..core.checks import numeric_array
 from ..core.errors import LabkitError
 from ..transforms import angles_from_rotation, rotation_from_angles, skew  # noqa: F401 (skew: used by targets)
 
@@ -20,12 +21,7 @@ def as_covariances(cov, n: int, name: str) -> np.ndarray | None:
     """(n, 3, 3) covariances from None, a standard deviation, (n,), (n, 3) or (n, 3, 3) (m, m^2)."""
     if cov is None:
         return None
-    try:
-        c = np.asarray(cov, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise LabkitError(f"{name} must be numeric, got {type(cov).__name__}") from None
-    if not np.isfinite(c).all():
-        raise LabkitError(f"{name} contains NaN or infinite values")
+    c = numeric_array(cov, name)
     if c.ndim == 0 or c.shape in ((n,), (n, 3)):
         if (c < 0).any():
             raise LabkitError(f"{name} (standard deviations) must be >= 0")

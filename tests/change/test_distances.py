@@ -2,7 +2,7 @@
 
 Agreement with labkit's own plain route (features.normals + point_to_plane_distance) on a larger village, the
 reuse of ICP's tree and the progress reports: tests/test_icp_sampling.py and tests/test_progress.py; bad input:
-tests/test_bad_input.py and tests/test_compare.py.
+tests/change/test_bad_input_distances.py and tests/registration/test_compare.py.
 """
 
 import numpy as np

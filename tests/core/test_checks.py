@@ -1,5 +1,5 @@
 """labkit.core.checks: the shared input checks refuse bad values with a LabkitError that names them, and accept
-the edge-valid ones unchanged. Their use at the public entry points: tests/test_bad_input.py."""
+the edge-valid ones unchanged. Their use at the public entry points: tests/core/test_bad_input_entry_points.py."""
 
 import numpy as np
 import pytest

@@ -1,6 +1,6 @@
 """labkit.core.outputs: the files of one command appear together or not at all (direct, without a registration).
 
-The same through the command line (a real registration, the PNG's move failing): tests/test_bad_input.py.
+The same through the command line (a real registration, the PNG's move failing): tests/cli/test_bad_input_main.py.
 """
 
 import os

@@ -51,3 +51,42 @@ def test_noise_zero_draws_nothing_for_the_noise():
 def test_bad_input_is_refused(kwargs):
     with pytest.raises(LabkitError):
         wavy_surface(**kwargs)
+
+
+def test_wavy_pair_is_the_two_samplings_drawn_in_turn_and_refuses_a_bad_shift():
+    from labkit.synthetic import wavy_pair
+
+    source, target = wavy_pair(40, 60, 3, shift=(0.1, -0.2, 0.3), noise=0.001)
+    rng = np.random.default_rng(3)
+    assert np.array_equal(target, wavy_surface(60, rng, noise=0.001))
+    assert np.array_equal(source, wavy_surface(40, rng, noise=0.001) - [0.1, -0.2, 0.3])
+    for bad in ((1.0, 2.0), (np.nan, 0, 0)):
+        with pytest.raises(LabkitError, match="shift"):
+            wavy_pair(shift=bad)
+
+
+def test_flat_floor_has_its_noise_in_z_only_and_refuses_bad_input():
+    from labkit.synthetic import flat_floor
+
+    floor = flat_floor(20_000, 4, noise=0.003, size=2.0)
+    assert floor.shape == (20_000, 3)
+    assert 0.0 <= floor[:, :2].min() and floor[:, :2].max() <= 2.0 and floor[:, :2].max() > 1.99
+    assert abs(floor[:, 2].std() / 0.003 - 1) < 0.03 and abs(floor[:, 2].mean()) < 1e-4
+    assert np.all(flat_floor(10, 0, noise=0.0)[:, 2] == 0.0)
+    for kwargs in ({"n": 0}, {"n": 5, "noise": -1.0}, {"n": 5, "size": 0.0}):
+        with pytest.raises(LabkitError):
+            flat_floor(**kwargs)
+
+
+def test_sphere_points_lie_on_the_sphere_with_the_stated_noise_and_bad_input_is_refused():
+    from labkit.synthetic import sphere_points
+
+    exact = sphere_points(500, 2, center=[1.0, -2.0, 3.0], radius=0.3)
+    assert np.allclose(np.linalg.norm(exact - [1.0, -2.0, 3.0], axis=1), 0.3, atol=1e-14)
+    assert np.allclose(exact.mean(axis=0), [1.0, -2.0, 3.0], atol=0.05)  # directions spread over the sphere
+    noisy = sphere_points(50_000, 2, radius=0.3, noise=0.002)
+    clean = sphere_points(50_000, 2, radius=0.3)  # same directions, then the noise
+    assert abs((noisy - clean).std() / 0.002 - 1) < 0.02
+    for kwargs in ({"radius": 0.0}, {"noise": -0.1}, {"center": [0, 0]}, {"center": [0, np.nan, 0]}):
+        with pytest.raises(LabkitError):
+            sphere_points(10, **kwargs)

@@ -111,10 +111,8 @@ def branch_and_bound(ptr, src_of, D, nrm, pb, center, ext, tol, max_boxes, init_
     The steps of :func:`labkit.registration.max_consensus`, one by one:
 
     >>> import numpy as np
-    >>> from labkit.synthetic import wavy_surface  # slopes in X and Y; 2 mm noise unless told
-    >>> rng = np.random.default_rng(1)
-    >>> target = wavy_surface(1500, rng)
-    >>> source = wavy_surface(300, rng) - [0.05, 0.02, 0.03]  # another sampling, moved
+    >>> from labkit.synthetic import wavy_pair
+    >>> source, target = wavy_pair(300)  # wavy surface sampled twice, the source moved by -[0.05, 0.02, 0.03]
     >>> from labkit.registration.consensus.inputs import candidate_pairs, prepare_problem
     >>> pb = prepare_problem(source, target, "point_to_plane", 0.01, None, None, None, None, 12, max_points=100)
     >>> center, ext = np.zeros(3), np.full(3, 0.08)
@@ -507,10 +505,8 @@ def refine(bb, src_of, D, nrm, pb, reject_sigma, ext, runtime_bb, t0, max_outer:
     After the branch and bound (see :func:`branch_and_bound`), the adjustment of its consensus set:
 
     >>> import numpy as np
-    >>> from labkit.synthetic import wavy_surface  # slopes in X and Y; 2 mm noise unless told
-    >>> rng = np.random.default_rng(1)
-    >>> target = wavy_surface(1500, rng)
-    >>> source = wavy_surface(300, rng) - [0.05, 0.02, 0.03]  # another sampling, moved
+    >>> from labkit.synthetic import wavy_pair
+    >>> source, target = wavy_pair(300)  # wavy surface sampled twice, the source moved by -[0.05, 0.02, 0.03]
     >>> from labkit.registration.consensus.inputs import candidate_pairs, prepare_problem
     >>> pb = prepare_problem(source, target, "point_to_plane", 0.01, None, None, None, None, 12, max_points=100)
     >>> center, ext = np.zeros(3), np.full(3, 0.08)

@@ -73,15 +73,14 @@ def consensus_inputs(source, target, metric: str = "point_to_plane", eps: float 
     References
     ----------
     .. [1] Notebook 06, section 1, eqs. 6.3-6.4a, and section 5, eq. 6.11.
-    .. [2] H. Hoppe, T. DeRose, T. Duchamp, J. McDonald, W. Stuetzle (1992): Surface reconstruction
-       from unorganized points. Computer Graphics (Proc. SIGGRAPH '92) 26(2), 71-78.
+    .. [2] H. Hoppe et al. (1992): Surface reconstruction from unorganized points (SIGGRAPH '92).
 
     Examples
     --------
     >>> import numpy as np
     >>> from labkit.registration import consensus_inputs
-    >>> rng = np.random.default_rng(0)
-    >>> floor = np.column_stack([rng.uniform(0, 5, (400, 2)), rng.normal(0, 0.002, 400)])
+    >>> from labkit.synthetic import flat_floor
+    >>> floor = flat_floor(400, 0, size=5, noise=0.002)
     >>> pb = consensus_inputs(floor[:200], floor[200:], eps=0.02)
     >>> pb.src.shape, pb.tgt.shape, round(pb.eps, 3), bool(np.allclose(abs(pb.tgt_normals[:, 2]), 1, atol=0.01))
     ((200, 3), (200, 3), 0.02, True)
@@ -167,10 +166,8 @@ def consensus_cube(
     Examples
     --------
     >>> import numpy as np
-    >>> from labkit.synthetic import wavy_surface  # slopes in X and Y; 2 mm noise unless told
-    >>> rng = np.random.default_rng(1)
-    >>> target = wavy_surface(1500, rng)
-    >>> source = wavy_surface(300, rng) - [0.05, 0.02, 0.03]  # another sampling, moved
+    >>> from labkit.synthetic import wavy_pair
+    >>> source, target = wavy_pair(300)  # wavy surface sampled twice, the source moved by -[0.05, 0.02, 0.03]
     >>> cube = consensus_cube(source[::2], target, extent=0.06, step=0.02, eps=0.01, center=[0.04, 0.02, 0.04],
     ...                       use_numba=False)
     >>> cube.counts.shape, cube.peak.kind
@@ -374,10 +371,8 @@ def max_consensus(
     Examples
     --------
     >>> import numpy as np
-    >>> from labkit.synthetic import wavy_surface  # slopes in X and Y; 2 mm noise unless told
-    >>> rng = np.random.default_rng(1)
-    >>> target = wavy_surface(1500, rng)
-    >>> source = wavy_surface(300, rng) - [0.05, 0.02, 0.03]  # another sampling, moved
+    >>> from labkit.synthetic import wavy_pair
+    >>> source, target = wavy_pair(300)  # wavy surface sampled twice, the source moved by -[0.05, 0.02, 0.03]
     >>> res = max_consensus(source, target, extent=0.08, eps=0.01, tol=0.02, max_points=100, use_numba=False)
     >>> bool(np.allclose(res.translation, [0.05, 0.02, 0.03], atol=0.01))
     True

@@ -50,12 +50,9 @@ class PeakShape(ReportMixin):
 
     Examples
     --------
-    >>> import numpy as np
     >>> from labkit.registration import consensus_cube
-    >>> from labkit.synthetic import wavy_surface  # slopes in X and Y; 2 mm noise unless told
-    >>> rng = np.random.default_rng(1)
-    >>> target = wavy_surface(1500, rng)
-    >>> source = wavy_surface(150, rng) - [0.05, 0.02, 0.03]  # another sampling, moved
+    >>> from labkit.synthetic import wavy_pair
+    >>> source, target = wavy_pair(150)  # wavy surface sampled twice, the source moved by -[0.05, 0.02, 0.03]
     >>> cube = consensus_cube(source, target, extent=0.06, step=0.02, eps=0.01, center=[0.04, 0.02, 0.04],
     ...                       use_numba=False)
     >>> peak = cube.peak  # slopes in X and Y: every direction is determined
@@ -169,10 +166,8 @@ class ConsensusCube(ReportMixin):
     --------
     >>> import numpy as np
     >>> from labkit.registration import consensus_cube
-    >>> from labkit.synthetic import wavy_surface  # slopes in X and Y; 2 mm noise unless told
-    >>> rng = np.random.default_rng(1)
-    >>> target = wavy_surface(1500, rng)
-    >>> source = wavy_surface(150, rng) - [0.05, 0.02, 0.03]  # another sampling, moved
+    >>> from labkit.synthetic import wavy_pair
+    >>> source, target = wavy_pair(150)  # wavy surface sampled twice, the source moved by -[0.05, 0.02, 0.03]
     >>> cube = consensus_cube(source, target, extent=0.06, step=0.02, eps=0.01, center=[0.04, 0.02, 0.04],
     ...                       use_numba=False)
     >>> cube.counts.shape, [len(a) for a in cube.axes], cube.n_source

@@ -325,13 +325,10 @@ def match(
     ----------
     .. [1] Notebook 05, section 2, eqs. 5.1-5.2 and 5.5-5.6; seed 003, step 2 (kd-tree matching)
        and step 4 (normal angles, local noise).
-    .. [2] J. H. Friedman, J. L. Bentley, R. A. Finkel (1977): An algorithm for finding best matches
-       in logarithmic expected time. ACM Transactions on Mathematical Software 3(3), 209-226,
-       doi:10.1145/355744.355745.
+    .. [2] J. H. Friedman, J. L. Bentley, R. A. Finkel (1977): k-d tree search, doi:10.1145/355744.355745.
     .. [3] S. Rusinkiewicz, M. Levoy (2001): Efficient variants of the ICP algorithm. Proc. Third
        International Conference on 3-D Digital Imaging and Modeling (3DIM), 145-152.
-    .. [4] H. Hoppe, T. DeRose, T. Duchamp, J. McDonald, W. Stuetzle (1992): Surface reconstruction
-       from unorganized points. Computer Graphics (Proc. SIGGRAPH '92) 26(2), 71-78.
+    .. [4] H. Hoppe et al. (1992): Surface reconstruction from unorganized points (SIGGRAPH '92).
 
     Examples
     --------

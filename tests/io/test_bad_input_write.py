@@ -1,6 +1,6 @@
 """Data kept (labkit.io.write, labkit.io.las_layout, the register command): a cloud labkit moves or writes keeps
 the LAS version, point format, every standard and extra dimension, the VLRs, offsets and the scale of its file;
-only the coordinates change."""
+only the coordinates change; a LAZ writer error is one CloudFileError and keeps the old file."""
 
 import laspy
 import pyproj
@@ -9,6 +9,7 @@ import pytest
 
 from labkit.cli.main import main
 from labkit.cloud import PointCloud
+from labkit.core.errors import CloudFileError
 from labkit.io import read_cloud, write_cloud
 
 ORIGIN = np.array([500_000.25, 5_400_000.5, 100.0])
@@ -160,3 +161,20 @@ def test_real_files_are_written_back_bit_for_bit(realdata, tmp_path, name):
     for dim in ("X", "Y", "Z"):
         np.testing.assert_array_equal(np.asarray(a[dim]), np.asarray(b[dim]))
     assert read_cloud(out).crs == cloud.crs
+
+
+@pytest.mark.parametrize("error", ["LazrsError", "RuntimeError", "ValueError"])
+def test_a_laz_writer_error_is_a_labkit_error_and_keeps_the_old_file(tmp_path, monkeypatch, error):
+    """A full disk makes lazrs raise its own error (not an OSError): reported in one LabkitError."""
+    path = write_cloud(PointCloud(np.zeros((5, 3))), tmp_path / "keep.laz")
+    before = path.read_bytes()
+    kind = type(error, (Exception,), {})
+
+    def full(*args, **kwargs):
+        raise kind("No space left on device (os error 28)")
+
+    monkeypatch.setattr(laspy.LasWriter, "write_points", full)
+    with pytest.raises(CloudFileError, match=f"{error}: No space left"):
+        write_cloud(PointCloud(np.ones((7, 3))), path)
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["keep.laz"]
