@@ -34,7 +34,7 @@ from ..core.checks import as_points, choice
 from ..core.errors import LabkitError
 from ..core.masks import ASPRS_NAMES, STABLE_CLASSES
 from ..core.frame import local_origin
-from ..neighbours.treecache import local_tree
+from ..neighbours.treecache import forget, local_tree
 from .matching.local_surface import roughness
 
 __all__ = ["MAX_SCATTER", "MIN_SELECTED", "SELECT", "SMOOTH_NOISE", "ClassCheck", "Selection", "check_other_classes",
@@ -223,6 +223,7 @@ def select_points(source, target, select="auto", k=20):
         return source, target, Selection(
             "all points", (), ns, nt, ns, nt,
             f"all points: fewer than {MIN_SELECTED} surface points ({ms.sum()}, {mt.sum()}) - volume scatter kept")
+    forget()  # the kept tree is the whole target's, and ICP builds its own on the surface points
     reason = (f"surface points: {ms.sum():,} of {ns:,} source and {mt.sum():,} of {nt:,} target points; volume "
               f"scatter (vegetation) left out: local noise > {100 * SMOOTH_NOISE:.0f} cm and noise/sqrt(l2) > "
               f"{MAX_SCATTER:g} in {k}-neighbourhoods")
