@@ -85,6 +85,22 @@ Below 300,000 source points the default uses every point (``select='auto'`` keep
 points: 103,914 and 105,267 pairs). About half of labkit's time on the TLS halves is that surface
 selection (a local PCA and a local quadric, each with its own k-neighbour search, on both clouds).
 
+The surface selection now takes both terms from one k-neighbour search per cloud (the same masks,
+matrices and covariances to the bit on both pairs). Two runs of ``--keep 0.5 --halves-only
+--repeats 2`` on 2026-12-02, before and after (load 5-10; the other jobs on the machine moved
+Open3D's own time by 1.7x between runs, so only the ratios mean much):
+
+===================  =====================  =======  ====================  =======  ============
+pair                 before: labkit icp     Open3D   after: labkit icp     Open3D   ratio b / a
+===================  =====================  =======  ====================  =======  ============
+tls halves           19.24                  5.50     11.09                 3.28     3.50 / 3.38
+als halves           16.60 (plane 10.88)    17.87    10.75 (plane 7.30)    9.97     0.93 / 1.08
+===================  =====================  =======  ====================  =======  ============
+
+The selection alone (both clouds, one process each, load 8-10): TLS halves 13.5 s before, 7.2 s
+after; ALS halves 5.8 s, 3.5 s. ICP still searches the neighbourhoods of the selected points again
+for its own normals (the selection's are of the whole cloud): the remaining gap on the TLS halves.
+
 Run:  python benchmarks/bench_icp.py [--quick] [--realdata PATH] [--repeats N]
 """
 

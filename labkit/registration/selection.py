@@ -32,9 +32,10 @@ import numpy as np
 
 from ..core.checks import as_points, choice
 from ..core.errors import LabkitError
-from ..features import local_pca
 from ..core.masks import ASPRS_NAMES, STABLE_CLASSES
-from .matching.local_surface import Geometry
+from ..core.frame import local_origin
+from ..neighbours.treecache import forget, local_tree
+from .matching.local_surface import roughness
 
 __all__ = ["MAX_SCATTER", "MIN_SELECTED", "SELECT", "SMOOTH_NOISE", "ClassCheck", "Selection", "check_other_classes",
            "select_points"]
@@ -47,6 +48,8 @@ SMOOTH_NOISE = 0.05
 MAX_SCATTER = 0.2
 #: Fewer selected points than this in either cloud: all points are used.
 MIN_SELECTED = 50
+#: Points per chunk of the surface test (bounds its memory on clouds of many millions of points).
+CHUNK = 500_000
 #: The choices of ``select``.
 SELECT = ("auto", "all")
 #: Codes that mean "not classified" (a cloud with only these carries no classification).
@@ -115,6 +118,12 @@ def _subset(cloud, mask):
 def surface_mask(points, k=20):
     """True where a point's k-neighbourhood is a surface, False where it is volume scatter.
 
+    One k-nearest-neighbour search per point gives both terms of the test: the PCA's eigenvalues
+    and the noise about the local quadric fitted to the same neighbours. The points are walked in
+    chunks of :data:`CHUNK` (in the kd-tree's leaf order), so that memory grows with the cloud's
+    coordinates and its tree, not with the per-point geometry (about 0.5 GB of it per million
+    points held at once).
+
     Examples
     --------
     >>> import numpy as np
@@ -127,15 +136,25 @@ def surface_mask(points, k=20):
     """
     xyz = _xyz(points)
     k = int(min(max(k, 10), len(xyz)))
-    local = xyz - xyz.mean(axis=0)
-    pca = local_pca(local, k=k, orient="none")
-    lam = np.sort(np.clip(pca.eigenvalues, 0, None), axis=1)  # ascending: l3, l2, l1
+    # the tree ICP's matching would build on the same array (kept for it when every point stays)
+    tree = local_tree(xyz, local_origin(xyz), merge_duplicates=True)
+    cols = np.ascontiguousarray(tree.data.T)
+    keep = np.empty(tree.n, dtype=bool)  # per distinct point, in leaf order
+    for a in range(0, tree.n, CHUNK):
+        b = min(a + CHUNK, tree.n)
+        keep[a:b] = _surface_rows(tree, cols, np.arange(a, b), k)
+    return keep[tree.representative]
+
+
+def _surface_rows(tree, cols, pos, k):
+    """The surface test of :func:`surface_mask` at the tree's distinct points ``pos`` (sorted leaf positions)."""
+    noise, lam = roughness(tree, cols, pos, k)  # eigenvalues ascending: l3, l2, l1
     # the spread about a local quadric: a curved surface (sparse hills, a sphere) is no volume
-    _, noise = Geometry(local, k, quadric=True).at(np.arange(len(local)), need_noise=True)
     noise = np.where(np.isfinite(noise), noise, np.sqrt(lam[:, 0]))
     with np.errstate(invalid="ignore", divide="ignore"):
         scatter = noise / np.sqrt(lam[:, 1])
-    return pca.valid & ((noise <= SMOOTH_NOISE) | (scatter <= MAX_SCATTER))
+        valid = (lam[:, 1] > 1e-12 * lam[:, 2]) & np.isfinite(lam[:, 2])  # not a point, not a line (features.determined)
+    return valid & ((noise <= SMOOTH_NOISE) | (scatter <= MAX_SCATTER))
 
 
 def select_points(source, target, select="auto", k=20):
@@ -204,6 +223,7 @@ def select_points(source, target, select="auto", k=20):
         return source, target, Selection(
             "all points", (), ns, nt, ns, nt,
             f"all points: fewer than {MIN_SELECTED} surface points ({ms.sum()}, {mt.sum()}) - volume scatter kept")
+    forget()  # the kept tree is the whole target's, and ICP builds its own on the surface points
     reason = (f"surface points: {ms.sum():,} of {ns:,} source and {mt.sum():,} of {nt:,} target points; volume "
               f"scatter (vegetation) left out: local noise > {100 * SMOOTH_NOISE:.0f} cm and noise/sqrt(l2) > "
               f"{MAX_SCATTER:g} in {k}-neighbourhoods")

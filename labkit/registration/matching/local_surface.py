@@ -41,7 +41,7 @@ def _local_geometry(tree, cols, index, k):
     return tuple(a[back] for a in out)
 
 
-def _leaf_geometry(tree, cols, pos, k, quadric=False):
+def _leaf_geometry(tree, cols, pos, k, quadric=False, eigenvalues=False):
     """:func:`_local_geometry` at the tree's own (distinct) points, given by sorted leaf positions.
 
     With ``quadric`` also the local quadric's coefficients and frame (the frame's normal
@@ -50,7 +50,9 @@ def _leaf_geometry(tree, cols, pos, k, quadric=False):
     The last element is always a function that returns the covariance (m, 3, 3) of the plane
     normal's random tilt (:func:`_plane_tilt`) from the same decomposition: ICP's determinability
     test (eq. 5.12b) needs it at the matched target points and would otherwise search their
-    neighbours again.
+    neighbours again. With ``eigenvalues`` the PCA's eigenvalues (m, 3), ascending and scaled by
+    k / (k - 3) (lam[:, 0] = sigma_n^2), come just before it: the surface test of
+    :func:`labkit.registration.selection.surface_mask` reads them from the same search.
     """
     k = min(k, tree.n)
     threads = -1 if len(pos) > 2000 else 1  # threads cost more than they save on small queries
@@ -74,7 +76,21 @@ def _leaf_geometry(tree, cols, pos, k, quadric=False):
     _in_row_chunks(work, m)
     n, noise, variation, lam, tangents, *fit = out
     tilt = lambda: _plane_tilt(lam, tangents, k)  # noqa: E731 - evaluated only where kept (the target)
-    return (n, noise, variation, *fit, tilt)
+    return (n, noise, variation, *fit, *([lam] if eigenvalues else []), tilt)
+
+
+def roughness(tree, cols, pos, k):
+    """Noise about the local quadric and the PCA eigenvalues at the tree's distinct points ``pos``.
+
+    One k-nearest-neighbour search for both (``cols``: the tree's coordinate columns,
+    ``pos``: sorted leaf positions). Returns the noise (m,) as :class:`Geometry` states it with
+    ``quadric=True`` (the plane's where no quadric was fitted, NaN where the neighbourhood is a
+    point or a line) and the eigenvalues (m, 3) of the covariance 1/k sum (notebook 04, eq. 2),
+    ascending. Used by :func:`labkit.registration.selection.surface_mask`.
+    """
+    _, noise, _, _, _, _, lam, _ = _leaf_geometry(tree, cols, pos, k, quadric=True, eigenvalues=True)
+    k = min(k, tree.n)
+    return noise, lam * ((k - 3) / k)
 
 
 def _in_row_chunks(work, m, rows=50_000):

@@ -1,0 +1,48 @@
+"""The surface test of the point selection (labkit.registration.selection)."""
+
+import numpy as np
+import pytest
+
+from labkit.features import local_pca
+from labkit.registration import selection
+from labkit.registration.matching.local_surface import Geometry
+from labkit.registration.selection import MAX_SCATTER, SMOOTH_NOISE, surface_mask
+
+
+def _scene(rng):
+    """Ground on gentle hills, a steep curved bank, a roof step, a crown of leaves; some exact copies."""
+    xy = rng.uniform(0, 30, (2500, 2))
+    z = 0.6 * np.sin(xy[:, 0] / 4) + 0.3 * np.cos(xy[:, 1] / 3) + 2.0 * (xy[:, 0] > 22)
+    ground = np.column_stack([xy, z + rng.normal(0, 0.01, len(xy))])
+    crown = rng.normal([10, 12, 7], 1.2, (600, 3))
+    pts = np.vstack([ground, crown]) + [600000.0, 5400000.0, 300.0]  # UTM-sized
+    return np.vstack([pts, pts[:40]])  # exact duplicates count once
+
+
+def _two_searches(points, k=20):
+    """The test by its two separate passes: eigenvalues of the local PCA, noise of the local quadric."""
+    local = points - points.mean(axis=0)
+    pca = local_pca(local, k=k, orient="none")
+    lam = np.sort(np.clip(pca.eigenvalues, 0, None), axis=1)
+    _, noise = Geometry(local, k, quadric=True).at(np.arange(len(local)), need_noise=True)
+    noise = np.where(np.isfinite(noise), noise, np.sqrt(lam[:, 0]))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scatter = noise / np.sqrt(lam[:, 1])
+    return pca.valid & ((noise <= SMOOTH_NOISE) | (scatter <= MAX_SCATTER))
+
+
+@pytest.mark.parametrize("chunk", [selection.CHUNK, 257])
+def test_one_search_in_chunks_gives_the_two_pass_mask(monkeypatch, chunk):
+    pts = _scene(np.random.default_rng(3))
+    monkeypatch.setattr(selection, "CHUNK", chunk)  # many chunks: the seams change nothing
+    keep = surface_mask(pts)
+    np.testing.assert_array_equal(keep, _two_searches(pts))
+    assert keep[:2500].mean() > 0.95 and keep[2500:3100].mean() < 0.2  # ground kept, crown left out
+    np.testing.assert_array_equal(keep[-40:], keep[:40])  # a copy gets its original's answer
+
+
+def test_input_not_modified():
+    pts = _scene(np.random.default_rng(4))
+    before = pts.copy()
+    surface_mask(pts)
+    np.testing.assert_array_equal(pts, before)
