@@ -290,11 +290,8 @@ def neighbour_test(field: ShiftField, alpha: float = 0.05, *, extra_std: float =
     References
     ----------
     .. [1] Notebook 08, section 4, eqs. 2-7.
-    .. [2] S. Holm (1979): A simple sequentially rejective multiple test procedure. Scandinavian
-       Journal of Statistics 6(2), 65-70.
-    .. [3] Y. Benjamini, Y. Hochberg (1995): Controlling the false discovery rate: a practical and
-       powerful approach to multiple testing. Journal of the Royal Statistical Society B 57(1),
-       289-300.
+    .. [2] Holm (1979) and Benjamini and Hochberg (1995), cited in full at
+       :func:`labkit.core.stats.adjusted_p_values`, which applies the correction.
 
     Examples
     --------
