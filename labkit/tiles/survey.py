@@ -75,7 +75,7 @@ def _nbytes(cloud) -> int:
     return int(cloud.xyz.nbytes + sum(np.asarray(v).nbytes for v in getattr(cloud, "attributes", {}).values()))
 
 
-_FILES = _FileCache(384 * 2**20)  # about 40 files of 200,000 points with their attributes
+_FILES = _FileCache(512 * 2**20)  # about 50 files of 200,000 points with their attributes
 
 
 def _survey(data, classes=None, name: str = "survey"):
