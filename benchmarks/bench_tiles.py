@@ -83,7 +83,7 @@ def _cpu_s() -> float:
     return use.ru_utime + use.ru_stime
 
 
-_CLI = ("import resource, sys\nfrom labkit.cli import main\nrc = main(sys.argv[1:])\n"
+_CLI = ("import resource, sys\nfrom labkit.cli.main import main\nrc = main(sys.argv[1:])\n"
         "print('PEAK_KB', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr)\nsys.exit(rc)")
 
 
