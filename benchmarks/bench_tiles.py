@@ -18,7 +18,13 @@ command a second time on the same results folder: every tile is read back.
 
 Done when (issue 14): 700 m in 100 m tiles in under 10 minutes, under 4 GB.
 
-Run:  python benchmarks/bench_tiles.py [--size 700] [--tile 100] [--workers 2] [--rerun] [--keep DIR]
+The generated LAZ tiles are cached in ``--cache`` (default: a folder
+``labkit-bench-tiles`` in the system temp folder, never the repository), one
+subfolder per size/tile/density/seed, and reused by the next run; results and
+outputs are written to a fresh temporary folder every time. ``--cache none``
+makes the data anew in a temporary folder.
+
+Run:  python benchmarks/bench_tiles.py [--size 700] [--tile 100] [--workers 2] [--rerun] [--keep DIR] [--cache DIR]
 
 Measured 2026-12-01 on 2 cores shared with other work (load 8-12 during the run), ``--size 700 --rerun``:
 
@@ -30,6 +36,13 @@ Measured 2026-12-01 on 2 cores shared with other work (load 8-12 during the run)
     tile shifts     RMS error (0.46, 0.54, 0.11) mm, max 1.19 mm; median stated std (0.46, 0.47, 0.14) mm
     neighbour test  84 of 84 pairs agree, 1 coherent area (Holm over 133 tests)
     rerun           6.3 s: 0 computed, 64 read back
+
+Measured 2026-12-02 (data from the cache), one run with whole files cached per worker and the run after it
+without (the code before), load 10-14 and 7-9:
+
+    cached files    wall 756 s, workers' CPU 145 + 151 s, peak 1007 + 1009 MB + command 204 MB = 2.2 GB
+    box reads       wall 457 s, workers' CPU 174 + 175 s, peak  600 +  611 MB + command 204 MB = 1.4 GB
+    both            tile shift RMS error (0.47, 0.52, 0.10) mm, max 1.20 mm; 84 of 84 pairs agree, 1 area
 """
 
 from __future__ import annotations
@@ -77,13 +90,34 @@ def _cpu_s() -> float:
     return use.ru_utime + use.ru_stime
 
 
-_CLI = ("import resource, sys\nfrom labkit.cli import main\nrc = main(sys.argv[1:])\n"
+_CLI = ("import resource, sys\nfrom labkit.cli.main import main\nrc = main(sys.argv[1:])\n"
         "print('PEAK_KB', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr)\nsys.exit(rc)")
 
 
-def run_command(folder: Path, address: str, tile: float, out: Path) -> tuple:
+def _data(folder: Path, args) -> tuple:
+    """(folder with 2016/ and 2014/, make() info, cached?): from the cache if made before, else made now."""
+    key = f"size{args.size:g}_tile{args.tile:g}_density{DENSITY:g}_rng14"
+    cache = None if args.cache.lower() == "none" else Path(args.cache) / key
+    if cache is not None and (cache / "info.json").is_file():
+        return cache, json.loads((cache / "info.json").read_text()), True
+    where = folder / "data"
+    if cache is not None:  # made in a scratch folder next to the cache, renamed when complete
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        where = Path(tempfile.mkdtemp(dir=cache.parent, prefix=key + ".part"))
+    where.mkdir(exist_ok=True)
+    made = subprocess.run([sys.executable, __file__, "--make", str(where), "--size", str(args.size),
+                           "--tile", str(args.tile)], capture_output=True, text=True, check=True)
+    info = json.loads(made.stdout.strip().splitlines()[-1])
+    (where / "info.json").write_text(json.dumps(info))
+    if cache is None:
+        return where, info, False
+    where.rename(cache)
+    return cache, info, False
+
+
+def run_command(folder: Path, data: Path, address: str, tile: float, out: Path) -> tuple:
     """``labkit tiles`` as its own process; returns (wall s, its peak MB, stdout)."""
-    argv = [sys.executable, "-c", _CLI, "tiles", str(folder / "2016"), "--target", str(folder / "2014"),
+    argv = [sys.executable, "-c", _CLI, "tiles", str(data / "2016"), "--target", str(data / "2014"),
             "--size", str(tile), "--scheduler", address, "--results", str(folder / "results"),
             "--out", str(out), "--quiet"]
     t0 = time.perf_counter()
@@ -102,20 +136,26 @@ def main() -> int:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--rerun", action="store_true", help="run a second time: all tiles read back")
     parser.add_argument("--keep", help="folder for the temporary files (default: system temp)")
+    parser.add_argument("--cache", default=str(Path(tempfile.gettempdir()) / "labkit-bench-tiles"),
+                        help="folder caching the generated LAZ tiles between runs ('none': no cache)")
+    parser.add_argument("--data-only", action="store_true", help="make (or find) the cached data and stop")
     parser.add_argument("--make", help=argparse.SUPPRESS)  # internal: make the epochs in a fresh process
     args = parser.parse_args()
     if args.make:
         print(json.dumps(make(Path(args.make), args.size, args.tile)))
         return 0
 
+    if args.data_only:
+        with tempfile.TemporaryDirectory(dir=args.keep) as tmp:
+            data, info, cached = _data(Path(tmp), args)
+            print(f"data in {data} ({'cached' if cached else 'made now'}): {json.dumps(info)}")
+        return 0
     from distributed import Client, LocalCluster
 
     with tempfile.TemporaryDirectory(dir=args.keep) as tmp:
         folder = Path(tmp)
-        made = subprocess.run([sys.executable, __file__, "--make", tmp, "--size", str(args.size),
-                               "--tile", str(args.tile)], capture_output=True, text=True, check=True)
-        info = json.loads(made.stdout.strip().splitlines()[-1])
-        print(f"epochs: {info['n_source']:,} + {info['n_target']:,} points over {args.size:.0f} x {args.size:.0f} m "
+        data, info, cached = _data(folder, args)
+        print(f"epochs{' (cached in ' + str(data) + ', timings of the first making)' if cached else ''}: {info['n_source']:,} + {info['n_target']:,} points over {args.size:.0f} x {args.size:.0f} m "
               f"at {DENSITY:.0f} pts/m^2, made in {info['make_s']:.1f} s, written as {info['files']} LAZ tiles in "
               f"{info['write_s']:.1f} s (peak {info['peak_mb']:.0f} MB, a separate process)")
         print(f"machine: {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f} (timings are noisy under load)")
@@ -123,12 +163,12 @@ def main() -> int:
                           dashboard_address=None) as cluster, Client(cluster) as client:
             print(f"cluster: {args.workers} worker processes, 1 thread each, at {cluster.scheduler_address}",
                   flush=True)
-            wall, cmd_mb, stdout = run_command(folder, cluster.scheduler_address, args.tile, folder / "out")
+            wall, cmd_mb, stdout = run_command(folder, data, cluster.scheduler_address, args.tile, folder / "out")
             w_mb = sorted(client.run(_peak_mb).values())
             cpu = sorted(client.run(_cpu_s).values())
             _report(folder / "out", info, args, wall, cmd_mb, stdout, w_mb, cpu)
             if args.rerun:
-                again = run_command(folder, cluster.scheduler_address, args.tile, folder / "out2")
+                again = run_command(folder, data, cluster.scheduler_address, args.tile, folder / "out2")
                 print(f"  rerun (all read back)  {again[0]:8.1f} s, command {again[1]:.0f} MB; "
                       + next((ln for ln in again[2].splitlines() if ln.startswith("tiles:")), ""))
     return 0

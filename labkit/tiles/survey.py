@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,17 +36,46 @@ class _Files:
         return _Files(tuple(p for p, h in zip(self.paths, hit) if h), e[hit], self.classes)
 
     def load(self, tile: Tile):
-        """Read the tile's points from each file, filtered while reading."""
-        parts = [_read_part(p, tile.read_bounds, self.classes) for p in self.paths]
-        return _concat([c.subset(tile.contains(c.xyz)) for c in parts if c is not None])
+        """The tile's points from each file (whole files kept in this process's cache, see :class:`_FileCache`)."""
+        parts = [c.subset(tile.contains(c.xyz)) for c in (_FILES.get(p, self.classes) for p in self.paths)]
+        return _concat([c for c in parts if len(c)])
 
 
-def _read_part(path: str, bbox: tuple, classes):
-    """The points of one file inside ``bbox`` (read in chunks, filtered while reading), or None."""
-    try:
-        return read_cloud(path, bbox=bbox, classes=classes)
-    except EmptyRegionError:
-        return None
+class _FileCache:
+    """The clouds of recently read LAS/LAZ files in this process, up to ``budget`` bytes (least recently used out).
+
+    Survey files are cut at the grid lines, and the quantised coordinates of a file
+    may end exactly on its neighbour's line, so a tile touches its own file and up to
+    eight neighbours. Reading (decompressing) each of them per tile costs five to nine
+    times the tile's own file; kept whole here, a file is decompressed about once per
+    worker. A tile keeps the same points in the same order as a read with a box filter:
+    :meth:`Tile.contains` lies inside that closed box. Keyed by path, size, modification
+    time and class filter, so a changed file is read again.
+    """
+
+    def __init__(self, budget: int):
+        self.budget, self._items, self._lock = int(budget), OrderedDict(), threading.Lock()
+
+    def get(self, path: str, classes):
+        st = os.stat(path)
+        key = (str(path), st.st_size, st.st_mtime_ns, classes)
+        with self._lock:
+            if key in self._items:
+                self._items.move_to_end(key)
+                return self._items[key]
+        cloud = read_cloud(path, classes=classes)
+        with self._lock:
+            self._items[key] = cloud
+            while len(self._items) > 1 and sum(_nbytes(c) for c in self._items.values()) > self.budget:
+                self._items.popitem(last=False)
+        return cloud
+
+
+def _nbytes(cloud) -> int:
+    return int(cloud.xyz.nbytes + sum(np.asarray(v).nbytes for v in getattr(cloud, "attributes", {}).values()))
+
+
+_FILES = _FileCache(512 * 2**20)  # about 50 files of 200,000 points with their attributes
 
 
 def _survey(data, classes=None, name: str = "survey"):

@@ -548,3 +548,40 @@ def test_tiles_from_files_in_feet_cut_the_same_points_as_in_memory(realdata, tmp
     n_files = [s.n_source for s in from_files.tiles]
     assert sum(n_files) > 0.9 * half.sum()
     assert n_files == [s.n_source for s in in_memory.tiles]
+
+
+@pytest.mark.parametrize("buffer", [0.0, 5.0])
+def test_cached_whole_files_give_each_tile_the_points_of_a_box_filtered_read(tmp_path, buffer):
+    io = pytest.importorskip("labkit.io")
+    from labkit.core.errors import EmptyRegionError
+    from labkit.tiles.survey import _FileCache, _survey as survey_of
+
+    src, _, _ = _survey(n=6000, seed=7)
+    on_lines = src.xyz.copy()
+    on_lines[::50, 0] = ORIGIN[0] + 50.0 * np.round((on_lines[::50, 0] - ORIGIN[0]) / 50.0)  # exactly on a grid line
+    on_lines[::70, 1] = ORIGIN[1] + 50.0
+    (tmp_path / "s").mkdir()
+    tiles.write_tiles(PointCloud(on_lines, dict(src.attributes)), tmp_path / "s", 50.0)
+    files = survey_of(str(tmp_path / "s"))
+    for tile in tiles.tile_grid(files.bounds(), 50.0, buffer=buffer):
+        near = files.for_tile(tile)
+        parts = []
+        for p in near.paths:  # the read without a cache: a closed box filter while reading
+            try:
+                parts.append(io.read_cloud(p, bbox=tile.read_bounds))
+            except EmptyRegionError:
+                pass
+        want = [c.subset(tile.contains(c.xyz)) for c in parts]
+        want = np.vstack([c.xyz for c in want]) if want else np.zeros((0, 3))
+        got = near.load(tile)
+        np.testing.assert_array_equal(np.asarray(getattr(got, "xyz", got)).reshape(-1, 3), want)
+        if len(want):
+            classes = np.concatenate([c["classification"][tile.contains(c.xyz)] for c in parts])
+            np.testing.assert_array_equal(got["classification"], classes)
+    # a file written again is read again (the cache key holds its size and time); the budget evicts old files
+    cache = _FileCache(budget=1)
+    path = str(sorted((tmp_path / "s").iterdir())[0])
+    first = cache.get(path, None)
+    assert cache.get(path, None) is first
+    io.write_cloud(first.subset(np.arange(len(first)) % 2 == 0), path)
+    assert len(cache.get(path, None)) == (len(first) + 1) // 2 and len(cache._items) == 1
