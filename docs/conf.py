@@ -70,6 +70,9 @@ nb_execution_timeout = int(os.environ.get("LABKIT_NB_TIMEOUT", "900"))
 nb_execution_raise_on_error = True
 nb_execution_show_tb = True
 nb_merge_streams = True
+# Interactive widgets need a running kernel; the static site loads no widget manager from a CDN (it works
+# offline: nothing is fetched from the internet), and a widget's cell shows its code and figures only
+nb_ipywidgets_js = {}
 myst_enable_extensions = ["dollarmath", "amsmath", "html_image"]
 myst_heading_anchors = 3
 # notebooks number their sections freely (## 3, ### 9b); a class re-exported by a package has two names
