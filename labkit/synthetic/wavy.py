@@ -69,7 +69,7 @@ def wavy_pair(n_source: int = 300, n_target: int = 1500, rng=1, *, shift=(0.05, 
     n_source, n_target : int
         Number of points of each sampling (>= 1).
     rng : int or numpy.random.Generator, optional
-        Seed or generator (default 1, the seed of the registration examples).
+        Seed or generator (default 1, as in the registration examples).
     shift : array_like (3,)
         The translation (m) that maps the source back onto the surface: what a registration should find.
     noise : float
