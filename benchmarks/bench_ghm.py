@@ -2,7 +2,7 @@
 
 1. scipy.optimize.least_squares (analytic Jacobian, orthogonal distances
    d_i = |p_i - c| - r) at 10^4, 10^5, 10^6 points, methods 'trf' and 'lm'.
-   Target (issue 2): labkit at 10^6 points in at most half of scipy's time.
+   Target: labkit at 10^6 points in at most half of scipy's time.
 2. A dense textbook Gauss-Helmert model (B as a dense n x 3n matrix, eqs. 6-21
    literally, B Sigma_ll B^T as a dense n x n matrix) at n = 1000, 2000, 4000.
    Target: labkit at least 100x faster at n = 4000.

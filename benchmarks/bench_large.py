@@ -46,7 +46,7 @@ loaded machine; "before" is the route that evaluated every roof on every point (
          100      432,512       0.5      1.09            142          0.6
          200    1,737,054       2.9      1.64            314          4.7
          300    3,905,601       6.8      1.74            596         16.8
-         700   21,286,806      37.6      1.77           2766    about 480 (issue 14)
+         700   21,286,806      37.6      1.77           2766    about 480
 """
 
 from __future__ import annotations

@@ -31,7 +31,7 @@ and 10,639,153 target points (generated and written once, 171 s under load, reus
     labkit icp (clouds in memory) 15.7     3163   same
     Open3D normals + ICP         144.0     2403   -371, +42, -4352 (its point-to-plane ICP from the
       (normals alone 56.6 s)                      0.3 m shift walked off within 1 m matching distance)
-    labkit register / Open3D normals+ICP = 0.43 (done-when of issue 14: <= 0.5, peak < 4 GB, 5 mm)
+    labkit register / Open3D normals+ICP = 0.43 (target: <= 0.5, peak < 4 GB, shift within 5 mm)
 
     real TLS halves, 523,382 vs 523,461 points, full density:
     labkit icp                     2.1      460   -0.069, +0.032, -0.031   0.048, 0.037, 0.029

@@ -1,7 +1,7 @@
 """Benchmark: ``labkit tiles`` over a synthetic ALS campaign on a 2-worker LocalCluster, wall time and memory.
 
 Two epochs of ``labkit.synthetic.als_epochs('xyz')`` at 20 pts/m^2 over a square
-of ``--size`` metres (700 m: about 10.6 million points per epoch, issue 14) are cut
+of ``--size`` metres (700 m: about 10.6 million points per epoch) are cut
 into 100 m LAZ tiles (``labkit.tiles.write_tiles``) in a temporary folder, as a
 survey is delivered. A ``distributed.LocalCluster`` with two single-threaded
 worker processes is started here, and ``labkit tiles SOURCE_DIR --target
@@ -16,7 +16,7 @@ the error of the tile shifts against the true shift, and the neighbour test's
 verdict (a stable survey: one coherent area is expected). ``--rerun`` runs the
 command a second time on the same results folder: every tile is read back.
 
-Done when (issue 14): 700 m in 100 m tiles in under 10 minutes, under 4 GB.
+Target: 700 m in 100 m tiles in under 10 minutes of wall time, under 4 GB of summed peak memory.
 
 The generated LAZ tiles are cached in ``--cache`` (default: a folder
 ``labkit-bench-tiles`` in the system temp folder, never the repository), one

@@ -1,4 +1,4 @@
-"""Cutting test regions out of a cloud and thinning it (seed 003, step 1).
+"""Cutting test regions out of a cloud and thinning it (the registration study, step 1).
 
 Every function takes a :class:`~labkit.cloud.PointCloud` and returns a new one;
 the input is never modified. A crop that keeps no point raises

@@ -1,4 +1,4 @@
-"""Distances between two epochs, before and after a transformation (seed 003, step 5).
+"""Distances between two epochs, before and after a transformation (the registration study, step 5).
 
 Cloud to cloud: the distance from each point of one epoch to its nearest
 neighbour in the other. Point to plane: the signed distance to the tangent

@@ -1,4 +1,4 @@
-"""Local geometry of point clouds by PCA of neighbourhoods (seed 003, step 4; notebook 04).
+"""Local geometry of point clouds by PCA of neighbourhoods (the registration study, step 4; notebook 04).
 
 For every point the neighbourhood (k nearest neighbours or a ball,
 :mod:`labkit.neighbours`) is reduced to its centroid and summarised by its 3x3

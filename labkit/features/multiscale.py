@@ -97,7 +97,7 @@ def multiscale_features(
 
     References
     ----------
-    .. [1] Notebook 04, section 9, eqs. 6-8; seed 003, step 4 (repeat with several radii / k).
+    .. [1] Notebook 04, section 9, eqs. 6-8; the registration study, step 4 (repeat with several radii / k).
     .. [2] M. Weinmann et al. (2015): eigenentropy, ISPRS J. 105, 286-304.
     .. [3] K. F. West, B. N. Webb, J. R. Lersch, S. Pothier, J. M. Triscari, A. E. Iverson (2004):
        Context-driven automated target detection in 3D data. Proc. SPIE 5426, 133-143.

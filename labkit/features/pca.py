@@ -171,7 +171,7 @@ def local_pca(
 
     References
     ----------
-    .. [1] Notebook 04, section 2, eqs. 1-4; seed 003, step 4 (kd-tree, centred covariance, PCA).
+    .. [1] Notebook 04, section 2, eqs. 1-4; the registration study, step 4 (kd-tree, centred covariance, PCA).
     .. [2] H. Hoppe, T. DeRose, T. Duchamp, J. McDonald, W. Stuetzle (1992): Surface reconstruction
        from unorganized points. Computer Graphics (Proc. SIGGRAPH '92) 26(2), 71-78.
     .. [3] J. H. Friedman, J. L. Bentley, R. A. Finkel (1977): k-d tree search, doi:10.1145/355744.355745.
@@ -280,7 +280,7 @@ def normals(
 
     References
     ----------
-    .. [1] Notebook 04, section 2, eqs. 1-4; seed 003, step 4 (normal = eigenvector of the smallest
+    .. [1] Notebook 04, section 2, eqs. 1-4; the registration study, step 4 (normal = eigenvector of the smallest
        eigenvalue).
     .. [2] H. Hoppe et al. (1992): Surface reconstruction from unorganized points (SIGGRAPH '92).
 
@@ -308,7 +308,7 @@ def local_noise(points, k: int = 20, radius: float | None = None, *, chunk_size:
 
     References
     ----------
-    .. [1] Notebook 04, section 6, eq. 5; seed 003, step 4 ('lokales Rauschen' with PCA).
+    .. [1] Notebook 04, section 6, eq. 5; the registration study, step 4 ('lokales Rauschen' with PCA).
     .. [2] H. Hoppe et al. (1992): Surface reconstruction from unorganized points (SIGGRAPH '92).
 
     Examples

@@ -126,7 +126,7 @@ def robust_normals(
 
     References
     ----------
-    .. [1] Notebook 04, section 10, eq. 9 and eqs. 1-4; seed 003, step 4 (normals robust by RANSAC,
+    .. [1] Notebook 04, section 10, eq. 9 and eqs. 1-4; the registration study, step 4 (normals robust by RANSAC,
        tested with several radii).
     .. [2] M. A. Fischler, R. C. Bolles (1981): Random sample consensus: a paradigm for model fitting
        with applications to image analysis and automated cartography. Communications of the ACM

@@ -1,4 +1,4 @@
-"""Reading and writing point-cloud files (seed 003, step 1: laspy -> numpy -> CSV).
+"""Reading and writing point-cloud files (the registration study, step 1: laspy -> numpy -> CSV).
 
 Formats
 -------

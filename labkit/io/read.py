@@ -81,7 +81,7 @@ def read_cloud(
 
     References
     ----------
-    .. [1] Notebook 03, section 2, eqs. 1-3 (LAS scaled integer coordinates); seed 003, step 1
+    .. [1] Notebook 03, section 2, eqs. 1-3 (LAS scaled integer coordinates); the registration study, step 1
        (laspy to NumPy).
     .. [2] ASPRS (2019): LAS Specification 1.4 - R15. American Society for Photogrammetry and Remote
        Sensing.

@@ -74,8 +74,8 @@ def write_cloud(cloud: PointCloud, path, *, scale=DEFAULT_SCALE, point_format: i
 
     References
     ----------
-    .. [1] Notebook 03, section 8 (CSV export, the registration study's step) and eqs. 1-3 (the LAS scale and
-       offset); seed 003, step 1.
+    .. [1] Notebook 03, section 8 (CSV export) and eqs. 1-3 (the LAS scale and
+       offset); the registration study, step 1.
     .. [2] ASPRS (2019): LAS Specification 1.4 - R15.
 
     Examples

@@ -131,7 +131,7 @@ def neighbourhoods(points, k: int | None = None, radius: float | None = None, *,
 
     References
     ----------
-    .. [1] Notebook 04, section 1; seed 003, step 4 (a kd-tree of the cloud and the nearest
+    .. [1] Notebook 04, section 1; the registration study, step 4 (a kd-tree of the cloud and the nearest
        neighbours of each point).
     .. [2] J. H. Friedman, J. L. Bentley, R. A. Finkel (1977): An algorithm for finding best matches
        in logarithmic expected time. ACM Transactions on Mathematical Software 3(3), 209-226,

@@ -1,4 +1,4 @@
-"""Comparing transformations with references (seed 003, step 5; notebook 07).
+"""Comparing transformations with references (the registration study, step 5; notebook 07).
 
 The table method x region x case: the shift of every method at the centre of
 the region, its error against the reference, and whether that error lies
@@ -434,7 +434,7 @@ def compare_methods(pairs, methods, *, references=None, alpha: float = 0.05) -> 
 
     References
     ----------
-    .. [1] Notebook 07, section 4, eqs. 5-6; seed 003, step 5 (compare the transformations visually
+    .. [1] Notebook 07, section 4, eqs. 5-6; the registration study, step 5 (compare the transformations visually
        and quantitatively).
     .. [2] P. J. Besl, N. D. McKay (1992): ICP, doi:10.1109/34.121791.
     .. [3] Y. Chen, G. Medioni (1992): point-to-plane registration, Image and Vision Computing 10(3).

@@ -1,4 +1,4 @@
-"""Reference transformations per test region (seed 003, step 1.5; notebook 07).
+"""Reference transformations per test region (the registration study, step 1.5; notebook 07).
 
 A reference is what a registration is checked against: the synthetic truth,
 a manual reference typed in by a user (e.g. read off CloudCompare) with its
@@ -195,7 +195,7 @@ def average_references(references, *, note: str = "") -> Reference:
 
     References
     ----------
-    .. [1] Notebook 07, section 2, eqs. 1-3; seed 003, step 1.5 (manual references made several
+    .. [1] Notebook 07, section 2, eqs. 1-3; the registration study, step 1.5 (manual references made several
        times).
     .. [2] W. Niemeier (2008): Ausgleichungsrechnung. 2nd edition, de Gruyter, Berlin.
 

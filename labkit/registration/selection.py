@@ -1,6 +1,6 @@
 """Which points a registration uses: stable classes, or surfaces without volume scatter (notebook 05, section 2b).
 
-The seed's step 4 ("Nutzen nur von best. Klassen", local noise to reject or weight): airborne
+The registration study's step 4 ("Nutzen nur von best. Klassen", local noise to reject or weight): airborne
 scans hold surfaces that stay put between epochs (ground, roofs, roads) and volume scatter
 (crowns, shrubs) whose points are new samples of a cloud of leaves in every flight. A normal
 fitted to a crown is random, and point-to-plane residuals on it pull the horizontal shift while
@@ -177,7 +177,7 @@ def select_points(source, target, select="auto", k=20):
 
     References
     ----------
-    .. [1] Notebook 05, section 2b; seed 003, step 4 (classes, local noise to reject or weight).
+    .. [1] Notebook 05, section 2b; the registration study, step 4 (classes, local noise to reject or weight).
     .. [2] M. Weinmann, B. Jutzi, S. Hinz, C. Mallet (2015): Semantic point cloud interpretation based on
        optimal neighborhoods, relevant features and efficient classifiers. ISPRS Journal of
        Photogrammetry and Remote Sensing 105, 286-304.
@@ -316,7 +316,7 @@ def check_other_classes(source, target, result, selection, register, *, alpha=1e
 
     References
     ----------
-    .. [1] Notebook 05, section 2b and eq. 5.16; seed 003, step 4 (classes).
+    .. [1] Notebook 05, section 2b and eq. 5.16; the registration study, step 4 (classes).
 
     Examples
     --------

@@ -1,6 +1,6 @@
 """Synthetic airborne laser scanning (ALS) test regions with two epochs and known truth.
 
-The regions follow the list of test areas in seed 003 (step 1): well
+The regions follow the list of test areas in the registration study (step 1): well
 constrained in XYZ, only in XZ (ridges along y), only in YZ (ridges along x),
 XY with a weak Z, forest, field, water, road, a building demolished or newly
 built, trees felled or planted. Each region is built as a surface model in the
@@ -191,7 +191,7 @@ def als_scene(region: str = "xyz", *, size=(60.0, 60.0), density=20.0, rng=None,
 def als_epochs(region: str = "xyz", *, shift=(0.23, -0.17, 0.11), rotation_deg=None,
                size=(60.0, 60.0), density=20.0, source_density=None, dim=False,
                rng=None, origin=(600000.0, 5400000.0, 300.0), layout_rng=None) -> EpochPair:
-    """Two epochs of a named test region with a known transformation (seed 003, steps 1 and 1.5).
+    """Two epochs of a named test region with a known transformation (the registration study, steps 1 and 1.5).
 
     Parameters
     ----------

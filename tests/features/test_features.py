@@ -120,7 +120,7 @@ def test_eigenvalues_sorted_and_match_a_plain_per_point_route():
 
 
 def test_eig_does_not_sort_but_eigh_does():
-    # the seed's pitfall: np.linalg.eig returns eigenvalues in no guaranteed order
+    # the registration study's pitfall: np.linalg.eig returns eigenvalues in no guaranteed order
     C = np.array([[1.0, 0, 0], [0, 5.0, 0], [0, 0, 3.0]])
     assert list(np.linalg.eig(C)[0]) == [1.0, 5.0, 3.0]
     lam, _ = F.sorted_eigh(C[None])

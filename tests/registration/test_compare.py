@@ -163,7 +163,7 @@ def test_reference_file_round_trip_and_repeats(tmp_path):
     back = compare.load_references(path)
     np.testing.assert_allclose(back[("r1", "als-als")].matrix, T, atol=1e-15)
     np.testing.assert_allclose(back[("r2", "als-dim")].std, [0.01, 0.02, 0.03], rtol=1e-12)
-    # a hand-written file with repeats (the seed's "several times for certainty")
+    # a hand-written file with repeats (the registration study's "several times for certainty")
     doc = {"references": [{"region": "r3", "case": "als-als", "repeats": [[0.1, 0, 0], [0.12, 0, 0], [0.14, 0, 0]],
                            "std": 0.005}, {"region": "r4", "matrix": np.eye(4).tolist()}]}
     (tmp_path / "hand.json").write_text(json.dumps(doc))
