@@ -1,4 +1,4 @@
-"""Sphere adjustment in the Gauss-Helmert model (notebook 01, seed 000 section 1).
+"""Sphere adjustment in the Gauss-Helmert model (notebook 01, the exercise sheet, section 1).
 
 Functional model (eq. 4): ``f_i(l + v, x) = |p_i + v_i - c| - r = 0`` with the
 observations l = point coordinates and the parameters x = [xc, yc, zc, r].

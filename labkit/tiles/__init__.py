@@ -1,4 +1,4 @@
-"""Shift fields over tiles: coherent areas at survey scale (seed 003, step 6; notebook 08).
+"""Shift fields over tiles: coherent areas at survey scale (the registration study, step 6; notebook 08).
 
 A survey is cut into square tiles (e.g. 100 m); every tile is registered on its
 own, giving one shift per tile (the *shift field*). Neighbouring tiles whose

@@ -108,7 +108,7 @@ def test_recovery_without_radius_prior_msac_and_ghm_solver():
     msac = ransac_sphere(scene.points, 0.003, rng=3, scoring="msac")
     for res in (base, msac):
         assert res.found and max(_errors(res, scene.sphere)) < 0.002
-    # the seed's GHM minimal solver and the closed form see the same samples and give the same
+    # the exercise sheet's GHM minimal solver and the closed form see the same samples and give the same
     # spheres (without LO, whose timing depends on the batch size, the runs are identical)
     base = ransac_sphere(scene.points, 0.003, rng=3, local_optimization=False)
     ghm = ransac_sphere(scene.points, 0.003, rng=3, local_optimization=False, minimal_solver="ghm")

@@ -1,6 +1,6 @@
 """Iterative closest point with rejection, robust weights and a degeneracy report (notebook 05).
 
-The registration study's ``ICP`` and ``Optimierung`` (seed 003, step 2): in every iteration
+The registration study's ``ICP`` and ``Optimierung`` (the registration study, step 2): in every iteration
 the correspondences of :func:`labkit.registration.match` are cleaned by iterative
 deletion beyond k robust standard deviations and down-weighted by Huber or Tukey,
 then one weighted least-squares adjustment gives the update of the
@@ -239,7 +239,7 @@ def icp(
 
     References
     ----------
-    .. [1] Notebook 05, eqs. 5.1-5.18; seed 003, step 2 (ICP with kd-tree matching, own adjustment)
+    .. [1] Notebook 05, eqs. 5.1-5.18; the registration study, step 2 (ICP with kd-tree matching, own adjustment)
        and step 4 (PCA normals, local noise as weights).
     .. [2] P. J. Besl, N. D. McKay (1992): A method for registration of 3-D shapes. IEEE
        Transactions on Pattern Analysis and Machine Intelligence 14(2), 239-256,

@@ -1,4 +1,4 @@
-"""Maximum consensus over translations and the consensus cube (notebook 06, seed 003 step 3).
+"""Maximum consensus over translations and the consensus cube (notebook 06, the registration study, step 3).
 
 For a translation t the consensus is (eq. 6.1, 6.2)
 
@@ -158,7 +158,7 @@ def consensus_cube(
 
     References
     ----------
-    .. [1] Notebook 06, sections 1-2, eqs. 6.1-6.6; seed 003, step 3 (shifts in cm steps up to 1 m
+    .. [1] Notebook 06, sections 1-2, eqs. 6.1-6.6; the registration study, step 3 (shifts in cm steps up to 1 m
        each way, the consensus cube).
     .. [2] T.-J. Chin, D. Suter (2017): The Maximum Consensus Problem: Recent Algorithmic Advances.
        Synthesis Lectures on Computer Vision, Morgan & Claypool.
@@ -362,7 +362,7 @@ def max_consensus(
 
     References
     ----------
-    .. [1] Notebook 06, section 5, eqs. 6.7-6.14; seed 003, step 3.
+    .. [1] Notebook 06, section 5, eqs. 6.7-6.14; the registration study, step 3.
     .. [2] T.-J. Chin, D. Suter (2017): The Maximum Consensus Problem: Recent Algorithmic Advances.
        Synthesis Lectures on Computer Vision, Morgan & Claypool.
     .. [3] B. Efron (1982): The Jackknife, the Bootstrap and Other Resampling Plans. CBMS-NSF

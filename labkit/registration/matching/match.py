@@ -1,4 +1,4 @@
-"""Correspondences between two clouds: the registration study's ``Matching`` (seed 003, steps 2 and 4).
+"""Correspondences between two clouds: the registration study's ``Matching`` (the registration study, steps 2 and 4).
 
 One call of :func:`match` runs the steps of notebook 05, section 2:
 
@@ -323,7 +323,7 @@ def match(
 
     References
     ----------
-    .. [1] Notebook 05, section 2, eqs. 5.1-5.2 and 5.5-5.6; seed 003, step 2 (kd-tree matching)
+    .. [1] Notebook 05, section 2, eqs. 5.1-5.2 and 5.5-5.6; the registration study, step 2 (kd-tree matching)
        and step 4 (normal angles, local noise).
     .. [2] J. H. Friedman, J. L. Bentley, R. A. Finkel (1977): k-d tree search, doi:10.1145/355744.355745.
     .. [3] S. Rusinkiewicz, M. Levoy (2001): Efficient variants of the ICP algorithm. Proc. Third
