@@ -12,9 +12,8 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from scipy import stats
-
 from .checks import choice, probability
+from .distributions import chi2_ppf, chi2_sf, f_ppf, norm_ppf
 from .report import ReportMixin, fmt
 
 #: sigma of a normal distribution per median absolute deviation: 1 / Phi^-1(3/4) (the robust scale 1.4826 MAD)
@@ -87,13 +86,13 @@ def global_test(omega: float, dof: int, sigma0_apriori: float, alpha: float) -> 
 
 @lru_cache(maxsize=256)
 def _chi2_bounds(dof: int, alpha: float) -> tuple:
-    lower, upper = stats.chi2.ppf([alpha / 2, 1 - alpha / 2], dof)
+    lower, upper = chi2_ppf([alpha / 2, 1 - alpha / 2], dof)
     return float(lower), float(upper)
 
 
 @lru_cache(maxsize=64)
 def _norm_quantile(p: float) -> float:
-    return float(stats.norm.ppf(p))
+    return float(norm_ppf(p))
 
 
 def w_critical(alpha_w: float) -> float:
@@ -167,7 +166,7 @@ def confidence_ellipsoid(center, covariance, level: float = 0.95, dof: int | Non
     """
     level = probability(level, "level")
     C = 0.5 * (np.asarray(covariance, dtype=np.float64) + np.asarray(covariance, dtype=np.float64).T)
-    q = 3 * stats.f.ppf(level, 3, dof) if dof else stats.chi2.ppf(level, 3)
+    q = 3 * f_ppf(level, 3, dof) if dof else chi2_ppf(level, 3)
     lam, vecs = np.linalg.eigh(C)
     order = np.argsort(lam)[::-1]
     semi = np.sqrt(np.clip(lam[order], 0.0, None) * q)
@@ -197,7 +196,7 @@ def chi2_test(e, C):
     k = e.shape[-1]
     T = quadratic_form(e, C)
     with np.errstate(invalid="ignore"):
-        p = stats.chi2.sf(T, max(k, 1))
+        p = chi2_sf(T, max(k, 1))
     if e.ndim == 1:
         return float(T), float(p)
     return T, p

@@ -6,8 +6,8 @@ Every helper takes an optional ``ax`` / ``axes`` / ``plotter`` and returns it; n
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
 
+from ..core.distributions import norm_pdf, norm_ppf
 from ._style import CMAP_DIVERGING, COLORS, POINT_SIZE, new_plotter, scalar_bar
 
 
@@ -55,14 +55,14 @@ def plot_residuals(fit, axes=None, bins=50):
         scale = np.nanmedian(np.abs(e[np.isfinite(fit.w_test)] / w)) * (
             fit.sigma0 / fit.sigma0_apriori if getattr(fit, "sigma_known", True) else 1.0)
         grid = np.linspace(e.min(), e.max(), 200)
-        ax_h.plot(grid, stats.norm.pdf(grid, 0, scale), color=COLORS["reference"], label=f"N(0, {scale:.2f} mm)")
+        ax_h.plot(grid, norm_pdf(grid, scale), color=COLORS["reference"], label=f"N(0, {scale:.2f} mm)")
     ax_h.set_xlabel("residual along the normal [mm]  (+ outside)")
     ax_h.set_ylabel("density")
     ax_h.set_title("Residuals")
     ax_h.legend(fontsize=8)
 
     if len(w):
-        theo = stats.norm.ppf((np.arange(1, len(w) + 1) - 0.5) / len(w))
+        theo = norm_ppf((np.arange(1, len(w) + 1) - 0.5) / len(w))
         order = np.sort(w)
         bad = np.abs(order) > fit.w_critical
         ax_q.plot(theo[~bad], order[~bad], ".", color=COLORS["inlier"], ms=3, label="w")

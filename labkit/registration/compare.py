@@ -20,10 +20,10 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
-from scipy import stats
 
 from ..core.atomic import atomic_write_text
 from ..core.checks import as_points, as_rng, choice, probability
+from ..core.distributions import chi2_ppf
 from ..core.report import ReportMixin
 from ..core.stats import chi2_test
 from ..change.distances import (
@@ -514,7 +514,7 @@ def _row(name, region, case, pair, ref, result, runtime, error, alpha) -> Compar
     missed = mask & ~np.isfinite(np.diag(Sigma_m))  # constrained by the data, undetermined by the method
     test = mask & ~missed
     chi2, p = chi2_test(e[test], (Sigma_m + ref.covariance)[np.ix_(test, test)])  # (eq. 6)
-    inside = bool(np.isfinite(chi2) and chi2 <= stats.chi2.ppf(1 - alpha, test.sum()) and not missed.any())
+    inside = bool(np.isfinite(chi2) and chi2 <= chi2_ppf(1 - alpha, test.sum()) and not missed.any())
     dR = T[:3, :3] @ ref.rotation.T
     rot_err = np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))) * 3600
     return ComparisonRow(

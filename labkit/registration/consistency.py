@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.stats import chi2
 
+from ..core.distributions import chi2_sf
 from ..core.report import ReportMixin, fmt
 
 
@@ -221,7 +221,7 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
     parts = np.array([float((y - V.T @ x) @ W @ (y - V.T @ x)) for V, W, y in zip(Vs, Ws, ys)])
     T = float(parts.sum())
     dof = int(sum(len(y) for y in ys) - rank)
-    p = float(chi2.sf(T, dof)) if dof > 0 else 1.0
+    p = float(chi2_sf(T, dof)) if dof > 0 else 1.0
     delta, offset_std = np.array(deltas), np.array(offs_std)
     offset = np.where(np.isnan(offset_std), np.nan, delta)[:, translation]
     between = np.zeros((u, u))

@@ -7,9 +7,10 @@ Every helper here works on stacks of points or 3x3 blocks with batched numpy: no
 from __future__ import annotations
 
 import numpy as np
-from scipy import linalg, stats
+from scipy import linalg
 
 from ..core.checks import numeric_array
+from ..core.distributions import beta_sf, chi2_sf, norm_isf
 from ..core.errors import LabkitError
 from ..transforms import angles_from_rotation, rotation_from_angles, skew  # noqa: F401 (skew: used by targets)
 
@@ -147,13 +148,13 @@ def point_tests(e, Qee, scale, sigma_known: bool, dof: int, omega_unit: float):
         T0 = np.where(keep, y * y / np.where(keep, lam, 1.0), 0.0).sum(axis=1)
         if sigma_known:
             T = T0 / scale**2
-            p = np.where(r > 0, stats.chi2.sf(T, np.maximum(r, 1)), np.nan)
+            p = np.where(r > 0, chi2_sf(T, np.maximum(r, 1)), np.nan)
         else:
             T = T0 / max(omega_unit, 1e-300) * dof  # T0 / sigma0_hat^2
             ok = (r > 0) & (dof > r)
             beta = np.clip(T0 / max(omega_unit, 1e-300), 0.0, 1.0)
-            p = np.where(ok, stats.beta.sf(beta, np.maximum(r, 1) / 2, np.maximum(dof - r, 1) / 2), np.nan)
-        z = np.where(np.isfinite(p), stats.norm.isf(np.clip(p, 1e-300, 1.0) / 2), np.nan)
+            p = np.where(ok, beta_sf(beta, np.maximum(r, 1) / 2, np.maximum(dof - r, 1) / 2), np.nan)
+        z = np.where(np.isfinite(p), norm_isf(np.clip(p, 1e-300, 1.0) / 2), np.nan)
     return T, r, p, z
 
 
