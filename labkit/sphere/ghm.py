@@ -15,7 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
+from scipy.special import stdtrit  # scipy.stats.t.ppf without importing scipy.stats
 from scipy.linalg import cho_factor, cho_solve
 
 from ..core.checks import as_points, numeric_array, positive, probability
@@ -510,7 +510,7 @@ def tau_critical(alpha_w: float, dof: int) -> float:
     alpha_w = probability(alpha_w, "alpha_w")
     if dof < 2:
         return float("nan")
-    t = float(stats.t.ppf(1.0 - alpha_w / 2.0, dof - 1))
+    t = float(stdtrit(dof - 1, 1.0 - alpha_w / 2.0))
     return float(np.sqrt(dof) * t / np.sqrt(dof - 1 + t * t))
 
 

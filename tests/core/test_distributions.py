@@ -1,4 +1,7 @@
-"""labkit.core.distributions gives scipy.stats' numbers bit for bit."""
+"""labkit.core.distributions gives scipy.stats' numbers bit for bit, and the command line starts without scipy.stats."""
+
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -39,3 +42,10 @@ def test_dof_broadcast_like_scipy_stats():
     np.testing.assert_array_equal(d.chi2_sf(T, dof), stats.chi2.sf(T, dof))
     np.testing.assert_array_equal(d.chi2_isf(0.01, [1, 2, 3]), stats.chi2.isf(0.01, [1, 2, 3]))
 
+
+@pytest.mark.parametrize("module", ["labkit.cli", "labkit.cli.main"])
+def test_command_line_starts_without_scipy_stats(module):
+    """`labkit ...` imports labkit.cli.main (the console script); scipy.stats alone costs about a second."""
+    code = f"import sys, {module}; print('scipy.stats' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
