@@ -60,7 +60,7 @@ from scipy.special import ndtri, stdtrit  # the quantiles of scipy.stats.norm / 
 from . import search
 from .registration import RegistrationCovariance, load_registration, registration_variance, save_registration
 from ..core.checks import as_points, choice, positive, probability
-from ..core.crs import check_same_crs
+from ..core.crs import check_same_crs, crs_of, crs_summary
 from ..core.frame import local_origin, reduce
 from ..core.lengths import length_text
 from ..core.report import ReportMixin
@@ -104,6 +104,9 @@ class M3C2Result(ReportMixin):
         Welch's degrees of freedom, or the normal quantile for ``quantile='normal'``; NaN without a distance.
     cylinder_radius, max_depth, alpha, min_points, quantile :
         The parameters used.
+    crs : str or None
+        The inputs' CRS (``PointCloud.crs``); None when they state none (arrays, files without a CRS):
+        the summary then says the coordinates are in an unknown frame.
 
     Examples
     --------
@@ -134,6 +137,7 @@ class M3C2Result(ReportMixin):
     z: np.ndarray
     min_points: int
     quantile: str = "student"
+    crs: str | None = None
 
     @property
     def valid(self) -> np.ndarray:
@@ -162,6 +166,7 @@ class M3C2Result(ReportMixin):
         d = self.distance[ok]
         rows = [
             ("core points", f"{n} ({nv} with a distance, {n - nv} without)"),
+            ("CRS", crs_summary(self.crs)),
             ("cylinder", f"radius {length_text(self.cylinder_radius)}, half length {length_text(self.max_depth)}"),
             ("normal radius", _radius_text(self.normal_radius)),
             ("test level", f"alpha = {self.alpha:.3f} ({_quantile_text(self)}), at least {self.min_points} points "
@@ -328,6 +333,7 @@ def m3c2(
     return M3C2Result(
         cores_world, nrm, distance, lod, significant,
         np.where(enough, s1, nan), np.where(enough, s2, nan), n1, n2, reg, chosen, r, h, alpha, z, min_points, quantile,
+        crs_of(reference) or crs_of(compared),
     )
 
 

@@ -17,6 +17,9 @@ from .units import pyproj_crs, units_from_crs_text
 from .errors import CrsMismatchError, CrsNote, LabkitError
 from ..io import LAS_SUFFIXES, cloud_files, cloud_info
 
+#: what a result and its files say when the input stated no CRS (a warning alone would be lost)
+NO_CRS = "no CRS in the input: coordinates in an unknown frame"
+
 
 def crs_of(data) -> str | None:
     """The CRS text of a PointCloud, of LAS/LAZ files (headers only) or None (arrays, text files)."""
@@ -87,6 +90,18 @@ def describe_crs(text: str) -> str:
         return repr(text if len(text) <= 60 else text[:57] + "...")
     code = crs.to_epsg(min_confidence=70)
     return f"{crs.name} (EPSG:{code})" if code else crs.name
+
+
+def crs_summary(crs: str | None) -> str:
+    """A result's CRS for its summary: ``name (EPSG:code)``, or :data:`NO_CRS` when the input stated none.
+
+    Examples
+    --------
+    >>> from labkit.core.crs import crs_summary
+    >>> crs_summary("EPSG:25832"), crs_summary(None)
+    ('ETRS89 / UTM zone 32N (EPSG:25832)', 'no CRS in the input: coordinates in an unknown frame')
+    """
+    return describe_crs(crs) if crs else NO_CRS
 
 
 def check_same_crs(a, b, what: str, names=("source", "target")) -> None:

@@ -10,7 +10,8 @@ hold NaN (the nodata value).
 
 Files are written to a temporary name and renamed when complete (``labkit.core.atomic``).
 The CRS text a cloud carries (WKT or ``EPSG:n[+m]``) becomes a rasterio CRS in one
-place, :func:`geotiff_crs`.
+place, :func:`geotiff_crs`; a raster of an input without a CRS has none and carries the tag
+``CRS_NOTE`` ("no CRS in the input: coordinates in an unknown frame").
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.atomic import atomic_path
+from ..core.crs import NO_CRS
 from ..core.errors import LabkitError
 from . import LAS_SUFFIXES, cloud_files, cloud_info
 
@@ -257,6 +259,8 @@ def _write(path, grid, descriptions, names, crs, units, title):
         with rasterio.open(tmp, "w", **profile) as ds:
             ds.write(data.astype(np.float32))
             ds.update_tags(TITLE=title, VALUE_UNIT="metre", COORDINATE_UNIT=unit_name)
+            if not crs:  # a GeoTIFF without a CRS says so (tag CRS_NOTE), not only the warning of the run
+                ds.update_tags(CRS_NOTE=NO_CRS)
             for i, (d, n) in enumerate(zip(descriptions, names), start=1):
                 ds.set_band_description(i, d)
                 ds.update_tags(i, NAME=n)

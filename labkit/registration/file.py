@@ -34,7 +34,10 @@ import numpy as np
 
 from .. import __version__
 from ..core.atomic import as_path, atomic_write_text
+from ..core.crs import crs_summary
 from ..core.errors import LabkitError
+from ..core.lengths import length_text
+from ..core.report import ReportMixin
 from ..transforms import apply_transform
 
 __all__ = ["RegistrationFile", "load_registration", "save_registration"]
@@ -47,7 +50,7 @@ NAMES = ("tx", "ty", "tz", "rx", "ry", "rz", "scale")
 
 
 @dataclass(frozen=True, eq=False)
-class RegistrationFile:
+class RegistrationFile(ReportMixin):
     """A registration as read from its JSON file (see :func:`load_registration`).
 
     It has the fields :func:`labkit.change.m3c2.registration_variance` reads from a
@@ -66,7 +69,8 @@ class RegistrationFile:
     units : str
         Unit of the translation, origin and covariance (``"m"``).
     crs : str or None
-        CRS of the inputs as their files state it.
+        CRS of the inputs as their files state it; None when they state none (the summary says the
+        coordinates are in an unknown frame).
     inputs : tuple of (str, str)
         ``(("source", path), ("target", path))``: what was registered onto what.
     method : str
@@ -100,6 +104,23 @@ class RegistrationFile:
     def apply(self, points) -> np.ndarray:
         """Map points of the moved epoch into the reference frame."""
         return apply_transform(self.matrix, points)
+
+    def _report(self):
+        def std_text(name, s):
+            if not np.isfinite(s):
+                return f"{name} not determined"
+            if name == "scale":
+                return f"scale {s * 1e6:.3g} ppm"
+            return f"{name} {length_text(s)}" if name[0] == "t" else f"{name} {np.degrees(s) * 3600:.3g} arcsec"
+
+        params = ", ".join(std_text(n, s) for n, s in zip(self.parameter_names, self.std))
+        rows = [("translation", ", ".join(length_text(v, sign=True) for v in self.matrix[:3, 3])),
+                ("standard deviations", params),
+                ("origin", ", ".join(f"{v:.3f}" for v in self.origin) + f" {self.units}"),
+                ("CRS", crs_summary(self.crs))]
+        rows += [(role, path) for role, path in self.inputs]
+        rows.append(("written by", f"labkit {self.labkit_version}"))
+        return f"Registration ({self.method or 'method not stated'})", [("", rows)]
 
     def inverse(self) -> "RegistrationFile":
         """The registration the other way round (reference -> moved epoch), to first order in the covariance.
