@@ -65,6 +65,8 @@ def read_las(path: Path, flt: ReadFilter, keep, chunk_size: int, progress, units
         names = [d for d in header.point_format.dimension_names if d not in ("X", "Y", "Z")]
         names = [d for d in names if keep is None or d in keep]
         require_classification(flt, header.point_format.dimension_names, path)
+        if header.are_points_compressed:  # with or without a filter: a wrong count is found before decoding
+            _check_chunk_table(path, header, path.stat().st_size)
         every = not flt.active  # no filter: each point is kept, coordinates go straight into the cloud
         gather = ChunkCollector(_plausible_count(header, path) if every or _holds_header(flt, header, factors) else None)
         scales, offsets = np.asarray(header.scales, dtype=np.float64), np.asarray(header.offsets, dtype=np.float64)
@@ -206,7 +208,6 @@ def _plausible_count(header, path: Path) -> int | None:
                 "the header is wrong (rewrite the file with a tool that updates it, e.g. las2las or PDAL)"
             )
         return total
-    _check_chunk_table(path, header, size)
     return total if needed <= 50 * size else None
 
 
@@ -231,16 +232,31 @@ def _check_chunk_table(path: Path, header, size: int) -> None:
             f"{path} is a truncated or corrupt LAZ file: its chunk table should start at byte {table}, "
             f"the file has {size} bytes"
         )
-    held = _laz_points_at_least(path, header) if table != -1 else None
-    if held is not None and held > header.point_count:
+    held = _laz_points_held(path, header) if table != -1 else None
+    if held is None:
+        return
+    count, (least, most) = int(header.point_count), held
+    exact = f"holds {least}" if least == most else f"holds at least {least}"
+    if count < least:
         raise CloudFileError(
-            f"{path}: the header counts {header.point_count} points but the file holds at least {held} "
-            "(its LAZ chunk table); the header is wrong (rewrite the file with a tool that updates it)"
+            f"{path}: the header counts {count} points but the file {exact} (its LAZ chunk table); the header "
+            "is wrong (rewrite the file with a tool that updates it)"
+        )
+    if count > most:
+        raise CloudFileError(
+            f"{path} is truncated or its header is wrong: the header counts {count} points but the file "
+            + (f"holds {most}" if least == most else f"has room for at most {most}") + " (its LAZ chunk table)"
         )
 
 
-def _laz_points_at_least(path: Path, header) -> int | None:
-    """The fewest points the LAZ chunk table allows: the sum of variable chunks, else all but the last full."""
+def _laz_points_held(path: Path, header) -> tuple[int, int] | None:
+    """(fewest, most) points the LAZ chunk table allows; None without a readable table.
+
+    Variable-size chunks record their counts, and so does every chunk of a layered LAZ
+    1.4 file (point formats 6-10: a 32-bit count after the chunk's raw first point), so
+    both bounds are the count. Fixed-size chunks of point formats 0-5 record none: all
+    but the last chunk are full, the last one holds 1 to ``chunk_size`` points.
+    """
     import lazrs
 
     vlr = next((v for v in header.vlrs if getattr(v, "record_id", None) == 22204), None)
@@ -251,13 +267,20 @@ def _laz_points_at_least(path: Path, header) -> int | None:
         with open(path, "rb") as f:
             f.seek(header.offset_to_point_data)
             chunks = lazrs.read_chunk_table(f, laz)
+            if not chunks or laz.uses_variable_size_chunks():
+                n = int(sum(c[0] for c in chunks))
+                return (n, n) if chunks else None
+            full = (len(chunks) - 1) * int(laz.chunk_size())
+            if header.point_format.id < 6:
+                return full + 1, full + int(laz.chunk_size())
+            # the last chunk: after the table's offset (8 bytes), the earlier chunks and its raw first point
+            f.seek(header.offset_to_point_data + 8 + sum(int(c[1]) for c in chunks[:-1]) + header.point_format.size)
+            last = struct.unpack("<I", f.read(4))[0]
     except Exception:  # noqa: BLE001 - an unreadable table is reported by the decompressor itself
         return None
-    if not chunks:
-        return None
-    if laz.uses_variable_size_chunks():
-        return int(sum(c[0] for c in chunks))
-    return (len(chunks) - 1) * int(laz.chunk_size()) + 1
+    if not 1 <= last <= int(laz.chunk_size()):
+        return None  # not a count: left to the decompressor
+    return full + last, full + last
 
 
 def _las_crs_records(header):

@@ -73,7 +73,13 @@ def read_cloud(
     Raises
     ------
     CloudFileError
-        Missing, unreadable, truncated or corrupt file, unsupported suffix.
+        Missing, unreadable, truncated or corrupt file, unsupported suffix; a LAS/LAZ file
+        whose header counts other points than the file holds (with or without filters).
+        A LAZ file records how many points each chunk holds for point formats 6-10 and
+        variable-size chunks, so a wrong count there is always found. For point formats
+        0-5 with fixed-size chunks (50,000 points) the last chunk's count is recorded
+        nowhere: a header that counts fewer points than the last chunk holds (by less than
+        one chunk) cannot be told from a right one, and the header's count is read.
     EmptyRegionError
         The filters keep no point.
     UnitsError

@@ -119,8 +119,37 @@ def test_laz_header_counting_fewer_points_than_its_chunks_hold(tmp_path, version
     """A LAZ file of 120,000 points in chunks of 50,000: a count below the first point of the last chunk is refused."""
     path = _file(tmp_path, ".laz", n=120_000, version=version, point_format=point_format)
     _set_count(path, announced, version)
-    with pytest.raises(CloudFileError, match=f"counts {announced} points but the file holds at least"):
+    held = "120000" if point_format >= 6 else "at least 100001"  # formats 6-10 record the last chunk's count
+    with pytest.raises(CloudFileError, match=f"counts {announced} points but the file holds {held} "):
         read_cloud(path)
+
+
+@pytest.mark.parametrize("announced", [100_001, 119_999, 120_001, 139_999, 150_001])
+@pytest.mark.parametrize("options", [{}, {"parallel": False}, {"classes": [1, 2]}, {"bbox": (500_000, 5_400_000, 500_050, 5_400_050)}])
+def test_laz_count_off_inside_the_last_chunk_is_refused(tmp_path, announced, options):
+    """Point format 6: the last of three chunks (20,000 points) records its count; a header off by
+    less than a chunk, either way, is refused with or without filters, never read short or long."""
+    path = _file(tmp_path, ".laz", n=120_000, version="1.4", point_format=6)
+    _set_count(path, announced, "1.4")
+    with pytest.raises(CloudFileError, match=f"counts {announced} points but the file holds 120000 "):
+        read_cloud(path, **options)
+
+
+@pytest.mark.parametrize("options", [{}, {"parallel": False}, {"classes": [1, 2]}])
+def test_laz_count_beyond_its_chunks_is_refused(tmp_path, options):
+    """Point format 1 (no count per chunk): three chunks hold at most 150,000 points."""
+    path = _file(tmp_path, ".laz", n=120_000, version="1.2", point_format=1)
+    _set_count(path, 150_001, "1.2")
+    with pytest.raises(CloudFileError, match="counts 150001 points but the file has room for at most 150000"):
+        read_cloud(path, **options)
+
+
+@pytest.mark.parametrize("options", [{"classes": [1, 2]}, {"bbox": (500_000, 5_400_000, 500_050, 5_400_050)}])
+def test_laz_count_short_of_its_chunks_is_refused_with_filters_too(tmp_path, options):
+    path = _file(tmp_path, ".laz", n=120_000, version="1.2", point_format=1)
+    _set_count(path, 60_000, "1.2")
+    with pytest.raises(CloudFileError, match="counts 60000 points but the file holds at least 100001"):
+        read_cloud(path, **options)
 
 
 @pytest.mark.parametrize("suffix", [".las", ".laz"])
