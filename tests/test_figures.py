@@ -122,3 +122,28 @@ def test_demo_sphere_figures(tmp_path, monkeypatch):
     monkeypatch.setattr(demo, "save_figure", keep)
     demo._sphere_step(tmp_path, quick=True)
     assert len(seen) >= 3
+
+
+def test_demo_renders_have_labelled_axes():
+    """The 3-D renders of the demo show x, y, z axes with ticks whose titles name the unit and the origin."""
+    from labkit import gauss_helmert_model, ransac_sphere
+    from labkit.synthetic import sphere_on_tripod
+    from labkit.plotting.compare import plot_distance_cloud
+    from labkit.plotting.ransac import render_inliers
+    from labkit.plotting.sphere import plot_sphere_residuals
+
+    rng = np.random.default_rng(2)
+    xyz = rng.uniform(0, 40, (2000, 3)) * [1, 1, 0.2] + [600_000.0, 5_400_000.0, 300.0]
+    scene = sphere_on_tripod(n_sphere=300, outlier_ratio=0.5, rng=10)
+    found = ransac_sphere(scene.points, 0.003, rng=0)
+    fit = gauss_helmert_model(scene.points[found.inliers], sigma=scene.noise)
+    renders = {"distance": plot_distance_cloud(xyz, rng.normal(0, 0.05, len(xyz))),
+               "inliers": render_inliers(scene.points, found, close_up=6.0),
+               "residuals": plot_sphere_residuals(scene.points[found.inliers], fit)}
+    assert renders["distance"].renderer.cube_axes_actor.GetXTitle() == "x - 600020 (m)"
+    for name, plotter in renders.items():
+        axes = plotter.renderer.cube_axes_actor
+        titles = [axes.GetXTitle(), axes.GetYTitle(), axes.GetZTitle()]
+        assert all(re.fullmatch(r"[xyz]( - \d+| from the centre)? \(m\)", t) for t in titles), (name, titles)
+        assert axes.GetVisibility() and plotter.screenshot(return_img=True).std() > 0
+        plotter.close()

@@ -4,6 +4,6 @@ Topic submodules: ``labkit.plotting.sphere``, ``.ransac``, ``.clouds``,
 ``.registration``, ``.consensus``. Shared constants live in ``_style``.
 """
 
-from ._style import COLORS, POINT_SIZE, new_plotter, screenshot, show_render
+from ._style import COLORS, POINT_SIZE, new_plotter, screenshot, show_render, show_scale
 
-__all__ = ["COLORS", "POINT_SIZE", "new_plotter", "screenshot", "show_render"]
+__all__ = ["COLORS", "POINT_SIZE", "new_plotter", "screenshot", "show_render", "show_scale"]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from ..notebook import setup_headless
 
 COLORS = {
@@ -47,6 +49,40 @@ def new_plotter(plotter=None, window_size=WINDOW_SIZE):
     import pyvista as pv
 
     return pv.Plotter(off_screen=True, window_size=list(window_size))
+
+
+def show_scale(plotter, origin=(0.0, 0.0, 0.0), unit="m", frame=None, bounds=None):
+    """Labelled x, y, z axes with ticks in ``unit`` around what the plotter shows, and the orientation widget.
+
+    The rendered coordinates are reduced (VTK works in float32): ``origin`` is the point subtracted,
+    named in the titles (``x - 600000 (m)``), or ``frame`` names it in words (``x from the centre (m)``).
+    ``bounds`` (xmin, xmax, ymin, ymax, zmin, zmax) limits the axes to a part of the scene (a close-up).
+    Returns ``plotter``.
+
+    Examples
+    --------
+    >>> import pyvista as pv
+    >>> from labkit.plotting import new_plotter, show_scale
+    >>> plotter = new_plotter(window_size=(64, 48))
+    >>> _ = plotter.add_mesh(pv.Sphere())
+    >>> show_scale(plotter, origin=(600000.0, 5400000.0, 0.0)).renderer.cube_axes_actor.GetXTitle()
+    'x - 600000 (m)'
+    >>> plotter.close()
+    """
+    def title(axis, o):
+        if frame is not None:
+            return f"{axis} {frame} ({unit})"
+        return f"{axis} ({unit})" if o == 0 else f"{axis} - {o:.0f} ({unit})"
+
+    x, y, z = (title(a, float(o)) for a, o in zip("xyz", origin))
+    b = plotter.bounds if bounds is None else bounds
+    extent = max(b[1] - b[0], b[3] - b[2], b[5] - b[4], 1e-9)
+    decimals = int(np.clip(2 - np.floor(np.log10(extent)), 0, 4))  # about three significant digits
+    plotter.show_bounds(bounds=None if bounds is None else list(bounds), xtitle=x, ytitle=y, ztitle=z, grid=False, location="outer", ticks="outside",
+                        n_xlabels=3, n_ylabels=3, n_zlabels=3, font_size=12, bold=False, fmt=f"%.{decimals}f",
+                        use_3d_text=False)
+    plotter.add_axes()
+    return plotter
 
 
 def screenshot(plotter, path=None):

@@ -12,7 +12,7 @@ from ..core.frame import local_origin
 from ..core.errors import LabkitError
 from ..core.masks import ASPRS_NAMES  # noqa: F401  (re-exported: the one table lives in labkit.core.masks)
 from .clouds import class_name
-from ._style import CMAP_DIVERGING, CMAP_SEQUENTIAL, COLORS, POINT_SIZE, new_plotter, scalar_bar
+from ._style import CMAP_DIVERGING, CMAP_SEQUENTIAL, COLORS, POINT_SIZE, new_plotter, scalar_bar, show_scale
 
 AXES = ("X", "Y", "Z")
 
@@ -36,19 +36,21 @@ def plot_distance_cloud(points, distances, *, plotter=None, clim=None, title="di
                         point_size=POINT_SIZE, view="iso"):
     """The cloud coloured by its (signed) distances, diverging colour map with a scale bar.
 
-    Coordinates are reduced to a local origin first (VTK renders in float32).
-    ``clim`` defaults to symmetric limits at the 98 % quantile of |d|.
+    Coordinates are reduced to a local origin first (VTK renders in float32); the axes name it
+    (``x - 600000 (m)``). ``clim`` defaults to symmetric limits at the 98 % quantile of |d|.
     """
     import pyvista as pv
 
     xyz = as_points(points, name="points")
     d = np.asarray(distances, dtype=float)
     plotter = new_plotter(plotter)
-    poly = pv.PolyData(xyz - local_origin(xyz))
+    origin = local_origin(xyz)
+    poly = pv.PolyData(xyz - origin)
     poly[title] = d
     clim = symmetric_limits(d) if clim is None else clim
     plotter.add_mesh(poly, scalars=title, cmap=cmap, clim=clim, point_size=point_size,
                      render_points_as_spheres=False, scalar_bar_args=scalar_bar(title, n_labels=5, fmt="%.3f"))
+    show_scale(plotter, origin)
     if view == "iso":
         plotter.view_isometric()
     elif view == "top":

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..ransac import required_iterations
-from ._style import COLORS, POINT_SIZE, new_plotter
+from ._style import COLORS, POINT_SIZE, new_plotter, show_scale
 
 
 def _axes(ax):
@@ -114,7 +114,8 @@ def render_inliers(points, result, plotter=None, max_points=200_000, show_sphere
     subset : ndarray of bool (n,), optional
         Draw only these points (e.g. without the ceiling of a room).
     close_up : float, optional
-        Look at the found sphere from ``close_up`` radii away, along ``view``.
+        Look at the found sphere from ``close_up`` radii away, along ``view``; the axes then
+        span the sphere (its bounding box) rather than the whole scene.
     """
     import pyvista as pv
 
@@ -138,6 +139,10 @@ def render_inliers(points, result, plotter=None, max_points=200_000, show_sphere
             direction = np.asarray(view, dtype=np.float64) / np.linalg.norm(view)
             plotter.camera_position = [tuple(centre + close_up * r * direction), tuple(centre), (0.0, 0.0, 1.0)]
     plotter.add_legend(bcolor="white", size=(0.24, 0.12), loc="upper right")
+    near = None
+    if result.found and close_up:
+        near = np.repeat(centre, 2) + np.tile([-r, r], 3)
+    show_scale(plotter, origin, bounds=near)
     return plotter
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..core.distributions import norm_pdf, norm_ppf
-from ._style import CMAP_DIVERGING, COLORS, POINT_SIZE, new_plotter, scalar_bar
+from ._style import CMAP_DIVERGING, COLORS, POINT_SIZE, new_plotter, scalar_bar, show_scale
 
 
 def _axes(ax, ncols=1, figsize=None):
@@ -133,7 +133,7 @@ def plot_sphere_residuals(points, fit, plotter=None, clim_mm=None, show_sphere=T
     if show_sphere:
         sphere = pv.Sphere(radius=fit.radius, center=(0.0, 0.0, 0.0), theta_resolution=60, phi_resolution=60)
         plotter.add_mesh(sphere, color=COLORS["sphere"], opacity=0.25)
-    plotter.add_axes()
+    show_scale(plotter, frame="from the centre")
     if view_from is not None:
         d = np.asarray(view_from, dtype=np.float64) - origin
         plotter.camera_position = [tuple(6 * fit.radius * d / np.linalg.norm(d)), (0.0, 0.0, 0.0), (0.0, 0.0, 1.0)]
