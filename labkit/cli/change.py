@@ -57,11 +57,13 @@ def _maps_reference_onto_compared(roles, reference, compared) -> bool:
 
 def same_crs(a: str, b: str) -> bool:
     """Two CRS texts name the same CRS (GDAL/PROJ through rasterio), or are equal text where they cannot be parsed."""
+    import rasterio
     from rasterio.crs import CRS
     from rasterio.errors import CRSError
 
     try:
-        return CRS.from_user_input(a) == CRS.from_user_input(b)
+        with rasterio.Env():  # GDAL's message on a CRS it cannot read goes to rasterio's logger, not stderr
+            return CRS.from_user_input(a) == CRS.from_user_input(b)
     except CRSError:
         return a == b
 

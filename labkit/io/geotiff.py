@@ -61,13 +61,17 @@ def geotiff_crs(crs):
     >>> geotiff_crs("EPSG:25832").to_epsg(), geotiff_crs(None)
     (25832, None)
     """
+    import rasterio
     from rasterio.crs import CRS
     from rasterio.errors import CRSError
 
     if not crs:
         return None
     try:
-        return CRS.from_user_input(crs)
+        # inside an Env, GDAL's messages (PROJ's "crs not found") go to rasterio's logger, not to stderr;
+        # a CRS it cannot read raises CRSError, which says so
+        with rasterio.Env():
+            return CRS.from_user_input(crs)
     except CRSError as exc:
         m = re.fullmatch(r"\s*EPSG:(\d+)\+\d+\s*", str(crs), flags=re.IGNORECASE)
         if m is None:

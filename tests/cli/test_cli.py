@@ -405,3 +405,12 @@ def test_committed_data_through_the_cli(tmp_path, capsys):
     assert [(r["region"], r["case"]) for r in rows] == [("xyz", "als-als"), ("demolished", "changes"),
                                                          ("xyz", "als-dim")]
     assert all(float(r["error_norm_constrained"]) < 0.01 for r in rows)
+
+
+def test_comparing_a_crs_proj_half_knows_prints_nothing(capfd):
+    """`labkit change --registration` compares the file's CRS with the input's: EPSG:2903+5103 quietly."""
+    from labkit.cli.change import same_crs
+
+    capfd.readouterr()
+    assert same_crs("EPSG:2903+5103", "EPSG:2903+5103") and not same_crs("EPSG:2903+5103", "EPSG:2904+5103")
+    assert capfd.readouterr().err == ""
