@@ -61,12 +61,12 @@ def show_scale(plotter, origin=(0.0, 0.0, 0.0), unit="m", frame=None, bounds=Non
 
     Examples
     --------
-    >>> import pyvista as pv
     >>> from labkit.plotting import new_plotter, show_scale
-    >>> plotter = new_plotter(window_size=(64, 48))
-    >>> _ = plotter.add_mesh(pv.Sphere())
-    >>> show_scale(plotter, origin=(600000.0, 5400000.0, 0.0)).renderer.cube_axes_actor.GetXTitle()
-    'x - 600000 (m)'
+    >>> box = (0.0, 40.0, 0.0, 30.0, 0.0, 5.0)  # the reduced extent of the points drawn
+    >>> plotter = show_scale(new_plotter(window_size=(64, 48)), origin=(600000.0, 5400000.0, 0.0), bounds=box)
+    >>> axes = plotter.renderer.cube_axes_actor
+    >>> axes.GetXTitle(), axes.GetZTitle()
+    ('x - 600000 (m)', 'z (m)')
     >>> plotter.close()
     """
     def title(axis, o):
@@ -78,8 +78,8 @@ def show_scale(plotter, origin=(0.0, 0.0, 0.0), unit="m", frame=None, bounds=Non
     b = plotter.bounds if bounds is None else bounds
     extent = max(b[1] - b[0], b[3] - b[2], b[5] - b[4], 1e-9)
     decimals = int(np.clip(2 - np.floor(np.log10(extent)), 0, 4))  # about three significant digits
-    plotter.show_bounds(bounds=None if bounds is None else list(bounds), xtitle=x, ytitle=y, ztitle=z, grid=False, location="outer", ticks="outside",
-                        n_xlabels=3, n_ylabels=3, n_zlabels=3, font_size=12, bold=False, fmt=f"%.{decimals}f",
+    plotter.show_bounds(bounds=None if bounds is None else list(bounds), xtitle=x, ytitle=y, ztitle=z,
+                        grid=False, location="outer", ticks="outside", n_xlabels=3, n_ylabels=3, n_zlabels=3, font_size=12, bold=False, fmt=f"%.{decimals}f",
                         use_3d_text=False)
     plotter.add_axes()
     return plotter
