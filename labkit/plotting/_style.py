@@ -79,7 +79,8 @@ def show_scale(plotter, origin=(0.0, 0.0, 0.0), unit="m", frame=None, bounds=Non
     extent = max(b[1] - b[0], b[3] - b[2], b[5] - b[4], 1e-9)
     decimals = int(np.clip(2 - np.floor(np.log10(extent)), 0, 4))  # about three significant digits
     plotter.show_bounds(bounds=None if bounds is None else list(bounds), xtitle=x, ytitle=y, ztitle=z,
-                        grid=False, location="outer", ticks="outside", n_xlabels=3, n_ylabels=3, n_zlabels=3, font_size=12, bold=False, fmt=f"%.{decimals}f",
+                        grid=False, location="outer", ticks="outside", n_xlabels=3, n_ylabels=3, n_zlabels=3,
+                        font_size=12, bold=False, fmt=f"%.{decimals}f",
                         use_3d_text=False)
     plotter.add_axes()
     return plotter

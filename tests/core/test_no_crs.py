@@ -1,4 +1,5 @@
-"""An input without a CRS: the results and the files written from them say so (crs=None and a note), not only a warning."""
+"""An input without a CRS: the results and the files written from them say so (crs=None and a note),
+not only a warning."""
 
 import numpy as np
 import pytest

@@ -125,7 +125,8 @@ def test_laz_header_counting_fewer_points_than_its_chunks_hold(tmp_path, version
 
 
 @pytest.mark.parametrize("announced", [100_001, 119_999, 120_001, 139_999, 150_001])
-@pytest.mark.parametrize("options", [{}, {"parallel": False}, {"classes": [1, 2]}, {"bbox": (500_000, 5_400_000, 500_050, 5_400_050)}])
+@pytest.mark.parametrize("options", [{}, {"parallel": False}, {"classes": [1, 2]},
+                                     {"bbox": (500_000, 5_400_000, 500_050, 5_400_050)}])
 def test_laz_count_off_inside_the_last_chunk_is_refused(tmp_path, announced, options):
     """Point format 6: the last of three chunks (20,000 points) records its count; a header off by
     less than a chunk, either way, is refused with or without filters, never read short or long."""
