@@ -140,21 +140,27 @@ def surface_mask(points, k=20):
     tree = local_tree(xyz, local_origin(xyz), merge_duplicates=True)
     cols = np.ascontiguousarray(tree.data.T)
     keep = np.empty(tree.n, dtype=bool)  # per distinct point, in leaf order
-    for a in range(0, tree.n, CHUNK):
-        b = min(a + CHUNK, tree.n)
-        keep[a:b] = _surface_rows(tree, cols, np.arange(a, b), k)
+    leaves = tree.leaf_bounds
+    cut = np.unique(leaves[np.searchsorted(leaves, np.arange(0, tree.n, CHUNK))].tolist() + [tree.n])
+    for a, b in zip(cut[:-1], cut[1:]):  # chunks of whole leaves
+        keep[a:b] = _surface_rows(tree, cols, a, b, k)
     return keep[tree.representative]
 
 
-def _surface_rows(tree, cols, pos, k):
-    """The surface test of :func:`surface_mask` at the tree's distinct points ``pos`` (sorted leaf positions)."""
-    noise, lam = roughness(tree, cols, pos, k)  # eigenvalues ascending: l3, l2, l1
+def _is_surface(noise, lam):
+    """The test of :func:`surface_mask` on the noise (m,) and the eigenvalues (m, 3), ascending (monotone in the noise)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (noise <= SMOOTH_NOISE) | (noise / np.sqrt(lam[:, 1]) <= MAX_SCATTER)
+
+
+def _surface_rows(tree, cols, a, b, k):
+    """The surface test of :func:`surface_mask` at the tree's distinct points ``a..b-1`` (leaf bounds)."""
+    noise, lam, _ = roughness(tree, cols, a, b, k, decided=_is_surface)  # eigenvalues ascending: l3, l2, l1
     # the spread about a local quadric: a curved surface (sparse hills, a sphere) is no volume
     noise = np.where(np.isfinite(noise), noise, np.sqrt(lam[:, 0]))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        scatter = noise / np.sqrt(lam[:, 1])
+    with np.errstate(invalid="ignore"):
         valid = (lam[:, 1] > 1e-12 * lam[:, 2]) & np.isfinite(lam[:, 2])  # not a point, not a line (features.determined)
-    return valid & ((noise <= SMOOTH_NOISE) | (scatter <= MAX_SCATTER))
+    return valid & _is_surface(noise, lam)
 
 
 def select_points(source, target, select="auto", k=20):

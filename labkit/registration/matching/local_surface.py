@@ -79,18 +79,55 @@ def _leaf_geometry(tree, cols, pos, k, quadric=False, eigenvalues=False):
     return (n, noise, variation, *fit, *([lam] if eigenvalues else []), tilt)
 
 
-def roughness(tree, cols, pos, k):
-    """Noise about the local quadric and the PCA eigenvalues at the tree's distinct points ``pos``.
+def roughness(tree, cols, a, b, k, decided=None):
+    """Noise about the local quadric and the PCA eigenvalues at the tree's distinct points ``a..b-1``.
 
-    One k-nearest-neighbour search for both (``cols``: the tree's coordinate columns,
-    ``pos``: sorted leaf positions). Returns the noise (m,) as :class:`Geometry` states it with
-    ``quadric=True`` (the plane's where no quadric was fitted, NaN where the neighbourhood is a
-    point or a line) and the eigenvalues (m, 3) of the covariance 1/k sum (notebook 04, eq. 2),
-    ascending. Used by :func:`labkit.registration.selection.surface_mask`.
+    One k-nearest-neighbour search for both, leaf by leaf on the cores (``a``, ``b``: leaf bounds,
+    :attr:`labkit.neighbours.kdtree.KDTree.leaf_bounds`; ``cols``: the tree's coordinate columns).
+    Returns the noise (m,) as :class:`Geometry` states it with ``quadric=True`` (the plane's where no
+    quadric was fitted, NaN where the neighbourhood is a point or a line), the eigenvalues (m, 3) of
+    the covariance 1/k sum (notebook 04, eq. 2), ascending, and the neighbours (m, k) (leaf positions,
+    sorted by distance). Used by :func:`labkit.registration.selection.surface_mask`.
+
+    ``decided(noise, lam)`` (optional) says where an upper bound of the noise already settles the
+    caller's question; there the quadric is not fitted and the noise returned is that bound. The
+    bound: the quadric contains the constant height along the PCA normal, whose residual sum is
+    k l3, so sigma_q^2 = RSS / (k - 6) <= k l3 / (k - 6) (and the plane's k l3 / (k - 3) is smaller),
+    widened by 1e-6 against rounding. ``decided`` must be monotone: true for a noise means true for
+    any smaller one.
     """
-    _, noise, _, _, _, _, lam, _ = _leaf_geometry(tree, cols, pos, k, quadric=True, eigenvalues=True)
     k = min(k, tree.n)
-    return noise, lam * ((k - 3) / k)
+    nb = tree.knn_of_leaves(a, b, k, workers=-1)
+    pos = np.arange(a, b)
+    m = b - a
+    lam, noise = np.empty((m, 3)), np.empty(m)
+
+    def plane(u, v):
+        _, noise[u:v], _, lam[u:v], _ = _geometry_rows(tree, cols, pos[u:v], nb[u:v], k, False)
+
+    _in_row_chunks(plane, m)
+    lam_1k = lam * ((k - 3) / k)  # back to the covariance 1/k sum
+    todo = np.isfinite(noise) if k >= 7 else np.zeros(m, dtype=bool)  # k < 7: no quadric, the plane's noise
+    if decided is not None and k >= 7:
+        bound = np.sqrt(lam[:, 0] * ((k - 3) / (k - 6))) * (1 + 1e-6)  # lam[:, 0] = k l3 / (k - 3)
+        sure = todo & decided(bound, lam_1k)
+        noise[sure] = bound[sure]
+        todo &= ~sure
+    rows = np.flatnonzero(todo)
+    if len(rows):
+        noise[rows] = _leaf_geometry_at(tree, cols, pos[rows], nb[rows], k)
+    return noise, lam_1k, nb
+
+
+def _leaf_geometry_at(tree, cols, pos, nb, k):
+    """The quadric's noise (the plane's where none was fitted) at ``pos`` with the neighbours ``nb``, on the cores."""
+    out = np.empty(len(pos))
+
+    def work(u, v):
+        out[u:v] = _geometry_rows(tree, cols, pos[u:v], nb[u:v], k, True)[1]
+
+    _in_row_chunks(work, len(pos))
+    return out
 
 
 def _in_row_chunks(work, m, rows=50_000):
