@@ -263,6 +263,36 @@ def _gap2(lo, hi, a, b):  # pragma: no cover - compiled
     return t * t if t > 0.0 else 0.0
 
 
+@compiled
+def unique_kept_neighbours(X, nb, keep, k, clean):  # pragma: no cover - compiled
+    """clean[p]: point p and its k nearest ``nb[p, :k]`` (leaf positions, sorted, k + 1 columns) are all
+    ``keep`` and the (k+1)-th is farther than the k-th (squared distances as the searches compute them),
+    so that the k nearest among the kept points are these and no others."""
+    for p in range(nb.shape[0]):
+        ok = keep[p]
+        for c in range(k):
+            if not ok:
+                break
+            ok = keep[nb[p, c]]
+        if ok:
+            a, b = nb[p, k - 1], nb[p, k]
+            dx, dy, dz = X[a, 0] - X[p, 0], X[a, 1] - X[p, 1], X[a, 2] - X[p, 2]
+            da = dx * dx + dy * dy + dz * dz
+            dx, dy, dz = X[b, 0] - X[p, 0], X[b, 1] - X[p, 1], X[b, 2] - X[p, 2]
+            ok = da < dx * dx + dy * dy + dz * dz
+        clean[p] = ok
+
+
+@compiled
+def neighbour_rows(nb, pos, indices, new, clean, k, rows):  # pragma: no cover - compiled
+    """rows[r] = new[indices[nb[pos[r], :k]]] where clean[pos[r]] (a selection's rows of the neighbours)."""
+    for r in range(pos.shape[0]):
+        p = pos[r]
+        if clean[p]:
+            for c in range(k):
+                rows[r, c] = new[indices[nb[p, c]]]
+
+
 _NO_IDX, _NO_CEN, _NO_C = np.empty((0, 1), np.intp), np.empty((0, 3)), np.empty((0, 3, 3))  # unused outputs
 
 

@@ -34,6 +34,7 @@ from ..core.checks import as_points, choice
 from ..core.errors import LabkitError
 from ..core.masks import ASPRS_NAMES, STABLE_CLASSES
 from ..core.frame import local_origin
+from ..neighbours.kdtree import neighbour_rows, unique_kept_neighbours
 from ..neighbours.treecache import NeighbourRows, forget, keep_neighbours, local_tree
 from .matching.local_surface import roughness
 
@@ -161,20 +162,19 @@ def _surface_test(points, k, neighbours=False):
     if not extra:
         return keep[tree.representative], None
     nb = np.concatenate(nbs)
-    X = tree.data
-    d2 = [(X[nb[:, c], 0] - X[:, 0]) ** 2 + (X[nb[:, c], 1] - X[:, 1]) ** 2 + (X[nb[:, c], 2] - X[:, 2]) ** 2
-          for c in (k - 1, k)]  # the k-th and (k+1)-th squared distances, as the search computes them
-    clean = keep & keep[nb[:, :k]].all(axis=1) & (d2[0] < d2[1])  # the same k nearest among the kept points
-    return keep[tree.representative], (tree, nb[:, :k], clean)
+    clean = np.empty(tree.n, dtype=bool)  # the same k nearest among the kept points
+    unique_kept_neighbours(tree.data, nb, keep, k, clean)
+    return keep[tree.representative], (tree, nb, clean, k)
 
 
 def _kept_rows(info, mask):
     """The neighbours of ``_surface_test`` as rows of the selected points ``mask`` (:class:`NeighbourRows`)."""
-    tree, nb, clean = info
+    tree, nb, clean, k = info
     new = np.cumsum(mask) - 1  # row among the selected points of every input row
     pos = tree.representative[np.flatnonzero(mask)]
-    rows = new[tree.indices[nb[pos]]]
-    return NeighbourRows(rows.astype(np.int32) if len(rows) < 2**31 else rows, clean[pos], nb.shape[1])
+    rows = np.zeros((len(pos), k), dtype=np.int32 if len(pos) < 2**31 else np.int64)
+    neighbour_rows(nb, pos, tree.indices, new, clean, k, rows)
+    return NeighbourRows(rows, clean[pos], k)
 
 
 def _is_surface(noise, lam):
