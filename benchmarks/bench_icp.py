@@ -173,14 +173,14 @@ def pairs(root, quick, keep=None):
 
 def run_labkit(src, tgt, **kw):
     forget()  # the target's kd-tree is built inside the timing, as Open3D builds its own
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     res = icp(src, tgt, rng=0, **kw)
-    return time.perf_counter() - t, res.matrix, res
+    return time.perf_counter() - t, res.matrix, res, time.process_time() - c
 
 
 def run_open3d(src, tgt, o3d):
     o = tgt.mean(axis=0)
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     s = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src - o))
     g = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(tgt - o))
     g.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
@@ -189,10 +189,10 @@ def run_open3d(src, tgt, o3d):
         s, g, 1.0, np.eye(4), reg.TransformationEstimationPointToPlane(),
         reg.ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=50),
     )  # fmt: skip
-    elapsed = time.perf_counter() - t
+    elapsed, cpu = time.perf_counter() - t, time.process_time() - c
     T = np.asarray(out.transformation).copy()
     T[:3, 3] = T[:3, 3] + o - T[:3, :3] @ o  # back to the caller's frame
-    return elapsed, T
+    return elapsed, T, None, cpu
 
 
 def shift_mm(T, c):
@@ -243,7 +243,7 @@ def main(argv=None):
     print(f"{os.cpu_count()} CPU(s), load average {os.getloadavg()}; every time is the best of {args.repeats} "
           "wall-clock runs, the methods taking turns (shared machine: compare within a row)")
     head = f"{'pair':18s} {'points src/tgt':>16s} {'method':14s} {'time s':>7s} {'dX mm':>8s} {'dY mm':>8s} {'dZ mm':>8s}"
-    print(head + "   (error vs the known shift; for pairs without one: the estimated shift)")
+    print(head + "   (error vs the known shift; for pairs without one: the estimated shift; CPU s of that run)")
     for name, src, tgt, truth, note in pairs(root, args.quick, args.keep):
         if args.halves_only and "halves" not in name:
             continue
@@ -259,18 +259,19 @@ def main(argv=None):
         if o3d is not None:
             runs.append(lambda: run_open3d(src, tgt, o3d))
         timed = best_of(args.repeats, runs)
-        for (label, kw), (t, T, res) in zip(variants, timed):
+        for (label, kw), (t, T, res, cpu) in zip(variants, timed):
             print(f"{name if not kw else '':18s} {n if not kw else '':>16s} {label:14s} {t:7.2f} "
-                  + " ".join(f"{v:8.2f}" for v in shift_mm(T, c) - ref))
+                  + " ".join(f"{v:8.2f}" for v in shift_mm(T, c) - ref) + f"   CPU {cpu:.2f}")
             std = 1000 * res.translation_std
             print(f"{'':18s} {'':16s} {'  stated std':14s} {'':7s} " + " ".join(f"{v:8.2f}" for v in std)
                   + f"   {res.iterations} it., {'converged' if res.converged else 'NOT converged'}"
                   + (f"; undetermined {','.join(res.degeneracy.undetermined_axes)}" if res.degeneracy.undetermined_axes else "")
                   + f"; {res.method.split('surface=')[-1].rstrip(')')}; {res.correspondences.n_accepted} pairs")  # fmt: skip
         if o3d is not None:
-            t, T = timed[-1]
-            print(f"{'':18s} {'':16s} {'open3d p2pl':14s} {t:7.2f} " + " ".join(f"{v:8.2f}" for v in shift_mm(T, c) - ref))
-            for (label, kw), (t_l, _, _) in zip(variants, timed):
+            t, T, _, cpu = timed[-1]
+            print(f"{'':18s} {'':16s} {'open3d p2pl':14s} {t:7.2f} " + " ".join(f"{v:8.2f}" for v in shift_mm(T, c) - ref)
+                  + f"   CPU {cpu:.2f}")
+            for (label, kw), (t_l, _, _, _) in zip(variants, timed):
                 print(f"{'':18s} {'':16s} {'  ratio':14s} {t_l / t:7.2f}   ({label} / open3d)")
         print(f"{'':18s} load average after the row: {os.getloadavg()[0]:.1f}")
         if note:

@@ -123,10 +123,13 @@ def surface_mask(points, k=20):
     """True where a point's k-neighbourhood is a surface, False where it is volume scatter.
 
     One k-nearest-neighbour search per point gives both terms of the test: the PCA's eigenvalues
-    and the noise about the local quadric fitted to the same neighbours. The points are walked in
-    chunks of :data:`CHUNK` (in the kd-tree's leaf order), so that memory grows with the cloud's
-    coordinates and its tree, not with the per-point geometry (about 0.5 GB of it per million
-    points held at once).
+    and the noise about the local quadric fitted to the same neighbours (fitted only where the
+    bound that the plane's residuals set on it leaves the test open: the same answer, see
+    :func:`labkit.registration.matching.local_surface.roughness`). The points are walked in
+    chunks of whole leaves of about :data:`CHUNK` points (in the kd-tree's leaf order), so that
+    memory grows with the cloud's coordinates and its tree, not with the per-point geometry (about
+    0.5 GB of it per million points held at once). :func:`select_points` keeps the neighbours of
+    clouds up to :data:`KEEP_NEIGHBOURS` points for ICP's normals.
 
     Examples
     --------
