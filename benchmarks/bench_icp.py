@@ -24,9 +24,10 @@ other jobs: compare the two libraries within one row, not across runs.
 
 Fair peers: both libraries get the same points, the same gate (labkit ``max_distance`` = Open3D's
 ``max_correspondence_distance`` = 1 m) and k = 20 for the target normals; each time covers all the
-work from the raw arrays (labkit: its target kd-tree - the kept tree is dropped before every run -
-and the normals and noise of both clouds; Open3D: its point clouds, ``estimate_normals`` and the
-ICP). labkit's default pairs a source above 300,000 points from a thinned sample of about 100,000
+work from the raw arrays (labkit: its kd-trees - the kept tree is dropped before every run -, the
+surface selection of ``select='auto'`` on both whole clouds and the normals and noise of both
+selected clouds; Open3D: its point clouds, ``estimate_normals`` of the target and the ICP). labkit
+thus does more per run (a second cloud's normals, the selection), never less. labkit's default pairs a source above 300,000 points from a thinned sample of about 100,000
 (``sample='auto'``); the row 'labkit all pts' uses every source point, as Open3D does. Every time
 is the best of ``--repeats`` (3) runs, the methods taking turns, after a warm-up (numba compiled).
 
@@ -100,6 +101,32 @@ als halves           16.60 (plane 10.88)    17.87    10.75 (plane 7.30)    9.97 
 The selection alone (both clouds, one process each, load 8-10): TLS halves 13.5 s before, 7.2 s
 after; ALS halves 5.8 s, 3.5 s. ICP still searches the neighbourhoods of the selected points again
 for its own normals (the selection's are of the whole cloud): the remaining gap on the TLS halves.
+
+ICP's normals now reuse the selection's neighbourhoods (a selected point whose unique k nearest
+are all selected is not searched again: on the TLS halves 23,000 of 248,000 source and about 17,000
+target points are), the selection fits its local quadric only where the bound the plane's
+residuals set on the quadric's noise leaves the test open (22,000 of 262,000 TLS points), and its
+neighbour search runs leaf by leaf on the cores. The same masks, matrices (to the bit) and
+covariances (within 1e-25) on both pairs. Two runs of ``--keep 0.5 --halves-only`` on
+2026-12-02, one after the other (best of 3, CPU s of the process in brackets: Open3D's threads count
+there too; load 10-13 from other jobs, so only the ratios within a run mean much):
+
+===================  =========================  =============  ============================
+pair                 labkit icp (every point)   Open3D         labkit / Open3D (wall, CPU)
+===================  =========================  =============  ============================
+before (main):
+tls halves           19.90 (5.43)               7.62 (1.90)    2.61, 2.86
+als halves           15.14 (4.02)               14.26 (4.64)   1.06, 0.87
+als, plane           10.19 (3.09)               14.26 (4.64)   0.71, 0.67
+after:
+tls halves           9.91 (3.38)                5.49 (2.14)    1.81, 1.58
+als halves           10.08 (3.38)               15.25 (4.08)   0.66, 0.83
+als, plane           8.51 (2.39)                15.25 (4.08)   0.56, 0.59
+===================  =========================  =============  ============================
+
+On the TLS halves labkit is still about 1.6-1.8 times Open3D: the remaining work is the selection
+(two whole-cloud k-neighbour searches and kd-trees, about 1.6 CPU s), which Open3D does not do,
+four kd-tree builds (whole and selected clouds) and the per-iteration numpy work of the matcher.
 
 Run:  python benchmarks/bench_icp.py [--quick] [--realdata PATH] [--repeats N]
 """
