@@ -24,9 +24,10 @@ other jobs: compare the two libraries within one row, not across runs.
 
 Fair peers: both libraries get the same points, the same gate (labkit ``max_distance`` = Open3D's
 ``max_correspondence_distance`` = 1 m) and k = 20 for the target normals; each time covers all the
-work from the raw arrays (labkit: its target kd-tree - the kept tree is dropped before every run -
-and the normals and noise of both clouds; Open3D: its point clouds, ``estimate_normals`` and the
-ICP). labkit's default pairs a source above 300,000 points from a thinned sample of about 100,000
+work from the raw arrays (labkit: its kd-trees - the kept tree is dropped before every run -, the
+surface selection of ``select='auto'`` on both whole clouds and the normals and noise of both
+selected clouds; Open3D: its point clouds, ``estimate_normals`` of the target and the ICP). labkit
+thus does more per run (a second cloud's normals, the selection), never less. labkit's default pairs a source above 300,000 points from a thinned sample of about 100,000
 (``sample='auto'``); the row 'labkit all pts' uses every source point, as Open3D does. Every time
 is the best of ``--repeats`` (3) runs, the methods taking turns, after a warm-up (numba compiled).
 
@@ -101,6 +102,32 @@ The selection alone (both clouds, one process each, load 8-10): TLS halves 13.5 
 after; ALS halves 5.8 s, 3.5 s. ICP still searches the neighbourhoods of the selected points again
 for its own normals (the selection's are of the whole cloud): the remaining gap on the TLS halves.
 
+ICP's normals now reuse the selection's neighbourhoods (a selected point whose unique k nearest
+are all selected is not searched again: on the TLS halves 23,000 of 248,000 source and about 17,000
+target points are), the selection fits its local quadric only where the bound the plane's
+residuals set on the quadric's noise leaves the test open (22,000 of 262,000 TLS points), and its
+neighbour search runs leaf by leaf on the cores. The same masks, matrices (to the bit) and
+covariances (within 1e-25) on both pairs. Two runs of ``--keep 0.5 --halves-only`` on
+2026-12-02, one after the other (best of 3, CPU s of the process in brackets: Open3D's threads count
+there too; load 10-13 from other jobs, so only the ratios within a run mean much):
+
+===================  =========================  =============  ============================
+pair                 labkit icp (every point)   Open3D         labkit / Open3D (wall, CPU)
+===================  =========================  =============  ============================
+before (main):
+tls halves           19.90 (5.43)               7.62 (1.90)    2.61, 2.86
+als halves           15.14 (4.02)               14.26 (4.64)   1.06, 0.87
+als, plane           10.19 (3.09)               14.26 (4.64)   0.71, 0.67
+after:
+tls halves           9.91 (3.38)                5.49 (2.14)    1.81, 1.58
+als halves           10.08 (3.38)               15.25 (4.08)   0.66, 0.83
+als, plane           8.51 (2.39)                15.25 (4.08)   0.56, 0.59
+===================  =========================  =============  ============================
+
+On the TLS halves labkit is still about 1.6-1.8 times Open3D: the remaining work is the selection
+(two whole-cloud k-neighbour searches and kd-trees, about 1.6 CPU s), which Open3D does not do,
+four kd-tree builds (whole and selected clouds) and the per-iteration numpy work of the matcher.
+
 Run:  python benchmarks/bench_icp.py [--quick] [--realdata PATH] [--repeats N]
 """
 
@@ -173,14 +200,14 @@ def pairs(root, quick, keep=None):
 
 def run_labkit(src, tgt, **kw):
     forget()  # the target's kd-tree is built inside the timing, as Open3D builds its own
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     res = icp(src, tgt, rng=0, **kw)
-    return time.perf_counter() - t, res.matrix, res
+    return time.perf_counter() - t, res.matrix, res, time.process_time() - c
 
 
 def run_open3d(src, tgt, o3d):
     o = tgt.mean(axis=0)
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     s = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src - o))
     g = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(tgt - o))
     g.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
@@ -189,10 +216,10 @@ def run_open3d(src, tgt, o3d):
         s, g, 1.0, np.eye(4), reg.TransformationEstimationPointToPlane(),
         reg.ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=50),
     )  # fmt: skip
-    elapsed = time.perf_counter() - t
+    elapsed, cpu = time.perf_counter() - t, time.process_time() - c
     T = np.asarray(out.transformation).copy()
     T[:3, 3] = T[:3, 3] + o - T[:3, :3] @ o  # back to the caller's frame
-    return elapsed, T
+    return elapsed, T, None, cpu
 
 
 def shift_mm(T, c):
@@ -243,7 +270,7 @@ def main(argv=None):
     print(f"{os.cpu_count()} CPU(s), load average {os.getloadavg()}; every time is the best of {args.repeats} "
           "wall-clock runs, the methods taking turns (shared machine: compare within a row)")
     head = f"{'pair':18s} {'points src/tgt':>16s} {'method':14s} {'time s':>7s} {'dX mm':>8s} {'dY mm':>8s} {'dZ mm':>8s}"
-    print(head + "   (error vs the known shift; for pairs without one: the estimated shift)")
+    print(head + "   (error vs the known shift; for pairs without one: the estimated shift; CPU s of that run)")
     for name, src, tgt, truth, note in pairs(root, args.quick, args.keep):
         if args.halves_only and "halves" not in name:
             continue
@@ -259,18 +286,19 @@ def main(argv=None):
         if o3d is not None:
             runs.append(lambda: run_open3d(src, tgt, o3d))
         timed = best_of(args.repeats, runs)
-        for (label, kw), (t, T, res) in zip(variants, timed):
+        for (label, kw), (t, T, res, cpu) in zip(variants, timed):
             print(f"{name if not kw else '':18s} {n if not kw else '':>16s} {label:14s} {t:7.2f} "
-                  + " ".join(f"{v:8.2f}" for v in shift_mm(T, c) - ref))
+                  + " ".join(f"{v:8.2f}" for v in shift_mm(T, c) - ref) + f"   CPU {cpu:.2f}")
             std = 1000 * res.translation_std
             print(f"{'':18s} {'':16s} {'  stated std':14s} {'':7s} " + " ".join(f"{v:8.2f}" for v in std)
                   + f"   {res.iterations} it., {'converged' if res.converged else 'NOT converged'}"
                   + (f"; undetermined {','.join(res.degeneracy.undetermined_axes)}" if res.degeneracy.undetermined_axes else "")
                   + f"; {res.method.split('surface=')[-1].rstrip(')')}; {res.correspondences.n_accepted} pairs")  # fmt: skip
         if o3d is not None:
-            t, T = timed[-1]
-            print(f"{'':18s} {'':16s} {'open3d p2pl':14s} {t:7.2f} " + " ".join(f"{v:8.2f}" for v in shift_mm(T, c) - ref))
-            for (label, kw), (t_l, _, _) in zip(variants, timed):
+            t, T, _, cpu = timed[-1]
+            print(f"{'':18s} {'':16s} {'open3d p2pl':14s} {t:7.2f} " + " ".join(f"{v:8.2f}" for v in shift_mm(T, c) - ref)
+                  + f"   CPU {cpu:.2f}")
+            for (label, kw), (t_l, _, _, _) in zip(variants, timed):
                 print(f"{'':18s} {'':16s} {'  ratio':14s} {t_l / t:7.2f}   ({label} / open3d)")
         print(f"{'':18s} load average after the row: {os.getloadavg()[0]:.1f}")
         if note:

@@ -263,6 +263,36 @@ def _gap2(lo, hi, a, b):  # pragma: no cover - compiled
     return t * t if t > 0.0 else 0.0
 
 
+@compiled
+def unique_kept_neighbours(X, nb, keep, k, clean):  # pragma: no cover - compiled
+    """clean[p]: point p and its k nearest ``nb[p, :k]`` (leaf positions, sorted, k + 1 columns) are all
+    ``keep`` and the (k+1)-th is farther than the k-th (squared distances as the searches compute them),
+    so that the k nearest among the kept points are these and no others."""
+    for p in range(nb.shape[0]):
+        ok = keep[p]
+        for c in range(k):
+            if not ok:
+                break
+            ok = keep[nb[p, c]]
+        if ok:
+            a, b = nb[p, k - 1], nb[p, k]
+            dx, dy, dz = X[a, 0] - X[p, 0], X[a, 1] - X[p, 1], X[a, 2] - X[p, 2]
+            da = dx * dx + dy * dy + dz * dz
+            dx, dy, dz = X[b, 0] - X[p, 0], X[b, 1] - X[p, 1], X[b, 2] - X[p, 2]
+            ok = da < dx * dx + dy * dy + dz * dz
+        clean[p] = ok
+
+
+@compiled
+def neighbour_rows(nb, pos, indices, new, clean, k, rows):  # pragma: no cover - compiled
+    """rows[r] = new[indices[nb[pos[r], :k]]] where clean[pos[r]] (a selection's rows of the neighbours)."""
+    for r in range(pos.shape[0]):
+        p = pos[r]
+        if clean[p]:
+            for c in range(k):
+                rows[r, c] = new[indices[nb[p, c]]]
+
+
 _NO_IDX, _NO_CEN, _NO_C = np.empty((0, 1), np.intp), np.empty((0, 3)), np.empty((0, 3, 3))  # unused outputs
 
 
@@ -328,11 +358,12 @@ class KDTree:
             self._leaves = leaves[np.argsort(nodes[leaves, 0], kind="stable")]
         return np.append(self._nodes[0][self._leaves, 0], self.n)
 
-    def knn_of_leaves(self, a: int, b: int, k: int):
+    def knn_of_leaves(self, a: int, b: int, k: int, workers: int = 1):
         """Leaf-order indices (b - a, k) of the k nearest tree points of the tree's points a..b-1.
 
         ``a`` and ``b`` must be leaf bounds (:attr:`leaf_bounds`); the points of a leaf are
         searched together (:func:`_knn_leaves`), sorted by distance like :meth:`query`.
+        ``workers`` threads (-1: one per core) take consecutive runs of leaves (the same answer).
         """
         bounds = self.leaf_bounds
         j0, j1 = np.searchsorted(bounds, [a, b])
@@ -340,10 +371,21 @@ class KDTree:
             raise ValueError(f"{a}:{b} does not start and end at leaf bounds")
         idx = np.empty((b - a, k), dtype=np.intp)
         if b > a:
-            if HAVE_NUMBA:
-                _knn_leaves(self.data, *self._nodes, self._leaves[j0:j1], k, idx, _NO_CEN, _NO_C, False)
-            else:  # pragma: no cover - depends on the environment
+            if not HAVE_NUMBA:  # pragma: no cover - depends on the environment
                 idx[:] = self._run(self.data[a:b], k, np.inf, 1)[1]
+                return idx
+            threads = min(_threads(workers), max(1, (b - a) // _PER_THREAD))
+            cut = np.unique(np.linspace(j0, j1, threads + 1).astype(np.intp))  # runs of whole leaves
+
+            def part(u, v):
+                s, e = bounds[u] - a, bounds[v] - a
+                _knn_leaves(self.data, *self._nodes, self._leaves[u:v], k, idx[s:e], _NO_CEN, _NO_C, False)
+
+            if len(cut) <= 2:
+                part(j0, j1)
+            else:
+                for job in [_pool(len(cut) - 1).submit(part, u, v) for u, v in zip(cut[:-1], cut[1:])]:
+                    job.result()
         return idx
 
     def knn_moments_of_leaves(self, a: int, b: int, k: int):

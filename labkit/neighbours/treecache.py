@@ -7,6 +7,10 @@ of the caller's coordinate array (a weak reference: the tree goes when the array
 shape, the local origin, the duplicate rule and a checksum of an even subset of the coordinates
 (an array changed in place gets a new tree). One entry only: a survey of many tiles keeps at
 most one extra tree alive. :func:`forget` drops it.
+
+The same way, :func:`keep_neighbours` keeps the k nearest neighbours that a first pass over a cloud
+found (:class:`NeighbourRows`; ICP's point selection searches every point's neighbourhood, and
+ICP's normals would search them again) for the next step on the same array, two clouds at most.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import numpy as np
 
 _lock = threading.Lock()
 _last = None  # (weak reference to the caller's array, key, tree)
+_rows = []  # up to two (weak reference to the caller's array, key, NeighbourRows)
 
 
 def _key(points, origin, merge_duplicates):
@@ -46,7 +51,48 @@ def local_tree(points: np.ndarray, origin, merge_duplicates: bool):
 
 
 def forget() -> None:
-    """Drop the kept tree (frees its memory)."""
+    """Drop the kept tree and neighbours (frees their memory)."""
     global _last
     with _lock:
         _last = None
+        _rows.clear()
+
+
+class NeighbourRows:
+    """The k nearest neighbours of a cloud's points as rows of the cloud, where they are known (private).
+
+    ``rows`` (n, k): the neighbours of row i, sorted by distance (exact duplicates merged: each
+    distinct point once, by the row of one of its copies); read only where ``known[i]``, i.e. where
+    they are the cloud's unique k nearest (no other point at the k-th distance).
+    """
+
+    def __init__(self, rows: np.ndarray, known: np.ndarray, k: int):
+        self.rows, self.known, self.k = rows, known, int(k)
+
+    def at(self, tree, pos):
+        """For the points ``pos`` (leaf positions) of ``tree`` (a kd-tree of the same cloud, duplicates
+        merged): where their neighbours are known (m,) bool, and those neighbours as leaf positions."""
+        row = tree.indices[pos]
+        known = self.known[row]
+        return known, tree.representative[self.rows[row[known]]]
+
+
+def keep_neighbours(points: np.ndarray, rows: NeighbourRows) -> None:
+    """Keep ``rows`` for the array ``points`` (a weak reference; the two latest arrays are kept)."""
+    try:
+        ref = weakref.ref(points)
+    except TypeError:  # pragma: no cover - arrays support weak references
+        return
+    key = _key(points, np.zeros(3), True)
+    with _lock:
+        _rows[:] = [e for e in _rows if e[0]() is not None and e[0]() is not points][-1:] + [(ref, key, rows)]
+
+
+def kept_neighbours(points: np.ndarray, k: int) -> NeighbourRows | None:
+    """The :class:`NeighbourRows` kept for this very array (same shape and content) with this k, or None."""
+    with _lock:
+        entries = list(_rows)
+    for ref, key, rows in entries:
+        if ref() is points and rows.k == k and key == _key(points, np.zeros(3), True):
+            return rows
+    return None

@@ -34,7 +34,8 @@ from ..core.checks import as_points, choice
 from ..core.errors import LabkitError
 from ..core.masks import ASPRS_NAMES, STABLE_CLASSES
 from ..core.frame import local_origin
-from ..neighbours.treecache import forget, local_tree
+from ..neighbours.kdtree import neighbour_rows, unique_kept_neighbours
+from ..neighbours.treecache import NeighbourRows, forget, keep_neighbours, local_tree
 from .matching.local_surface import roughness
 
 __all__ = ["MAX_SCATTER", "MIN_SELECTED", "SELECT", "SMOOTH_NOISE", "ClassCheck", "Selection", "check_other_classes",
@@ -50,6 +51,9 @@ MAX_SCATTER = 0.2
 MIN_SELECTED = 50
 #: Points per chunk of the surface test (bounds its memory on clouds of many millions of points).
 CHUNK = 500_000
+#: Clouds of at most this many points keep the neighbours of the surface test for ICP's normals
+#: (ICP then searches only the points next to a point left out; 8 bytes per point and neighbour).
+KEEP_NEIGHBOURS = 2_000_000
 #: The choices of ``select``.
 SELECT = ("auto", "all")
 #: Codes that mean "not classified" (a cloud with only these carries no classification).
@@ -119,10 +123,13 @@ def surface_mask(points, k=20):
     """True where a point's k-neighbourhood is a surface, False where it is volume scatter.
 
     One k-nearest-neighbour search per point gives both terms of the test: the PCA's eigenvalues
-    and the noise about the local quadric fitted to the same neighbours. The points are walked in
-    chunks of :data:`CHUNK` (in the kd-tree's leaf order), so that memory grows with the cloud's
-    coordinates and its tree, not with the per-point geometry (about 0.5 GB of it per million
-    points held at once).
+    and the noise about the local quadric fitted to the same neighbours (fitted only where the
+    bound that the plane's residuals set on it leaves the test open: the same answer, see
+    :func:`labkit.registration.matching.local_surface.roughness`). The points are walked in
+    chunks of whole leaves of about :data:`CHUNK` points (in the kd-tree's leaf order), so that
+    memory grows with the cloud's coordinates and its tree, not with the per-point geometry (about
+    0.5 GB of it per million points held at once). :func:`select_points` keeps the neighbours of
+    clouds up to :data:`KEEP_NEIGHBOURS` points for ICP's normals.
 
     Examples
     --------
@@ -134,27 +141,60 @@ def surface_mask(points, k=20):
     >>> float(keep[:800].mean()) > 0.95, float(keep[800:].mean()) < 0.1
     (True, True)
     """
+    return _surface_test(points, k)[0]
+
+
+def _surface_test(points, k, neighbours=False):
+    """:func:`surface_mask`, and with ``neighbours`` (clouds up to :data:`KEEP_NEIGHBOURS` points) also
+    (tree, the k neighbours of each distinct point as leaf positions, where they are unique and all kept)."""
     xyz = _xyz(points)
     k = int(min(max(k, 10), len(xyz)))
     # the tree ICP's matching would build on the same array (kept for it when every point stays)
     tree = local_tree(xyz, local_origin(xyz), merge_duplicates=True)
     cols = np.ascontiguousarray(tree.data.T)
+    k = min(k, tree.n)
+    extra = int(neighbours and len(xyz) <= KEEP_NEIGHBOURS and k < tree.n)  # one more: is the k-th unique?
     keep = np.empty(tree.n, dtype=bool)  # per distinct point, in leaf order
-    for a in range(0, tree.n, CHUNK):
-        b = min(a + CHUNK, tree.n)
-        keep[a:b] = _surface_rows(tree, cols, np.arange(a, b), k)
-    return keep[tree.representative]
+    leaves = tree.leaf_bounds
+    cut = np.unique(leaves[np.searchsorted(leaves, np.arange(0, tree.n, CHUNK))].tolist() + [tree.n])
+    nbs = []
+    for a, b in zip(cut[:-1], cut[1:]):  # chunks of whole leaves
+        keep[a:b], nb = _surface_rows(tree, cols, a, b, k, extra)
+        if extra:
+            nbs.append(nb)
+    if not extra:
+        return keep[tree.representative], None
+    nb = np.concatenate(nbs)
+    clean = np.empty(tree.n, dtype=bool)  # the same k nearest among the kept points
+    unique_kept_neighbours(tree.data, nb, keep, k, clean)
+    return keep[tree.representative], (tree, nb, clean, k)
 
 
-def _surface_rows(tree, cols, pos, k):
-    """The surface test of :func:`surface_mask` at the tree's distinct points ``pos`` (sorted leaf positions)."""
-    noise, lam = roughness(tree, cols, pos, k)  # eigenvalues ascending: l3, l2, l1
+def _kept_rows(info, mask):
+    """The neighbours of ``_surface_test`` as rows of the selected points ``mask`` (:class:`NeighbourRows`)."""
+    tree, nb, clean, k = info
+    new = np.cumsum(mask) - 1  # row among the selected points of every input row
+    pos = tree.representative[np.flatnonzero(mask)]
+    rows = np.zeros((len(pos), k), dtype=np.int32 if len(pos) < 2**31 else np.int64)
+    neighbour_rows(nb, pos, tree.indices, new, clean, k, rows)
+    return NeighbourRows(rows, clean[pos], k)
+
+
+def _is_surface(noise, lam):
+    """The test of :func:`surface_mask` on the noise (m,) and the eigenvalues (m, 3), ascending (monotone in the noise)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (noise <= SMOOTH_NOISE) | (noise / np.sqrt(lam[:, 1]) <= MAX_SCATTER)
+
+
+def _surface_rows(tree, cols, a, b, k, extra=0):
+    """The surface test of :func:`surface_mask` at the tree's distinct points ``a..b-1`` (leaf bounds), and
+    their k + ``extra`` neighbours."""
+    noise, lam, nb = roughness(tree, cols, a, b, k, decided=_is_surface, extra=extra)  # eigenvalues: l3, l2, l1
     # the spread about a local quadric: a curved surface (sparse hills, a sphere) is no volume
     noise = np.where(np.isfinite(noise), noise, np.sqrt(lam[:, 0]))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        scatter = noise / np.sqrt(lam[:, 1])
+    with np.errstate(invalid="ignore"):
         valid = (lam[:, 1] > 1e-12 * lam[:, 2]) & np.isfinite(lam[:, 2])  # not a point, not a line (features.determined)
-    return valid & ((noise <= SMOOTH_NOISE) | (scatter <= MAX_SCATTER))
+    return valid & _is_surface(noise, lam), nb
 
 
 def select_points(source, target, select="auto", k=20):
@@ -216,8 +256,10 @@ def select_points(source, target, select="auto", k=20):
                                   np.flatnonzero(ms), np.flatnonzero(mt)))
     if min(ns, nt) <= 3:
         return source, target, Selection("all points", (), ns, nt, ns, nt, "all points (too few for a local surface)")
-    ms, mt = surface_mask(source, k), surface_mask(target, k)
+    (ms, near_s), (mt, near_t) = _surface_test(source, k, True), _surface_test(target, k, True)
     if ms.all() and mt.all():
+        _keep(source, near_s, ms)
+        _keep(target, near_t, mt)
         return source, target, Selection("all points", (), ns, nt, ns, nt, "all points (every neighbourhood a surface)")
     if ms.sum() < MIN_SELECTED or mt.sum() < MIN_SELECTED:
         return source, target, Selection(
@@ -227,9 +269,16 @@ def select_points(source, target, select="auto", k=20):
     reason = (f"surface points: {ms.sum():,} of {ns:,} source and {mt.sum():,} of {nt:,} target points; volume "
               f"scatter (vegetation) left out: local noise > {100 * SMOOTH_NOISE:.0f} cm and noise/sqrt(l2) > "
               f"{MAX_SCATTER:g} in {k}-neighbourhoods")
-    return (_subset(source, ms), _subset(target, mt),
-            Selection("surface points", (), ns, nt, int(ms.sum()), int(mt.sum()), reason, np.flatnonzero(ms),
-                      np.flatnonzero(mt)))
+    src, tgt = _subset(source, ms), _subset(target, mt)
+    _keep(src, near_s, ms)  # ICP's normals reuse the neighbourhoods that only hold selected points
+    _keep(tgt, near_t, mt)
+    return (src, tgt, Selection("surface points", (), ns, nt, int(ms.sum()), int(mt.sum()), reason,
+                                np.flatnonzero(ms), np.flatnonzero(mt)))
+
+
+def _keep(cloud, info, mask):
+    if info is not None:
+        keep_neighbours(_xyz(cloud), _kept_rows(info, mask))
 
 
 @dataclass(frozen=True, eq=False)

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from labkit.neighbours import kdtree
 from labkit.neighbours.kdtree import KDTree
 
 
@@ -75,7 +76,7 @@ def test_two_thread_build_gives_the_same_neighbours():
 
 
 @pytest.mark.parametrize("name", list(clouds()))
-def test_leaf_moments_equal_neighbours_then_covariances(name):
+def test_leaf_moments_equal_neighbours_then_covariances(name, monkeypatch):
     # the fused search + moments kernel against the two-step route (neighbour array, then eq. 1-2)
     from labkit.neighbours.moments import covariances
 
@@ -93,6 +94,12 @@ def test_leaf_moments_equal_neighbours_then_covariances(name):
     assert np.array_equal(cen, c2) and np.array_equal(C, C2)  # the same arithmetic: the same numbers
     with pytest.raises(ValueError, match="leaf bounds"):
         tree.knn_moments_of_leaves(a + 1, b, 20)
+    monkeypatch.setattr(kdtree, "_PER_THREAD", 50)  # threads even on these small clouds
+    for workers in (2, 3, -1):  # consecutive runs of leaves on threads: the same answer
+        assert np.array_equal(tree.knn_of_leaves(a, b, 20, workers=workers), nb)
+    d, i = cKDTree(tree.data).query(tree.data[a:b], k=20)
+    np.testing.assert_allclose(np.sort(((tree.data[nb] - tree.data[a:b, None]) ** 2).sum(-1), axis=1), d**2,
+                               rtol=1e-12, atol=1e-15)  # the k nearest, checked by scipy
 
 
 def test_selection_finds_the_kth_smallest_with_ties():

@@ -29,9 +29,9 @@ def computed(monkeypatch):
 
     real = _local_surface._leaf_geometry
 
-    def counting(tree, cols, pos, k, quadric=False):
+    def counting(tree, cols, pos, k, quadric=False, **kw):
         calls.append(len(pos))
-        return real(tree, cols, pos, k, quadric)
+        return real(tree, cols, pos, k, quadric, **kw)
 
     monkeypatch.setattr(_local_surface, "_leaf_geometry", counting)
     return calls

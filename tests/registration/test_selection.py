@@ -46,3 +46,34 @@ def test_input_not_modified():
     before = pts.copy()
     surface_mask(pts)
     np.testing.assert_array_equal(pts, before)
+
+
+@pytest.mark.parametrize("surface", ["plane", "quadric"])
+def test_icp_reuses_the_selection_neighbourhoods_with_the_same_result(monkeypatch, surface):
+    from labkit.neighbours import kdtree, treecache
+    from labkit.registration import icp
+
+    target = _scene(np.random.default_rng(5))
+    source = _scene(np.random.default_rng(6)) - [0.03, -0.02, 0.01]
+    searched = []
+    real = kdtree.KDTree.query_leaf_positions
+
+    def counting(self, pos, k, workers=1):
+        searched.append(len(pos))
+        return real(self, pos, k, workers)
+
+    monkeypatch.setattr(kdtree.KDTree, "query_leaf_positions", counting)
+    runs = []
+    for limit in (selection.KEEP_NEIGHBOURS, 0):  # the neighbours of the surface test kept, and not
+        monkeypatch.setattr(selection, "KEEP_NEIGHBOURS", limit)
+        treecache.forget()
+        searched.clear()
+        runs.append((icp(source, target, surface=surface, rng=0), sum(searched)))
+    (reused, n_reused), (own, n_own) = runs
+    assert reused.selection.rule == "surface points"
+    assert n_reused < 0.5 * n_own  # ICP searched only next to the points left out
+    np.testing.assert_allclose(reused.matrix, own.matrix, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(reused.covariance, own.covariance, rtol=1e-9, atol=1e-18)
+    assert reused.message == own.message and reused.iterations == own.iterations
+    np.testing.assert_array_equal(reused.correspondences.rule, own.correspondences.rule)
+    treecache.forget()

@@ -41,7 +41,7 @@ def _local_geometry(tree, cols, index, k):
     return tuple(a[back] for a in out)
 
 
-def _leaf_geometry(tree, cols, pos, k, quadric=False, eigenvalues=False):
+def _leaf_geometry(tree, cols, pos, k, quadric=False, eigenvalues=False, known=None):
     """:func:`_local_geometry` at the tree's own (distinct) points, given by sorted leaf positions.
 
     With ``quadric`` also the local quadric's coefficients and frame (the frame's normal
@@ -53,10 +53,20 @@ def _leaf_geometry(tree, cols, pos, k, quadric=False, eigenvalues=False):
     neighbours again. With ``eigenvalues`` the PCA's eigenvalues (m, 3), ascending and scaled by
     k / (k - 3) (lam[:, 0] = sigma_n^2), come just before it: the surface test of
     :func:`labkit.registration.selection.surface_mask` reads them from the same search.
+    ``known`` (:class:`labkit.neighbours.treecache.NeighbourRows`, optional): the neighbours a first
+    pass found; only the points whose neighbours it does not know are searched.
     """
     k = min(k, tree.n)
     threads = -1 if len(pos) > 2000 else 1  # threads cost more than they save on small queries
-    nb = tree.query_leaf_positions(pos, k, workers=threads)
+    if known is not None and known.k == k:
+        have, nb_known = known.at(tree, pos)
+        nb = np.empty((len(pos), k), dtype=np.intp)
+        nb[have] = nb_known
+        rest = np.flatnonzero(~have)
+        if len(rest):
+            nb[rest] = tree.query_leaf_positions(pos[rest], k, workers=threads if len(rest) > 2000 else 1)
+    else:
+        nb = tree.query_leaf_positions(pos, k, workers=threads)
     m = len(pos)
     shapes = [(3,), (), (), (3,), (3, 2)] + ([(6,), (3, 3), (3,)] if quadric else [])
     out = [None] * len(shapes)  # written in place by the row chunks: no second copy of large results
@@ -79,18 +89,55 @@ def _leaf_geometry(tree, cols, pos, k, quadric=False, eigenvalues=False):
     return (n, noise, variation, *fit, *([lam] if eigenvalues else []), tilt)
 
 
-def roughness(tree, cols, pos, k):
-    """Noise about the local quadric and the PCA eigenvalues at the tree's distinct points ``pos``.
+def roughness(tree, cols, a, b, k, decided=None, extra=0):
+    """Noise about the local quadric and the PCA eigenvalues at the tree's distinct points ``a..b-1``.
 
-    One k-nearest-neighbour search for both (``cols``: the tree's coordinate columns,
-    ``pos``: sorted leaf positions). Returns the noise (m,) as :class:`Geometry` states it with
-    ``quadric=True`` (the plane's where no quadric was fitted, NaN where the neighbourhood is a
-    point or a line) and the eigenvalues (m, 3) of the covariance 1/k sum (notebook 04, eq. 2),
-    ascending. Used by :func:`labkit.registration.selection.surface_mask`.
+    One k-nearest-neighbour search for both, leaf by leaf on the cores (``a``, ``b``: leaf bounds,
+    :attr:`labkit.neighbours.kdtree.KDTree.leaf_bounds`; ``cols``: the tree's coordinate columns).
+    Returns the noise (m,) as :class:`Geometry` states it with ``quadric=True`` (the plane's where no
+    quadric was fitted, NaN where the neighbourhood is a point or a line), the eigenvalues (m, 3) of
+    the covariance 1/k sum (notebook 04, eq. 2), ascending, and the neighbours (m, k) (leaf positions,
+    sorted by distance). Used by :func:`labkit.registration.selection.surface_mask`.
+
+    ``decided(noise, lam)`` (optional) says where an upper bound of the noise already settles the
+    caller's question; there the quadric is not fitted and the noise returned is that bound. The
+    bound: the quadric contains the constant height along the PCA normal, whose residual sum is
+    k l3, so sigma_q^2 = RSS / (k - 6) <= k l3 / (k - 6) (and the plane's k l3 / (k - 3) is smaller),
+    widened by 1e-6 against rounding. ``decided`` must be monotone: true for a noise means true for
+    any smaller one. ``extra`` more neighbours are searched and returned (not used for the noise).
     """
-    _, noise, _, _, _, _, lam, _ = _leaf_geometry(tree, cols, pos, k, quadric=True, eigenvalues=True)
     k = min(k, tree.n)
-    return noise, lam * ((k - 3) / k)
+    nb = tree.knn_of_leaves(a, b, min(k + extra, tree.n), workers=-1)
+    pos = np.arange(a, b)
+    m = b - a
+    lam, noise = np.empty((m, 3)), np.empty(m)
+
+    def plane(u, v):
+        _, noise[u:v], _, lam[u:v], _ = _geometry_rows(tree, cols, pos[u:v], nb[u:v, :k], k, False)
+
+    _in_row_chunks(plane, m)
+    lam_1k = lam * ((k - 3) / k)  # back to the covariance 1/k sum
+    todo = np.isfinite(noise) if k >= 7 else np.zeros(m, dtype=bool)  # k < 7: no quadric, the plane's noise
+    if decided is not None and k >= 7:
+        bound = np.sqrt(lam[:, 0] * ((k - 3) / (k - 6))) * (1 + 1e-6)  # lam[:, 0] = k l3 / (k - 3)
+        sure = todo & decided(bound, lam_1k)
+        noise[sure] = bound[sure]
+        todo &= ~sure
+    rows = np.flatnonzero(todo)
+    if len(rows):
+        noise[rows] = _leaf_geometry_at(tree, cols, pos[rows], nb[rows, :k], k)
+    return noise, lam_1k, nb
+
+
+def _leaf_geometry_at(tree, cols, pos, nb, k):
+    """The quadric's noise (the plane's where none was fitted) at ``pos`` with the neighbours ``nb``, on the cores."""
+    out = np.empty(len(pos))
+
+    def work(u, v):
+        out[u:v] = _geometry_rows(tree, cols, pos[u:v], nb[u:v], k, True)[1]
+
+    _in_row_chunks(work, len(pos))
+    return out
 
 
 def _in_row_chunks(work, m, rows=50_000):
@@ -290,9 +337,10 @@ class Geometry:
     ``n_computed`` counts the points whose geometry was computed (tests use it).
     """
 
-    def __init__(self, points, k, normals=None, tree=None, quadric=False, keep_tilt=False):
+    def __init__(self, points, k, normals=None, tree=None, quadric=False, keep_tilt=False, known=None):
         self.tree = KDTree(points, merge_duplicates=True) if tree is None else tree
         self.k, self.quadric, self.keep_tilt = k, quadric, keep_tilt
+        self.known = known  # neighbours a first pass over the same cloud found (NeighbourRows), or None
         self.cols = np.ascontiguousarray(self.tree.data.T)  # coordinate columns for contiguous gathers
         self.given = normals  # per input point, or None
         self.slot = np.full(self.tree.n, -1, dtype=np.int32 if self.tree.n < 2**31 else np.int64)
@@ -329,7 +377,7 @@ class Geometry:
                 mark = np.zeros(self.tree.n, dtype=bool)
                 mark[pos[todo]] = True
                 new = np.flatnonzero(mark)  # sorted leaf positions: coherent queries, no sort
-                out = _leaf_geometry(self.tree, self.cols, new, self.k, self.quadric)
+                out = _leaf_geometry(self.tree, self.cols, new, self.k, self.quadric, known=self.known)
                 values = dict(normals=out[0], noise=out[1])
                 if self.keep_tilt:
                     values["tilt"] = out[-1]()

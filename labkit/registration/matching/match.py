@@ -38,7 +38,7 @@ import numpy as np
 from ...core.checks import as_points, as_rng, choice, positive
 from ...core.frame import local_origin, reduce
 from ...neighbours.kdtree import KDTree
-from ...neighbours.treecache import local_tree
+from ...neighbours.treecache import kept_neighbours, local_tree
 from ...core.errors import LabkitError
 from .correspondences import _CODE, MIN_SIGMA, RULES, Correspondences, _replace  # noqa: F401 - re-exported
 from .local_surface import Geometry, _leaf_geometry, _local_geometry, _on_quadric, _plane_tilt  # noqa: F401
@@ -160,7 +160,8 @@ def prepare(
     surface = _auto_surface(tree, k) if opt.surface == "auto" else opt.surface
     quadric = surface == "quadric"
     tgt_geo = Geometry(
-        None, k, _given_normals(opt.target_normals, len(tgt), "target_normals"), tree, quadric, keep_tilt=True
+        None, k, _given_normals(opt.target_normals, len(tgt), "target_normals"), tree, quadric, keep_tilt=True,
+        known=kept_neighbours(tgt, min(k, tree.n)),  # the neighbours the point selection found, where it kept them
     )
     n_tgt = len(tgt)  # the tree holds the target (one copy of a large cloud, read through _TreePoints)
     sample = opt.sample
@@ -174,7 +175,8 @@ def prepare(
         if len(src_l) < k:
             raise LabkitError(f"the source needs at least k = {k} points for its normals, got {len(src_l)}")
         src_geo = Geometry(
-            src_l, k, _given_normals(opt.source_normals, len(src_l), "source_normals"), quadric=quadric
+            src_l, k, _given_normals(opt.source_normals, len(src_l), "source_normals"), quadric=quadric,
+            known=kept_neighbours(src, k),
         )
     # (1) sampling
     idx = _sample(src_l, src_geo, sample, rng)
