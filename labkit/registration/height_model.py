@@ -24,8 +24,9 @@ Gruen and Akca 2005 for the 3-D form; Karel et al. 2006 on ALS strips):
    square blocks of cells (as in maximum consensus, eq. 6.14): leaving block b out moves the
    estimate by d_b = (N - N_b)^-1 g_b, Sigma = (B - 1)/B sum d_b d_b^T; the larger of two block
    sizes counts, and the std is scaled for few blocks (t with B - 1 degrees of freedom).
-4. A horizontal component is **determined** when its std is below the precision limit ``max_std``
-   (0.1 m as ICP's default) and no single block alone determines a direction; otherwise NaN/inf.
+4. X and Y are **determined** when both horizontal directions have a std below the precision limit
+   ``max_std`` (0.1 m as ICP's default); otherwise both are inf (along a direction without height
+   jumps the estimate wanders, and takes every axis with a share in it along).
 
 Why a height model and not the crowns as planes: a crown is a new random sample of leaves in every
 flight, so the normals fitted to it are random and point-to-plane residuals on it are biased
@@ -61,9 +62,6 @@ NOISE_CLASSES = (7, 18)
 SMOOTHING = (3.0, 1.0, 1.0)
 #: Block edges of the jackknife in cells; the larger covariance counts.
 BLOCK_CELLS = (6, 12)
-#: An axis with this squared share in a horizontal direction above the precision limit is undetermined
-#: (as ICP's HELD_SHARE).
-HELD_SHARE = 0.05
 #: Fewer blocks than this: no jackknife, every component undetermined.
 MIN_BLOCKS = 8
 
@@ -79,7 +77,7 @@ class HeightModelShift(ReportMixin):
     covariance : ndarray (3, 3)
         Delete-a-block jackknife covariance (m^2); inf on the diagonal of an undetermined component.
     determined : ndarray of bool (3,)
-        Per axis: std below ``max_std`` (and no direction carried by a single block).
+        Per axis: X and Y when both horizontal directions have a std below ``max_std``; Z with them.
     direction_std : ndarray (2,)
         Std (m) along the two horizontal eigen-directions of the jackknife covariance, ascending.
     cell : float
@@ -449,18 +447,19 @@ def _jackknife(A, l, cells, epochs):
 
 
 def _result(t, cov, n_blocks, block, single, cell, n_cells, iterations, converged, max_std):
-    """The result: what the jackknife determines below ``max_std``; the rest inf (eq. 5.12a).
+    """The result: X and Y when both horizontal directions have a jackknife std below ``max_std``, else inf.
 
-    As in ICP, an axis with a squared share of :data:`HELD_SHARE` or more in a horizontal direction whose
-    std exceeds ``max_std`` is undetermined (a weak direction 20 degrees off Y takes X with it), and
-    dz is stated only when both horizontal axes are: it depends on where the surfaces are compared.
+    A direction the height jumps do not fix is not just imprecise: the estimate wanders along it
+    as far as the damping lets it (metres along the ridge of one long roof), and its jackknife,
+    linearised at a point that is not a fixed point in that direction, says less than that. An axis
+    with even a small share in it can then be decimetres off; so one weak horizontal direction
+    leaves both axes undetermined (eq. 5.12a), and dz is stated only with dx and dy (it depends on
+    where the surfaces are compared).
     """
     finite = bool(np.isfinite(cov).all()) and converged and not single
-    lam, V = np.linalg.eigh(cov[:2, :2]) if finite else (np.full(2, np.inf), np.eye(2))
-    dir_std = np.sqrt(np.clip(lam, 0, None))
-    weak = V[:, dir_std >= max_std]
-    horizontal = finite & ((weak**2).sum(axis=1) < HELD_SHARE) & (np.sqrt(np.diag(cov)[:2]) < max_std)
-    determined = np.append(horizontal, horizontal.all() and np.sqrt(cov[2, 2]) < max_std)
+    dir_std = np.sqrt(np.clip(np.linalg.eigvalsh(cov[:2, :2]), 0, None)) if finite else np.full(2, np.inf)
+    both = finite and bool(np.all(dir_std < max_std))
+    determined = np.array([both, both, both and np.sqrt(cov[2, 2]) < max_std])
     cov = cov.copy() if finite else np.full((3, 3), np.inf)
     cov[~determined, :] = np.inf
     cov[:, ~determined] = np.inf
