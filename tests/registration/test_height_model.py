@@ -94,3 +94,37 @@ def test_real_halves_state_only_what_holds(realdata, name):
             assert 0.75 <= ratio <= 1.3, (name, "XY"[k], ratio)
     if name == "als/MixedConifer.laz":  # the crowns fix X and Y to a few centimetres in every half
         assert stated[:, :2].all() and np.all(std[:, :2] < 0.05)
+
+
+def test_icp_defaults_fill_the_along_ridge_axis_and_say_so():
+    from labkit.registration import icp
+
+    rng = np.random.default_rng(5)
+    src, tgt = gable_scene(8000, rng) - SHIFT, gable_scene(8000, rng)
+    plain = icp(src, tgt, rng=0, height_model=False)
+    assert plain.degeneracy.undetermined_axes == ("X",)  # point-to-plane: roof normals have no X component
+    res = icp(src, tgt, rng=0)
+    err, std = res.translation - SHIFT, res.translation_std
+    assert res.degeneracy.undetermined_axes == () and np.all(np.isfinite(std)), res.message
+    assert np.all(np.abs(err) <= 3 * std) and std[0] < 0.1, (err, std)
+    assert np.allclose(res.translation[1:], plain.translation[1:], atol=3 * std[1:])  # Y, Z: point-to-plane
+    assert "X FROM THE HEIGHT MODEL" in res.message and "Height model" in res.summary()
+    assert res.height_model is not None and res.height_model.determined[0]
+    assert np.isclose(res.translation_cov[0, 0], res.height_model.covariance[0, 0])
+
+
+def test_real_conifer_plot_gets_x_and_y_from_the_crowns(realdata):
+    from labkit import read_cloud
+    from labkit.registration import icp
+
+    path = realdata / "als" / "MixedConifer.laz"
+    if not path.is_file():
+        pytest.skip("MixedConifer.laz absent")
+    cloud = read_cloud(path)
+    half = np.random.default_rng(3).random(len(cloud.xyz)) < 0.5
+    s = SHIFTS[2]
+    src, tgt = cloud.subset(~half), cloud.subset(half)
+    res = icp(src.with_xyz(src.xyz - s), tgt, rng=0)  # ground only: a flat, height-normalised floor
+    err, std = res.translation - s, res.translation_std
+    assert np.all(std < 0.1) and np.all(np.abs(err) <= 3 * std), (err, std, res.message)
+    assert "X, Y FROM THE HEIGHT MODEL" in res.message
