@@ -200,8 +200,8 @@ def icp(
         With stable classes, every class left out (50 points or more in both clouds) is registered
         on its own from the result and tested against it: ``result.class_checks``.
     height_model : bool
-        With ``select='auto'`` and ``dof='translation'``: where point-to-plane on the selected points
-        leaves X or Y undetermined (the normals of ground and roofs are nearly vertical), match the
+        With ``select='auto'``, ``dof='translation'`` and point-to-plane: where the selected points
+        leave X or Y undetermined (the normals of ground and roofs are nearly vertical), match the
         height models of all points (roof edges, crowns) and fill those axes when that determines them
         (:func:`labkit.registration.height_model.fill_held_axes`); ``result.height_model`` and the
         message say which axes came from where. False: leave them undetermined.
@@ -368,7 +368,8 @@ def _with_selection(source, target, options, settings):
         back = lambda rows, i: np.where(i >= 0, rows[np.clip(i, 0, None)], -1)  # noqa: E731
         corr = replace(corr, source_index=back(sel.source_rows, corr.source_index),
                        target_index=back(sel.target_rows, corr.target_index), n_source=sel.n_source)
-    if settings["height_model"] and settings["dof"] == "translation":  # X, Y from height jumps where held
+    if settings["height_model"] and settings["dof"] == "translation" and settings["metric"] == "point_to_plane":
+        # X, Y from height jumps where the normals of the selected surfaces leave them undetermined
         res, _ = fill_held_axes(res, source, target)
     checks = check_other_classes(source, target, res, sel, icp, **_class_settings(settings, options))
     msg = f"{res.message}; points: {sel.reason}"
