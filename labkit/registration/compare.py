@@ -294,7 +294,8 @@ def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "tra
     a translation within +-``extent`` m, on at most ``max_points`` source points spread
     evenly); ``consensus+icp`` (consensus, then a Tukey ICP with ``dof`` from there: the
     route for shifts larger than ICP's matching distance; with no pair within the gate there, the gate is
-    twice the target's point spacing when that is wider, the precision limit stays). ``reach`` (m, optional) is passed to the ICP
+    twice the target's point spacing when that is wider, the precision limit stays; X, Y that ICP leaves undetermined
+are filled from the height models where those fix them, :func:`labkit.registration.height_model.fill_held_axes`). ``reach`` (m, optional) is passed to the ICP
     methods: a reach beyond the matching distance runs ICP's coarse-to-fine pyramid first.
     ``max_iterations`` (optional) is passed to every ICP run (default: ICP's own).
     The callables are picklable (for Dask workers in other processes).

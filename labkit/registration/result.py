@@ -66,6 +66,9 @@ class RegistrationResult(ReportMixin):
     class_checks : tuple of ClassCheck
         The classes left out of a 'stable classes' selection, each tested against the result (which class
         agrees, which moved; :func:`labkit.registration.selection.check_other_classes`). Empty otherwise.
+    height_model : HeightModelShift, optional
+        The height-model matching that filled horizontal axes point-to-plane left undetermined
+        (:func:`labkit.registration.height_model.fill_held_axes`), or that was tried and did not.
 
     Examples
     --------
@@ -97,6 +100,7 @@ class RegistrationResult(ReportMixin):
     consistency: Consistency | None = None
     selection: object = None
     class_checks: tuple = ()
+    height_model: object = None
 
     @property
     def consistent(self) -> bool:
@@ -164,6 +168,9 @@ class RegistrationResult(ReportMixin):
         if self.class_checks:
             sections.append(("Other classes against the shift (left out of the estimate)",
                              [(f"class {c.code}", str(c).split(", ", 1)[1]) for c in self.class_checks]))
+        if self.height_model is not None:
+            sections.append(("Height model (horizontal axes point-to-plane left undetermined)",
+                             self.height_model._report()[1][0][1]))
         if self.consistency is not None:
             sections += self.consistency._report()[1]
         if self.degeneracy is not None:

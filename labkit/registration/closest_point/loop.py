@@ -42,6 +42,7 @@ from ..options import FIELDS, MatchOptions, takes_match_options
 from .pyramid import RETRY_REACH, pyramid_icp, retry_with_pyramid, use_pyramid
 from ..result import RegistrationResult
 from ..selection import SELECT, check_other_classes, select_points
+from ..height_model import fill_held_axes
 
 
 @dataclass(frozen=True, eq=False)
@@ -134,6 +135,7 @@ def icp(
     coarse_to_fine="auto",
     reach=None,
     select="auto",
+    height_model=True,
     rng=None,
     progress=False,
 ) -> RegistrationResult:
@@ -197,6 +199,12 @@ def icp(
         normals, all points take part.
         With stable classes, every class left out (50 points or more in both clouds) is registered
         on its own from the result and tested against it: ``result.class_checks``.
+    height_model : bool
+        With ``select='auto'``, ``dof='translation'`` and point-to-plane: where the selected points
+        leave X or Y undetermined (the normals of ground and roofs are nearly vertical), match the
+        height models of all points (roof edges, crowns) and fill those axes when that determines them
+        (:func:`labkit.registration.height_model.fill_held_axes`); ``result.height_model`` and the
+        message say which axes came from where. False: leave them undetermined.
     coarse_to_fine : {'auto', True, False}
         Run a voxel pyramid first (:mod:`labkit.registration.closest_point.pyramid`), from twice ``reach`` down to
         ``max_distance``; the covariance and degeneracy report come from the full clouds. 'auto':
@@ -360,6 +368,9 @@ def _with_selection(source, target, options, settings):
         back = lambda rows, i: np.where(i >= 0, rows[np.clip(i, 0, None)], -1)  # noqa: E731
         corr = replace(corr, source_index=back(sel.source_rows, corr.source_index),
                        target_index=back(sel.target_rows, corr.target_index), n_source=sel.n_source)
+    if settings["height_model"] and settings["dof"] == "translation" and settings["metric"] == "point_to_plane":
+        # X, Y from height jumps where the normals of the selected surfaces leave them undetermined
+        res, _ = fill_held_axes(res, source, target)
     checks = check_other_classes(source, target, res, sel, icp, **_class_settings(settings, options))
     msg = f"{res.message}; points: {sel.reason}"
     moved = [str(c.code) for c in checks if not c.agree]
@@ -371,7 +382,8 @@ def _with_selection(source, target, options, settings):
 
 def _class_settings(settings, options):
     """The caller's settings for the check of one left-out class: one level, no group test, no progress."""
-    out = {k: v for k, v in settings.items() if k not in ("initial", "coarse_to_fine", "reach", "progress")}
+    out = {k: v for k, v in settings.items()
+           if k not in ("initial", "coarse_to_fine", "reach", "progress", "height_model")}
     return dict(out, options=options, coarse_to_fine=False, consistency_alpha=None)
 
 

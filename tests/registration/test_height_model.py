@@ -1,0 +1,130 @@
+"""Height-model matching: the horizontal shift from height jumps, with a jackknife std that holds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from labkit.core.errors import LabkitError
+from labkit.registration.height_model import height_model_shift
+
+SHIFT = np.array([0.3, 0.2, 0.05])
+
+
+def gable_scene(n, rng, *, size=60.0, noise=0.02):
+    """Flat ground with houses 12 x 8 m whose ridges run along X (gable ends at both X ends), no walls.
+
+    The same houses in every call (their layout has its own seed); ``rng`` draws the points.
+    """
+    rng = np.random.default_rng(rng)
+    xy = rng.uniform(0, size, (n, 2))
+    z = np.zeros(n)
+    layout = np.random.default_rng(7)
+    for cx in np.arange(9.0, size - 8, 16.0):
+        for cy in np.arange(8.0, size - 6, 13.0):
+            cx_, cy_ = cx + layout.uniform(-2, 2), cy + layout.uniform(-1.5, 1.5)
+            inside = (np.abs(xy[:, 0] - cx_) < 6.0) & (np.abs(xy[:, 1] - cy_) < 4.0)
+            roof = 4.0 + 0.7 * (4.0 - np.abs(xy[:, 1] - cy_))  # eaves 4 m, ridge 6.8 m
+            z = np.where(inside, np.maximum(z, roof), z)
+    return np.column_stack([xy, z + rng.normal(0, noise, n)])
+
+
+def test_gable_roofs_give_the_along_ridge_shift_with_an_honest_std():
+    est, std = [], []
+    for i in range(40):  # independent samplings of both epochs
+        rng = np.random.default_rng(100 + i)
+        hm = height_model_shift(gable_scene(8000, rng) - SHIFT, gable_scene(8000, rng))
+        assert hm.converged and hm.determined.all(), hm.message
+        est.append(hm.translation)
+        std.append(hm.translation_std)
+    est, std = np.array(est), np.array(std)
+    stated = np.sqrt((std**2).mean(axis=0))
+    spread = est.std(axis=0, ddof=1)
+    assert np.all(np.abs(est.mean(axis=0) - SHIFT) < 3 * spread / np.sqrt(len(est)) + 0.002)  # no bias
+    assert stated[0] < 0.1  # X, along the ridges: from the gable ends
+    assert np.all((spread / stated > 0.8) & (spread / stated < 1.25)), spread / stated
+
+
+def test_a_flat_floor_leaves_the_horizontal_undetermined():
+    rng = np.random.default_rng(0)
+    floor = lambda n: np.column_stack([rng.uniform(0, 40, (n, 2)), rng.normal(0, 0.02, n)])  # noqa: E731
+    hm = height_model_shift(floor(4000) - SHIFT, floor(4000))
+    assert not hm.determined[:2].any() and not np.isfinite(hm.translation_std[:2]).any()
+    assert not hm.determined[2]  # dz only together with dx, dy
+    assert "undetermined" in hm.message and "undetermined" in hm.summary()
+
+
+def test_clouds_without_a_common_area_are_refused():
+    rng = np.random.default_rng(1)
+    a = gable_scene(3000, rng)
+    with pytest.raises(LabkitError, match="overlap"):
+        height_model_shift(a + [500.0, 0.0, 0.0], a)
+    with pytest.raises(LabkitError):
+        height_model_shift(a, a, max_std=-1.0)
+
+
+#: the files where point-to-plane on the stable surfaces leaves X and Y undetermined
+HARD_FILES = ("als/MixedConifer.laz", "als/sample_c.las", "als/warsaw_small.las")
+SHIFTS = np.array([[0.15, -0.12, 0.05], [-0.25, 0.30, -0.10], [0.42, 0.30, 0.12], [-0.50, -0.55, 0.20]])
+
+
+@pytest.mark.parametrize("name", HARD_FILES)
+def test_real_halves_state_only_what_holds(realdata, name):
+    """12 random halves, shifted by 0.2-0.8 m: every stated component within 3.5 std, spread / stated 0.75-1.3."""
+    from labkit import read_cloud
+
+    path = realdata / name
+    if not path.is_file():
+        pytest.skip(f"{name} absent")
+    cloud = read_cloud(path)
+    err, std = [], []
+    for seed in range(12):
+        half = np.random.default_rng(seed).random(len(cloud.xyz)) < 0.5
+        s = SHIFTS[seed % 4]
+        src, tgt = cloud.subset(~half), cloud.subset(half)
+        hm = height_model_shift(src.with_xyz(src.xyz - s), tgt)
+        err.append(hm.translation - s)
+        std.append(hm.translation_std)
+    err, std = np.array(err), np.array(std)
+    stated = np.isfinite(std)
+    assert np.all(np.abs(err[stated]) <= 3.5 * std[stated]), (err, std)
+    for k in range(2):
+        if stated[:, k].sum() >= 8:  # enough halves for a spread
+            ratio = err[stated[:, k], k].std(ddof=1) / np.sqrt(np.mean(std[stated[:, k], k] ** 2))
+            assert 0.75 <= ratio <= 1.3, (name, "XY"[k], ratio)
+    if name == "als/MixedConifer.laz":  # the crowns fix X and Y to a few centimetres in every half
+        assert stated[:, :2].all() and np.all(std[:, :2] < 0.05)
+
+
+def test_icp_defaults_fill_the_along_ridge_axis_and_say_so():
+    from labkit.registration import icp
+
+    rng = np.random.default_rng(5)
+    src, tgt = gable_scene(8000, rng) - SHIFT, gable_scene(8000, rng)
+    plain = icp(src, tgt, rng=0, height_model=False)
+    assert plain.degeneracy.undetermined_axes == ("X",)  # point-to-plane: roof normals have no X component
+    res = icp(src, tgt, rng=0)
+    err, std = res.translation - SHIFT, res.translation_std
+    assert res.degeneracy.undetermined_axes == () and np.all(np.isfinite(std)), res.message
+    assert np.all(np.abs(err) <= 3 * std) and std[0] < 0.1, (err, std)
+    assert np.allclose(res.translation[1:], plain.translation[1:], atol=3 * std[1:])  # Y, Z: point-to-plane
+    assert "X FROM THE HEIGHT MODEL" in res.message and "Height model" in res.summary()
+    assert res.height_model is not None and res.height_model.determined[0]
+    assert np.isclose(res.translation_cov[0, 0], res.height_model.covariance[0, 0])
+
+
+def test_real_conifer_plot_gets_x_and_y_from_the_crowns(realdata):
+    from labkit import read_cloud
+    from labkit.registration import icp
+
+    path = realdata / "als" / "MixedConifer.laz"
+    if not path.is_file():
+        pytest.skip("MixedConifer.laz absent")
+    cloud = read_cloud(path)
+    half = np.random.default_rng(3).random(len(cloud.xyz)) < 0.5
+    s = SHIFTS[2]
+    src, tgt = cloud.subset(~half), cloud.subset(half)
+    res = icp(src.with_xyz(src.xyz - s), tgt, rng=0)  # ground only: a flat, height-normalised floor
+    err, std = res.translation - s, res.translation_std
+    assert np.all(std < 0.1) and np.all(np.abs(err) <= 3 * std), (err, std, res.message)
+    assert "X, Y FROM THE HEIGHT MODEL" in res.message
