@@ -64,9 +64,10 @@ moment came, so the wall times are pessimistic and the CPU time is the work):
     max_consensus point_to_plane       7.9 s wall,  3.2 s CPU  C = 4398, certified bound 4409 >= grid 4385
     max_consensus point_to_point      22.2 s wall,  8.3 s CPU  C = 414, bound 535 >= grid 406 (box budget spent)
 
-  The counting kernel alone, side by side in one run with the per-point kernel it replaced (identical
-  counts, 4 pairs of runs): CPU 8.0-9.1 s against 12.6-14.3 s, wall 25-32 s against 38-55 s at load 10-12. On an idle machine
-  the cube's wall time is about half its CPU time plus the 1-2 s of normals, pairs and peak.
+  The counting kernel alone, side by side in one run with a per-point kernel over the whole grid (one
+  difference array per thread, z fastest; identical counts), 4 pairs of runs at load 10-12: CPU 8.0-9.1 s
+  against 12.6-14.3 s, wall 25-32 s against 38-55 s. On an idle machine the cube's wall time is about
+  half its CPU time plus the 1-2 s of normals, pairs and peak.
 
 Run:  python benchmarks/bench_consensus.py [--quick] [--real-only]
 The machine is shared: wall times under load are pessimistic; CPU time is given beside them.
