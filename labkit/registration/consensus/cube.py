@@ -27,7 +27,6 @@ This module holds the two searches; the rest lives in modules named after it:
 from __future__ import annotations
 
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
@@ -186,9 +185,11 @@ def consensus_cube(
     ptr, _, D, nrm = candidate_pairs(pb, a0, a1, pb.radius)
     # Rasterize the consistent set of every pair, one count per source point and cell
     shape = tuple(a.size for a in axes)
-    counts, kernel = _raster_parallel(ptr, (D - a0) / step, nrm, pb, step, shape, use_numba, workers)
-    if weights is None:
-        counts = np.rint(counts).astype(np.int32)
+    numba_ok = K.HAVE_NUMBA if use_numba is None else bool(use_numba) and K.HAVE_NUMBA
+    w = np.ones(len(pb.w), np.int32) if weights is None else pb.w  # whole counts: int32 from the kernel
+    counts = K.raster(ptr, (D - a0) / step, nrm, pb.radius / step, pb.eps / step, w, shape, use_numba=numba_ok,
+                      workers=max(1, int(workers)))
+    kernel = "numba" if numba_ok else "numpy"
     # Peak and its shape
     peak = peak_shape(counts, axes, pb.eps, level)
     idx = np.unravel_index(np.argmax(counts), shape)
@@ -199,26 +200,6 @@ def consensus_cube(
         peak=peak, metric=pb.metric, eps=pb.eps, radius=pb.radius, max_angle_deg=pb.max_angle_deg,
         n_source=len(pb.src), n_pairs=int(D.shape[0]), step=step, kernel=kernel, runtime_s=time.perf_counter() - t0,
     )
-
-
-def _raster_parallel(ptr, U, nrm, pb, step, shape, use_numba, workers):
-    numba_ok = K.HAVE_NUMBA if use_numba is None else bool(use_numba) and K.HAVE_NUMBA
-    R, E = pb.radius / step, pb.eps / step
-    if not numba_ok or workers <= 1:
-        return K.raster(ptr, U, nrm, R, E, pb.w, shape, use_numba=numba_ok), "numba" if numba_ok else "numpy"
-    # split the source points into parts with about the same number of pairs; threads release the GIL
-    n = ptr.size - 1
-    cuts = np.unique(np.searchsorted(ptr, np.linspace(0, ptr[-1], workers + 1)[1:-1]).clip(0, n))
-    bounds = np.concatenate(([0], cuts, [n]))
-
-    def part(a, b):
-        sub_ptr = ptr[a : b + 1] - ptr[a]
-        sl = slice(ptr[a], ptr[b])
-        return K.raster(sub_ptr, U[sl], None if nrm is None else nrm[sl], R, E, pb.w[a:b], shape, use_numba=True)
-
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        parts = list(pool.map(part, bounds[:-1], bounds[1:]))
-    return sum(parts[1:], parts[0]), "numba"
 
 
 def max_consensus(

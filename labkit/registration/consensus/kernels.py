@@ -15,12 +15,19 @@ the cube. Where one point has several disjoint intervals in a column, the
 compiled kernel keeps them in a buffer and enters their union once the point is
 done (sorted by column and start), instead of marking cells one by one.
 
+The compiled kernel counts the grid in blocks of a few rows (x): the difference
+array of a block stays in a core's cache while every source point adds its sheet
+of cells, the intervals of one grid row are computed in a branch-free loop the
+compiler vectorizes, and threads take whole blocks, so their counts never meet.
+
 Two interchangeable implementations are provided: a compiled one (numba, used
 when importable) and a vectorized numpy one (sort-based deduplication). Both
 give identical counts.
 """
 
 from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -31,6 +38,10 @@ try:  # numba is a dependency of labkit; the numpy route stays for environments 
 except ImportError:  # pragma: no cover - depends on the environment
     numba = None
     HAVE_NUMBA = False
+
+
+#: Bytes of the difference array of one block of grid rows (a core's cache)
+BLOCK_BYTES = 1 << 19
 
 
 def _njit(*args, **kwargs):
@@ -54,12 +65,11 @@ def _push(buf, n, col, z0, z1):  # pragma: no cover - compiled
 
 
 @_njit()
-def _emit_union(buf, n, nz, wp, diff):  # pragma: no cover - compiled
+def _emit_union(buf, n, nz, ny, wp, diff):  # pragma: no cover - compiled
     """Enter the union of the buffered intervals of one point, per column, into the difference array."""
     B = nz + 2
     keys = buf[0, :n] * B + buf[1, :n]
     order = np.argsort(keys)
-    nz1 = nz + 1
     cur, s, e = -1, 0, -1
     for o in order:
         c, a, b = buf[0, o], buf[1, o], buf[2, o]
@@ -68,24 +78,76 @@ def _emit_union(buf, n, nz, wp, diff):  # pragma: no cover - compiled
                 e = b
             continue
         if cur >= 0:
-            diff[cur * nz1 + s] += wp
-            diff[cur * nz1 + e + 1] -= wp
+            diff[cur // ny, s, cur % ny] += wp
+            diff[cur // ny, e + 1, cur % ny] -= wp
         cur, s, e = c, a, b
     if cur >= 0:
-        diff[cur * nz1 + s] += wp
-        diff[cur * nz1 + e + 1] -= wp
+        diff[cur // ny, s, cur % ny] += wp
+        diff[cur // ny, e + 1, cur % ny] -= wp
 
 
 @_njit()
-def _raster_numba(ptr, U, Nrm, plane, R, E, w, nx, ny, nz, diff):  # pragma: no cover - compiled
-    ncol = nx * ny
-    colstamp = np.full(ncol, -1, np.int64)  # p: one merged interval of point p; -2 - p: several (buffered)
+def _row_intervals(uy, uz, rx, axx, ay, inv, Ek, steep, E, iy0, iy1, nz, rz0, rz1):  # pragma: no cover - compiled
+    """z-interval [rz0, rz1] of one pair in the columns iy0..iy1 of one grid row (empty: rz0 > rz1).
+
+    Ball and slab as in eq. 6.3, 6.4; ``Ek`` is E for a slab and a huge number for point-to-point.
+    The branch-free loop over a row is vectorized by the compiler.
+    """
+    if steep:  # the slab does not depend on z
+        for iy in range(iy0, iy1 + 1):
+            ddy = iy - uy
+            rem = rx - ddy * ddy
+            a = axx + ay * ddy
+            z0, z1 = nz, -1
+            if rem > 0.0 and abs(a) < E:
+                hz = np.sqrt(rem)
+                z0 = max(0, int(np.floor(uz - hz)) + 1)
+                z1 = min(nz - 1, int(np.ceil(uz + hz)) - 1)
+            rz0[iy] = z0
+            rz1[iy] = z1
+        return
+    for iy in range(iy0, iy1 + 1):
+        ddy = iy - uy
+        rem = rx - ddy * ddy
+        hz = np.sqrt(rem if rem > 0.0 else 0.0)
+        a = axx + ay * ddy
+        s0 = (-Ek - a) * inv
+        s1 = (Ek - a) * inv
+        sl = s0 if s0 < s1 else s1
+        sh = s1 if s0 < s1 else s0
+        lo = uz - hz  # ball
+        t0 = uz + sl  # slab
+        lo = lo if lo > t0 else t0
+        hi = uz + hz
+        t1 = uz + sh
+        hi = hi if hi < t1 else t1
+        z0 = int(np.floor(lo)) + 1  # open interval: first and last whole cell inside
+        z0 = z0 if z0 > 0 else 0
+        z1 = int(np.ceil(hi)) - 1
+        z1 = z1 if z1 < nz - 1 else nz - 1
+        rz0[iy] = z0 if rem > 0.0 else nz
+        rz1[iy] = z1
+
+
+@_njit()
+def _raster_block(ptr, U, Nrm, plane, R, E, w, ny, nz, ix_lo, ix_hi, out):  # pragma: no cover - compiled
+    """Counts of the grid rows ix_lo..ix_hi-1 (written into ``out``), every pair of every point.
+
+    The difference array of a few rows, (rows, nz + 1, ny), stays in the cache while every
+    source point adds its sheet of cells; the state of the columns (the merged interval of the
+    current point, its stamp) is as small.
+    """
+    nb = ix_hi - ix_lo
+    ncol = nb * ny
+    diff = np.zeros((nb, nz + 1, ny), out.dtype)
+    stamp = np.full(ncol, -1, np.int64)  # p: one merged interval of point p; -2 - p: several (buffered)
     zlo = np.zeros(ncol, np.int64)
     zhi = np.zeros(ncol, np.int64)
     touched = np.empty(ncol, np.int64)
+    rz0 = np.empty(ny, np.int64)
+    rz1 = np.empty(ny, np.int64)
     buf = np.empty((3, 1024), np.int64)  # the intervals of columns where one point has several
     R2 = R * R
-    nz1 = nz + 1
     for p in range(ptr.shape[0] - 1):
         wp = w[p]
         ntouched = 0
@@ -93,14 +155,17 @@ def _raster_numba(ptr, U, Nrm, plane, R, E, w, nx, ny, nz, diff):  # pragma: no 
         several = -2 - p
         for k in range(ptr[p], ptr[p + 1]):
             ux, uy, uz = U[k, 0], U[k, 1], U[k, 2]
-            ax, ay, inv = 0.0, 0.0, 0.0
+            ix0 = max(ix_lo, int(np.floor(ux - R)) + 1)
+            ix1 = min(ix_hi - 1, int(np.ceil(ux + R)) - 1)
+            if ix0 > ix1:
+                continue
+            ax, ay, inv, Ek = 0.0, 0.0, 1.0, 1e300
             steep = False
             if plane:
                 ax, ay = Nrm[k, 0], Nrm[k, 1]
                 steep = abs(Nrm[k, 2]) <= 1e-12
                 inv = 0.0 if steep else 1.0 / Nrm[k, 2]
-            ix0 = max(0, int(np.floor(ux - R)) + 1)
-            ix1 = min(nx - 1, int(np.ceil(ux + R)) - 1)
+                Ek = E
             for ix in range(ix0, ix1 + 1):
                 ddx = ix - ux
                 rx = R2 - ddx * ddx
@@ -109,58 +174,49 @@ def _raster_numba(ptr, U, Nrm, plane, R, E, w, nx, ny, nz, diff):  # pragma: no 
                 hy = np.sqrt(rx)
                 iy0 = max(0, int(np.floor(uy - hy)) + 1)
                 iy1 = min(ny - 1, int(np.ceil(uy + hy)) - 1)
-                axx = ax * ddx
+                _row_intervals(uy, uz, rx, ax * ddx, ay, inv, Ek, steep, E, iy0, iy1, nz, rz0, rz1)
+                cbase = (ix - ix_lo) * ny
                 for iy in range(iy0, iy1 + 1):
-                    ddy = iy - uy
-                    rem = rx - ddy * ddy
-                    if rem <= 0.0:
-                        continue
-                    hz = np.sqrt(rem)
-                    lo = uz - hz
-                    hi = uz + hz
-                    if plane:
-                        a = axx + ay * ddy
-                        if steep:
-                            if abs(a) >= E:
-                                continue
-                        else:
-                            s0 = (-E - a) * inv
-                            s1 = (E - a) * inv
-                            if s0 > s1:
-                                s0, s1 = s1, s0
-                            lo = max(lo, uz + s0)
-                            hi = min(hi, uz + s1)
-                    z0 = max(0, int(np.floor(lo)) + 1)
-                    z1 = min(nz - 1, int(np.ceil(hi)) - 1)
+                    z0, z1 = rz0[iy], rz1[iy]
                     if z0 > z1:
                         continue
-                    col = ix * ny + iy
-                    st = colstamp[col]
+                    col = cbase + iy
+                    st = stamp[col]
                     if st == p:
-                        if z0 <= zhi[col] + 1 and z1 >= zlo[col] - 1:  # overlapping: merge
+                        if z0 <= zhi[col] + 1 and z1 >= zlo[col] - 1:  # overlapping or adjacent: merge
                             if z0 < zlo[col]:
                                 zlo[col] = z0
                             if z1 > zhi[col]:
                                 zhi[col] = z1
                         else:  # a second, disjoint interval: buffer both, unite them at the end
-                            colstamp[col] = several
+                            stamp[col] = several
                             buf, nbuf = _push(buf, nbuf, col, zlo[col], zhi[col])
                             buf, nbuf = _push(buf, nbuf, col, z0, z1)
                     elif st == several:
                         buf, nbuf = _push(buf, nbuf, col, z0, z1)
                     else:  # first interval of this point in the column
-                        colstamp[col] = p
+                        stamp[col] = p
                         zlo[col] = z0
                         zhi[col] = z1
                         touched[ntouched] = col
                         ntouched += 1
         for j in range(ntouched):
             col = touched[j]
-            if colstamp[col] == p:
-                diff[col * nz1 + zlo[col]] += wp
-                diff[col * nz1 + zhi[col] + 1] -= wp
+            if stamp[col] == p:
+                il = col // ny
+                iy = col - il * ny
+                diff[il, zlo[col], iy] += wp
+                diff[il, zhi[col] + 1, iy] -= wp
         if nbuf:
-            _emit_union(buf, nbuf, nz, wp, diff)
+            _emit_union(buf, nbuf, nz, ny, wp, diff)
+    # cumulative sum along z, written in the (x, y, z) order of the cube
+    acc = np.zeros(ny, out.dtype)
+    for il in range(nb):
+        acc[:] = 0
+        for z in range(nz):
+            for iy in range(ny):
+                acc[iy] += diff[il, z, iy]
+                out[ix_lo + il, iy, z] = acc[iy]
 
 
 # --------------------------------------------------------------------------- cube: numpy
@@ -228,7 +284,7 @@ def _raster_chunk(ptr, U, Nrm, plane, R, E, w, shape, diff, start, stop, ox, oy)
     diff -= np.bincount(col * (nz + 1) + ze + 1, weights=wk, minlength=n_diff)
 
 
-def raster(ptr, U, Nrm, R, E, w, shape, *, use_numba=None):
+def raster(ptr, U, Nrm, R, E, w, shape, *, use_numba=None, workers=1):
     """Consensus counts on the grid ``shape`` from pairs in index space (eq. 6.5).
 
     Parameters
@@ -241,17 +297,38 @@ def raster(ptr, U, Nrm, R, E, w, shape, *, use_numba=None):
         Target normals for the slab test (point-to-plane), None for point-to-point.
     R, E : float
         Ball radius and slab half-width in index units.
-    w : float64 (n_src,)
-        Weight of every source point.
+    w : (n_src,) float64 or integer
+        Weight of every source point; integer weights give int32 counts, float weights float64.
+    workers : int
+        Threads of the compiled kernel; each counts whole grid rows (x), so the counts do not
+        depend on the number of threads, not even in the last bit of float weights.
     """
     nx, ny, nz = shape
-    diff = np.zeros(nx * ny * (nz + 1))
     plane = Nrm is not None
     nrm = Nrm if plane else np.zeros((1, 3))
+    dtype = np.int32 if np.issubdtype(np.asarray(w).dtype, np.integer) else np.float64
     numba_ok = HAVE_NUMBA if use_numba is None else (use_numba and HAVE_NUMBA)
-    kernel = _raster_numba if numba_ok else _raster_numpy
-    kernel(ptr, U, nrm, plane, float(R), float(E), w, nx, ny, nz, diff)
-    return np.cumsum(diff.reshape(nx * ny, nz + 1), axis=1)[:, :nz].reshape(nx, ny, nz)
+    if not numba_ok:
+        diff = np.zeros(nx * ny * (nz + 1))
+        _raster_numpy(ptr, U, nrm, plane, float(R), float(E), np.asarray(w, np.float64), nx, ny, nz, diff)
+        counts = np.cumsum(diff.reshape(nx * ny, nz + 1), axis=1)[:, :nz].reshape(nx, ny, nz)
+        return np.rint(counts).astype(dtype) if dtype is np.int32 else counts
+    w = np.asarray(w, dtype)
+    out = np.empty(shape, dtype)
+    # blocks of grid rows whose difference array (rows, nz + 1, ny) fits in a core's cache
+    rows = int(np.clip(BLOCK_BYTES // ((nz + 1) * ny * out.itemsize), 1, nx))
+    starts = range(0, nx, rows)
+
+    def block(a):
+        _raster_block(ptr, U, nrm, plane, float(R), float(E), w, ny, nz, a, min(nx, a + rows), out)
+
+    if workers <= 1 or len(starts) == 1:
+        for a in starts:
+            block(a)
+    else:  # the compiled kernel releases the GIL; the threads take the blocks in turn
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            list(pool.map(block, starts))
+    return out
 
 
 # --------------------------------------------------------------------------- branch and bound
