@@ -116,6 +116,38 @@ def _shell(X, c, r, reach):  # pragma: no cover - compiled
     return idx[:k].copy(), d[:k].copy()
 
 
+def _near_shell(X, c, r, reach):  # pragma: no cover - compiled
+    R2 = (r + reach) * (r + reach)
+    idx = np.empty(X.shape[0], dtype=np.int64)
+    d = np.empty(X.shape[0])
+    k = 0
+    for i in range(X.shape[0]):
+        dx, dy, dz = X[i, 0] - c[0], X[i, 1] - c[1], X[i, 2] - c[2]
+        q = dx * dx + dy * dy + dz * dz
+        if q <= R2:
+            di = np.sqrt(q) - r
+            if abs(di) < reach:
+                idx[k] = i
+                d[k] = di
+                k += 1
+    P = np.empty((k, 3))
+    for j in range(k):
+        P[j, 0], P[j, 1], P[j, 2] = X[idx[j], 0], X[idx[j], 1], X[idx[j], 2]
+    return idx[:k].copy(), d[:k].copy(), P
+
+
+def near_shell(X, c, r, reach):
+    """Indices (ascending), residuals d = |x - c| - r (eq. 25) and coordinates (k, 3) of the points of X
+    (C-contiguous float64) with |d| < reach; one compiled pass."""
+    c = np.asarray(c, dtype=np.float64)
+    kernel = _jit(_near_shell)
+    if kernel is None:  # pragma: no cover
+        idx, d = shell_points(X, c, r, reach)
+        close = np.abs(d) < reach
+        return idx[close], d[close], X[idx[close]]
+    return kernel(X, c, float(r), float(reach))
+
+
 def _residuals(X, c, r):  # pragma: no cover - compiled
     d = np.empty(X.shape[0])
     for i in range(X.shape[0]):
@@ -152,49 +184,14 @@ def in_shell(X, c, r, t):
     return kernel(X, np.ascontiguousarray(c, dtype=np.float64), float(r), float(t))
 
 
-def _normal_equations(P, shift, c, r):  # pragma: no cover - compiled
-    """J^T J (4, 4) and J^T d (4,) of the orthogonal sphere fit at (c, r), for the points P - shift."""
-    JtJ = np.zeros((4, 4))
-    Jtd = np.zeros(4)
-    for i in range(P.shape[0]):
-        dx = (P[i, 0] - shift[0]) - c[0]
-        dy = (P[i, 1] - shift[1]) - c[1]
-        dz = (P[i, 2] - shift[2]) - c[2]
-        dist = np.sqrt(dx * dx + dy * dy + dz * dz)
-        if dist == 0.0:
-            JtJ[3, 3] = -1.0  # flag: a point at the centre
-            return JtJ, Jtd
-        u0, u1, u2 = dx / dist, dy / dist, dz / dist
-        d = dist - r
-        JtJ[0, 0] += u0 * u0
-        JtJ[0, 1] += u0 * u1
-        JtJ[0, 2] += u0 * u2
-        JtJ[1, 1] += u1 * u1
-        JtJ[1, 2] += u1 * u2
-        JtJ[2, 2] += u2 * u2
-        JtJ[0, 3] += u0
-        JtJ[1, 3] += u1
-        JtJ[2, 3] += u2
-        Jtd[0] -= u0 * d
-        Jtd[1] -= u1 * d
-        Jtd[2] -= u2 * d
-        Jtd[3] -= d
-    JtJ[3, 3] = P.shape[0]
-    for a in range(4):
-        for b in range(a):
-            JtJ[a, b] = JtJ[b, a]
-    return JtJ, Jtd
-
-
-
-def _band_normal_equations(P, dm, band, shift, c, r):  # pragma: no cover - compiled
-    """:func:`_normal_equations` of the points with |dm_i| < band_i (band of length 1: one for all)."""
-    JtJ = np.zeros((4, 4))
-    Jtd = np.zeros(4)
-    one = band.shape[0] == 1
+def _normal_equations(P, dm, band, shift, c, r):  # pragma: no cover - compiled
+    """J^T J (4, 4) and J^T d (4,) of the orthogonal sphere fit at (c, r), for the points P - shift with
+    |dm_i| < band_i (band of length 1: one for all; of length 0: every point)."""
+    every, one = band.shape[0] == 0, band.shape[0] == 1
+    s00 = s01 = s02 = s11 = s12 = s22 = s0 = s1 = s2 = t0 = t1 = t2 = t3 = 0.0  # sums in registers
     k = 0
     for i in range(P.shape[0]):
-        if not abs(dm[i]) < band[0 if one else i]:
+        if not (every or abs(dm[i]) < band[0 if one else i]):
             continue
         k += 1
         dx = (P[i, 0] - shift[0]) - c[0]
@@ -202,28 +199,24 @@ def _band_normal_equations(P, dm, band, shift, c, r):  # pragma: no cover - comp
         dz = (P[i, 2] - shift[2]) - c[2]
         dist = np.sqrt(dx * dx + dy * dy + dz * dz)
         if dist == 0.0:
-            JtJ[3, 3] = -1.0
-            return JtJ, Jtd
+            return np.full((4, 4), -1.0), np.zeros(4)  # flag: a point at the centre
         u0, u1, u2 = dx / dist, dy / dist, dz / dist
         d = dist - r
-        JtJ[0, 0] += u0 * u0
-        JtJ[0, 1] += u0 * u1
-        JtJ[0, 2] += u0 * u2
-        JtJ[1, 1] += u1 * u1
-        JtJ[1, 2] += u1 * u2
-        JtJ[2, 2] += u2 * u2
-        JtJ[0, 3] += u0
-        JtJ[1, 3] += u1
-        JtJ[2, 3] += u2
-        Jtd[0] -= u0 * d
-        Jtd[1] -= u1 * d
-        Jtd[2] -= u2 * d
-        Jtd[3] -= d
-    JtJ[3, 3] = k
-    for a in range(4):
-        for b in range(a):
-            JtJ[a, b] = JtJ[b, a]
-    return JtJ, Jtd
+        s00 += u0 * u0
+        s01 += u0 * u1
+        s02 += u0 * u2
+        s11 += u1 * u1
+        s12 += u1 * u2
+        s22 += u2 * u2
+        s0 += u0
+        s1 += u1
+        s2 += u2
+        t0 -= u0 * d
+        t1 -= u1 * d
+        t2 -= u2 * d
+        t3 -= d
+    JtJ = np.array([[s00, s01, s02, s0], [s01, s11, s12, s1], [s02, s12, s22, s2], [s0, s1, s2, float(k)]])
+    return JtJ, np.array([t0, t1, t2, t3])
 
 
 def shell_points(X, c, r, reach):
@@ -237,12 +230,20 @@ def shell_points(X, c, r, reach):
     return kernel(X, c, float(r), float(reach))
 
 
-def normal_equations(P, shift, c, r):
+def normal_equations(P, shift, c, r, band=None):
     """J^T J and J^T d of the orthogonal-distance sphere fit (rows J_i = -[u_i, 1], u_i the unit radial
-    vector of P_i - shift about c); None when a point lies at the centre."""
+    vector of P_i - shift about c), summed in one compiled pass in the order of P; None when a point lies
+    at the centre. ``band = (dm, b)`` takes only the points with |dm_i| < b (a scalar or one per point),
+    without gathering them first."""
     P = np.ascontiguousarray(P, dtype=np.float64)
+    if band is None:
+        dm, b = np.empty(0), np.empty(0)
+    else:
+        dm, b = np.ascontiguousarray(band[0], dtype=np.float64), np.atleast_1d(np.asarray(band[1], dtype=np.float64))
     kernel = _jit(_normal_equations)
     if kernel is None:  # pragma: no cover
+        if band is not None:
+            P = P[np.abs(dm) < (b if len(b) > 1 else b[0])]
         diff = P - shift - c
         dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
         if np.any(dist == 0):
@@ -252,19 +253,7 @@ def normal_equations(P, shift, c, r):
         JtJ = np.empty((4, 4))
         JtJ[:3, :3], JtJ[:3, 3], JtJ[3, :3], JtJ[3, 3] = u.T @ u, su, su, len(P)
         return JtJ, -np.append(u.T @ d, d.sum())
-    JtJ, Jtd = kernel(P, np.asarray(shift, dtype=np.float64), np.asarray(c, dtype=np.float64), float(r))
-    return None if JtJ[3, 3] < 0 else (JtJ, Jtd)
-
-
-def band_normal_equations(P, dm, band, shift, c, r):
-    """:func:`normal_equations` of the points of P (C-contiguous float64) with |dm_i| < band (a scalar or
-    one per point), summed in one compiled pass in the order of P, without gathering them first."""
-    band = np.atleast_1d(np.asarray(band, dtype=np.float64))
-    kernel = _jit(_band_normal_equations)
-    if kernel is None or P.dtype != np.float64 or not P.flags.c_contiguous:  # pragma: no cover
-        return normal_equations(P[np.abs(dm) < (band if len(band) > 1 else band[0])], shift, c, r)
-    JtJ, Jtd = kernel(P, np.ascontiguousarray(dm, dtype=np.float64), band, np.asarray(shift, dtype=np.float64),
-                      np.asarray(c, dtype=np.float64), float(r))
+    JtJ, Jtd = kernel(P, dm, b, np.asarray(shift, dtype=np.float64), np.asarray(c, dtype=np.float64), float(r))
     return None if JtJ[3, 3] < 0 else (JtJ, Jtd)
 
 

@@ -7,7 +7,7 @@ import numpy as np
 from ..sphere.ghm import adjust_sphere
 from ..core.errors import LabkitError
 from ..sphere.model import algebraic_sphere, circumspheres
-from ._ball import band_normal_equations, in_shell, normal_equations, shell_counts
+from ._ball import in_shell, normal_equations, shell_counts
 from .config import LO_STEPS, S
 
 
@@ -91,8 +91,7 @@ def orthogonal_fit(P, x, steps=3, band=None):
     for _ in range(steps):
         # Jacobian rows J_i = -[u_i, 1] (u_i the unit radial vector); J^T J and J^T d
         # summed in one compiled pass, without forming the n x 4 matrix J
-        eqs = (normal_equations(P, shift, x[:3], x[3]) if band is None
-               else band_normal_equations(P, band[0], band[1], shift, x[:3], x[3]))
+        eqs = normal_equations(P, shift, x[:3], x[3], band)
         if eqs is None:
             return None
         JtJ, Jtd = eqs

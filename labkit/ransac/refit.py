@@ -10,7 +10,7 @@ from scipy.special import ndtr
 
 from ..sphere.ghm import adjust_sphere, check_sigma
 from ..core.errors import LabkitError
-from ._ball import band_median, residuals, shell_points
+from ._ball import band_median, near_shell, residuals
 from .config import BAND_K, SNOOP_ROUNDS, START_STEPS, S
 from .hypotheses import orthogonal_fit, shell_mask
 
@@ -47,7 +47,7 @@ def refit_sphere(xyz, x0, cfg):
                 check_sigma(sig[new], int(np.count_nonzero(new)))
                 checked[new] = True
             sig = sig[mask]
-        P = xyz[mask]
+        P = np.take(xyz, np.flatnonzero(mask), axis=0)  # (a gather by index beats a boolean row mask)
         if cfg.hold_radius is None:
             # start from the orthogonal-distance fit (compiled passes): for equal precisions it is the
             # adjustment's own solution, so the Gauss-Helmert iteration confirms it in one or two steps
@@ -130,10 +130,7 @@ def _robust_band(xyz, x, cfg, unit=None, max_rounds=12):
     # only points that can ever be in a band matter: a generous neighbourhood of the hypothesis
     reach = max(8.0 * t, 8.0 * band) if unit is None else max(8.0 * t, 3.0 * BAND_K * float(unit.max()))
     x_s = np.array(x, dtype=np.float64)
-    idx, d = shell_points(np.ascontiguousarray(xyz, dtype=np.float64), x[:3], x[3], reach)  # one compiled pass
-    close = np.abs(d) < reach
-    near, d = idx[close], d[close]
-    P = np.ascontiguousarray(xyz[near], dtype=np.float64)
+    near, d, P = near_shell(np.ascontiguousarray(xyz, dtype=np.float64), x[:3], x[3], reach)  # one compiled pass
     if unit is not None:
         known, band = True, BAND_K * unit[near]
         sigma_hat = float(np.median(unit))

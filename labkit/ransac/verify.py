@@ -127,7 +127,7 @@ class Verifier:
                 return idx0[i], d
         R0 = r + max(reach, 2.0 * BAND_K * self.cfg.threshold * 3.0) + max(2.0 * self.cfg.threshold, 0.05 * r)
         idx0 = ball_indices(self.X, c, R0)
-        self._ball = (c.copy(), R0, idx0, self.X[idx0])
+        self._ball = (c.copy(), R0, idx0, np.take(self.X, idx0, axis=0))
         i, d = shell_points(self._ball[3], c, r, reach)
         return idx0[i], d
 
@@ -143,7 +143,7 @@ class Verifier:
             on = np.flatnonzero(np.abs(d) < band)
             if len(on) <= S:
                 return None
-            x_new = orthogonal_fit(self.X[idx[_even(on, SHAPE_POINTS)]], x, steps=2)
+            x_new = orthogonal_fit(np.take(self.X, idx[_even(on, SHAPE_POINTS)], axis=0), x, steps=2)
             if x_new is None:
                 return None
             x = x_new
@@ -182,7 +182,7 @@ class Verifier:
             return (f"too many points just outside the shell ({outside}, for {n_in} on it): no spherical surface "
                     "stands out, the points only pass through the shell (a cylinder, plane pieces, clutter)")
         sel = _even(np.flatnonzero(on), SHAPE_POINTS)  # the shape statistics (shares, rms, spreads)
-        P = self.X[idx[sel]]
+        P = np.take(self.X, idx[sel], axis=0)
         q = P - P.mean(axis=0)
         rms_plane = np.sqrt(max(np.linalg.eigvalsh(q.T @ q / len(q))[0], 0.0))
         rms_sphere = np.sqrt(np.mean(d[sel] ** 2))

@@ -491,7 +491,7 @@ def test_verifier_answers_nested_balls_like_a_full_pass():
 
 def test_band_normal_equations_equal_the_sums_over_the_gathered_points():
     """The fused pass (band test and sums in one) gives exactly the sums over P[|d| < band], in their order."""
-    from labkit.ransac._ball import band_normal_equations, normal_equations
+    from labkit.ransac._ball import normal_equations
 
     rng = np.random.default_rng(9)
     X = rng.normal(size=(20_000, 3))
@@ -500,7 +500,7 @@ def test_band_normal_equations_equal_the_sums_over_the_gathered_points():
     shift, c_rel = c - 0.01, np.array([0.01, 0.0, 0.0])
     for band in (0.2, rng.uniform(0.1, 0.3, len(X))):
         mask = np.abs(d) < band
-        fused = band_normal_equations(X, d, band, shift, c_rel, r)
+        fused = normal_equations(X, shift, c_rel, r, band=(d, band))
         gathered = normal_equations(X[mask], shift, c_rel, r)
         assert 1000 < mask.sum() < len(X)
         np.testing.assert_array_equal(fused[0], gathered[0])
