@@ -13,18 +13,14 @@ from __future__ import annotations
 
 import numpy as np
 
-_COMPILED = {}  # kernel -> its compiled version (None without numba); numba loads on the first call only
+from ..sphere.sweeps import SIMD, lazy_kernel
 
 
-def _jit(kernel):
-    if kernel not in _COMPILED:
-        try:
-            import numba
-        except ImportError:  # pragma: no cover - depends on the environment
-            _COMPILED[kernel] = None
-        else:
-            _COMPILED[kernel] = numba.njit(cache=True, nogil=True)(kernel)
-    return _COMPILED[kernel]
+
+def _jit(kernel, simd=False):
+    """The compiled kernel (numba loads on its first call), or None without numba; ``simd``: loops over
+    points in SIMD registers (:data:`labkit.sphere.sweeps.SIMD`)."""
+    return lazy_kernel(kernel, **(SIMD if simd else {}))
 
 
 def _inside(X, c, R):  # pragma: no cover - compiled
@@ -130,78 +126,80 @@ def _near_shell(X, c, r, reach):  # pragma: no cover - compiled
                 idx[k] = i
                 d[k] = di
                 k += 1
-    P = np.empty((k, 3))
+    T = np.empty((3, k))
     for j in range(k):
-        P[j, 0], P[j, 1], P[j, 2] = X[idx[j], 0], X[idx[j], 1], X[idx[j], 2]
-    return idx[:k].copy(), d[:k].copy(), P
+        T[0, j], T[1, j], T[2, j] = X[idx[j], 0], X[idx[j], 1], X[idx[j], 2]
+    return idx[:k].copy(), d[:k].copy(), T
 
 
 def near_shell(X, c, r, reach):
-    """Indices (ascending), residuals d = |x - c| - r (eq. 25) and coordinates (k, 3) of the points of X
-    (C-contiguous float64) with |d| < reach; one compiled pass."""
+    """Indices (ascending), residuals d = |x - c| - r (eq. 25) and coordinates by axis (3, k) of the points
+    of X (C-contiguous float64) with |d| < reach; one compiled pass."""
     c = np.asarray(c, dtype=np.float64)
     kernel = _jit(_near_shell)
     if kernel is None:  # pragma: no cover
         idx, d = shell_points(X, c, r, reach)
         close = np.abs(d) < reach
-        return idx[close], d[close], X[idx[close]]
+        return idx[close], d[close], np.ascontiguousarray(X[idx[close]].T)
     return kernel(X, c, float(r), float(reach))
 
 
-def _residuals(X, c, r):  # pragma: no cover - compiled
-    d = np.empty(X.shape[0])
-    for i in range(X.shape[0]):
-        dx, dy, dz = X[i, 0] - c[0], X[i, 1] - c[1], X[i, 2] - c[2]
+def _residuals(x, y, z, c, r):  # pragma: no cover - compiled
+    d = np.empty(x.shape[0])
+    for i in range(x.shape[0]):
+        dx, dy, dz = x[i] - c[0], y[i] - c[1], z[i] - c[2]
         d[i] = np.sqrt(dx * dx + dy * dy + dz * dz) - r
     return d
 
 
-def residuals(X, x):
-    """d = |x_i - c| - r (eq. 25) of the points X (n, 3) for the sphere x = [c, r]; one compiled pass."""
-    kernel = _jit(_residuals)
-    if kernel is None or X.dtype != np.float64 or not X.flags.c_contiguous:  # pragma: no cover
-        return np.linalg.norm(X - x[:3], axis=1) - x[3]
-    return kernel(X, np.ascontiguousarray(x[:3], dtype=np.float64), float(x[3]))
+def _columns(X, by_axis):
+    """x, y, z of points stored by point (n, 3) or, with ``by_axis``, by axis (3, n) (SIMD-friendly)."""
+    return (X[0], X[1], X[2]) if by_axis else (X[:, 0], X[:, 1], X[:, 2])
 
 
-def _in_shell(X, c, r, t):  # pragma: no cover - compiled
+def residuals(X, x, by_axis=False):
+    """d = |x_i - c| - r (eq. 25) of the points X (n, 3), or (3, n) ``by_axis``, for the sphere x = [c, r]."""
+    kernel = _jit(_residuals, simd=True)
+    if kernel is None or X.dtype != np.float64:  # pragma: no cover
+        return np.linalg.norm((X.T if by_axis else X) - x[:3], axis=1) - x[3]
+    return kernel(*_columns(X, by_axis), np.ascontiguousarray(x[:3], dtype=np.float64), float(x[3]))
+
+
+def _in_shell(x, y, z, c, r, t):  # pragma: no cover - compiled
     t2 = t * t
-    out = np.empty(X.shape[0], dtype=np.bool_)
-    for i in range(X.shape[0]):
-        dx, dy, dz = X[i, 0] - c[0], X[i, 1] - c[1], X[i, 2] - c[2]
+    out = np.empty(x.shape[0], dtype=np.bool_)
+    for i in range(x.shape[0]):
+        dx, dy, dz = x[i] - c[0], y[i] - c[1], z[i] - c[2]
         d = np.sqrt(dx * dx + dy * dy + dz * dz) - r
         out[i] = d * d < t2
     return out
 
 
-def in_shell(X, c, r, t):
-    """Mask of the points of X (n, 3) with d^2 < t^2, d = |x - c| - r (eqs. 25-26); one compiled pass."""
+def in_shell(X, c, r, t, by_axis=False):
+    """Mask of the points of X (n, 3), or (3, n) ``by_axis``, with d^2 < t^2, d = |x - c| - r (eqs. 25-26)."""
     kernel = _jit(_in_shell)
-    if kernel is None or X.dtype != np.float64 or not X.flags.c_contiguous:  # pragma: no cover
-        diff = X - c
+    if kernel is None or X.dtype != np.float64:  # pragma: no cover
+        diff = (X.T if by_axis else X) - c
         d = np.sqrt(np.einsum("ij,ij->i", diff, diff)) - r
         return d * d < t * t
-    return kernel(X, np.ascontiguousarray(c, dtype=np.float64), float(r), float(t))
+    return kernel(*_columns(X, by_axis), np.ascontiguousarray(c, dtype=np.float64), float(r), float(t))
 
 
-def _normal_equations(P, dm, band, shift, c, r):  # pragma: no cover - compiled
-    """J^T J (4, 4) and J^T d (4,) of the orthogonal sphere fit at (c, r), for the points P - shift with
-    |dm_i| < band_i (band of length 1: one for all; of length 0: every point)."""
-    every, one = band.shape[0] == 0, band.shape[0] == 1
+def _normal_equations(x, y, z, mask, shift, c, r):  # pragma: no cover - compiled
+    """J^T J (4, 4) and J^T d (4,) of the orthogonal sphere fit at (c, r), for the points - shift with
+    mask_i; J^T J[3, 3] = -1 flags a point at the centre. No branch in the loop."""
     s00 = s01 = s02 = s11 = s12 = s22 = s0 = s1 = s2 = t0 = t1 = t2 = t3 = 0.0  # sums in registers
-    k = 0
-    for i in range(P.shape[0]):
-        if not (every or abs(dm[i]) < band[0 if one else i]):
-            continue
-        k += 1
-        dx = (P[i, 0] - shift[0]) - c[0]
-        dy = (P[i, 1] - shift[1]) - c[1]
-        dz = (P[i, 2] - shift[2]) - c[2]
+    k = zero = 0.0
+    for i in range(x.shape[0]):
+        wgt = np.float64(mask[i])
+        dx = (x[i] - shift[0]) - c[0]
+        dy = (y[i] - shift[1]) - c[1]
+        dz = (z[i] - shift[2]) - c[2]
         dist = np.sqrt(dx * dx + dy * dy + dz * dz)
-        if dist == 0.0:
-            return np.full((4, 4), -1.0), np.zeros(4)  # flag: a point at the centre
-        u0, u1, u2 = dx / dist, dy / dist, dz / dist
-        d = dist - r
+        zero += wgt * np.float64(dist == 0.0)
+        g = wgt / dist if dist > 0.0 else 0.0
+        u0, u1, u2 = dx * g, dy * g, dz * g
+        d = (dist - r) * wgt
         s00 += u0 * u0
         s01 += u0 * u1
         s02 += u0 * u2
@@ -215,7 +213,10 @@ def _normal_equations(P, dm, band, shift, c, r):  # pragma: no cover - compiled
         t1 -= u1 * d
         t2 -= u2 * d
         t3 -= d
-    JtJ = np.array([[s00, s01, s02, s0], [s01, s11, s12, s1], [s02, s12, s22, s2], [s0, s1, s2, float(k)]])
+        k += wgt
+    JtJ = np.array([[s00, s01, s02, s0], [s01, s11, s12, s1], [s02, s12, s22, s2], [s0, s1, s2, k]])
+    if zero > 0.0:
+        JtJ[3, 3] = -1.0
     return JtJ, np.array([t0, t1, t2, t3])
 
 
@@ -230,30 +231,26 @@ def shell_points(X, c, r, reach):
     return kernel(X, c, float(r), float(reach))
 
 
-def normal_equations(P, shift, c, r, band=None):
+def normal_equations(P, shift, c, r, mask=None, by_axis=False):
     """J^T J and J^T d of the orthogonal-distance sphere fit (rows J_i = -[u_i, 1], u_i the unit radial
-    vector of P_i - shift about c), summed in one compiled pass in the order of P; None when a point lies
-    at the centre. ``band = (dm, b)`` takes only the points with |dm_i| < b (a scalar or one per point),
-    without gathering them first."""
-    P = np.ascontiguousarray(P, dtype=np.float64)
-    if band is None:
-        dm, b = np.empty(0), np.empty(0)
-    else:
-        dm, b = np.ascontiguousarray(band[0], dtype=np.float64), np.atleast_1d(np.asarray(band[1], dtype=np.float64))
-    kernel = _jit(_normal_equations)
-    if kernel is None:  # pragma: no cover
-        if band is not None:
-            P = P[np.abs(dm) < (b if len(b) > 1 else b[0])]
-        diff = P - shift - c
+    vector of P_i - shift about c) in one compiled pass; None when a point lies at the centre. P holds
+    the points by point (n, 3) or ``by_axis`` (3, n) (C-contiguous float64: the sums run in SIMD
+    registers); ``mask`` takes only the points with mask_i, without gathering them first."""
+    kernel = _jit(_normal_equations, simd=True)
+    if kernel is None or P.dtype != np.float64:  # pragma: no cover
+        P = P.T if by_axis else P
+        diff = (P if mask is None else P[mask]) - shift - c
         dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
         if np.any(dist == 0):
             return None
         u, d = diff / dist[:, None], dist - r
         su = u.sum(axis=0)
         JtJ = np.empty((4, 4))
-        JtJ[:3, :3], JtJ[:3, 3], JtJ[3, :3], JtJ[3, 3] = u.T @ u, su, su, len(P)
+        JtJ[:3, :3], JtJ[:3, 3], JtJ[3, :3], JtJ[3, 3] = u.T @ u, su, su, len(diff)
         return JtJ, -np.append(u.T @ d, d.sum())
-    JtJ, Jtd = kernel(P, dm, b, np.asarray(shift, dtype=np.float64), np.asarray(c, dtype=np.float64), float(r))
+    if mask is None:
+        mask = np.ones(P.shape[1] if by_axis else P.shape[0], dtype=np.bool_)
+    JtJ, Jtd = kernel(*_columns(P, by_axis), mask, np.asarray(shift, dtype=np.float64), np.asarray(c, dtype=np.float64), float(r))
     return None if JtJ[3, 3] < 0 else (JtJ, Jtd)
 
 

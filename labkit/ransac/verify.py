@@ -37,6 +37,10 @@ class Verifier:
         self._R = None  # the same as an array (cached)
         self._ball = None  # (centre, radius, indices, points) of the last ball read from the cloud
 
+    def _by_axis(self, idx):
+        """The points X[idx] stored by axis (3, k), for the compiled sums."""
+        return np.ascontiguousarray(np.take(self.X, idx, axis=0).T)
+
     def ball(self, c, R):
         """Indices of the points within distance R of c (one pass over the cloud, no tree)."""
         return ball_indices(self.X, c, R)
@@ -143,7 +147,7 @@ class Verifier:
             on = np.flatnonzero(np.abs(d) < band)
             if len(on) <= S:
                 return None
-            x_new = orthogonal_fit(np.take(self.X, idx[_even(on, SHAPE_POINTS)], axis=0), x, steps=2)
+            x_new = orthogonal_fit(self._by_axis(idx[_even(on, SHAPE_POINTS)]), x, steps=2, by_axis=True)
             if x_new is None:
                 return None
             x = x_new

@@ -21,6 +21,10 @@ from __future__ import annotations
 import numpy as np
 
 _COMPILED = {}  # kernel -> its compiled version (None without numba)
+#: Options of the loops that sum over points: numpy's float semantics (a division by zero gives inf or NaN
+#: instead of a branch that raises) and sums that may be reordered, so that the loops run in SIMD registers.
+#: Only for coordinates reduced to a local origin: reordered differences of UTM-sized numbers lose digits.
+SIMD = {"error_model": "numpy", "fastmath": {"reassoc", "nsz", "contract"}}
 
 
 def lazy_kernel(kernel, **options):
@@ -35,7 +39,7 @@ def lazy_kernel(kernel, **options):
     >>> f is None or f(1.5) == 3.0
     True
     """
-    key = (kernel, tuple(sorted(options.items())))
+    key = (kernel, repr(sorted(options.items())))
     if key not in _COMPILED:
         try:
             import numba
@@ -133,5 +137,6 @@ def _statistics(pts, o, v, b, k, q, x, Q, scale, red, e, wt):  # pragma: no cove
 
 def compiled_sweeps():
     """The three compiled sweeps, or None without numba."""
-    kernels = tuple(lazy_kernel(f) for f in (_linearize_sums, _correlates, _statistics))
+    # (not SIMD: the coordinates may be UTM-sized, and a reordered l_i = p_i - o would lose their digits)
+    kernels = tuple(lazy_kernel(f, error_model="numpy") for f in (_linearize_sums, _correlates, _statistics))
     return None if kernels[0] is None else kernels
