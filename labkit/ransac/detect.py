@@ -238,7 +238,7 @@ def _detect(xyz, origin, idx, cfg, seed, gen, verifier):
             return not_found(len(xyz), reason, **common), verifier.n_rejected > 0 or search.had_range
 
         # Final inliers from the full cloud (robust band), Gauss-Helmert refit, data snooping, checks
-        final = refit_sphere(xyz, search.x, cfg, verifier.X, shift)
+        final = refit_sphere(xyz, search.x, cfg, verifier.X, shift, verifier.near_shell)
         reason = final.reason
         if not reason:
             reason = verifier.final_check(final.fit.x - shift, final.band)

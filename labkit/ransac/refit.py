@@ -25,13 +25,14 @@ class _Final:
     band: float = float("nan")
 
 
-def refit_sphere(xyz, x0, cfg, X=None, shift=None):
+def refit_sphere(xyz, x0, cfg, X=None, shift=None, reader=None):
     """Final inliers from a robust band on the full cloud, Gauss-Helmert refit, then data snooping.
 
     ``X = xyz - shift[:3]`` are the points reduced to a local origin (default: xyz itself, shift 0), and
     x0 is a sphere in that frame: band, inliers and initial values are computed there (the compiled
     sums may reorder their terms, which costs digits only on UTM-sized numbers); the Gauss-Helmert
-    refit adjusts the points xyz, and the result is in their frame.
+    refit adjusts the points xyz, and the result is in their frame. ``reader(x, reach)`` may answer
+    :func:`~labkit.ransac._ball.near_shell` of X from points it holds already (default: a pass over X).
 
     The band |d| < k sigma_hat (k = 3) replaces the search threshold t: sigma_hat
     is the truncation-consistent MAD of the residuals inside the band (or the
@@ -58,14 +59,20 @@ def refit_sphere(xyz, x0, cfg, X=None, shift=None):
         if cfg.hold_radius is None:
             # start from the orthogonal-distance fit (compiled passes, reduced frame): for equal precisions it
             # is the adjustment's own solution, so the Gauss-Helmert iteration confirms it in one or two steps
-            x_start = _start(np.ascontiguousarray(np.take(X, idx, axis=0).T), x_start - shift) + shift
+            local = mask[near[2]]
+            if np.count_nonzero(local) == len(idx):  # every inlier is a near point: sum over them in place
+                x_start = _start(near[3], x_start - shift, mask=local) + shift
+            else:
+                x_start = _start(np.ascontiguousarray(np.take(X, idx, axis=0).T), x_start - shift) + shift
         return adjust_sphere(np.take(xyz, idx, axis=0), x0=x_start, sigma=sig, radius=cfg.hold_radius,
                              alpha_w=cfg.alpha)
 
     # Robust band and sphere at their fixed point (eqs. 25-26 with t -> k sigma_hat); with a
     # per-point sigma the band is k sigma_i for each point
     unit = _point_sigma(sigma)
-    x0, band, sigma_hat, near = _robust_band(X, x0, cfg, unit)
+    if reader is None:
+        reader = lambda x, reach: near_shell(X, x[:3], x[3], reach)  # noqa: E731
+    x0, band, sigma_hat, near = _robust_band(reader, x0, cfg, unit)
     if unit is not None:
         band = BAND_K * unit
     inliers = _band_mask(X, x0, band, near)
@@ -110,10 +117,10 @@ def _band_mask(xyz, x, band, near):
     return mask
 
 
-def _start(T, x, steps=START_STEPS):
+def _start(T, x, steps=START_STEPS, mask=None):
     """Initial values for the Gauss-Helmert refit: Gauss-Newton steps of the orthogonal fit from x (x if it
-    fails), on the points T by axis (3, m)."""
-    x_ls = orthogonal_fit(T, x, steps=steps, by_axis=True)
+    fails), on the points T by axis (3, m) (those with mask_i)."""
+    x_ls = orthogonal_fit(T, x, steps=steps, mask=mask, by_axis=True)
     return x if x_ls is None else x_ls
 
 
@@ -125,7 +132,7 @@ def _point_sigma(sigma):
     return s if s.ndim == 1 else np.sqrt(np.trace(s, axis1=1, axis2=2) / 3.0)
 
 
-def _robust_band(xyz, x, cfg, unit=None, max_rounds=12):
+def _robust_band(reader, x, cfg, unit=None, max_rounds=12):
     """Fixed point of (band -> inliers -> orthogonal fit -> sigma_hat -> band = k sigma_hat), from t.
 
     Returns the sphere, the band half-width, sigma_hat and the points read (the search's sphere,
@@ -140,7 +147,7 @@ def _robust_band(xyz, x, cfg, unit=None, max_rounds=12):
     # only points that can ever be in a band matter: a generous neighbourhood of the hypothesis
     reach = max(8.0 * t, 8.0 * band) if unit is None else max(8.0 * t, 3.0 * BAND_K * float(unit.max()))
     x_s = np.array(x, dtype=np.float64)
-    near, d, T = near_shell(np.ascontiguousarray(xyz, dtype=np.float64), x[:3], x[3], reach)  # by axis (3, k)
+    near, d, T = reader(x, reach)  # the points with |d| < reach, by axis (3, k)
     if unit is not None:
         known, band = True, BAND_K * unit[near]
         sigma_hat = float(np.median(unit))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._ball import ball_counts, ball_counts_t, ball_indices, plane_counts, shell_points
+from ._ball import ball_counts, ball_counts_t, ball_indices, near_shell, plane_counts, shell_points
 from .config import (
     BACKFACE_SHARE, BAND_K, COARSE_CLEAR, COARSE_POINTS, CONTRAST, INTERIOR_SHARE, MIN_LEVELS, MIN_SPREAD, PLANE_RATIO,
     SHADOW_SHARE, SHAPE_POINTS, TWO_PLANES_POINTS, TWO_PLANES_SHARE, VERIFY_MAX, S,
@@ -134,6 +134,16 @@ class Verifier:
         self._ball = (c.copy(), R0, idx0, np.take(self.X, idx0, axis=0))
         i, d = shell_points(self._ball[3], c, r, reach)
         return idx0[i], d
+
+    def near_shell(self, x, reach):
+        """:func:`~labkit.ransac._ball.near_shell` of the cloud, from the kept ball when it holds the shell."""
+        c, r = np.asarray(x[:3], dtype=np.float64), float(x[3])
+        if self._ball is not None:
+            c0, R0, idx0, P0 = self._ball
+            if np.linalg.norm(c - c0) + r + reach <= R0 * (1.0 - 1e-9):
+                i, d, T = near_shell(P0, c, r, reach)
+                return idx0[i], d, T
+        return near_shell(self.X, c, r, reach)
 
     def _polish(self, x, t):
         """Inliers -> orthogonal fit, three rounds; the band widens to k sigma_hat when t is below the noise.
