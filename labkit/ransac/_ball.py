@@ -23,15 +23,14 @@ def _jit(kernel, simd=False):
     return lazy_kernel(kernel, **(SIMD if simd else {}))
 
 
-def _inside(X, c, R):  # pragma: no cover - compiled
+def _inside(x, y, z, c, R):  # pragma: no cover - compiled
     R2 = R * R
-    out = np.empty(X.shape[0], dtype=np.int64)
+    out = np.empty(x.shape[0], dtype=np.int64)
     k = 0
-    for i in range(X.shape[0]):
-        dx, dy, dz = X[i, 0] - c[0], X[i, 1] - c[1], X[i, 2] - c[2]
-        if dx * dx + dy * dy + dz * dz <= R2:
-            out[k] = i
-            k += 1
+    for i in range(x.shape[0]):  # compaction without a branch: write always, advance when inside
+        dx, dy, dz = x[i] - c[0], y[i] - c[1], z[i] - c[2]
+        out[k] = i
+        k += dx * dx + dy * dy + dz * dz <= R2
     return out[:k].copy()
 
 
@@ -82,7 +81,7 @@ def ball_indices(X, c, R):
     if kernel is None:  # pragma: no cover
         d = X - c
         return np.flatnonzero(np.einsum("ij,ij->i", d, d) <= R * R)
-    return kernel(X, c, float(R))
+    return kernel(*_columns(X, False), c, float(R))
 
 
 def ball_counts(X, c, radii):
@@ -97,51 +96,34 @@ def ball_counts(X, c, radii):
     return kernel(X, c, radii)
 
 
-def _shell(X, c, r, reach):  # pragma: no cover - compiled
+def _shell(x, y, z, c, r, reach, close):  # pragma: no cover - compiled
+    """Indices and d = |p - c| - r of the points within r + reach of c (``close``: and d > -reach)."""
     R2 = (r + reach) * (r + reach)
-    idx = np.empty(X.shape[0], dtype=np.int64)
-    d = np.empty(X.shape[0])
+    idx = np.empty(x.shape[0], dtype=np.int64)
+    q = np.empty(x.shape[0])
     k = 0
-    for i in range(X.shape[0]):
-        dx, dy, dz = X[i, 0] - c[0], X[i, 1] - c[1], X[i, 2] - c[2]
-        q = dx * dx + dy * dy + dz * dz
-        if q <= R2:
-            idx[k] = i
-            d[k] = np.sqrt(q) - r
-            k += 1
-    return idx[:k].copy(), d[:k].copy()
-
-
-def _near_shell(X, c, r, reach):  # pragma: no cover - compiled
-    R2 = (r + reach) * (r + reach)
-    idx = np.empty(X.shape[0], dtype=np.int64)
-    d = np.empty(X.shape[0])
-    k = 0
-    for i in range(X.shape[0]):
-        dx, dy, dz = X[i, 0] - c[0], X[i, 1] - c[1], X[i, 2] - c[2]
-        q = dx * dx + dy * dy + dz * dz
-        if q <= R2:
-            di = np.sqrt(q) - r
-            if abs(di) < reach:
-                idx[k] = i
-                d[k] = di
-                k += 1
-    T = np.empty((3, k))
+    for i in range(x.shape[0]):  # compaction without a branch: write always, advance when inside
+        dx, dy, dz = x[i] - c[0], y[i] - c[1], z[i] - c[2]
+        qi = dx * dx + dy * dy + dz * dz
+        idx[k], q[k] = i, qi
+        k += qi <= R2
+    d = np.empty(k)
+    m = 0
     for j in range(k):
-        T[0, j], T[1, j], T[2, j] = X[idx[j], 0], X[idx[j], 1], X[idx[j], 2]
-    return idx[:k].copy(), d[:k].copy(), T
+        dj = np.sqrt(q[j]) - r
+        idx[m], d[m] = idx[j], dj
+        m += (not close) or abs(dj) < reach
+    return idx[:m].copy(), d[:m].copy()
 
 
 def near_shell(X, c, r, reach):
     """Indices (ascending), residuals d = |x - c| - r (eq. 25) and coordinates by axis (3, k) of the points
-    of X (C-contiguous float64) with |d| < reach; one compiled pass."""
-    c = np.asarray(c, dtype=np.float64)
-    kernel = _jit(_near_shell)
-    if kernel is None:  # pragma: no cover
-        idx, d = shell_points(X, c, r, reach)
-        close = np.abs(d) < reach
-        return idx[close], d[close], np.ascontiguousarray(X[idx[close]].T)
-    return kernel(X, c, float(r), float(reach))
+    of X (n, 3) with |d| < reach; one compiled pass and a gather."""
+    idx, d = shell_points(X, c, r, reach, close=True)
+    T = np.empty((3, len(idx)))
+    for j, col in enumerate(_columns(X, False)):
+        np.take(col, idx, out=T[j])
+    return idx, d, T
 
 
 def _residuals(x, y, z, c, r):  # pragma: no cover - compiled
@@ -220,15 +202,18 @@ def _normal_equations(x, y, z, mask, shift, c, r):  # pragma: no cover - compile
     return JtJ, np.array([t0, t1, t2, t3])
 
 
-def shell_points(X, c, r, reach):
-    """Indices of the points of X within r + reach of c and their residuals d = |x - c| - r (eq. 25)."""
+def shell_points(X, c, r, reach, close=False):
+    """Indices of the points of X (n, 3) within r + reach of c and their residuals d = |x - c| - r
+    (eq. 25); ``close``: only those with |d| < reach."""
     c = np.asarray(c, dtype=np.float64)
     kernel = _jit(_shell)
     if kernel is None:  # pragma: no cover
         idx = ball_indices(X, c, r + reach)
         diff = X[idx] - c
-        return idx, np.sqrt(np.einsum("ij,ij->i", diff, diff)) - r
-    return kernel(X, c, float(r), float(reach))
+        d = np.sqrt(np.einsum("ij,ij->i", diff, diff)) - r
+        keep = np.abs(d) < reach if close else slice(None)
+        return idx[keep], d[keep]
+    return kernel(*_columns(X, False), c, float(r), float(reach), bool(close))
 
 
 def normal_equations(P, shift, c, r, mask=None, by_axis=False):
