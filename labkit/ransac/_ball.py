@@ -302,14 +302,13 @@ def shell_counts(G, Wsq, Csq, lo, hi):
     return kernel(G, Wsq, Csq, lo, hi)
 
 
-def _plane_counts(Q, nrm, off, t):  # pragma: no cover - compiled
+def _plane_counts(x, y, z, nrm, off, t):  # pragma: no cover - compiled
     out = np.zeros(nrm.shape[0], dtype=np.int64)
     for b in range(nrm.shape[0]):
         n0, n1, n2, o = nrm[b, 0], nrm[b, 1], nrm[b, 2], off[b]
         k = 0
-        for i in range(Q.shape[0]):
-            if abs(Q[i, 0] * n0 + Q[i, 1] * n1 + Q[i, 2] * n2 - o) < t:
-                k += 1
+        for i in range(x.shape[0]):  # no branch: the compiler vectorizes the count
+            k += abs(x[i] * n0 + y[i] * n1 + z[i] * n2 - o) < t
         out[b] = k
     return out
 
@@ -319,4 +318,5 @@ def plane_counts(Q, nrm, off, t):
     kernel = _jit(_plane_counts)
     if kernel is None:  # pragma: no cover
         return (np.abs(Q @ nrm.T - off[None, :]) < t).sum(axis=0)
-    return kernel(np.ascontiguousarray(Q), np.ascontiguousarray(nrm), np.ascontiguousarray(off), float(t))
+    T = np.ascontiguousarray(Q.T)  # by axis: contiguous columns
+    return kernel(T[0], T[1], T[2], np.ascontiguousarray(nrm), np.ascontiguousarray(off), float(t))

@@ -258,8 +258,11 @@ def _cap_spread(normals, axis):
     e1 = np.cross(a, helper)
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(a, e1)
-    uv = np.column_stack([normals @ e1, normals @ e2])
-    return float(np.linalg.eigvalsh(np.cov(uv.T))[0]) if len(uv) > 2 else 0.0
+    if len(normals) <= 2:
+        return 0.0
+    uv = normals @ np.column_stack([e1, e2])
+    uv -= uv.mean(axis=0)
+    return float(np.linalg.eigvalsh(uv.T @ uv / (len(uv) - 1))[0])  # (the sample covariance, as np.cov)
 
 
 def _two_plane_share(P, t, trials=256):
