@@ -99,29 +99,31 @@ def ball_counts(X, c, radii):
 def _shell(x, y, z, c, r, reach, close):  # pragma: no cover - compiled
     """Indices and d = |p - c| - r of the points within r + reach of c (``close``: and d > -reach)."""
     R2 = (r + reach) * (r + reach)
-    idx = np.empty(x.shape[0], dtype=np.int64)
-    q = np.empty(x.shape[0])
-    k = 0
-    for i in range(x.shape[0]):  # compaction without a branch: write always, advance when inside
+    n = x.shape[0]
+    q = np.empty(n)
+    for i in range(n):  # squared distances first: a loop without stores that depend on the data
         dx, dy, dz = x[i] - c[0], y[i] - c[1], z[i] - c[2]
-        qi = dx * dx + dy * dy + dz * dz
-        idx[k], q[k] = i, qi
-        k += qi <= R2
+        q[i] = dx * dx + dy * dy + dz * dz
+    idx = np.empty(n, dtype=np.int64)
+    k = 0
+    for i in range(n):  # compaction without a branch: write always, advance when inside
+        idx[k] = i
+        k += q[i] <= R2
     d = np.empty(k)
     m = 0
     for j in range(k):
-        dj = np.sqrt(q[j]) - r
+        dj = np.sqrt(q[idx[j]]) - r
         idx[m], d[m] = idx[j], dj
         m += (not close) or abs(dj) < reach
     return idx[:m].copy(), d[:m].copy()
 
 
-def near_shell(X, c, r, reach):
+def near_shell(X, c, r, reach, by_axis=False):
     """Indices (ascending), residuals d = |x - c| - r (eq. 25) and coordinates by axis (3, k) of the points
-    of X (n, 3) with |d| < reach; one compiled pass and a gather."""
-    idx, d = shell_points(X, c, r, reach, close=True)
+    of X (n, 3), or (3, n) ``by_axis``, with |d| < reach; one compiled pass and a gather."""
+    idx, d = shell_points(X, c, r, reach, close=True, by_axis=by_axis)
     T = np.empty((3, len(idx)))
-    for j, col in enumerate(_columns(X, False)):
+    for j, col in enumerate(_columns(X, by_axis)):
         np.take(col, idx, out=T[j])
     return idx, d, T
 
@@ -202,18 +204,19 @@ def _normal_equations(x, y, z, mask, shift, c, r):  # pragma: no cover - compile
     return JtJ, np.array([t0, t1, t2, t3])
 
 
-def shell_points(X, c, r, reach, close=False):
-    """Indices of the points of X (n, 3) within r + reach of c and their residuals d = |x - c| - r
-    (eq. 25); ``close``: only those with |d| < reach."""
+def shell_points(X, c, r, reach, close=False, by_axis=False):
+    """Indices of the points of X (n, 3), or (3, n) ``by_axis``, within r + reach of c and their residuals
+    d = |x - c| - r (eq. 25); ``close``: only those with |d| < reach."""
     c = np.asarray(c, dtype=np.float64)
     kernel = _jit(_shell)
     if kernel is None:  # pragma: no cover
+        X = np.ascontiguousarray(X.T) if by_axis else X
         idx = ball_indices(X, c, r + reach)
         diff = X[idx] - c
         d = np.sqrt(np.einsum("ij,ij->i", diff, diff)) - r
         keep = np.abs(d) < reach if close else slice(None)
         return idx[keep], d[keep]
-    return kernel(*_columns(X, False), c, float(r), float(reach), bool(close))
+    return kernel(*_columns(X, by_axis), c, float(r), float(reach), bool(close))
 
 
 def normal_equations(P, shift, c, r, mask=None, by_axis=False):

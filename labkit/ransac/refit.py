@@ -2,17 +2,20 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import brentq
-from scipy.special import ndtr
 
 from ..sphere.ghm import adjust_sphere, check_sigma
 from ..core.errors import LabkitError
 from ._ball import band_median, in_shell, near_shell, residuals
 from .config import BAND_K, SNOOP_ROUNDS, START_STEPS, S
 from .hypotheses import orthogonal_fit, shell_mask
+
+
+_SQRT_HALF = math.sqrt(0.5)
 
 
 @dataclass(frozen=True)
@@ -191,7 +194,8 @@ def scale_from_median(m, band):
         return 2.0 * band / BAND_K
     if q <= 1e-9:
         return max(m, 1e-12)
-    g = lambda z: 2.0 * (2.0 * ndtr(q * z) - 1.0) - (2.0 * ndtr(z) - 1.0)  # noqa: E731  (z = b / sigma)
+    # 2 Phi(x) - 1 = erf(x / sqrt 2), on Python floats (a scipy ufunc per evaluation costs 20x more)
+    g = lambda z: 2.0 * math.erf(q * z * _SQRT_HALF) - math.erf(z * _SQRT_HALF)  # noqa: E731  (z = b / sigma)
     hi = 1.0
     while g(hi) < 0 and hi < 1e6:
         hi *= 2.0

@@ -35,7 +35,7 @@ class Verifier:
         self._best_rejected_score = -np.inf
         self._rejected = []  # polished spheres that failed
         self._R = None  # the same as an array (cached)
-        self._ball = None  # (centre, radius, indices, points) of the last ball read from the cloud
+        self._ball = None  # (centre, radius, indices, points by axis) of the last ball read from the cloud
 
     def _by_axis(self, idx):
         """The points X[idx] stored by axis (3, k), for the compiled sums."""
@@ -125,24 +125,24 @@ class Verifier:
         """
         c, r = np.asarray(x[:3], dtype=np.float64), float(x[3])
         if self._ball is not None:
-            c0, R0, idx0, P0 = self._ball
+            c0, R0, idx0, B0 = self._ball
             if np.linalg.norm(c - c0) + r + reach <= R0 * (1.0 - 1e-9):  # inside the kept ball
-                i, d = shell_points(P0, c, r, reach)
-                return idx0[i], d
+                i, d = shell_points(B0, c, r, reach, by_axis=True)
+                return np.take(idx0, i), d
         R0 = r + max(reach, 2.0 * BAND_K * self.cfg.threshold * 3.0) + max(2.0 * self.cfg.threshold, 0.05 * r)
         idx0 = ball_indices(self.X, c, R0)
-        self._ball = (c.copy(), R0, idx0, np.take(self.X, idx0, axis=0))
-        i, d = shell_points(self._ball[3], c, r, reach)
-        return idx0[i], d
+        self._ball = (c.copy(), R0, idx0, self._by_axis(idx0))
+        i, d = shell_points(self._ball[3], c, r, reach, by_axis=True)
+        return np.take(idx0, i), d
 
     def near_shell(self, x, reach):
         """:func:`~labkit.ransac._ball.near_shell` of the cloud, from the kept ball when it holds the shell."""
         c, r = np.asarray(x[:3], dtype=np.float64), float(x[3])
         if self._ball is not None:
-            c0, R0, idx0, P0 = self._ball
+            c0, R0, idx0, B0 = self._ball
             if np.linalg.norm(c - c0) + r + reach <= R0 * (1.0 - 1e-9):
-                i, d, T = near_shell(P0, c, r, reach)
-                return idx0[i], d, T
+                i, d, T = near_shell(B0, c, r, reach, by_axis=True)
+                return np.take(idx0, i), d, T
         return near_shell(self.X, c, r, reach)
 
     def _polish(self, x, t):
