@@ -244,7 +244,7 @@ def _detect(xyz, origin, idx, cfg, seed, gen, verifier):
             reason = verifier.final_check(final.fit.x - shift, final.band)
         if not reason:
             return RansacResult(
-                fit=final.fit, inliers=final.inliers, found=True, outlier_ratio=1.0 - final.inliers.mean(),
+                fit=final.fit, inliers=final.inliers, found=True, outlier_ratio=1.0 - np.count_nonzero(final.inliers) / len(xyz),
                 reason=search.reason, n_snooped=final.n_snooped, sigma=final.sigma, band=final.band, **common,
             ), True
         verifier.reject(search.x, None if final.fit is None else final.fit.x - shift)

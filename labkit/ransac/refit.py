@@ -84,8 +84,9 @@ def refit_sphere(xyz, x0, cfg, X=None, shift=None, reader=None):
         sigma = sigma_hat
     fit = None
     for round_ in range(3):
-        if inliers.sum() < min_inliers:
-            return _Final(None, inliers, 0, None, f"only {inliers.sum()} inliers (< min_inliers = {min_inliers})", band)
+        n_in = np.count_nonzero(inliers)
+        if n_in < min_inliers:
+            return _Final(None, inliers, 0, None, f"only {n_in} inliers (< min_inliers = {min_inliers})", band)
         try:
             if fit is None and not isinstance(sigma, np.ndarray):
                 sigma = check_sigma(sigma, len(xyz))  # a scalar (or the robust scale): once
@@ -95,7 +96,7 @@ def refit_sphere(xyz, x0, cfg, X=None, shift=None, reader=None):
         if not fit.converged:
             return _Final(None, inliers, 0, None, f"Gauss-Helmert refit did not converge: {fit.reason}", band)
         new = _band_mask(X, fit.x - shift, band, near)
-        if np.count_nonzero(new != inliers) <= 0.01 * inliers.sum() or round_ == 2:
+        if np.count_nonzero(new != inliers) <= 0.01 * n_in or round_ == 2:
             break  # (the fit always belongs to exactly these inliers)
         inliers = new
     band = float(band) if np.ndim(band) == 0 else float(np.median(band))  # reported: the typical band
@@ -214,7 +215,7 @@ def _snoop(fit, inliers, sigma, min_inliers, adjust):
         inliers = inliers.copy()
         inliers[idx[flagged]] = False
         n_removed += int(flagged.sum())
-        if inliers.sum() < min_inliers:
+        if np.count_nonzero(inliers) < min_inliers:
             return _Final(None, inliers, n_removed, _sigma_scalar(sigma), "too few inliers left after data snooping")
         try:
             fit = adjust(inliers, fit.x, sigma)

@@ -177,7 +177,7 @@ class Verifier:
             return f"the adjusted radius {r:.5g} m lies outside [{cfg.r_min:.5g}, {cfg.r_max:.5g}] m"
         idx, d = self._local(x, 3.0 * max(t, 2.0 * BAND_K * t))
         on = np.abs(d) < t
-        n_in = int(on.sum())
+        n_in = int(np.count_nonzero(on))
         if n_in < cfg.min_inliers:
             return f"only {n_in} points on its shell |d| < {t:.3g} m in the full cloud (< min_inliers = {cfg.min_inliers})"
         # robust, and consistent for the cut at t (a scale for the checks: an even subsample of the shell)
@@ -186,7 +186,7 @@ class Verifier:
         # the shell: at least the noise band k sigma_hat (a t below the noise must not thin it out)
         t = max(t, min(BAND_K * sigma_hat, 2.0 * t))
         on = np.abs(d) < t
-        n_in = int(on.sum())
+        n_in = int(np.count_nonzero(on))
         inside = int(np.count_nonzero(d < -margin))
         if inside > INTERIOR_SHARE * n_in:
             return (f"{inside} points lie inside it (for {n_in} on its shell): a solid sphere hides its interior, "
@@ -197,7 +197,7 @@ class Verifier:
                     "stands out, the points only pass through the shell (a cylinder, plane pieces, clutter)")
         sel = _even(np.flatnonzero(on), SHAPE_POINTS)  # the shape statistics (shares, rms, spreads)
         P = np.take(self.X, idx[sel], axis=0)
-        q = P - P.mean(axis=0)
+        q = P - _column_mean(P)
         rms_plane = np.sqrt(max(np.linalg.eigvalsh(q.T @ q / len(q))[0], 0.0))
         rms_sphere = np.sqrt(np.mean(d[sel] ** 2))
         if rms_plane < PLANE_RATIO * rms_sphere:
@@ -237,6 +237,11 @@ class Verifier:
         return ""
 
 
+def _column_mean(A):
+    """A.mean(axis=0) of an (m, k) array, in einsum's loop (numpy's strided reduction is 4x slower)."""
+    return np.einsum("ij->j", A) / len(A)
+
+
 def _even(sel, m):
     """An even subsample of at most about m of the indices sel (all of them when there are fewer)."""
     return sel if len(sel) <= m else sel[:: -(-len(sel) // m)]
@@ -250,7 +255,7 @@ def _cap_spread(normals, axis):
     spreads in both directions, a ring or strip of one scan line in one only.
     """
     if axis is None:
-        axis = normals.mean(axis=0)
+        axis = _column_mean(normals)
         if np.linalg.norm(axis) < 0.2:
             return 1.0  # normals all round the sphere (several stations): no single cap to check
     a = axis / np.linalg.norm(axis)
@@ -261,7 +266,7 @@ def _cap_spread(normals, axis):
     if len(normals) <= 2:
         return 0.0
     uv = normals @ np.column_stack([e1, e2])
-    uv -= uv.mean(axis=0)
+    uv -= _column_mean(uv)
     return float(np.linalg.eigvalsh(uv.T @ uv / (len(uv) - 1))[0])  # (the sample covariance, as np.cov)
 
 
@@ -297,7 +302,7 @@ def _two_plane_share(P, t, trials=256):
         on = np.abs(Q @ nrm[best] - off[best]) < t
         idx = np.flatnonzero(left)
         left[idx[on]] = False
-        held += int(on.sum())
+        held += int(np.count_nonzero(on))
     return held / n
 
 
