@@ -184,20 +184,9 @@ def _normal_equations(x, y, z, mask, shift, c, r):  # pragma: no cover - compile
         g = wgt / dist if dist > 0.0 else 0.0
         u0, u1, u2 = dx * g, dy * g, dz * g
         d = (dist - r) * wgt
-        s00 += u0 * u0
-        s01 += u0 * u1
-        s02 += u0 * u2
-        s11 += u1 * u1
-        s12 += u1 * u2
-        s22 += u2 * u2
-        s0 += u0
-        s1 += u1
-        s2 += u2
-        t0 -= u0 * d
-        t1 -= u1 * d
-        t2 -= u2 * d
-        t3 -= d
-        k += wgt
+        s00, s01, s02, s0 = s00 + u0 * u0, s01 + u0 * u1, s02 + u0 * u2, s0 + u0  # J^T J, row by row
+        s11, s12, s1, s22, s2 = s11 + u1 * u1, s12 + u1 * u2, s1 + u1, s22 + u2 * u2, s2 + u2
+        t0, t1, t2, t3, k = t0 - u0 * d, t1 - u1 * d, t2 - u2 * d, t3 - d, k + wgt  # J^T d
     JtJ = np.array([[s00, s01, s02, s0], [s01, s11, s12, s1], [s02, s12, s22, s2], [s0, s1, s2, k]])
     if zero > 0.0:
         JtJ[3, 3] = -1.0

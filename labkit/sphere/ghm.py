@@ -24,13 +24,14 @@ from ..core.stats import GlobalTest, global_test, w_critical
 from ..core.errors import DegenerateGeometryError, LabkitError
 from .model import algebraic_sphere
 from .fit import SphereFit
-from .sweeps import compiled_sweeps
+from .sweeps import compiled_sweeps, point_statistics
 
 _EPS = np.finfo(np.float64).eps
 _RCOND_MIN = 1e-12  # smallest reciprocal condition of the scaled N (the exercise sheet's det test)
 _BLOCK = 32_768  # points per block in the sweeps of an iteration
 _X0_SAMPLE = 20_000  # points used for the algebraic initial values
 _FLAT_RATIO = 100.0  # radius above this many times the extent of the points: no curvature
+_DIVERGED = "the iteration diverged (a point reached the centre or values became infinite)"
 
 
 def gauss_helmert_model(
@@ -205,7 +206,7 @@ def adjust_sphere(
     else:  # equal or per-point precision: compiled sweeps over the points (n, 3), reduced on the fly
         pts = np.ascontiguousarray(points, dtype=np.float64)
         it = _iterate_compiled(pts, origin, x_start, cov, r_fix is not None, tol, int(max_iterations), sweeps)
-        per_point = lambda Qxx, scale: _per_point_compiled(pts, origin, it, Qxx, scale, sweeps[2])  # noqa: E731
+        per_point = lambda Qxx, scale: point_statistics(pts, origin, it, Qxx, scale, sweeps[2])  # noqa: E731
 
     # Main check and statistics
     return _result(it, per_point, origin, r_fix is not None, tol, alpha, alpha_w, sigma0_apriori, sigma_known)
@@ -414,27 +415,21 @@ def _iterate(L, x0, cov, fixed, tol, max_iter):
             rhs += rb
             finite &= bool(ri.min() > 0)
         if not (finite and np.isfinite(rhs).all()):
-            reason = "the iteration diverged (a point reached the centre or values became infinite)"
+            reason = _DIVERGED
             break
         N = N_new
-        N_chol = _factor(N)
-        dx = -cho_solve(N_chol, rhs, check_finite=False)  # (eq. 21) dx = -N^-1 A^T P w
+        N_chol, dx = _solve(N, rhs)
         # (2) correlates and residuals
         for sl in blocks:
             q = cov.C if cov.kind == "scalar" else qbb[sl]
             k[sl] = -(_A_times(b[:, sl], dx) + w[sl]) / q  # (eq. 19)
             v0[:, sl] = cov.v(b[:, sl], k[sl], sl)  # (eq. 13) v = Sigma_ll B^T k
-        x = x.copy()
-        x[:u] += dx  # (eq. 22)
-        dxs.append(dx if u == 4 else np.append(dx, 0.0))
+        x = _advance(x, dx, dxs)
         omegas.append(float(np.einsum("i,i,i->", qbb, k, k)))  # v^T Sigma^-1 v = sum k_i^2 b_i^T Sigma_i b_i
         if np.abs(dx).max() < tol_eff:
             converged = True
             break
-    else:
-        reason = f"no convergence after {max_iter} iterations (last max|dx| = {np.abs(dxs[-1]).max():.2e} m)"
-    if N is None:
-        raise DegenerateGeometryError("the initial values give no valid linearization (a point at the sphere centre)")
+    reason = _outcome(N, converged, reason, max_iter, dxs)
     return _Iteration(x, v0, k, b, qbb, N_chol, N, np.array(dxs), np.array(omegas), converged, reason, amax,
                       float(np.ptp(L, axis=1).max()))
 
@@ -446,29 +441,46 @@ def _iterate_compiled(pts, origin, x0, cov, fixed, tol, max_iter, sweeps):
     q = np.atleast_1d(np.asarray(cov.C, dtype=np.float64))  # diag(B Sigma_ll B^T) = sigma_i^2 (|b_i| = 1)
     v0, x = np.zeros((n, 3)), x0.copy()
     b, w, k = np.empty((n, 3)), np.empty(n), np.zeros(n)
-    dxs, omegas, converged, reason, N, tol_eff = [], [], False, "", None, None
-    for _ in range(max_iter):
-        N_new, rhs, rmin, amax, extent = linearize(pts, origin, v0, x, q, u, b, w)  # (eqs. 8-11, 21)
-        if tol_eff is None:
+    dxs, omegas, converged, reason, N = [], [], False, "", None
+    for it in range(max_iter):
+        N_it, rhs, rmin, amax, extent = linearize(pts, origin, v0, x, q, u, b, w)  # (eqs. 8-11, 21)
+        if it == 0:
             tol_eff, scale = max(tol, 64 * _EPS * (amax + abs(x0[3]))), (amax, extent)
-        if not (rmin > 0 and np.isfinite(rhs).all()):
-            reason = "the iteration diverged (a point reached the centre or values became infinite)"
+        if rmin <= 0 or not np.isfinite(rhs).all():
+            reason = _DIVERGED
             break
-        N = N_new
-        N_chol = _factor(N)
-        dx = -cho_solve(N_chol, rhs, check_finite=False)  # (eq. 21) dx = -N^-1 A^T P w
+        N_chol, dx = _solve(N_it, rhs)
+        N = N_it
         omegas.append(correlates(b, w, dx, q, k, v0))  # (eqs. 19, 13), v^T Sigma^-1 v
-        x = x.copy()
-        x[:u] += dx  # (eq. 22)
-        dxs.append(dx if u == 4 else np.append(dx, 0.0))
-        if np.abs(dx).max() < tol_eff:
-            converged = True
+        x = _advance(x, dx, dxs)
+        converged = bool(np.abs(dx).max() < tol_eff)
+        if converged:
             break
-    else:
-        reason = f"no convergence after {max_iter} iterations (last max|dx| = {np.abs(dxs[-1]).max():.2e} m)"
+    reason = _outcome(N, converged, reason, max_iter, dxs)
+    return _Iteration(x, v0, k, b, q, N_chol, N, np.array(dxs), np.array(omegas), converged, reason, *scale)
+
+
+def _solve(N, rhs):
+    """Cholesky factor of N and dx = -N^-1 A^T P w (eq. 21)."""
+    N_chol = _factor(N)
+    return N_chol, -cho_solve(N_chol, rhs, check_finite=False)
+
+
+def _advance(x, dx, dxs):
+    """x + dx (eq. 22); dx is kept in the history (0 for a held radius)."""
+    x = x.copy()
+    x[: len(dx)] += dx
+    dxs.append(dx if len(dx) == 4 else np.append(dx, 0.0))
+    return x
+
+
+def _outcome(N, converged, reason, max_iter, dxs):
+    """Why the iteration stopped unconverged ('' if it converged); raises if no linearization was valid."""
     if N is None:
         raise DegenerateGeometryError("the initial values give no valid linearization (a point at the sphere centre)")
-    return _Iteration(x, v0, k, b, q, N_chol, N, np.array(dxs), np.array(omegas), converged, reason, *scale)
+    if converged or reason:
+        return reason
+    return f"no convergence after {max_iter} iterations (last max|dx| = {np.abs(dxs[-1]).max():.2e} m)"
 
 
 def _per_point(L, it, Qxx, scale):
@@ -479,14 +491,6 @@ def _per_point(L, it, Qxx, scale):
     with np.errstate(divide="ignore", invalid="ignore"):
         w = np.where(ri > 1e-10, e / (scale * np.sqrt(it.qbb * ri)), np.nan)
     return main_check, ri, e, w, np.ascontiguousarray(it.v.T)
-
-
-def _per_point_compiled(pts, origin, it, Qxx, scale, statistics):
-    """:func:`_per_point` in one compiled sweep."""
-    n = len(pts)
-    ri, e, w = np.empty(n), np.empty(n), np.empty(n)
-    main_check = statistics(pts, origin, it.v, it.b, it.k, it.qbb, it.x, Qxx, float(scale), ri, e, w)
-    return main_check, ri, e, w, it.v
 
 
 # --------------------------------------------------------------- statistics

@@ -74,21 +74,10 @@ def _linearize_sums(pts, o, v0, x, q, u, b, w):  # pragma: no cover - compiled
         wi = ri - x[3] - (b0 * v0[i, 0] + b1 * v0[i, 1] + b2 * v0[i, 2])  # (eq. 8)
         b[i, 0], b[i, 1], b[i, 2], w[i] = b0, b1, b2, wi
         p = 1.0 / q[0 if one else i]
-        pb0, pb1, pb2 = p * b0, p * b1, p * b2
-        n00 += pb0 * b0
-        n01 += pb0 * b1
-        n02 += pb0 * b2
-        n11 += pb1 * b1
-        n12 += pb1 * b2
-        n22 += pb2 * b2
-        n03 += pb0
-        n13 += pb1
-        n23 += pb2
-        n33 += p
-        g0 -= pb0 * wi
-        g1 -= pb1 * wi
-        g2 -= pb2 * wi
-        g3 -= p * wi
+        pb0, pb1, pb2 = p * b0, p * b1, p * b2  # a_i^T p_i with a_i = -[b_i, 1] (eq. 9), signs below
+        n00, n01, n02, n03 = n00 + pb0 * b0, n01 + pb0 * b1, n02 + pb0 * b2, n03 + pb0
+        n11, n12, n13, n22, n23, n33 = n11 + pb1 * b1, n12 + pb1 * b2, n13 + pb1, n22 + pb2 * b2, n23 + pb2, n33 + p
+        g0, g1, g2, g3 = g0 - pb0 * wi, g1 - pb1 * wi, g2 - pb2 * wi, g3 - p * wi
     N = np.array([[n00, n01, n02, n03], [n01, n11, n12, n13], [n02, n12, n22, n23], [n03, n13, n23, n33]])
     rhs = np.array([g0, g1, g2, g3])
     extent = max(hi0 - lo0, hi1 - lo1, hi2 - lo2)
@@ -133,6 +122,15 @@ def _statistics(pts, o, v, b, k, q, x, Q, scale, red, e, wt):  # pragma: no cove
         e[i] = -qi * k[i]
         wt[i] = e[i] / (scale * np.sqrt(qi * ri)) if ri > 1e-10 else np.nan
     return main
+
+
+def point_statistics(pts, origin, it, Qxx, scale, statistics):
+    """Main check, redundancy numbers, normal residuals, w-test values and v (n, 3) of the iteration state
+    ``it`` (b, v (n, 3), k, qbb, x) in one compiled sweep ``statistics`` (:func:`_statistics`)."""
+    n = len(pts)
+    ri, e, w = np.empty(n), np.empty(n), np.empty(n)
+    main_check = statistics(pts, origin, it.v, it.b, it.k, it.qbb, it.x, Qxx, float(scale), ri, e, w)
+    return main_check, ri, e, w, it.v
 
 
 def compiled_sweeps():
