@@ -207,7 +207,8 @@ class Verifier:
         if planes >= TWO_PLANES_SHARE:
             return (f"{planes:.0%} of its inliers lie on one or two planes: pieces of planes (a floor, a wall, "
                     "an edge) cut by the sphere, not a sphere")
-        normals = (P - c) / np.linalg.norm(P - c, axis=1, keepdims=True)  # from the model, not from neighbours
+        normals = P - c  # from the model, not from neighbours
+        normals /= np.sqrt(np.einsum("ij,ij->i", normals, normals))[:, None]
         spread = _cap_spread(normals, None if self.station is None else self.station - c)
         if spread < MIN_SPREAD:
             return (f"the inliers cover no cap (their normals spread over {np.degrees(np.sqrt(max(spread, 0))):.1f} deg "
