@@ -13,29 +13,24 @@ from __future__ import annotations
 
 import numpy as np
 
-_COMPILED = {}  # kernel -> its compiled version (None without numba); numba loads on the first call only
+from ..sphere.sweeps import SIMD, lazy_kernel
 
 
-def _jit(kernel):
-    if kernel not in _COMPILED:
-        try:
-            import numba
-        except ImportError:  # pragma: no cover - depends on the environment
-            _COMPILED[kernel] = None
-        else:
-            _COMPILED[kernel] = numba.njit(cache=True, nogil=True)(kernel)
-    return _COMPILED[kernel]
+
+def _jit(kernel, simd=False):
+    """The compiled kernel (numba loads on its first call), or None without numba; ``simd``: loops over
+    points in SIMD registers (:data:`labkit.sphere.sweeps.SIMD`)."""
+    return lazy_kernel(kernel, **(SIMD if simd else {}))
 
 
-def _inside(X, c, R):  # pragma: no cover - compiled
+def _inside(x, y, z, c, R):  # pragma: no cover - compiled
     R2 = R * R
-    out = np.empty(X.shape[0], dtype=np.int64)
+    out = np.empty(x.shape[0], dtype=np.int64)
     k = 0
-    for i in range(X.shape[0]):
-        dx, dy, dz = X[i, 0] - c[0], X[i, 1] - c[1], X[i, 2] - c[2]
-        if dx * dx + dy * dy + dz * dz <= R2:
-            out[k] = i
-            k += 1
+    for i in range(x.shape[0]):  # compaction without a branch: write always, advance when inside
+        dx, dy, dz = x[i] - c[0], y[i] - c[1], z[i] - c[2]
+        out[k] = i
+        k += dx * dx + dy * dy + dz * dz <= R2
     return out[:k].copy()
 
 
@@ -86,7 +81,7 @@ def ball_indices(X, c, R):
     if kernel is None:  # pragma: no cover
         d = X - c
         return np.flatnonzero(np.einsum("ij,ij->i", d, d) <= R * R)
-    return kernel(X, c, float(R))
+    return kernel(*_columns(X, False), c, float(R))
 
 
 def ball_counts(X, c, radii):
@@ -101,170 +96,138 @@ def ball_counts(X, c, radii):
     return kernel(X, c, radii)
 
 
-def _shell(X, c, r, reach):  # pragma: no cover - compiled
+def _shell(x, y, z, c, r, reach, close):  # pragma: no cover - compiled
+    """Indices and d = |p - c| - r of the points within r + reach of c (``close``: and d > -reach)."""
     R2 = (r + reach) * (r + reach)
-    idx = np.empty(X.shape[0], dtype=np.int64)
-    d = np.empty(X.shape[0])
+    n = x.shape[0]
+    q = np.empty(n)
+    for i in range(n):  # squared distances first: a loop without stores that depend on the data
+        dx, dy, dz = x[i] - c[0], y[i] - c[1], z[i] - c[2]
+        q[i] = dx * dx + dy * dy + dz * dz
+    idx = np.empty(n, dtype=np.int64)
     k = 0
-    for i in range(X.shape[0]):
-        dx, dy, dz = X[i, 0] - c[0], X[i, 1] - c[1], X[i, 2] - c[2]
-        q = dx * dx + dy * dy + dz * dz
-        if q <= R2:
-            idx[k] = i
-            d[k] = np.sqrt(q) - r
-            k += 1
-    return idx[:k].copy(), d[:k].copy()
+    for i in range(n):  # compaction without a branch: write always, advance when inside
+        idx[k] = i
+        k += q[i] <= R2
+    d = np.empty(k)
+    m = 0
+    for j in range(k):
+        dj = np.sqrt(q[idx[j]]) - r
+        idx[m], d[m] = idx[j], dj
+        m += (not close) or abs(dj) < reach
+    return idx[:m].copy(), d[:m].copy()
 
 
-def _residuals(X, c, r):  # pragma: no cover - compiled
-    d = np.empty(X.shape[0])
-    for i in range(X.shape[0]):
-        dx, dy, dz = X[i, 0] - c[0], X[i, 1] - c[1], X[i, 2] - c[2]
+def near_shell(X, c, r, reach, by_axis=False):
+    """Indices (ascending), residuals d = |x - c| - r (eq. 25) and coordinates by axis (3, k) of the points
+    of X (n, 3), or (3, n) ``by_axis``, with |d| < reach; one compiled pass and a gather."""
+    idx, d = shell_points(X, c, r, reach, close=True, by_axis=by_axis)
+    T = np.empty((3, len(idx)))
+    for j, col in enumerate(_columns(X, by_axis)):
+        np.take(col, idx, out=T[j])
+    return idx, d, T
+
+
+def _residuals(x, y, z, c, r):  # pragma: no cover - compiled
+    d = np.empty(x.shape[0])
+    for i in range(x.shape[0]):
+        dx, dy, dz = x[i] - c[0], y[i] - c[1], z[i] - c[2]
         d[i] = np.sqrt(dx * dx + dy * dy + dz * dz) - r
     return d
 
 
-def residuals(X, x):
-    """d = |x_i - c| - r (eq. 25) of the points X (n, 3) for the sphere x = [c, r]; one compiled pass."""
-    kernel = _jit(_residuals)
-    if kernel is None or X.dtype != np.float64 or not X.flags.c_contiguous:  # pragma: no cover
-        return np.linalg.norm(X - x[:3], axis=1) - x[3]
-    return kernel(X, np.ascontiguousarray(x[:3], dtype=np.float64), float(x[3]))
+def _columns(X, by_axis):
+    """x, y, z of points stored by point (n, 3) or, with ``by_axis``, by axis (3, n) (SIMD-friendly)."""
+    return (X[0], X[1], X[2]) if by_axis else (X[:, 0], X[:, 1], X[:, 2])
 
 
-def _in_shell(X, c, r, t):  # pragma: no cover - compiled
+def residuals(X, x, by_axis=False):
+    """d = |x_i - c| - r (eq. 25) of the points X (n, 3), or (3, n) ``by_axis``, for the sphere x = [c, r]."""
+    kernel = _jit(_residuals, simd=True)
+    if kernel is None or X.dtype != np.float64:  # pragma: no cover
+        return np.linalg.norm((X.T if by_axis else X) - x[:3], axis=1) - x[3]
+    return kernel(*_columns(X, by_axis), np.ascontiguousarray(x[:3], dtype=np.float64), float(x[3]))
+
+
+def _in_shell(x, y, z, c, r, t):  # pragma: no cover - compiled
     t2 = t * t
-    out = np.empty(X.shape[0], dtype=np.bool_)
-    for i in range(X.shape[0]):
-        dx, dy, dz = X[i, 0] - c[0], X[i, 1] - c[1], X[i, 2] - c[2]
+    out = np.empty(x.shape[0], dtype=np.bool_)
+    for i in range(x.shape[0]):
+        dx, dy, dz = x[i] - c[0], y[i] - c[1], z[i] - c[2]
         d = np.sqrt(dx * dx + dy * dy + dz * dz) - r
         out[i] = d * d < t2
     return out
 
 
-def in_shell(X, c, r, t):
-    """Mask of the points of X (n, 3) with d^2 < t^2, d = |x - c| - r (eqs. 25-26); one compiled pass."""
+def in_shell(X, c, r, t, by_axis=False):
+    """Mask of the points of X (n, 3), or (3, n) ``by_axis``, with d^2 < t^2, d = |x - c| - r (eqs. 25-26)."""
     kernel = _jit(_in_shell)
-    if kernel is None or X.dtype != np.float64 or not X.flags.c_contiguous:  # pragma: no cover
-        diff = X - c
+    if kernel is None or X.dtype != np.float64:  # pragma: no cover
+        diff = (X.T if by_axis else X) - c
         d = np.sqrt(np.einsum("ij,ij->i", diff, diff)) - r
         return d * d < t * t
-    return kernel(X, np.ascontiguousarray(c, dtype=np.float64), float(r), float(t))
+    return kernel(*_columns(X, by_axis), np.ascontiguousarray(c, dtype=np.float64), float(r), float(t))
 
 
-def _normal_equations(P, shift, c, r):  # pragma: no cover - compiled
-    """J^T J (4, 4) and J^T d (4,) of the orthogonal sphere fit at (c, r), for the points P - shift."""
-    JtJ = np.zeros((4, 4))
-    Jtd = np.zeros(4)
-    for i in range(P.shape[0]):
-        dx = (P[i, 0] - shift[0]) - c[0]
-        dy = (P[i, 1] - shift[1]) - c[1]
-        dz = (P[i, 2] - shift[2]) - c[2]
+def _normal_equations(x, y, z, mask, shift, c, r):  # pragma: no cover - compiled
+    """J^T J (4, 4) and J^T d (4,) of the orthogonal sphere fit at (c, r), for the points - shift with
+    mask_i; J^T J[3, 3] = -1 flags a point at the centre. No branch in the loop."""
+    s00 = s01 = s02 = s11 = s12 = s22 = s0 = s1 = s2 = t0 = t1 = t2 = t3 = 0.0  # sums in registers
+    k = zero = 0.0
+    for i in range(x.shape[0]):
+        wgt = np.float64(mask[i])
+        dx = (x[i] - shift[0]) - c[0]
+        dy = (y[i] - shift[1]) - c[1]
+        dz = (z[i] - shift[2]) - c[2]
         dist = np.sqrt(dx * dx + dy * dy + dz * dz)
-        if dist == 0.0:
-            JtJ[3, 3] = -1.0  # flag: a point at the centre
-            return JtJ, Jtd
-        u0, u1, u2 = dx / dist, dy / dist, dz / dist
-        d = dist - r
-        JtJ[0, 0] += u0 * u0
-        JtJ[0, 1] += u0 * u1
-        JtJ[0, 2] += u0 * u2
-        JtJ[1, 1] += u1 * u1
-        JtJ[1, 2] += u1 * u2
-        JtJ[2, 2] += u2 * u2
-        JtJ[0, 3] += u0
-        JtJ[1, 3] += u1
-        JtJ[2, 3] += u2
-        Jtd[0] -= u0 * d
-        Jtd[1] -= u1 * d
-        Jtd[2] -= u2 * d
-        Jtd[3] -= d
-    JtJ[3, 3] = P.shape[0]
-    for a in range(4):
-        for b in range(a):
-            JtJ[a, b] = JtJ[b, a]
-    return JtJ, Jtd
+        zero += wgt * np.float64(dist == 0.0)
+        g = wgt / dist if dist > 0.0 else 0.0
+        u0, u1, u2 = dx * g, dy * g, dz * g
+        d = (dist - r) * wgt
+        s00, s01, s02, s0 = s00 + u0 * u0, s01 + u0 * u1, s02 + u0 * u2, s0 + u0  # J^T J, row by row
+        s11, s12, s1, s22, s2 = s11 + u1 * u1, s12 + u1 * u2, s1 + u1, s22 + u2 * u2, s2 + u2
+        t0, t1, t2, t3, k = t0 - u0 * d, t1 - u1 * d, t2 - u2 * d, t3 - d, k + wgt  # J^T d
+    JtJ = np.array([[s00, s01, s02, s0], [s01, s11, s12, s1], [s02, s12, s22, s2], [s0, s1, s2, k]])
+    if zero > 0.0:
+        JtJ[3, 3] = -1.0
+    return JtJ, np.array([t0, t1, t2, t3])
 
 
-
-def _band_normal_equations(P, dm, band, shift, c, r):  # pragma: no cover - compiled
-    """:func:`_normal_equations` of the points with |dm_i| < band_i (band of length 1: one for all)."""
-    JtJ = np.zeros((4, 4))
-    Jtd = np.zeros(4)
-    one = band.shape[0] == 1
-    k = 0
-    for i in range(P.shape[0]):
-        if not abs(dm[i]) < band[0 if one else i]:
-            continue
-        k += 1
-        dx = (P[i, 0] - shift[0]) - c[0]
-        dy = (P[i, 1] - shift[1]) - c[1]
-        dz = (P[i, 2] - shift[2]) - c[2]
-        dist = np.sqrt(dx * dx + dy * dy + dz * dz)
-        if dist == 0.0:
-            JtJ[3, 3] = -1.0
-            return JtJ, Jtd
-        u0, u1, u2 = dx / dist, dy / dist, dz / dist
-        d = dist - r
-        JtJ[0, 0] += u0 * u0
-        JtJ[0, 1] += u0 * u1
-        JtJ[0, 2] += u0 * u2
-        JtJ[1, 1] += u1 * u1
-        JtJ[1, 2] += u1 * u2
-        JtJ[2, 2] += u2 * u2
-        JtJ[0, 3] += u0
-        JtJ[1, 3] += u1
-        JtJ[2, 3] += u2
-        Jtd[0] -= u0 * d
-        Jtd[1] -= u1 * d
-        Jtd[2] -= u2 * d
-        Jtd[3] -= d
-    JtJ[3, 3] = k
-    for a in range(4):
-        for b in range(a):
-            JtJ[a, b] = JtJ[b, a]
-    return JtJ, Jtd
-
-
-def shell_points(X, c, r, reach):
-    """Indices of the points of X within r + reach of c and their residuals d = |x - c| - r (eq. 25)."""
+def shell_points(X, c, r, reach, close=False, by_axis=False):
+    """Indices of the points of X (n, 3), or (3, n) ``by_axis``, within r + reach of c and their residuals
+    d = |x - c| - r (eq. 25); ``close``: only those with |d| < reach."""
     c = np.asarray(c, dtype=np.float64)
     kernel = _jit(_shell)
     if kernel is None:  # pragma: no cover
+        X = np.ascontiguousarray(X.T) if by_axis else X
         idx = ball_indices(X, c, r + reach)
         diff = X[idx] - c
-        return idx, np.sqrt(np.einsum("ij,ij->i", diff, diff)) - r
-    return kernel(X, c, float(r), float(reach))
+        d = np.sqrt(np.einsum("ij,ij->i", diff, diff)) - r
+        keep = np.abs(d) < reach if close else slice(None)
+        return idx[keep], d[keep]
+    return kernel(*_columns(X, by_axis), c, float(r), float(reach), bool(close))
 
 
-def normal_equations(P, shift, c, r):
+def normal_equations(P, shift, c, r, mask=None, by_axis=False):
     """J^T J and J^T d of the orthogonal-distance sphere fit (rows J_i = -[u_i, 1], u_i the unit radial
-    vector of P_i - shift about c); None when a point lies at the centre."""
-    P = np.ascontiguousarray(P, dtype=np.float64)
-    kernel = _jit(_normal_equations)
-    if kernel is None:  # pragma: no cover
-        diff = P - shift - c
+    vector of P_i - shift about c) in one compiled pass; None when a point lies at the centre. P holds
+    the points by point (n, 3) or ``by_axis`` (3, n) (C-contiguous float64: the sums run in SIMD
+    registers); ``mask`` takes only the points with mask_i, without gathering them first."""
+    kernel = _jit(_normal_equations, simd=True)
+    if kernel is None or P.dtype != np.float64:  # pragma: no cover
+        P = P.T if by_axis else P
+        diff = (P if mask is None else P[mask]) - shift - c
         dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
         if np.any(dist == 0):
             return None
         u, d = diff / dist[:, None], dist - r
         su = u.sum(axis=0)
         JtJ = np.empty((4, 4))
-        JtJ[:3, :3], JtJ[:3, 3], JtJ[3, :3], JtJ[3, 3] = u.T @ u, su, su, len(P)
+        JtJ[:3, :3], JtJ[:3, 3], JtJ[3, :3], JtJ[3, 3] = u.T @ u, su, su, len(diff)
         return JtJ, -np.append(u.T @ d, d.sum())
-    JtJ, Jtd = kernel(P, np.asarray(shift, dtype=np.float64), np.asarray(c, dtype=np.float64), float(r))
-    return None if JtJ[3, 3] < 0 else (JtJ, Jtd)
-
-
-def band_normal_equations(P, dm, band, shift, c, r):
-    """:func:`normal_equations` of the points of P (C-contiguous float64) with |dm_i| < band (a scalar or
-    one per point), summed in one compiled pass in the order of P, without gathering them first."""
-    band = np.atleast_1d(np.asarray(band, dtype=np.float64))
-    kernel = _jit(_band_normal_equations)
-    if kernel is None or P.dtype != np.float64 or not P.flags.c_contiguous:  # pragma: no cover
-        return normal_equations(P[np.abs(dm) < (band if len(band) > 1 else band[0])], shift, c, r)
-    JtJ, Jtd = kernel(P, np.ascontiguousarray(dm, dtype=np.float64), band, np.asarray(shift, dtype=np.float64),
-                      np.asarray(c, dtype=np.float64), float(r))
+    if mask is None:
+        mask = np.ones(P.shape[1] if by_axis else P.shape[0], dtype=np.bool_)
+    JtJ, Jtd = kernel(*_columns(P, by_axis), mask, np.asarray(shift, dtype=np.float64), np.asarray(c, dtype=np.float64), float(r))
     return None if JtJ[3, 3] < 0 else (JtJ, Jtd)
 
 
@@ -331,14 +294,13 @@ def shell_counts(G, Wsq, Csq, lo, hi):
     return kernel(G, Wsq, Csq, lo, hi)
 
 
-def _plane_counts(Q, nrm, off, t):  # pragma: no cover - compiled
+def _plane_counts(x, y, z, nrm, off, t):  # pragma: no cover - compiled
     out = np.zeros(nrm.shape[0], dtype=np.int64)
     for b in range(nrm.shape[0]):
         n0, n1, n2, o = nrm[b, 0], nrm[b, 1], nrm[b, 2], off[b]
         k = 0
-        for i in range(Q.shape[0]):
-            if abs(Q[i, 0] * n0 + Q[i, 1] * n1 + Q[i, 2] * n2 - o) < t:
-                k += 1
+        for i in range(x.shape[0]):  # no branch: the compiler vectorizes the count
+            k += abs(x[i] * n0 + y[i] * n1 + z[i] * n2 - o) < t
         out[b] = k
     return out
 
@@ -348,4 +310,5 @@ def plane_counts(Q, nrm, off, t):
     kernel = _jit(_plane_counts)
     if kernel is None:  # pragma: no cover
         return (np.abs(Q @ nrm.T - off[None, :]) < t).sum(axis=0)
-    return kernel(np.ascontiguousarray(Q), np.ascontiguousarray(nrm), np.ascontiguousarray(off), float(t))
+    T = np.ascontiguousarray(Q.T)  # by axis: contiguous columns
+    return kernel(T[0], T[1], T[2], np.ascontiguousarray(nrm), np.ascontiguousarray(off), float(t))

@@ -238,13 +238,13 @@ def _detect(xyz, origin, idx, cfg, seed, gen, verifier):
             return not_found(len(xyz), reason, **common), verifier.n_rejected > 0 or search.had_range
 
         # Final inliers from the full cloud (robust band), Gauss-Helmert refit, data snooping, checks
-        final = refit_sphere(xyz, search.x + shift, cfg)
+        final = refit_sphere(xyz, search.x, cfg, verifier.X, shift, verifier.near_shell)
         reason = final.reason
         if not reason:
             reason = verifier.final_check(final.fit.x - shift, final.band)
         if not reason:
             return RansacResult(
-                fit=final.fit, inliers=final.inliers, found=True, outlier_ratio=1.0 - final.inliers.mean(),
+                fit=final.fit, inliers=final.inliers, found=True, outlier_ratio=1.0 - np.count_nonzero(final.inliers) / len(xyz),
                 reason=search.reason, n_snooped=final.n_snooped, sigma=final.sigma, band=final.band, **common,
             ), True
         verifier.reject(search.x, None if final.fit is None else final.fit.x - shift)

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy.linalg.lapack import dgesv, dsyev
 
 from ..sphere.ghm import adjust_sphere
 from ..core.errors import LabkitError
 from ..sphere.model import algebraic_sphere, circumspheres
-from ._ball import band_normal_equations, in_shell, normal_equations, shell_counts
+from ._ball import in_shell, normal_equations, shell_counts
 from .config import LO_STEPS, S
 
 
@@ -77,28 +78,33 @@ def local_optimization_step(W, Wsq, x, score, cfg):
     return x, score, improved
 
 
-def orthogonal_fit(P, x, steps=3, band=None):
+def orthogonal_fit(P, x, steps=3, mask=None, by_axis=False):
     """A few Gauss-Newton steps of the orthogonal-distance sphere fit, from x; None if it fails.
 
-    With ``band = (d, b)`` only the points of P with |d_i| < b (scalar or per point) take part,
-    in one compiled pass each, as if ``P[np.abs(d) < b]`` had been passed.
+    P holds the points by point (n, 3) or ``by_axis`` (3, n); with ``mask`` only the points with
+    mask_i take part, in one compiled pass each, as if ``P[mask]`` had been passed.
     """
-    try:
-        x = algebraic_sphere(P) if x is None else np.array(x, dtype=np.float64)
-    except LabkitError:
-        return None
+    if x is None:
+        Q = P.T if by_axis else P
+        try:
+            x = algebraic_sphere(Q if mask is None else Q[mask])
+        except LabkitError:
+            return None
+    x = np.array(x, dtype=np.float64)
     shift, x = x[:3].copy(), np.array([0.0, 0.0, 0.0, x[3]])  # work relative to the current centre (UTM-safe)
     for _ in range(steps):
         # Jacobian rows J_i = -[u_i, 1] (u_i the unit radial vector); J^T J and J^T d
         # summed in one compiled pass, without forming the n x 4 matrix J
-        eqs = (normal_equations(P, shift, x[:3], x[3]) if band is None
-               else band_normal_equations(P, band[0], band[1], shift, x[:3], x[3]))
+        eqs = normal_equations(P, shift, x[:3], x[3], mask, by_axis)
         if eqs is None:
             return None
         JtJ, Jtd = eqs
-        eig = np.linalg.eigvalsh(JtJ)
-        if eig[0] <= 1e-12 * eig[-1]:
+        eig = dsyev(JtJ, compute_v=0)[0]  # (LAPACK directly: numpy's wrappers cost more than a 4 x 4 solve)
+        if not eig[0] > 1e-12 * eig[-1]:
             return None
-        x = x + np.linalg.solve(JtJ, -Jtd)
+        _, _, step, info = dgesv(JtJ, -Jtd)
+        if info != 0:
+            return None
+        x = x + step
     x[:3] += shift
     return x if np.all(np.isfinite(x)) and x[3] > 0 else None

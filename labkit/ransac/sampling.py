@@ -41,7 +41,7 @@ class UniformSampler:
         return gen.integers(0, self.m, size=(size, S))
 
     def required(self, inlier_mask, p):
-        return required_iterations(1.0 - inlier_mask.sum() / self.m, p)
+        return required_iterations(1.0 - np.count_nonzero(inlier_mask) / self.m, p)
 
 
 class LocalSampler:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._ball import ball_counts, ball_counts_t, ball_indices, plane_counts, shell_points
+from ._ball import ball_counts, ball_counts_t, ball_indices, near_shell, plane_counts, shell_points
 from .config import (
     BACKFACE_SHARE, BAND_K, COARSE_CLEAR, COARSE_POINTS, CONTRAST, INTERIOR_SHARE, MIN_LEVELS, MIN_SPREAD, PLANE_RATIO,
     SHADOW_SHARE, SHAPE_POINTS, TWO_PLANES_POINTS, TWO_PLANES_SHARE, VERIFY_MAX, S,
@@ -35,7 +35,11 @@ class Verifier:
         self._best_rejected_score = -np.inf
         self._rejected = []  # polished spheres that failed
         self._R = None  # the same as an array (cached)
-        self._ball = None  # (centre, radius, indices, points) of the last ball read from the cloud
+        self._ball = None  # (centre, radius, indices, points by axis) of the last ball read from the cloud
+
+    def _by_axis(self, idx):
+        """The points X[idx] stored by axis (3, k), for the compiled sums."""
+        return np.ascontiguousarray(np.take(self.X, idx, axis=0).T)
 
     def ball(self, c, R):
         """Indices of the points within distance R of c (one pass over the cloud, no tree)."""
@@ -121,15 +125,25 @@ class Verifier:
         """
         c, r = np.asarray(x[:3], dtype=np.float64), float(x[3])
         if self._ball is not None:
-            c0, R0, idx0, P0 = self._ball
+            c0, R0, idx0, B0 = self._ball
             if np.linalg.norm(c - c0) + r + reach <= R0 * (1.0 - 1e-9):  # inside the kept ball
-                i, d = shell_points(P0, c, r, reach)
-                return idx0[i], d
+                i, d = shell_points(B0, c, r, reach, by_axis=True)
+                return np.take(idx0, i), d
         R0 = r + max(reach, 2.0 * BAND_K * self.cfg.threshold * 3.0) + max(2.0 * self.cfg.threshold, 0.05 * r)
         idx0 = ball_indices(self.X, c, R0)
-        self._ball = (c.copy(), R0, idx0, self.X[idx0])
-        i, d = shell_points(self._ball[3], c, r, reach)
-        return idx0[i], d
+        self._ball = (c.copy(), R0, idx0, self._by_axis(idx0))
+        i, d = shell_points(self._ball[3], c, r, reach, by_axis=True)
+        return np.take(idx0, i), d
+
+    def near_shell(self, x, reach):
+        """:func:`~labkit.ransac._ball.near_shell` of the cloud, from the kept ball when it holds the shell."""
+        c, r = np.asarray(x[:3], dtype=np.float64), float(x[3])
+        if self._ball is not None:
+            c0, R0, idx0, B0 = self._ball
+            if np.linalg.norm(c - c0) + r + reach <= R0 * (1.0 - 1e-9):
+                i, d, T = near_shell(B0, c, r, reach, by_axis=True)
+                return np.take(idx0, i), d, T
+        return near_shell(self.X, c, r, reach)
 
     def _polish(self, x, t):
         """Inliers -> orthogonal fit, three rounds; the band widens to k sigma_hat when t is below the noise.
@@ -143,7 +157,7 @@ class Verifier:
             on = np.flatnonzero(np.abs(d) < band)
             if len(on) <= S:
                 return None
-            x_new = orthogonal_fit(self.X[idx[_even(on, SHAPE_POINTS)]], x, steps=2)
+            x_new = orthogonal_fit(self._by_axis(idx[_even(on, SHAPE_POINTS)]), x, steps=2, by_axis=True)
             if x_new is None:
                 return None
             x = x_new
@@ -163,7 +177,7 @@ class Verifier:
             return f"the adjusted radius {r:.5g} m lies outside [{cfg.r_min:.5g}, {cfg.r_max:.5g}] m"
         idx, d = self._local(x, 3.0 * max(t, 2.0 * BAND_K * t))
         on = np.abs(d) < t
-        n_in = int(on.sum())
+        n_in = int(np.count_nonzero(on))
         if n_in < cfg.min_inliers:
             return f"only {n_in} points on its shell |d| < {t:.3g} m in the full cloud (< min_inliers = {cfg.min_inliers})"
         # robust, and consistent for the cut at t (a scale for the checks: an even subsample of the shell)
@@ -172,7 +186,7 @@ class Verifier:
         # the shell: at least the noise band k sigma_hat (a t below the noise must not thin it out)
         t = max(t, min(BAND_K * sigma_hat, 2.0 * t))
         on = np.abs(d) < t
-        n_in = int(on.sum())
+        n_in = int(np.count_nonzero(on))
         inside = int(np.count_nonzero(d < -margin))
         if inside > INTERIOR_SHARE * n_in:
             return (f"{inside} points lie inside it (for {n_in} on its shell): a solid sphere hides its interior, "
@@ -182,8 +196,8 @@ class Verifier:
             return (f"too many points just outside the shell ({outside}, for {n_in} on it): no spherical surface "
                     "stands out, the points only pass through the shell (a cylinder, plane pieces, clutter)")
         sel = _even(np.flatnonzero(on), SHAPE_POINTS)  # the shape statistics (shares, rms, spreads)
-        P = self.X[idx[sel]]
-        q = P - P.mean(axis=0)
+        P = np.take(self.X, idx[sel], axis=0)
+        q = P - _column_mean(P)
         rms_plane = np.sqrt(max(np.linalg.eigvalsh(q.T @ q / len(q))[0], 0.0))
         rms_sphere = np.sqrt(np.mean(d[sel] ** 2))
         if rms_plane < PLANE_RATIO * rms_sphere:
@@ -193,7 +207,8 @@ class Verifier:
         if planes >= TWO_PLANES_SHARE:
             return (f"{planes:.0%} of its inliers lie on one or two planes: pieces of planes (a floor, a wall, "
                     "an edge) cut by the sphere, not a sphere")
-        normals = (P - c) / np.linalg.norm(P - c, axis=1, keepdims=True)  # from the model, not from neighbours
+        normals = P - c  # from the model, not from neighbours
+        normals /= np.sqrt(np.einsum("ij,ij->i", normals, normals))[:, None]
         spread = _cap_spread(normals, None if self.station is None else self.station - c)
         if spread < MIN_SPREAD:
             return (f"the inliers cover no cap (their normals spread over {np.degrees(np.sqrt(max(spread, 0))):.1f} deg "
@@ -223,6 +238,11 @@ class Verifier:
         return ""
 
 
+def _column_mean(A):
+    """A.mean(axis=0) of an (m, k) array, in einsum's loop (numpy's strided reduction is 4x slower)."""
+    return np.einsum("ij->j", A) / len(A)
+
+
 def _even(sel, m):
     """An even subsample of at most about m of the indices sel (all of them when there are fewer)."""
     return sel if len(sel) <= m else sel[:: -(-len(sel) // m)]
@@ -236,7 +256,7 @@ def _cap_spread(normals, axis):
     spreads in both directions, a ring or strip of one scan line in one only.
     """
     if axis is None:
-        axis = normals.mean(axis=0)
+        axis = _column_mean(normals)
         if np.linalg.norm(axis) < 0.2:
             return 1.0  # normals all round the sphere (several stations): no single cap to check
     a = axis / np.linalg.norm(axis)
@@ -244,8 +264,11 @@ def _cap_spread(normals, axis):
     e1 = np.cross(a, helper)
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(a, e1)
-    uv = np.column_stack([normals @ e1, normals @ e2])
-    return float(np.linalg.eigvalsh(np.cov(uv.T))[0]) if len(uv) > 2 else 0.0
+    if len(normals) <= 2:
+        return 0.0
+    uv = normals @ np.column_stack([e1, e2])
+    uv -= _column_mean(uv)
+    return float(np.linalg.eigvalsh(uv.T @ uv / (len(uv) - 1))[0])  # (the sample covariance, as np.cov)
 
 
 def _two_plane_share(P, t, trials=256):
@@ -280,7 +303,7 @@ def _two_plane_share(P, t, trials=256):
         on = np.abs(Q @ nrm[best] - off[best]) < t
         idx = np.flatnonzero(left)
         left[idx[on]] = False
-        held += int(on.sum())
+        held += int(np.count_nonzero(on))
     return held / n
 
 

@@ -24,12 +24,14 @@ from ..core.stats import GlobalTest, global_test, w_critical
 from ..core.errors import DegenerateGeometryError, LabkitError
 from .model import algebraic_sphere
 from .fit import SphereFit
+from .sweeps import compiled_sweeps, point_statistics
 
 _EPS = np.finfo(np.float64).eps
 _RCOND_MIN = 1e-12  # smallest reciprocal condition of the scaled N (the exercise sheet's det test)
 _BLOCK = 32_768  # points per block in the sweeps of an iteration
 _X0_SAMPLE = 20_000  # points used for the algebraic initial values
 _FLAT_RATIO = 100.0  # radius above this many times the extent of the points: no curvature
+_DIVERGED = "the iteration diverged (a point reached the centre or values became infinite)"
 
 
 def gauss_helmert_model(
@@ -188,22 +190,26 @@ def adjust_sphere(
     """
     if len(points) < 4:
         raise LabkitError(f"points must hold at least 4 points, got {len(points)}")
-    # Reduce to a local origin: one row per coordinate (contiguous, cache-friendly sweeps), in one pass
     origin = local_origin(points)
-    L = np.empty((3, len(points)))
-    np.subtract(points.T, origin[:, None], out=L)
-    l = L.T  # (n, 3) view of the same numbers
     cov = _Stochastic(sigma)
     r_fix = radius
     sigma_known = sigma is not None or sigma0_apriori is not None
     sigma0_apriori = 1.0 if sigma0_apriori is None else sigma0_apriori
-    x_start = _initial_values(l, x0, origin, r_fix)
-
-    # Iterate (eqs. 6-22)
-    it = _iterate(L, x_start, cov, r_fix is not None, tol, int(max_iterations))
+    x_start = _initial_values(points, x0, origin, r_fix)
+    sweeps = compiled_sweeps() if cov.kind in ("scalar", "point") else None
+    if sweeps is None:
+        # Reduce to a local origin: one row per coordinate (contiguous, cache-friendly sweeps), in one pass
+        L = np.empty((3, len(points)))
+        np.subtract(points.T, origin[:, None], out=L)
+        it = _iterate(L, x_start, cov, r_fix is not None, tol, int(max_iterations))  # (eqs. 6-22)
+        per_point = lambda Qxx, scale: _per_point(L, it, Qxx, scale)  # noqa: E731
+    else:  # equal or per-point precision: compiled sweeps over the points (n, 3), reduced on the fly
+        pts = np.ascontiguousarray(points, dtype=np.float64)
+        it = _iterate_compiled(pts, origin, x_start, cov, r_fix is not None, tol, int(max_iterations), sweeps)
+        per_point = lambda Qxx, scale: point_statistics(pts, origin, it, Qxx, scale, sweeps[2])  # noqa: E731
 
     # Main check and statistics
-    return _result(L, it, cov, origin, r_fix is not None, tol, alpha, alpha_w, sigma0_apriori, sigma_known)
+    return _result(it, per_point, origin, r_fix is not None, tol, alpha, alpha_w, sigma0_apriori, sigma_known)
 
 
 # --------------------------------------------------------------- stochastic model
@@ -288,10 +294,10 @@ def check_sigma(sigma, n: int):
 
 
 # --------------------------------------------------------------- iteration
-def _initial_values(l, x0, origin, r_fix):
+def _initial_values(points, x0, origin, r_fix):
     """x0 in the local frame: the caller's values or the algebraic sphere."""
     if x0 is None:  # a regular subsample of at most ~20 000 points is plenty for initial values
-        x = algebraic_sphere(l[:: max(1, len(l) // _X0_SAMPLE)])
+        x = algebraic_sphere(points[:: max(1, len(points) // _X0_SAMPLE)] - origin)
     else:
         x = np.asarray(x0, dtype=np.float64).ravel()
         if r_fix is not None and x.shape == (3,):  # a centre is enough when the radius is fixed
@@ -306,7 +312,7 @@ def _initial_values(l, x0, origin, r_fix):
 
 @dataclass(frozen=True, eq=False)
 class _Iteration:
-    """State after the last iteration (local frame; b and v as (3, n))."""
+    """State after the last iteration (local frame; b and v as (3, n), or (n, 3) from the compiled sweeps)."""
 
     x: np.ndarray
     v: np.ndarray
@@ -319,6 +325,8 @@ class _Iteration:
     omega_history: np.ndarray
     converged: bool
     reason: str
+    amax: float  # max |l| (the scale of the rounding tolerances)
+    extent: float  # largest extent of the points along an axis
 
 
 def _blocks(n):
@@ -393,7 +401,8 @@ def _iterate(L, x0, cov, fixed, tol, max_iter):
     blocks = _blocks(n)
     v0, x = np.zeros_like(L), x0.copy()
     b, w, qbb, k = np.empty_like(L), np.empty(n), np.empty(n), np.zeros(n)
-    tol_eff = max(tol, 64 * _EPS * (np.abs(L).max() + abs(x0[3])))
+    amax = float(np.abs(L).max())
+    tol_eff = max(tol, 64 * _EPS * (amax + abs(x0[3])))
     dxs, omegas, converged, reason, N = [], [], False, "", None
     for _ in range(max_iter):
         # (1) linearize at l + v0, x0 (eqs. 8-11) and accumulate the normal equations (eq. 21)
@@ -406,40 +415,91 @@ def _iterate(L, x0, cov, fixed, tol, max_iter):
             rhs += rb
             finite &= bool(ri.min() > 0)
         if not (finite and np.isfinite(rhs).all()):
-            reason = "the iteration diverged (a point reached the centre or values became infinite)"
+            reason = _DIVERGED
             break
         N = N_new
-        N_chol = _factor(N)
-        dx = -cho_solve(N_chol, rhs, check_finite=False)  # (eq. 21) dx = -N^-1 A^T P w
+        N_chol, dx = _solve(N, rhs)
         # (2) correlates and residuals
         for sl in blocks:
             q = cov.C if cov.kind == "scalar" else qbb[sl]
             k[sl] = -(_A_times(b[:, sl], dx) + w[sl]) / q  # (eq. 19)
             v0[:, sl] = cov.v(b[:, sl], k[sl], sl)  # (eq. 13) v = Sigma_ll B^T k
-        x = x.copy()
-        x[:u] += dx  # (eq. 22)
-        dxs.append(dx if u == 4 else np.append(dx, 0.0))
+        x = _advance(x, dx, dxs)
         omegas.append(float(np.einsum("i,i,i->", qbb, k, k)))  # v^T Sigma^-1 v = sum k_i^2 b_i^T Sigma_i b_i
         if np.abs(dx).max() < tol_eff:
             converged = True
             break
-    else:
-        reason = f"no convergence after {max_iter} iterations (last max|dx| = {np.abs(dxs[-1]).max():.2e} m)"
+    reason = _outcome(N, converged, reason, max_iter, dxs)
+    return _Iteration(x, v0, k, b, qbb, N_chol, N, np.array(dxs), np.array(omegas), converged, reason, amax,
+                      float(np.ptp(L, axis=1).max()))
+
+
+def _iterate_compiled(pts, origin, x0, cov, fixed, tol, max_iter, sweeps):
+    """:func:`_iterate` in compiled sweeps (:mod:`~labkit.sphere.sweeps`) for equal or per-point precision."""
+    linearize, correlates = sweeps[0], sweeps[1]
+    n, u = len(pts), (3 if fixed else 4)
+    q = np.atleast_1d(np.asarray(cov.C, dtype=np.float64))  # diag(B Sigma_ll B^T) = sigma_i^2 (|b_i| = 1)
+    v0, x = np.zeros((n, 3)), x0.copy()
+    b, w, k = np.empty((n, 3)), np.empty(n), np.zeros(n)
+    dxs, omegas, converged, reason, N = [], [], False, "", None
+    for it in range(max_iter):
+        N_it, rhs, rmin, amax, extent = linearize(pts, origin, v0, x, q, u, b, w)  # (eqs. 8-11, 21)
+        if it == 0:
+            tol_eff, scale = max(tol, 64 * _EPS * (amax + abs(x0[3]))), (amax, extent)
+        if rmin <= 0 or not np.isfinite(rhs).all():
+            reason = _DIVERGED
+            break
+        N_chol, dx = _solve(N_it, rhs)
+        N = N_it
+        omegas.append(correlates(b, w, dx, q, k, v0))  # (eqs. 19, 13), v^T Sigma^-1 v
+        x = _advance(x, dx, dxs)
+        converged = bool(np.abs(dx).max() < tol_eff)
+        if converged:
+            break
+    reason = _outcome(N, converged, reason, max_iter, dxs)
+    return _Iteration(x, v0, k, b, q, N_chol, N, np.array(dxs), np.array(omegas), converged, reason, *scale)
+
+
+def _solve(N, rhs):
+    """Cholesky factor of N and dx = -N^-1 A^T P w (eq. 21)."""
+    N_chol = _factor(N)
+    return N_chol, -cho_solve(N_chol, rhs, check_finite=False)
+
+
+def _advance(x, dx, dxs):
+    """x + dx (eq. 22); dx is kept in the history (0 for a held radius)."""
+    x = x.copy()
+    x[: len(dx)] += dx
+    dxs.append(dx if len(dx) == 4 else np.append(dx, 0.0))
+    return x
+
+
+def _outcome(N, converged, reason, max_iter, dxs):
+    """Why the iteration stopped unconverged ('' if it converged); raises if no linearization was valid."""
     if N is None:
         raise DegenerateGeometryError("the initial values give no valid linearization (a point at the sphere centre)")
-    return _Iteration(x, v0, k, b, qbb, N_chol, N, np.array(dxs), np.array(omegas), converged, reason)
+    if converged or reason:
+        return reason
+    return f"no convergence after {max_iter} iterations (last max|dx| = {np.abs(dxs[-1]).max():.2e} m)"
+
+
+def _per_point(L, it, Qxx, scale):
+    """Main check (eq. 4), redundancy numbers, normal residuals, w-test values and v (n, 3): numpy route."""
+    main_check = max(_max_misclosure(L[:, sl] + it.v[:, sl], it.x) for sl in _blocks(L.shape[1]))
+    ri = np.clip(1.0 - (1.0 / it.qbb) * _leverage(it.b, Qxx), 0.0, 1.0)
+    e = -it.qbb * it.k  # -b_i^T v_i: residual along the normal, positive outside
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(ri > 1e-10, e / (scale * np.sqrt(it.qbb * ri)), np.nan)
+    return main_check, ri, e, w, np.ascontiguousarray(it.v.T)
 
 
 # --------------------------------------------------------------- statistics
-def _result(L, it, cov, origin, fixed, tol, alpha, alpha_w, sigma0_apriori, sigma_known=True):
+def _result(it, per_point, origin, fixed, tol, alpha, alpha_w, sigma0_apriori, sigma_known=True):
     """Main check, sigma0, Sigma_xx, redundancy numbers, w-test; back to the caller's frame."""
-    n, u = L.shape[1], (3 if fixed else 4)
+    n, u = len(it.k), (3 if fixed else 4)
     dof = n - u
-    # Main check (Hauptprobe): eq. 4 with the adjusted l + v and x
-    main_check = max(_max_misclosure(L[:, sl] + it.v[:, sl], it.x) for sl in _blocks(n))
-    check_tol = max(tol, 1e3 * _EPS * (np.abs(L).max() + abs(it.x[3])))
     # sigma0 (eq. 23) and Sigma_xx = sigma0^2 N^-1 (eq. 24 corrected)
-    omega = float(np.einsum("i,i,i->", it.qbb, it.k, it.k))
+    omega = float(it.omega_history[-1])  # v^T Sigma^-1 v of the last iteration
     sigma0 = float(np.sqrt(omega / dof)) if dof > 0 else np.nan
     Qxx = cho_solve(it.N_chol, np.eye(u), check_finite=False)
     Sigma_xx = np.zeros((4, 4))
@@ -449,24 +509,20 @@ def _result(L, it, cov, origin, fixed, tol, alpha, alpha_w, sigma0_apriori, sigm
         Sigma_xx[:u, :u] = np.nan
         undetermined = (f"no redundancy ({n} points for {u} parameters): sigma0 and the standard deviations are "
                         "undetermined; give sigma (or more points) to state them")
-    # Redundancy numbers r_i = 1 - p_i a_i^T N^-1 a_i and Baarda's w-test
-    P = 1.0 / it.qbb
-    ri = np.clip(1.0 - P * _leverage(it.b, Qxx), 0.0, 1.0)
-    e = -it.qbb * it.k  # -b_i^T v_i: residual along the normal, positive outside
-    # Baarda's w with the a priori sigma0; without one, Pope's tau with the estimated sigma0
-    scale = sigma0_apriori if sigma_known else sigma0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        w = np.where(ri > 1e-10, e / (scale * np.sqrt(it.qbb * ri)), np.nan)
+    # Main check (Hauptprobe): eq. 4 with the adjusted l + v and x; redundancy numbers
+    # r_i = 1 - p_i a_i^T N^-1 a_i; Baarda's w with the a priori sigma0, without one Pope's tau
+    main_check, ri, e, w, v = per_point(Qxx, sigma0_apriori if sigma_known else sigma0)
+    check_tol = max(tol, 1e3 * _EPS * (it.amax + abs(it.x[3])))
     if sigma_known:
         g_test, crit = global_test(omega, dof, sigma0_apriori, alpha), w_critical(alpha_w)
     else:
         g_test, crit = GlobalTest(np.nan, int(dof), np.nan, np.nan, alpha, None, np.nan), tau_critical(alpha_w, dof)
-    reason = it.reason or _plausibility(L, it.x, main_check, check_tol, it.converged) or undetermined
+    reason = it.reason or _plausibility(it.extent, it.x, main_check, check_tol, it.converged) or undetermined
     return SphereFit(
         x=np.concatenate([it.x[:3] + origin, it.x[3:]]),
         Sigma_xx=Sigma_xx,
         sigma0=sigma0,
-        v=np.ascontiguousarray(it.v.T),
+        v=v,
         converged=it.converged,
         iterations=len(it.dx_history),
         main_check=main_check,
@@ -528,7 +584,7 @@ def _leverage(b, Qxx):
     return h
 
 
-def _plausibility(L, x, main_check, check_tol, converged):
+def _plausibility(extent, x, main_check, check_tol, converged):
     """Reason why a converged result must not be trusted ('' if none)."""
     if not converged:
         return "no convergence"
@@ -536,7 +592,6 @@ def _plausibility(L, x, main_check, check_tol, converged):
         return f"main check failed: max|f(l+v, x)| = {main_check:.2e} m exceeds {check_tol:.1e} m"
     if x[3] <= 0:
         return f"the adjusted radius {x[3]:.4g} m is not positive"
-    extent = np.ptp(L, axis=1).max()
     if x[3] > _FLAT_RATIO * extent:
         return (f"the points barely curve: radius {x[3]:.4g} m exceeds {_FLAT_RATIO:.0f}x their extent "
                 f"({extent:.3g} m); a plane may fit as well")

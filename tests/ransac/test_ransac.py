@@ -489,22 +489,33 @@ def test_verifier_answers_nested_balls_like_a_full_pass():
         assert len(idx) > 100
 
 
-def test_band_normal_equations_equal_the_sums_over_the_gathered_points():
-    """The fused pass (band test and sums in one) gives exactly the sums over P[|d| < band], in their order."""
-    from labkit.ransac._ball import band_normal_equations, normal_equations
+def test_masked_normal_equations_equal_the_sums_over_the_gathered_points():
+    """The masked pass (points by point or by axis) gives the sums over P[mask] to rounding (the SIMD
+    sums run in another order), and the numpy route where numba is absent gives the same."""
+    from labkit.ransac import _ball
+    from labkit.ransac._ball import normal_equations
 
     rng = np.random.default_rng(9)
     X = rng.normal(size=(20_000, 3))
     c, r = np.array([0.1, -0.2, 0.05]), 1.3
     d = np.linalg.norm(X - c, axis=1) - r
     shift, c_rel = c - 0.01, np.array([0.01, 0.0, 0.0])
+    T = np.ascontiguousarray(X.T)
     for band in (0.2, rng.uniform(0.1, 0.3, len(X))):
         mask = np.abs(d) < band
-        fused = band_normal_equations(X, d, band, shift, c_rel, r)
-        gathered = normal_equations(X[mask], shift, c_rel, r)
         assert 1000 < mask.sum() < len(X)
-        np.testing.assert_array_equal(fused[0], gathered[0])
-        np.testing.assert_array_equal(fused[1], gathered[1])
+        gathered = normal_equations(X[mask], shift, c_rel, r)
+        for fused in (normal_equations(X, shift, c_rel, r, mask=mask), normal_equations(T, shift, c_rel, r, mask, True)):
+            np.testing.assert_allclose(fused[0], gathered[0], rtol=1e-12, atol=1e-9)
+            np.testing.assert_allclose(fused[1], gathered[1], rtol=1e-12, atol=1e-12)
+        jit = _ball._jit
+        try:
+            _ball._jit = lambda kernel, simd=False: None  # the numpy route
+            reference = normal_equations(X, shift, c_rel, r, mask=mask)
+        finally:
+            _ball._jit = jit
+        np.testing.assert_allclose(reference[0], gathered[0], rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(reference[1], gathered[1], rtol=1e-12, atol=1e-12)
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -556,3 +567,23 @@ def test_compiled_scoring_counts_what_the_numpy_arrays_count():
         score, count = score_hypotheses(W, Wsq, X, t, "ransac")
         np.testing.assert_array_equal(count, expected)
         np.testing.assert_array_equal(score, expected.astype(float))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_compiled_detection_equals_the_numpy_route(seed, monkeypatch):
+    """The compiled kernels (SIMD sums, compiled Gauss-Helmert sweeps) find the same sphere as the numpy
+    route that runs without numba: the same inliers, the same adjusted sphere to 1e-9 m."""
+    from labkit.ransac import _ball
+    from labkit.sphere import ghm
+    from labkit.synthetic.tripod import sphere_on_tripod
+
+    scene = sphere_on_tripod(n_sphere=10_000, outlier_ratio=0.5, rng=seed)
+    fast = ransac_sphere(scene.points, 0.003, rng=seed)
+    monkeypatch.setattr(_ball, "_jit", lambda kernel, simd=False: None)
+    monkeypatch.setattr(ghm, "compiled_sweeps", lambda: None)
+    slow = ransac_sphere(scene.points, 0.003, rng=seed)
+    assert fast.found and slow.found
+    np.testing.assert_array_equal(fast.inliers, slow.inliers)
+    np.testing.assert_allclose(fast.fit.x, slow.fit.x, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(fast.fit.std, slow.fit.std, rtol=1e-9)
+    np.testing.assert_allclose(fast.fit.w_test, slow.fit.w_test, rtol=0, atol=1e-9)
