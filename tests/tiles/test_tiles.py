@@ -487,6 +487,26 @@ def test_real_autzen_tiles_ok_only_when_converged_and_determined(realdata, tmp_p
     assert all(r["area"] == "-1" for r in rows) and "not converged" in capsys.readouterr().out
 
 
+def test_real_autzen_tiles_with_the_widened_gate_keep_the_verdicts(realdata, tmp_path, capsys):
+    """consensus+icp (ICP's gate widened to twice the point spacing of sparse tiles) on the Autzen epochs in 15 and
+    30 m tiles: every tile with a registration is 'undetermined' (50-190 ground points, X and Y not determined;
+    measured: 5 of 5 and 3 of 3), its undetermined components empty in the CSV, none 'ok'."""
+    from labkit.cli.main import main
+
+    e = realdata / "epochs"
+    if not (e / "autzen-bmx-2010.las").is_file():
+        pytest.skip("Autzen epochs absent")
+    for size in ("15", "30"):
+        out = tmp_path / size
+        assert main(["tiles", str(e / "autzen-bmx-2023.las"), "--target", str(e / "autzen-bmx-2010.las"), "--size",
+                     size, "--min-points", "50", "--scheduler", "serial", "--method", "consensus+icp", "--quiet",
+                     "--out", str(out)]) == 0
+        rows = _check_tile_rows(out / "shift_field.csv")
+        registered = [r for r in rows if r["status"] != "too few points"]
+        assert registered and all(r["status"] == "undetermined" and "X" not in r["determined"] for r in registered)
+    assert "undetermined" in capsys.readouterr().out
+
+
 @pytest.mark.slow
 def test_real_als_halves_tiles_flag_a_moved_tile_and_keep_verdicts(realdata, tmp_path):
     """Real ALS (IGN, mostly flat ground): random halves as two epochs with a known shift, 100 m tiles. Tiles
