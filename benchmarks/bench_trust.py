@@ -61,6 +61,12 @@ jackknife) and the counted work budget, 2026-12-02, seed 0 (``--methods max_cons
   at 1.5 mm): the symmetric mean leaves 1.3, 1.5 mm of the plane bias in every half (the two fits differ by
   2 x (-2, 8) mm). With half the measured bias as the std of that remainder: 1.10, 0.74, 0.79, largest
   |error| / std 2.7 (2026-12-02).
+- 4_6_crop (ground class, 0.4 pts/m^2 per half): stated std conservative. Over 12 random halves (all four
+  shifts) rms error / stated std 0.55, 0.79, 0.63 in X, Y, Z for max_consensus (stated about 14 mm in X, Y)
+  and 0.52, 0.66, 0.82 for icp. Not the group test (the groups agree in every half: no added spread), not
+  the block edge (the 3.3 m blocks alone: 0.59, 0.87, 0.67), hardly the plane-bias term (0-30 % of the
+  variance). Suspected: the delete-a-block jackknife counts the block-to-block spread of the local plane
+  biases, the same in every half, as noise. Not a deliberate margin; left as is (honest, not tuned).
 
 Why X and Y stay undetermined where they do (icp defaults, 2026-12-02; seed 0, all four shifts):
 
