@@ -183,13 +183,13 @@ def test_stated_std_matches_the_spread_over_random_halves(realdata):
 
 @pytest.mark.slow
 def test_max_consensus_std_against_random_halves(realdata):
-    """Monte Carlo over eight random splits of the UAV scan (fullwave.laz): stated std against the spread.
+    """Monte Carlo over 16 random splits of the UAV scan (fullwave.laz): stated std against the spread.
 
-    The one-sided fit was 8 mm off in Y at a stated 2.4 mm for every split (the k-neighbourhood
-    planes lie inside the curved surface); the symmetric estimate removes that bias. The robust
-    spread (1.4826 x the median |error| / std) is checked: measured 1.16 for X and Y together. The
-    tail is heavier than Gaussian: one split of the eight (seed 5) leaves X and Y 7 mm off at
-    1.5 mm (the plain spread / stated is then about 2); Z is stated conservatively (0.7).
+    The two fits of the symmetric estimate differ by twice the bias of the k-neighbourhood planes
+    (about (-2, 8) mm); their mean is still 1.3, 1.5 mm off on average in X, Y, a remainder no
+    jackknife shows. With the jackknife alone the rms of error / stated std was 1.74, 1.90 in X, Y
+    and one split of 16 (seed 5) 5 std off; with half the measured bias as the std of the
+    remainder: 1.10, 0.74 (0.79 in Z), largest |error| / std 2.7.
     """
     path = realdata / "als" / "fullwave.laz"
     if not path.is_file():
@@ -197,16 +197,17 @@ def test_max_consensus_std_against_random_halves(realdata):
     cloud = read_cloud(path)
     s = SHIFTS[1]
     z = []
-    for seed in range(8):
+    for seed in range(16):
         rng = np.random.default_rng(seed)
         half = rng.random(len(cloud.xyz)) < 0.5
         res = max_consensus(cloud.subset(~half).with_xyz(cloud.xyz[~half] - s), cloud.subset(half))
         assert res.degeneracy.well_posed and "symmetric" in res.message, res.message
         z.append((res.translation - s) / res.translation_std)
-    z = np.abs(np.array(z))
-    robust = 1.4826 * np.median(z[:, :2])
-    assert 0.8 <= robust <= 1.25, robust
-    assert 1.4826 * np.median(z[:, 2]) <= 1.25, z[:, 2]
+    z = np.array(z)
+    rms_xy = float(np.sqrt(np.mean(z[:, :2] ** 2)))
+    assert 0.8 <= rms_xy <= 1.25, rms_xy
+    assert np.abs(z).max() <= 3.5, np.abs(z).max(axis=0)
+    assert float(np.sqrt(np.mean(z[:, 2] ** 2))) <= 1.25, z[:, 2]
 
 
 @pytest.mark.slow

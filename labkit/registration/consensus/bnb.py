@@ -440,6 +440,15 @@ def _symmetric_cov(fwd, rev, box_var):
     Both fits see the same ground, so their errors are correlated: the delete-a-block jackknife
     deletes a block from both at once, d_b = (d_b,fwd - d_b,rev) / 2. Without blocks on either side,
     the mean of the two covariances (an upper bound of the covariance of the mean).
+
+    The mean cancels the bias of the local planes b = (t_fwd + t_rev) / 2 to first order only, and
+    what it leaves is the same in every resampling, so no jackknife shows it. :func:`refine` adds
+    b b^T / 4 (a standard deviation of half the measured bias per direction). Monte Carlo, 16 draws
+    each, rms of error / stated std in X, Y, Z: random halves of a UAV scan (fullwave.laz: the two
+    fits differ by 2 x (-2, 8) mm, the mean is still 1.3, 1.5 mm off on average) 1.74, 1.90, 0.85 with
+    the jackknife alone (one half 5 std off), 1.10, 0.74, 0.79 with b b^T / 4 (largest |z| 2.7), 0.71,
+    0.39, 0.70 with b b^T; smooth synthetic hills 1.15, 0.90, 0.78 alone, 1.00, 0.87, 0.70 with
+    b b^T / 4; the mean of the two covariances: 0.93, 0.99, 0.63 and 0.50, 0.37, 0.27.
     """
     rev_blocks = {b: (keys, d) for b, keys, d in (rev.blocks or ())}
     pairs = [(f, rev_blocks[f[0]]) for f in (fwd.blocks or ()) if f[0] in rev_blocks]
@@ -545,9 +554,10 @@ def refine(bb, src_of, D, nrm, pb, reject_sigma, ext, runtime_bb, t0, max_outer:
             bias = P @ (fwd.t + rev.t) / 2  # half the sum of the two (reverse = -t): the plane bias
             t = fwd.t - bias
             cov, kind = _symmetric_cov(fwd, rev, box_var)
+            cov = cov + 0.25 * np.outer(bias, bias)  # the remainder of the cancellation: std half the bias
             kind += (f"; symmetric: mean of the fits source->target and target->source (they differ by 2 x "
                      f"{np.array2string(1000 * bias, precision=1)} mm, the bias of the local planes), "
-                     "blocks deleted from both")
+                     "blocks deleted from both, plus half that bias as the std of what the mean leaves of it")
             ls_ok = ls_ok and rev.ls_ok
         elif pb.weighted or pb.src_full is None:
             kind += "; one-sided (given weights): the bias of the local planes is not cancelled"

@@ -323,8 +323,9 @@ def max_consensus(
     The k-neighbourhood planes lie inside curved surfaces, a bias that no resampling shows; the
     refinement therefore also fits the other way round (target points on the local planes of the
     source, estimating -t) and states the mean of the two, with a jackknife that deletes each block
-    from both fits (unless ``weights`` are given: the target has none). Monte Carlo on real random
-    halves: tests/test_real_als_trust.py.
+    from both fits (unless ``weights`` are given: the target has none). The mean cancels that bias
+    to first order only; half the measured bias enters the covariance as the std of the remainder.
+    Monte Carlo on real random halves: tests/registration/test_real_als_trust.py.
 
     Returns
     -------
