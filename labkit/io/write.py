@@ -15,7 +15,7 @@ from ..cloud import PointCloud
 from ..core.errors import CloudFileError, LabkitError
 from .ascii import write_ascii
 from .common import ASCII_SUFFIXES, DEFAULT_CHUNK, LAS_SUFFIXES, unsupported_format
-from .las_write import write_las
+from .las_write import transform_las, write_las
 from .npy import write_npz
 
 
@@ -169,3 +169,52 @@ def _grid_step(values: np.ndarray) -> float:
         if np.abs(q - np.rint(q)).max() < 1e-3:
             return 10.0**-k
     return 1e-4
+
+
+def write_moved(source, path, transform, *, progress=False, parallel: bool = True) -> Path | None:
+    """The LAS/LAZ file ``source`` moved by ``transform``, written to ``path`` chunk by chunk, atomically.
+
+    The same file as ``write_cloud(read_cloud(source).with_xyz(transform(cloud.xyz)), path)``
+    (the file's layout, attributes and scales, only X, Y, Z changed) without holding the cloud
+    or its attributes in memory: ``labkit register`` writes the moved source this way.
+    ``transform`` maps (m, 3) coordinates in metres (as :func:`labkit.io.read_cloud` reads them).
+    Returns None, and writes nothing, when the moved points leave the int32 range of the
+    file's offsets (write the cloud with :func:`write_cloud` then: it chooses new offsets).
+
+    References
+    ----------
+    .. [1] Notebook 03, eqs. 1-3 (LAS scale and offset).
+    .. [2] ASPRS (2019): LAS Specification 1.4 - R15.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> import numpy as np
+    >>> from labkit.cloud import PointCloud
+    >>> from labkit.io import read_cloud, write_cloud
+    >>> from labkit.io.write import write_moved
+    >>> folder = tempfile.mkdtemp()
+    >>> cloud = PointCloud(np.array([[600000.0, 5400000.0, 300.0], [600001.5, 5400002.25, 301.0]]),
+    ...                    {"intensity": np.array([10, 20], dtype=np.uint16)})
+    >>> src = write_cloud(cloud, f"{folder}/two.laz")
+    >>> out = write_moved(src, f"{folder}/moved.laz", lambda xyz: xyz + [0.1, 0.0, -0.2])
+    >>> back = read_cloud(out)
+    >>> back.xyz.round(3).tolist(), back["intensity"].tolist()
+    ([[600000.1, 5400000.0, 299.8], [600001.6, 5400002.25, 300.8]], [10, 20])
+    """
+    source, path = Path(source), Path(path)
+    if source.suffix.lower() not in LAS_SUFFIXES or path.suffix.lower() not in LAS_SUFFIXES:
+        raise LabkitError(f"write_moved copies a LAS/LAZ file into a LAS/LAZ file, not {source.name} -> {path.name}")
+    if not path.parent.is_dir():
+        raise CloudFileError(f"cannot write {path}: folder {path.parent} does not exist")
+    try:
+        with _atomic(path) as tmp:
+            if transform_las(source, tmp, transform, progress=progress, parallel=parallel) is None:
+                raise _DoesNotFit
+    except _DoesNotFit:
+        return None
+    return path
+
+
+class _DoesNotFit(LabkitError):
+    """The moved points leave the range of the file's offsets (nothing is written)."""
