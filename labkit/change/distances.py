@@ -310,7 +310,7 @@ def _covered(tree, tgt, origin, src, T, j, nrm, k, v=None):
     :data:`COVERAGE_K`-th neighbour, at least half the median spacing (exact copies).
     """
     used, inv = np.unique(j, return_inverse=True)
-    spacing = _spacing(tree, used, min(COVERAGE_K, len(tgt) - 1))
+    spacing = _kth_distance(tree, used, min(COVERAGE_K, len(tgt) - 1))
     spacing = np.maximum(spacing, 0.5 * float(np.median(spacing)))
     out = np.empty(len(j), dtype=bool)
     for a in range(0, len(j), CHUNK):
@@ -328,7 +328,7 @@ def _covered(tree, tgt, origin, src, T, j, nrm, k, v=None):
     return out
 
 
-def _spacing(tree, rows, kk):
+def _kth_distance(tree, rows, kk):
     """Distance from each target point ``rows`` to its ``kk``-th neighbour (0 where there is none).
 
     The points are the tree's own: they are searched in the tree's leaf order (neighbouring

@@ -11,7 +11,8 @@ from ..core.units import Units
 from ..core.errors import LabkitError
 from ..core.progress import progress_steps
 from .common import INT32_MAX, STANDARD_DTYPES
-from .las import laz_backend
+from .las import _las_xyz, las_units, laz_backend, to_metres
+from .las_layout import LasLayout
 
 
 def _las_offsets(xyz: np.ndarray, scales=None) -> np.ndarray:
@@ -222,9 +223,6 @@ def transform_las(source, path, transform, *, units: str = "m", chunk_size: int 
     (``write_cloud`` would then choose new ones): the caller writes the cloud instead.
     """
     import laspy
-
-    from .las import _las_xyz, las_units, laz_backend, to_metres
-    from .las_layout import LasLayout
 
     source, path = Path(source), Path(path)
     backend = laz_backend(parallel)

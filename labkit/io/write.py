@@ -171,7 +171,8 @@ def _grid_step(values: np.ndarray) -> float:
     return 1e-4
 
 
-def write_moved(source, path, transform, *, progress=False, parallel: bool = True) -> Path | None:
+def write_moved(source, path, transform, *, chunk_size: int = DEFAULT_CHUNK, progress=False,
+                parallel: bool = True) -> Path | None:
     """The LAS/LAZ file ``source`` moved by ``transform``, written to ``path`` chunk by chunk, atomically.
 
     The same file as ``write_cloud(read_cloud(source).with_xyz(transform(cloud.xyz)), path)``
@@ -209,7 +210,8 @@ def write_moved(source, path, transform, *, progress=False, parallel: bool = Tru
         raise CloudFileError(f"cannot write {path}: folder {path.parent} does not exist")
     try:
         with _atomic(path) as tmp:
-            if transform_las(source, tmp, transform, progress=progress, parallel=parallel) is None:
+            if transform_las(source, tmp, transform, chunk_size=count(chunk_size, "chunk_size"), progress=progress,
+                             parallel=parallel) is None:
                 raise _DoesNotFit
     except _DoesNotFit:
         return None
