@@ -46,6 +46,20 @@ Measured 2026-12-02 (``--skip-tls``; load 10-17, other heavy jobs and two other 
     Open3D normals + ICP        1097.7     2414   -371, +42, -4352  (normals alone 702.7 s)
     labkit register / Open3D normals+ICP = 0.68
 
+Measured 2026-12-02 06:21-07:00 (``--skip-tls --skip-icp``, load 7-12, other sessions' tests beside it;
+CPU = user + system seconds of the step's process, all threads, reading included):
+
+    step                       time (s)  CPU (s)  peak MB  shift error (mm)        stated std (mm)
+    labkit register              778.9    135.9     3700  -0.25, -0.34, +0.11     0.36, 0.35, 0.13
+    Open3D normals + ICP        1476.7    652.1     2414  -371, +42, -4352 (normals alone 527.8 s; not timed: reading)
+    labkit register / Open3D normals+ICP = 0.53 wall (goal 0.5: narrowly missed under load), CPU 0.21
+
+The register before these changes, per step in one process at load 11 (CPU s): read 12.8, icp 33.8,
+distances 83.8 (of which the coverage spacing 34.8), figure 5.3, write 6.0; total 145.9, peak 4548 MB
+(in icp's preparation, the clouds' 13 attributes held). Now the coverage spacing is searched in the
+tree's leaf order, only coordinates and classification are read, and the moved source is written from
+its file chunk by chunk (one more decompression of the source, about 6 CPU s).
+
 ``labkit icp`` here reads no classification (``attributes=[]``): ``select='auto'`` then tests the
 surface of all 10.6 million points of both clouds before sampling, which is its time and memory.
 
