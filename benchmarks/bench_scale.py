@@ -46,6 +46,20 @@ Measured 2026-12-02 (``--skip-tls``; load 10-17, other heavy jobs and two other 
     Open3D normals + ICP        1097.7     2414   -371, +42, -4352  (normals alone 702.7 s)
     labkit register / Open3D normals+ICP = 0.68
 
+Measured 2026-12-02 06:21-07:00 (``--skip-tls --skip-icp``, load 7-12, other sessions' tests beside it;
+CPU = user + system seconds of the step's process, all threads, reading included):
+
+    step                       time (s)  CPU (s)  peak MB  shift error (mm)        stated std (mm)
+    labkit register              778.9    135.9     3700  -0.25, -0.34, +0.11     0.36, 0.35, 0.13
+    Open3D normals + ICP        1476.7    652.1     2414  -371, +42, -4352 (normals alone 527.8 s; not timed: reading)
+    labkit register / Open3D normals+ICP = 0.53 wall (goal 0.5: narrowly missed under load), CPU 0.21
+
+The register before these changes, per step in one process at load 11 (CPU s): read 12.8, icp 33.8,
+distances 83.8 (of which the coverage spacing 34.8), figure 5.3, write 6.0; total 145.9, peak 4548 MB
+(in icp's preparation, the clouds' 13 attributes held). Now the coverage spacing is searched in the
+tree's leaf order, only coordinates and classification are read, and the moved source is written from
+its file chunk by chunk (one more decompression of the source, about 6 CPU s).
+
 ``labkit icp`` here reads no classification (``attributes=[]``): ``select='auto'`` then tests the
 surface of all 10.6 million points of both clouds before sampling, which is its time and memory.
 
@@ -77,6 +91,14 @@ def _peak_mb():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kB on Linux
 
 
+def _cpu_s():
+    """User + system CPU seconds of this process, all its threads."""
+    import resource
+
+    use = resource.getrusage(resource.RUSAGE_SELF)
+    return use.ru_utime + use.ru_stime
+
+
 # ---------------------------------------------------------------------------- steps (each in a child process)
 def step_make(a):
     from labkit.io import write_cloud
@@ -98,8 +120,6 @@ def step_register(a):
 
     import labkit.cli.main as cli
     import labkit.registration.compare as compare
-    import labkit.change.distances as distances
-    import labkit.io as lio
 
     times, found = {}, {}
 
@@ -118,10 +138,11 @@ def step_register(a):
             return res
         return run
 
-    lio.read_cloud = timed("read", lio.read_cloud)
-    lio.write_cloud = timed("write", lio.write_cloud)
-    distances.distances_before_after = timed("distances", distances.distances_before_after)
+    cli.read_cloud = timed("read", cli.read_cloud)  # the names the command calls
+    cli.write_moved = timed("write", cli.write_moved)
+    cli.distances_before_after = timed("distances", cli.distances_before_after)
     cli._distance_figure = timed("figure", cli._distance_figure)
+    cli.save_figure = timed("figure", cli.save_figure)
     real = compare.standard_methods
     compare.standard_methods = lambda *x, **kw: {k: timed("icp", keep(m)) for k, m in real(*x, **kw).items()}
     out = _io.StringIO()
@@ -218,8 +239,10 @@ STEPS = {
 def child(name, payload):
     import labkit.io  # noqa: F401 - imported before any timing, for every step alike
 
+    cpu = _cpu_s()
     result = STEPS[name](payload)
     result["peak_mb"] = _peak_mb()
+    result["cpu_s"] = _cpu_s() - cpu  # the whole step (reading included), all threads
     print("BENCH-RESULT " + json.dumps(result))
 
 
@@ -242,7 +265,7 @@ def _row(name, r):
     extra = f"  error (mm) {r['error_mm']}" if "error_mm" in r else ""
     if "std_mm" in r:
         extra += f", stated std (mm) {r['std_mm']}, error / std {r['z']}"
-    return f"{name:26s} {r['seconds']:9.1f} {r['peak_mb']:9.0f}{extra}"
+    return f"{name:26s} {r['seconds']:9.1f} {r.get('cpu_s', float('nan')):9.1f} {r['peak_mb']:9.0f}{extra}"
 
 
 def _realdata(arg):
@@ -260,6 +283,7 @@ def main(argv=None):
     ap.add_argument("--skip-als", action="store_true")
     ap.add_argument("--skip-tls", action="store_true")
     ap.add_argument("--skip-open3d", action="store_true")
+    ap.add_argument("--skip-icp", action="store_true", help="leave out the row of labkit icp on the clouds in memory")
     ap.add_argument("--realdata", help="folder of the real data (default: ../shared/realdata)")
     ap.add_argument("--timeout", type=float, default=3600.0, help="seconds per step")
     ap.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
@@ -267,7 +291,7 @@ def main(argv=None):
     if args.child:
         return child(args.child[0], json.loads(args.child[1]))
     print(f"machine: {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f} (timings are noisy under load)")
-    print(f"\n{'step':26s} {'time (s)':>9s} {'peak MB':>9s}")
+    print(f"\n{'step':26s} {'time (s)':>9s} {'CPU (s)':>9s} {'peak MB':>9s}")
     if not args.skip_als:
         with tempfile.TemporaryDirectory() as tmp:
             folder = Path(args.keep or tmp)
@@ -278,7 +302,8 @@ def main(argv=None):
                 r = run_step("make", p, args.timeout)
                 print(f"{'make (als_epochs + write)':26s} " + (f"{r['seconds']:9.1f} {r['peak_mb']:9.0f}  "
                       f"{r['n_source']:,} + {r['n_target']:,} points" if "error" not in r else str(r["error"])))
-            names = ["labkit register", "labkit icp"] + ([] if args.skip_open3d else ["Open3D normals+ICP"])
+            names = (["labkit register"] + ([] if args.skip_icp else ["labkit icp"])
+                     + ([] if args.skip_open3d else ["Open3D normals+ICP"]))
             res = {}
             for name in names:
                 res[name] = r = run_step(name, p, args.timeout, stream=name == "labkit register")
@@ -289,7 +314,9 @@ def main(argv=None):
                 print("labkit register message: " + reg.get("message", ""))
             if "seconds" in reg and "seconds" in o3:
                 print(f"labkit register / Open3D normals+ICP = {reg['seconds'] / o3['seconds']:.2f} "
-                      f"(Open3D normals alone {o3['normals_s']:.1f} s)")
+                      f"(Open3D normals alone {o3['normals_s']:.1f} s; CPU {reg['cpu_s']:.0f} s against "
+                      f"{o3['cpu_s']:.0f} s, reading included)")
+            print(f"load at the end: {os.getloadavg()[0]:.1f}")
     root = _realdata(args.realdata)
     if not args.skip_tls:
         if root is None:

@@ -38,7 +38,8 @@ from ..demo import run_demo
 from ..change.distances import distances_before_after
 from ..core.errors import LabkitError
 from ..io.geotiff import change_geotiff, shift_field_geotiff
-from ..io import LAS_SUFFIXES, read_cloud, write_cloud
+from ..io import LAS_SUFFIXES, cloud_info, read_cloud, write_cloud
+from ..io.write import write_moved
 from ..plotting.change import plot_change_figure
 from ..plotting.compare import plot_shift_field
 from ..core.progress import from_cli
@@ -112,8 +113,9 @@ def _cmd_register(args) -> int:
     _check_dof([args.method], args.dof)
     _check_max_iterations(args.method, args.max_iterations)
     progress = from_cli(args.quiet, args.progress)  # on stderr: reading, ICP iterations, distances, writing
-    source = read_cloud(args.source, progress=progress)
-    target = read_cloud(args.target, progress=progress)
+    # ICP reads only the classification: the moved source is written from its file (write_moved)
+    source = read_cloud(args.source, attributes=_registration_attributes(args.source), progress=progress)
+    target = read_cloud(args.target, attributes=_registration_attributes(args.target), progress=progress)
     print(f"source {args.source}: {len(source)} points; target {args.target}: {len(target)} points")
     check_same_crs(source, target, "labkit register")
     method = compare.standard_methods([args.method], dof=args.dof, extent=args.extent, max_points=args.max_points,
@@ -135,13 +137,12 @@ def _cmd_register(args) -> int:
     print(f"\ncoordinates of the 4x4 and the outputs: {frame_text(source)}")
 
     # Outputs: the transformed source (LAS/LAZ, attributes kept) and a distance-coloured top view
-    moved = source.with_xyz(result.apply(source.xyz))
     suffix = Path(args.source).suffix.lower() if Path(args.source).suffix.lower() in LAS_SUFFIXES else ".laz"
     stem = Path(args.source).stem
     fig = _distance_figure(source, change, f"{stem} -> {Path(args.target).stem} ({result.method})\n"
                                            f"{frame_text(source)}", args.seed)
     with staged_outputs(args.out) as stage:
-        write_cloud(moved, stage(f"{stem}_registered{suffix}"), progress=progress)
+        _write_moved(args.source, source, result, stage(f"{stem}_registered{suffix}"), progress)
         save_figure(fig, stage(f"{stem}_distances.png"))
         save_registration(stage("registration.json"), result, crs=source.crs,
                           inputs={"source": str(Path(args.source).resolve()), "target": str(Path(args.target).resolve())})
@@ -149,6 +150,23 @@ def _cmd_register(args) -> int:
     for path in stage.written:
         print(f"wrote {path}")
     return 0
+
+
+def _registration_attributes(path):
+    """Attributes a registration reads: the classification of a LAS/LAZ file (all of them from other formats,
+    whose moved cloud is written from memory)."""
+    if Path(path).suffix.lower() not in LAS_SUFFIXES:
+        return None
+    return ["classification"] if "classification" in cloud_info(path).dimensions else []
+
+
+def _write_moved(path, source, result, out, progress) -> None:
+    """The moved source: from its LAS/LAZ file chunk by chunk (all attributes), else from the cloud in memory."""
+    if Path(path).suffix.lower() in LAS_SUFFIXES and write_moved(path, out, result.apply, progress=progress):
+        return
+    if Path(path).suffix.lower() in LAS_SUFFIXES:  # new offsets needed: the cloud with all its attributes
+        source = read_cloud(path, progress=progress)
+    write_cloud(source.with_xyz(result.apply(source.xyz)), out, progress=progress)
 
 
 def _cmd_compare(args) -> int:

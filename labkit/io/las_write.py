@@ -11,7 +11,8 @@ from ..core.units import Units
 from ..core.errors import LabkitError
 from ..core.progress import progress_steps
 from .common import INT32_MAX, STANDARD_DTYPES
-from .las import laz_backend
+from .las import _las_xyz, las_units, laz_backend, to_metres
+from .las_layout import LasLayout
 
 
 def _las_offsets(xyz: np.ndarray, scales=None) -> np.ndarray:
@@ -207,3 +208,44 @@ def _add_crs(header, crs: str | None, units: Units | None = None) -> None:
     vlr.geo_keys = [GeoKeyEntryStruct(k, 0, 1, v) for k, v in keys]
     vlr.geo_keys_header.number_of_keys = len(keys)
     header.vlrs.append(vlr)
+
+
+def transform_las(source, path, transform, *, units: str = "m", chunk_size: int = 1_000_000, progress=False,
+                  parallel: bool = True):
+    """Write the LAS/LAZ file ``source`` moved by ``transform`` to ``path``, chunk by chunk (None: not possible).
+
+    The file ``write_cloud(read_cloud(source).with_xyz(transform(xyz)), path)`` writes - same
+    header (version, point format, VLRs, scales, offsets), the same points with only X, Y, Z
+    changed - without holding the cloud: each chunk's coordinates are read as ``read_cloud``
+    reads them (in metres for ``units='m'``), moved by ``transform`` (a callable on (m, 3)
+    arrays), put back into the file's units and quantized as ``write_cloud`` does. Returns None
+    (and leaves nothing at ``path``) when the moved points do not fit the file's offsets
+    (``write_cloud`` would then choose new ones): the caller writes the cloud instead.
+    """
+    import laspy
+
+    source, path = Path(source), Path(path)
+    backend = laz_backend(parallel)
+    with laspy.open(str(source), laz_backend=backend) as reader:
+        found, crs = las_units(reader.header)
+        found, factors = to_metres(found, units, source)
+        layout = LasLayout.of(reader.header, crs)
+        names = {d: None for d in reader.header.point_format.dimension_names if d not in ("X", "Y", "Z")}
+        header = layout.header_for(names, crs, layout.scales)
+        header.offsets = layout.offsets
+        scales, offsets = layout.scales, layout.offsets
+        compress = path.suffix.lower() == ".laz"
+        with laspy.open(str(path), mode="w", header=header, do_compress=compress,
+                        laz_backend=backend if compress else None) as writer, \
+                progress_steps(progress, int(reader.header.point_count), f"writing {path.name}", "pts") as step:
+            for points in reader.chunk_iterator(chunk_size):
+                xyz = transform(_las_xyz(points, scales, offsets, factors, np.empty((len(points), 3))))
+                if factors is not None:
+                    xyz = xyz / factors  # back to the file's units (write_cloud's _in_file_units)
+                if len(xyz) and layout.offsets_for(xyz, scales) is None:
+                    return None  # beyond the int32 range of the file's offsets
+                ints = _quantize(xyz, offsets, scales)
+                points.X, points.Y, points.Z = ints[:, 0], ints[:, 1], ints[:, 2]
+                writer.write_points(points)
+                step(len(points))
+    return path

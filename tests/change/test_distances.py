@@ -110,6 +110,32 @@ def test_a_target_line_gives_nan_distances_next_to_it():
     np.testing.assert_allclose(change.after[:20], 0.05, atol=1e-6)
 
 
+@pytest.mark.parametrize("kind", ["point_to_plane", "cloud_to_cloud"])
+def test_coverage_mask_is_the_rule_computed_with_scipy(epochs, kind):
+    """covered = offset along the tangent plane (horizontal without a normal) <= 1.5 spacings of the nearest
+    target point, the spacing being its 6th distinct neighbour's distance, floored at half the median (scipy)."""
+    from labkit.change.distances import COVERAGE_FACTOR, COVERAGE_K
+
+    src, tgt, T = epochs
+    src = np.r_[src, src[:40] + [20.0, 0.0, 0.0]]  # 40 points beyond the target's edge
+    change = distances_before_after(src, tgt, T, kind=kind)
+    p, q = _apply(T, src) - UTM, tgt - UTM
+    j = _nearest(p, q)
+    distinct = np.unique(q, axis=0)
+    spacing = cKDTree(distinct).query(q[j], k=COVERAGE_K + 1)[0][:, -1]
+    spacing = np.maximum(spacing, 0.5 * np.median(spacing[np.unique(j, return_index=True)[1]]))
+    off = p - q[j]
+    along = np.hypot(off[:, 0], off[:, 1])
+    if kind == "point_to_plane":
+        n = _brute_normals(q, 10)[j]
+        along = np.linalg.norm(off - np.einsum("ij,ij->i", n, off)[:, None] * n, axis=1)
+    ratio = along / (COVERAGE_FACTOR * spacing)
+    clear = np.abs(ratio - 1) > 1e-6  # not on the threshold itself (normals from two eigen-solvers)
+    assert clear.sum() > 0.98 * len(src)
+    np.testing.assert_array_equal(change.covered[clear], ratio[clear] <= 1)
+    assert 40 <= change.n_outside < 60 and not change.covered[-40:].any()
+
+
 # --------------------------------------------------------------------------- coverage (real data)
 def _halves(xyz, shift, seed):
     half = np.random.default_rng(seed).uniform(size=len(xyz)) < 0.5
