@@ -42,6 +42,7 @@ from ..options import FIELDS, MatchOptions, takes_match_options
 from .pyramid import RETRY_REACH, pyramid_icp, retry_with_pyramid, use_pyramid
 from ..result import RegistrationResult
 from ..selection import SELECT, check_other_classes, select_points
+from .class_shift import class_shift
 
 
 @dataclass(frozen=True, eq=False)
@@ -195,8 +196,8 @@ def icp(
         the stable classes of classified clouds, else the surface points (vegetation left out);
         ``result.selection`` says which and why. Given ``classes``, ``max_noise`` or per-point
         normals, all points take part.
-        With stable classes, every class left out (50 points or more in both clouds) is registered
-        on its own from the result and tested against it: ``result.class_checks``.
+        With stable classes, every class left out (50 points or more in both clouds) is matched at
+        the result, its own shift (one translation step) tested against it: ``result.class_checks``.
     coarse_to_fine : {'auto', True, False}
         Run a voxel pyramid first (:mod:`labkit.registration.closest_point.pyramid`), from twice ``reach`` down to
         ``max_distance``; the covariance and degeneracy report come from the full clouds. 'auto':
@@ -360,7 +361,7 @@ def _with_selection(source, target, options, settings):
         back = lambda rows, i: np.where(i >= 0, rows[np.clip(i, 0, None)], -1)  # noqa: E731
         corr = replace(corr, source_index=back(sel.source_rows, corr.source_index),
                        target_index=back(sel.target_rows, corr.target_index), n_source=sel.n_source)
-    checks = check_other_classes(source, target, res, sel, icp, **_class_settings(settings, options))
+    checks = check_other_classes(source, target, res, sel, class_shift, **_class_settings(settings, options))
     msg = f"{res.message}; points: {sel.reason}"
     moved = [str(c.code) for c in checks if not c.agree]
     if checks:
