@@ -164,7 +164,7 @@ def _surface_test(points, k, neighbours=False):
             nbs.append(nb)
     if not extra:
         return keep[tree.representative], None
-    nb = np.concatenate(nbs)
+    nb = nbs[0] if len(nbs) == 1 else np.concatenate(nbs)  # one chunk (most clouds): no copy of (n, k + 1) indices
     clean = np.empty(tree.n, dtype=bool)  # the same k nearest among the kept points
     unique_kept_neighbours(tree.data, nb, keep, k, clean)
     return keep[tree.representative], (tree, nb, clean, k)
