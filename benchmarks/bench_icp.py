@@ -128,6 +128,27 @@ On the TLS halves labkit is still about 1.6-1.8 times Open3D: the remaining work
 (two whole-cloud k-neighbour searches and kd-trees, about 1.6 CPU s), which Open3D does not do,
 four kd-tree builds (whole and selected clouds) and the per-iteration numpy work of the matcher.
 
+With three steps of the matching compiled (the cached target normals and noise scattered to the pairs,
+the angle between the normals, the duplicate rule's distances; bitwise the numpy route) and the
+selection's neighbour indices no longer copied: ``--keep 0.5 --halves-only`` on 2026-12-02 07:02 UTC
+(load 6.3-6.5; best of 3, CPU s in brackets; the same estimates as the runs before to 0.01 mm):
+
+===================  =========================  =============  ============================
+pair                 labkit icp (every point)   Open3D         labkit / Open3D (wall, CPU)
+===================  =========================  =============  ============================
+tls halves           6.80 (3.41)                3.73 (1.92)    1.82, 1.78
+als halves           8.07 (3.20)                8.32 (4.09)    0.97, 0.78
+als, plane           4.93 (2.20)                8.32 (4.09)    0.59, 0.54
+===================  =========================  =============  ============================
+
+The compiled steps take about 14 ms CPU off each matching of the TLS halves' 248,000 pairs (128 -> 114
+ms, one process, the two routes alternating): about 0.1 s per call, less than the run-to-run spread.
+Where labkit's CPU goes on the TLS halves (four runs, load 5-8): the selection 1.3-2.0 s (about 60 % of
+it the 21 nearest neighbours of every point of both whole clouds, 15 % their two kd-trees), the matching
+1.0-1.4 s over 8 iterations (half of it the nearest-point search), prepare 0.4-0.5 s, adjustment 0.25 s,
+result 0.26 s. Open3D's whole run costs what labkit's selection alone does: parity on this pair needs
+the selection's neighbourhoods to serve ICP's normals and noise directly, not only its neighbour rows.
+
 Run:  python benchmarks/bench_icp.py [--quick] [--realdata PATH] [--repeats N]
 """
 

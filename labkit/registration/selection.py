@@ -164,7 +164,7 @@ def _surface_test(points, k, neighbours=False):
             nbs.append(nb)
     if not extra:
         return keep[tree.representative], None
-    nb = np.concatenate(nbs)
+    nb = nbs[0] if len(nbs) == 1 else np.concatenate(nbs)  # one chunk (most clouds): no copy of (n, k + 1) indices
     clean = np.empty(tree.n, dtype=bool)  # the same k nearest among the kept points
     unique_kept_neighbours(tree.data, nb, keep, k, clean)
     return keep[tree.representative], (tree, nb, clean, k)
@@ -285,9 +285,10 @@ def _keep(cloud, info, mask):
 class ClassCheck:
     """A class left out of a registration, tested against the shift of the stable classes.
 
-    The class's points are registered on their own (source class onto target class, started at the result)
-    and its shift at the class's centre is compared with the result's: T = d^T (C_c + C)^-1 d over the axes
-    both determine, chi-square with that many degrees of freedom (eq. 5.16 for two groups).
+    The class's points are registered on their own (source class onto target class, from the result: ICP's
+    ``class_shift`` matches them once and adds one translation step) and its shift at the class's centre is
+    compared with the result's: T = d^T (C_c + C)^-1 d over the axes both determine, chi-square with that many
+    degrees of freedom (eq. 5.16 for two groups).
 
     Attributes
     ----------
@@ -353,8 +354,10 @@ def check_other_classes(source, target, result, selection, register, *, alpha=1e
     selection : Selection
         Its selection (rule 'stable classes'; otherwise nothing is tested).
     register : callable
-        The registration run on each class (``labkit.registration.icp``), called with
-        ``select='all'`` and ``initial=result.matrix`` plus ``settings``.
+        The registration of each class from the result, called with ``select='all'`` and
+        ``initial=result.matrix`` plus ``settings``: ``icp`` itself, or (as ``icp`` does)
+        :func:`labkit.registration.closest_point.class_shift.class_shift`, one matching at the result
+        and one translation step.
     alpha : float
         Level of the test.
 

@@ -24,3 +24,27 @@ def test_icp_with_grouped_search_equals_the_per_point_search(monkeypatch):
     assert new.iterations == old.iterations > 1
     assert np.array_equal(new.matrix, old.matrix) and np.array_equal(new.covariance, old.covariance)
     assert np.array_equal(new.correspondences.target_index, old.correspondences.target_index)
+
+
+def test_compiled_matching_steps_equal_their_numpy_route(monkeypatch):
+    """ICP (rigid, every source point, plane and quadric) bitwise as with the numpy forms of the compiled steps
+    of the matcher: the cached normals and noise scattered to the pairs, the angle between the normals and
+    the distances of the duplicate rule."""
+    from labkit.registration.matching import local_surface, matcher
+
+    rng = np.random.default_rng(7)
+    target = np.round(wavy_surface(20_000, rng, noise=0.002), 3)
+    source = np.round(wavy_surface(8_000, rng, noise=0.002), 3) - [0.021, -0.013, 0.008]
+    for surface in ("plane", "quadric"):
+        kw = dict(dof="rigid", sample=None, rng=0, surface=surface, select="all")
+        new = icp(source, target, **kw)
+        with monkeypatch.context() as m:
+            m.setattr(local_surface, "_scatter_cached", local_surface._scatter_cached_numpy)
+            m.setattr(matcher, "_cos_normals", matcher._cos_normals_numpy)
+            m.setattr(matcher, "_dot_rows_at", matcher._dot_rows_at_numpy)
+            old = icp(source, target, **kw)
+        assert new.iterations == old.iterations > 1
+        assert np.array_equal(new.matrix, old.matrix) and np.array_equal(new.covariance, old.covariance)
+        for name in ("target_index", "rule", "weight", "normal_angle", "target_normal", "d"):
+            assert np.array_equal(getattr(new.correspondences, name), getattr(old.correspondences, name),
+                                  equal_nan=name != "target_index" and name != "rule"), name

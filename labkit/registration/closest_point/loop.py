@@ -43,6 +43,7 @@ from .pyramid import RETRY_REACH, pyramid_icp, retry_with_pyramid, use_pyramid
 from ..result import RegistrationResult
 from ..selection import SELECT, check_other_classes, select_points
 from ..height_model import fill_held_axes
+from .class_shift import class_shift
 
 
 @dataclass(frozen=True, eq=False)
@@ -197,8 +198,8 @@ def icp(
         the stable classes of classified clouds, else the surface points (vegetation left out);
         ``result.selection`` says which and why. Given ``classes``, ``max_noise`` or per-point
         normals, all points take part.
-        With stable classes, every class left out (50 points or more in both clouds) is registered
-        on its own from the result and tested against it: ``result.class_checks``.
+        With stable classes, every class left out (50 points or more in both clouds) is matched at
+        the result, its own shift (one translation step) tested against it: ``result.class_checks``.
     height_model : bool
         With ``select='auto'``, ``dof='translation'`` and point-to-plane: where the selected points
         leave X or Y undetermined (the normals of ground and roofs are nearly vertical), match the
@@ -371,7 +372,7 @@ def _with_selection(source, target, options, settings):
     if settings["height_model"] and settings["dof"] == "translation" and settings["metric"] == "point_to_plane":
         # X, Y from height jumps where the normals of the selected surfaces leave them undetermined
         res, _ = fill_held_axes(res, source, target)
-    checks = check_other_classes(source, target, res, sel, icp, **_class_settings(settings, options))
+    checks = check_other_classes(source, target, res, sel, class_shift, **_class_settings(settings, options))
     msg = f"{res.message}; points: {sel.reason}"
     moved = [str(c.code) for c in checks if not c.agree]
     if checks:

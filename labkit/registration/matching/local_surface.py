@@ -303,6 +303,24 @@ else:  # pragma: no cover - depends on the environment
     _quadric = _quadric_kernel
 
 
+def _scatter_cached_numpy(slot, pos, rows, normals_buf, noise_buf, normals, noise):
+    s = slot[pos]
+    normals[rows], noise[rows] = normals_buf[s], noise_buf[s]
+
+
+if HAVE_NUMBA:
+
+    @numba.njit(cache=True, nogil=True)
+    def _scatter_cached(slot, pos, rows, normals_buf, noise_buf, normals, noise):  # pragma: no cover - compiled
+        """normals[rows] = normals_buf[slot[pos]], noise[rows] = noise_buf[slot[pos]] in one pass."""
+        for r in range(rows.shape[0]):
+            s, i = slot[pos[r]], rows[r]
+            normals[i, 0], normals[i, 1], normals[i, 2] = normals_buf[s, 0], normals_buf[s, 1], normals_buf[s, 2]
+            noise[i] = noise_buf[s]
+else:  # pragma: no cover - depends on the environment
+    _scatter_cached = _scatter_cached_numpy
+
+
 def _on_quadric(coef, frame, w):
     """Offset from points to the local quadric along its frame normal, and the surface normal there.
 
@@ -388,6 +406,17 @@ class Geometry:
         normals = self._get("normals", pos) if self.given is None else self.given[index]
         noise = self._get("noise", pos) if need_noise or self.given is None else np.full(len(pos), np.nan)
         return normals, noise
+
+    def at_rows(self, index, rows, normals, noise, need_noise=False):
+        """:meth:`at` written into ``normals[rows]`` and ``noise[rows]``: once the cache holds the points, one
+        compiled pass gathers and scatters their rows instead of four copies."""
+        if self.given is not None or not HAVE_NUMBA or "normals" not in self._store or len(index) == 0:
+            normals[rows], noise[rows] = self.at(index, need_noise)
+            return
+        pos = self.tree.representative[index]
+        if (self.slot[pos] < 0).any():
+            self.at(index, need_noise)  # computes the points not cached yet
+        _scatter_cached(self.slot, pos, rows, self._store["normals"], self._store["noise"], normals, noise)
 
     def foot(self, index, w):
         """Offsets (m, 3) from the points ``q + w`` to the local quadric of ``q`` = point ``index``, and

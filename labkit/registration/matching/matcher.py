@@ -124,7 +124,7 @@ class _Matcher:
         j = nearest[live]
         tidx[live] = j
         _differences(self.tree.data, self.tree.representative, j, p, live, d)  # d[live] = q_j - p_i
-        nt[live], noise_t[live] = self.geometry.at(j, need_noise=opt["need_noise"])
+        self.geometry.at_rows(j, live, nt, noise_t, need_noise=opt["need_noise"])  # nt[live], noise_t[live]
         nearest_d = d  # q_j - p_i: the duplicate rule keeps the nearest source point by this
         if opt["surface"] == "quadric" and len(live):
             nearest_d = d.copy()
@@ -148,8 +148,7 @@ class _Matcher:
         angle = np.full(m, np.nan)
         if self.source_normals is not None:
             rule[live[np.isnan(self.source_normals[live, 0]) & (rule[live] == 0)]] = _CODE["degenerate"]
-            ns = _rotated(self.source_normals[live], R)
-            cosang = np.abs(_dot_rows(ns, nt[live]))
+            cosang = _cos_normals(self.source_normals, np.ascontiguousarray(R, dtype=np.float64), nt, live)
             angle[live] = np.degrees(np.arccos(np.clip(cosang, 0, 1)))
             if opt["max_angle_deg"] is not None:
                 bad = angle[live] > opt["max_angle_deg"]
@@ -201,6 +200,15 @@ def _dot_rows_numpy(a, b):
     return np.einsum("ij,ij->i", a, b)
 
 
+def _cos_normals_numpy(source_normals, R, nt, live):
+    """|R n_s . n_t| of the rows ``live`` (the cosine of the angle between the moved source and the target normal)."""
+    return np.abs(_dot_rows_numpy(_rotated_numpy(source_normals[live], R), nt[live]))
+
+
+def _dot_rows_at_numpy(d, live):
+    return _dot_rows_numpy(d[live], d[live])
+
+
 if HAVE_NUMBA:
     # one compiled pass each instead of numpy's temporaries (ICP calls them in every iteration on every
     # source point); the sums in einsum's order, (x0 y0 + x2 y2) + x1 y1: the same numbers to the bit
@@ -233,6 +241,27 @@ if HAVE_NUMBA:
             out[i] = (a[i, 0] * b[i, 0] + a[i, 2] * b[i, 2]) + a[i, 1] * b[i, 1]
         return out
 
+    @numba.njit(cache=True, nogil=True)
+    def _cos_normals(source_normals, R, nt, live):  # pragma: no cover - compiled
+        """:func:`_cos_normals_numpy` in one pass: no gathered or rotated copies (the same sums, the same order)."""
+        out = np.empty(live.shape[0])
+        for r in range(live.shape[0]):
+            i = live[r]
+            x, y, z = source_normals[i, 0], source_normals[i, 1], source_normals[i, 2]
+            a0 = (x * R[0, 0] + z * R[0, 2]) + y * R[0, 1]
+            a1 = (x * R[1, 0] + z * R[1, 2]) + y * R[1, 1]
+            a2 = (x * R[2, 0] + z * R[2, 2]) + y * R[2, 1]
+            out[r] = abs((a0 * nt[i, 0] + a2 * nt[i, 2]) + a1 * nt[i, 1])
+        return out
+
+    @numba.njit(cache=True, nogil=True)
+    def _dot_rows_at(d, live):  # pragma: no cover - compiled
+        out = np.empty(live.shape[0])
+        for r in range(live.shape[0]):
+            i = live[r]
+            out[r] = (d[i, 0] * d[i, 0] + d[i, 2] * d[i, 2]) + d[i, 1] * d[i, 1]
+        return out
+
     def _rotated(points, R, t=None):
         """points @ R.T (+ t) for a tall (m, 3) array, compiled (:func:`_rotated_numpy`, the same numbers)."""
         P = np.ascontiguousarray(points, dtype=np.float64)
@@ -245,6 +274,7 @@ if HAVE_NUMBA:
         return out
 else:  # pragma: no cover - depends on the environment
     _rotated, _differences, _dot_rows = _rotated_numpy, _differences_numpy, _dot_rows_numpy
+    _cos_normals, _dot_rows_at = _cos_normals_numpy, _dot_rows_at_numpy
 
 
 def _reject_duplicates(rule, tidx, d, n_target):
@@ -258,7 +288,7 @@ def _reject_duplicates(rule, tidx, d, n_target):
     live = np.flatnonzero(rule == 0)
     if live.size < 2:
         return
-    dist2 = _dot_rows(d[live], d[live])
+    dist2 = _dot_rows_at(d, live)  # |d_i|^2 of the live rows
     loser = _closest_per_target(live, tidx[live], dist2, n_target)
     rule[loser] = _CODE["duplicate"]
 
