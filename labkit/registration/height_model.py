@@ -239,9 +239,10 @@ def _match(grid, Zt, Zs, cell, max_iterations, tol):
         if len(l) < 10:
             raise LabkitError(f"the height models share only {len(l)} cells of {cell:.3g} m: do the clouds "
                               "overlap? (height-model matching needs a common area)")
-        N = A.T @ A
+        N = np.einsum("mi,mj->ij", A, A)  # einsum, not BLAS: the same sums on any number of threads
         s0 = float(np.sum(l**2)) / max(len(l) - 3, 1)  # variance of unit weight of this step
-        dx = _solve(N + np.diag([s0, s0, 0.0]) / cell**2, A.T @ l)  # damped: a step of a cell is a 1-sigma prior
+        # damped: a step of a cell is a 1-sigma prior
+        dx = _solve(N + np.diag([s0, s0, 0.0]) / cell**2, np.einsum("mi,m->i", A, l))
         dx *= min(1.0, 0.5 * cell / max(np.hypot(dx[0], dx[1]), 1e-300))  # at most half a cell a step
         if dx @ previous < 0:  # a step that reverses the last one (the kinks of bilinear interpolation)
             damping = max(damping / 2, 1 / 64)
@@ -448,13 +449,13 @@ def _jackknife(A, l, cells, epochs):
         Jb = 0.5 * (Jb + Jb.transpose(0, 2, 1))
         J = Jb.sum(axis=0)
         rest = J[None] - Jb
-        floor = 1e-9 * np.trace(A.T @ A)
+        floor = 1e-9 * float(np.einsum("mi,mi->", A, A))
         lam = np.linalg.eigvalsh(rest)
         single = bool((lam[:, 0] <= floor).any() or np.linalg.eigvalsh(J)[0] <= floor)
         if single:
             return np.full((3, 3), np.inf), n_b, b, True
         d = np.linalg.solve(rest, S[:, :, None])[:, :, 0]
-        cov = d.T @ d * (n_b - 1) / n_b * few_clusters_factor(n_b) ** 2
+        cov = np.einsum("bi,bj->ij", d, d) * (n_b - 1) / n_b * few_clusters_factor(n_b) ** 2
         if n_b < MIN_BLOCKS:
             cov = np.full((3, 3), np.inf)
         if best is None or np.trace(cov) > np.trace(best[0]) or not np.isfinite(np.trace(cov)):

@@ -136,7 +136,7 @@ def icp(
     reach=None,
     select="auto",
     height_model=True,
-    rng=None,
+    rng=0,
     progress=False,
 ) -> RegistrationResult:
     """Register ``source`` onto ``target`` by ICP (seed: ``ICP``).
@@ -213,8 +213,9 @@ def icp(
         (:func:`labkit.registration.closest_point.pyramid.retry_with_pyramid`).
     reach : float, optional
         Largest expected shift (m) for the pyramid; default ``max_distance``.
-    rng : int or Generator, optional
-        For the sampling.
+    rng : int, Generator or None
+        For the sampling (only a source of more than 300,000 points, or an explicit ``sample``, is
+        sampled). Default 0: the same input gives the same result in every run; None draws a fresh seed.
     progress : bool, "bar", "lines" or callable
         One step per iteration with the current shift and number of pairs (:mod:`labkit.core.progress`).
 
