@@ -54,12 +54,13 @@ Measured (tests/registration/test_height_model.py; random halves of the real fil
   12 m trees cut in the other; 8 samplings): every component within 2.2 std (X 0-88 mm off at
   +-27-57 mm: the edges of the change are not all rejected); about 900 of 6,800 cells rejected.
   Without robust weights the shift is 0.1-0.27 m off and the jackknife leaves X and Y undetermined.
-- MixedConifer (height-normalised conifer plot, 2.3 pts/m^2 per half): X, Y to +-22 / +-26 mm;
-  spread / stated 1.03 / 1.02, largest error 2.2 std; no bias over 24 halves (X +2 +- 4 mm).
+- MixedConifer (height-normalised conifer plot, 2.3 pts/m^2 per half): X, Y to +-17-23 / +-21-28 mm
+  in 12 of 12 halves; spread / stated 1.15 / 1.06, largest error 2.2 std, mean error (10, 8) mm;
+  1.5 % of the cells rejected (without robust weights: +-22 / +-26 mm, 1.03 / 1.02).
 - sample_c: one large gable roof clipped at its outline and a strip of ground: no height jump
-  across the ridge inside the data; the along-ridge direction has std 0.42-0.81 m (or no shared
+  across the ridge inside the data; the along-ridge direction has std 0.10 m or more (or no shared
   information at all): X and Y undetermined in 12 of 12 halves (honest, not useful).
-- warsaw_small (1,500 points per half over 33 m, a few trees): weak direction std 0.15-0.80 m,
+- warsaw_small (1,500 points per half over 33 m, a few trees): weak direction std 0.15-0.85 m,
   X and Y undetermined in 12 of 12.
 
 Equation numbers refer to notebook 05 (ICP) and 06 (maximum consensus).
