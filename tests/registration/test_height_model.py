@@ -39,11 +39,12 @@ def gable_scene(n, rng, *, size=60.0, noise=0.02, hall=False, trees=False):
     return np.column_stack([xy, z + rng.normal(0, noise, n)])
 
 
-def test_gable_roofs_give_the_along_ridge_shift_with_an_honest_std():
+@pytest.mark.parametrize("robust", [False, True])
+def test_gable_roofs_give_the_along_ridge_shift_with_an_honest_std(robust):
     est, std = [], []
     for i in range(40):  # independent samplings of both epochs
         rng = np.random.default_rng(100 + i)
-        hm = height_model_shift(gable_scene(8000, rng) - SHIFT, gable_scene(8000, rng))
+        hm = height_model_shift(gable_scene(8000, rng) - SHIFT, gable_scene(8000, rng), robust=robust)
         assert hm.converged and hm.determined.all(), hm.message
         est.append(hm.translation)
         std.append(hm.translation_std)
@@ -60,7 +61,7 @@ def test_a_changed_fifth_of_the_scene_is_rejected_and_the_shift_stays_within_its
     for i in range(4):
         rng = np.random.default_rng(200 + i)
         src, tgt = gable_scene(8000, rng, trees=True) - SHIFT, gable_scene(8000, rng, hall=True)
-        hm = height_model_shift(src, tgt)
+        hm = height_model_shift(src, tgt, robust=True)
         assert hm.converged and hm.determined.all(), hm.message
         assert np.all(np.abs(hm.translation - SHIFT) <= 3 * hm.translation_std), (hm.translation, hm.translation_std)
         assert hm.n_rejected > 0.08 * hm.n_cells  # the hall and the trees, not the edges alone
