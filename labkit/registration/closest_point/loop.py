@@ -27,7 +27,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ...core.checks import as_points, choice, count, non_negative, positive
-from ...core.crs import check_same_crs
+from ...core.crs import check_same_crs, crs_of
 from ...core.frame import local_origin
 from ...core.report import ReportMixin, fmt
 from ...core.errors import LabkitError
@@ -351,7 +351,8 @@ def icp(
             break
     steps.close(history)
     # 4. final report from the last adjustment
-    return icp_result(R, t, origin, adj, history, converged, matcher, opts, time.perf_counter() - t_start)
+    res = icp_result(R, t, origin, adj, history, converged, matcher, opts, time.perf_counter() - t_start)
+    return replace(res, crs=crs_of(source) or crs_of(target))  # the other routes return this one's result
 
 
 def _with_selection(source, target, options, settings):
