@@ -191,13 +191,13 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
         lam, V = lam[keep], V[:, keep]
         y = (V.T @ np.einsum("mru,m,mr->u", Ag, Pg, lg)) / lam  # the group's own estimate of V^T x
         v = np.einsum("mru,u->mr", Ag, V @ y) - lg
-        s = np.einsum("mru,m,mr->mu", Ag, Pg, v) @ V  # scores in the group's directions
+        s = np.einsum("mru,m,mr,ua->ma", Ag, Pg, v, V)  # scores in the group's directions
         _, cell = np.unique(cells[rows], return_inverse=True)
         G = np.zeros((cell.max() + 1, len(lam)))
         np.add.at(G, cell.ravel(), s)
         m, nc, r = len(s), len(G), len(lam)
         if nc >= 2 * r + 1:  # cluster-robust (eq. 5.13)
-            M = G.T @ G * nc / (nc - 1) * m / max(m - r, 1)
+            M = np.einsum("ci,cj->ij", G, G) * nc / (nc - 1) * m / max(m - r, 1)
         else:  # too few cells: formal sigma0^2 N
             vPv = float(np.einsum("mr,m,mr->", v, Pg, v))
             M = np.diag(lam) * vPv / max(m * A.shape[1] - r, 1)

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..core.crs import crs_summary
 from ..core.lengths import length_text
 from ..core.report import ReportMixin, fmt
 from ..transforms import angles_from_rotation, apply_transform, make_transform
@@ -69,6 +70,9 @@ class RegistrationResult(ReportMixin):
     height_model : HeightModelShift, optional
         The height-model matching that filled horizontal axes point-to-plane left undetermined
         (:func:`labkit.registration.height_model.fill_held_axes`), or that was tried and did not.
+    crs : str or None
+        The inputs' CRS (``PointCloud.crs``; ICP); None when they state none (arrays, files without one).
+        :func:`labkit.save_registration` writes it to the registration file.
 
     Examples
     --------
@@ -101,6 +105,7 @@ class RegistrationResult(ReportMixin):
     selection: object = None
     class_checks: tuple = ()
     height_model: object = None
+    crs: str | None = None
 
     @property
     def consistent(self) -> bool:
@@ -159,6 +164,7 @@ class RegistrationResult(ReportMixin):
             ("correspondences used", f"{self.n_used} ({100 * self.share_used:.1f} %)"),
             ("converged", f"{self.converged} after {self.iterations} iterations"),
             ("runtime", fmt(self.runtime_s, 3, "s")),
+            ("CRS", crs_summary(self.crs)),
         ]
         if self.selection is not None:
             rows.append(("points used", str(self.selection)))

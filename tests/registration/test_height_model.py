@@ -11,10 +11,12 @@ from labkit.registration.height_model import height_model_shift
 SHIFT = np.array([0.3, 0.2, 0.05])
 
 
-def gable_scene(n, rng, *, size=60.0, noise=0.02):
+def gable_scene(n, rng, *, size=60.0, noise=0.02, hall=False, trees=False):
     """Flat ground with houses 12 x 8 m whose ridges run along X (gable ends at both X ends), no walls.
 
     The same houses in every call (their layout has its own seed); ``rng`` draws the points.
+    ``hall``: a new flat-roofed hall 20 x 14 m, 8 m high, over the corner x > 40, y < 14 (7.8 % of
+    the area); ``trees``: a stand of conical trees 12 m high, 3 m radius, over x < 20, y > 40 (11 %).
     """
     rng = np.random.default_rng(rng)
     xy = rng.uniform(0, size, (n, 2))
@@ -26,14 +28,23 @@ def gable_scene(n, rng, *, size=60.0, noise=0.02):
             inside = (np.abs(xy[:, 0] - cx_) < 6.0) & (np.abs(xy[:, 1] - cy_) < 4.0)
             roof = 4.0 + 0.7 * (4.0 - np.abs(xy[:, 1] - cy_))  # eaves 4 m, ridge 6.8 m
             z = np.where(inside, np.maximum(z, roof), z)
+    if hall:
+        z = np.where((xy[:, 0] > size - 20) & (xy[:, 1] < 14), 8.0, z)
+    if trees:
+        for tx in np.arange(2.5, 20, 5.0):
+            for ty in np.arange(size - 17.5, size, 5.0):
+                cx_, cy_ = tx + layout.uniform(-1, 1), ty + layout.uniform(-1, 1)
+                r = np.hypot(xy[:, 0] - cx_, xy[:, 1] - cy_)
+                z = np.maximum(z, np.where(r < 3.0, 12.0 * (1 - r / 3.0) + 2.0, 0.0))
     return np.column_stack([xy, z + rng.normal(0, noise, n)])
 
 
-def test_gable_roofs_give_the_along_ridge_shift_with_an_honest_std():
+@pytest.mark.parametrize("robust", [False, True])
+def test_gable_roofs_give_the_along_ridge_shift_with_an_honest_std(robust):
     est, std = [], []
     for i in range(40):  # independent samplings of both epochs
         rng = np.random.default_rng(100 + i)
-        hm = height_model_shift(gable_scene(8000, rng) - SHIFT, gable_scene(8000, rng))
+        hm = height_model_shift(gable_scene(8000, rng) - SHIFT, gable_scene(8000, rng), robust=robust)
         assert hm.converged and hm.determined.all(), hm.message
         est.append(hm.translation)
         std.append(hm.translation_std)
@@ -43,6 +54,20 @@ def test_gable_roofs_give_the_along_ridge_shift_with_an_honest_std():
     assert np.all(np.abs(est.mean(axis=0) - SHIFT) < 3 * spread / np.sqrt(len(est)) + 0.002)  # no bias
     assert stated[0] < 0.1  # X, along the ridges: from the gable ends
     assert np.all((spread / stated > 0.8) & (spread / stated < 1.25)), spread / stated
+
+
+def test_a_changed_fifth_of_the_scene_is_rejected_and_the_shift_stays_within_its_std():
+    """A new hall in the target, a stand of trees cut since the source: 19 % of the area changed."""
+    for i in range(4):
+        rng = np.random.default_rng(200 + i)
+        src, tgt = gable_scene(8000, rng, trees=True) - SHIFT, gable_scene(8000, rng, hall=True)
+        hm = height_model_shift(src, tgt, robust=True)
+        assert hm.converged and hm.determined.all(), hm.message
+        assert np.all(np.abs(hm.translation - SHIFT) <= 3 * hm.translation_std), (hm.translation, hm.translation_std)
+        assert hm.n_rejected > 0.08 * hm.n_cells  # the hall and the trees, not the edges alone
+        assert "cells rejected" in hm.summary()
+    plain = height_model_shift(src, tgt, robust=False)  # every cell weight 1: the change pulls the shift
+    assert np.abs(plain.translation - SHIFT).max() > 0.1 or not plain.determined.all()
 
 
 def test_a_flat_floor_leaves_the_horizontal_undetermined():

@@ -124,3 +124,15 @@ def test_a_scale_parameter_enters_the_lod_term_as_monte_carlo_says(tmp_path):
     moved = (1 + d[:, 3, None, None]) * (pts - o)[None] + o + d[:, None, :3]  # p' = (1 + s)(p - o) + o + t
     spread = np.std(np.einsum("kij,ij->ki", moved - pts, nrm), axis=0, ddof=1)
     assert np.all((spread / stated > 0.95) & (spread / stated < 1.05)), (spread, stated)
+
+
+def test_icp_carries_the_inputs_crs_into_its_result_and_the_file(tmp_path):
+    from labkit import PointCloud
+    from labkit.registration import icp
+    from labkit.synthetic import wavy_pair
+
+    src, tgt = wavy_pair(300, noise=0.001, shift=[-0.02, 0.01, -0.03])
+    res = icp(PointCloud(src, crs="EPSG:25832"), PointCloud(tgt, crs="EPSG:25832"), dof="translation")
+    assert res.crs == "EPSG:25832" and "25832" in res.summary()
+    assert load_registration(save_registration(tmp_path / "r.json", res)).crs == "EPSG:25832"
+    assert icp(src, tgt, dof="translation").crs is None  # arrays state no CRS

@@ -57,7 +57,7 @@ def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, xy, N_eps, o
     n_cells, m = len(G), len(g)
     if n_cells < 2 * g.shape[1]:
         return cov  # too few cells for a sandwich: NaN, the caller falls back to the formal one
-    M = G.T @ G * n_cells / (n_cells - 1)  # small-sample factor of the cluster sandwich
+    M = np.einsum("ci,cj->ij", G, G) * n_cells / (n_cells - 1)  # small-sample factor of the cluster sandwich
     e = centred / np.maximum(np.linalg.norm(centred, axis=1, keepdims=True), 1e-300)
     Ae = np.einsum("mru,mr->mu", A, e)  # A^T e per row
     AA = np.einsum("mru,mrv->muv", A, A)

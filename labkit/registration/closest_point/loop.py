@@ -27,7 +27,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ...core.checks import as_points, choice, count, non_negative, positive
-from ...core.crs import check_same_crs
+from ...core.crs import check_same_crs, crs_of
 from ...core.frame import local_origin
 from ...core.report import ReportMixin, fmt
 from ...core.errors import LabkitError
@@ -137,7 +137,7 @@ def icp(
     reach=None,
     select="auto",
     height_model=True,
-    rng=None,
+    rng=0,
     progress=False,
 ) -> RegistrationResult:
     """Register ``source`` onto ``target`` by ICP (seed: ``ICP``).
@@ -214,8 +214,9 @@ def icp(
         (:func:`labkit.registration.closest_point.pyramid.retry_with_pyramid`).
     reach : float, optional
         Largest expected shift (m) for the pyramid; default ``max_distance``.
-    rng : int or Generator, optional
-        For the sampling.
+    rng : int, Generator or None
+        For the sampling (only a source of more than 300,000 points, or an explicit ``sample``, is
+        sampled). Default 0: the same input gives the same result in every run; None draws a fresh seed.
     progress : bool, "bar", "lines" or callable
         One step per iteration with the current shift and number of pairs (:mod:`labkit.core.progress`).
 
@@ -351,7 +352,8 @@ def icp(
             break
     steps.close(history)
     # 4. final report from the last adjustment
-    return icp_result(R, t, origin, adj, history, converged, matcher, opts, time.perf_counter() - t_start)
+    res = icp_result(R, t, origin, adj, history, converged, matcher, opts, time.perf_counter() - t_start)
+    return replace(res, crs=crs_of(source) or crs_of(target))  # the other routes return this one's result
 
 
 def _with_selection(source, target, options, settings):
