@@ -10,7 +10,7 @@ from scipy.optimize import brentq
 
 from ..sphere.ghm import adjust_sphere, check_sigma
 from ..core.errors import LabkitError
-from ._ball import band_median, in_shell, near_shell, residuals
+from ._ball import band_median, gather, in_shell, near_shell, residuals
 from .config import BAND_K, SNOOP_ROUNDS, START_STEPS, S
 from .hypotheses import orthogonal_fit, shell_mask
 
@@ -66,8 +66,8 @@ def refit_sphere(xyz, x0, cfg, X=None, shift=None, reader=None):
             if np.count_nonzero(local) == len(idx):  # every inlier is a near point: sum over them in place
                 x_start = _start(near[3], x_start - shift, mask=local) + shift
             else:
-                x_start = _start(np.ascontiguousarray(np.take(X, idx, axis=0).T), x_start - shift) + shift
-        return adjust_sphere(np.take(xyz, idx, axis=0), x0=x_start, sigma=sig, radius=cfg.hold_radius,
+                x_start = _start(gather(X, idx, by_axis=True), x_start - shift) + shift
+        return adjust_sphere(gather(xyz, idx) if xyz.flags.c_contiguous else np.take(xyz, idx, axis=0), x0=x_start, sigma=sig, radius=cfg.hold_radius,
                              alpha_w=cfg.alpha)
 
     # Robust band and sphere at their fixed point (eqs. 25-26 with t -> k sigma_hat); with a

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._ball import ball_counts, ball_counts_t, ball_indices, near_shell, plane_counts, shell_points
+from ._ball import ball_counts, ball_counts_t, ball_indices, gather, near_shell, plane_counts, shell_points
 from .config import (
     BACKFACE_SHARE, BAND_K, COARSE_CLEAR, COARSE_POINTS, CONTRAST, INTERIOR_SHARE, MIN_LEVELS, MIN_SPREAD, PLANE_RATIO,
     SHADOW_SHARE, SHAPE_POINTS, TWO_PLANES_POINTS, TWO_PLANES_SHARE, VERIFY_MAX, S,
@@ -39,7 +39,7 @@ class Verifier:
 
     def _by_axis(self, idx):
         """The points X[idx] stored by axis (3, k), for the compiled sums."""
-        return np.ascontiguousarray(np.take(self.X, idx, axis=0).T)
+        return gather(self.X, idx, by_axis=True)
 
     def ball(self, c, R):
         """Indices of the points within distance R of c (one pass over the cloud, no tree)."""
@@ -196,7 +196,7 @@ class Verifier:
             return (f"too many points just outside the shell ({outside}, for {n_in} on it): no spherical surface "
                     "stands out, the points only pass through the shell (a cylinder, plane pieces, clutter)")
         sel = _even(np.flatnonzero(on), SHAPE_POINTS)  # the shape statistics (shares, rms, spreads)
-        P = np.take(self.X, idx[sel], axis=0)
+        P = gather(self.X, idx[sel])
         q = P - _column_mean(P)
         rms_plane = np.sqrt(max(np.linalg.eigvalsh(q.T @ q / len(q))[0], 0.0))
         rms_sphere = np.sqrt(np.mean(d[sel] ** 2))
