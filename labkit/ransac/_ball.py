@@ -101,21 +101,21 @@ def _shell(x, y, z, c, r, reach, close):  # pragma: no cover - compiled
     R2 = (r + reach) * (r + reach)
     n = x.shape[0]
     q = np.empty(n)
-    for i in range(n):  # squared distances first: a loop without stores that depend on the data
-        dx, dy, dz = x[i] - c[0], y[i] - c[1], z[i] - c[2]
+    e = np.empty(n)
+    c0, c1, c2 = c[0], c[1], c[2]
+    for i in range(n):  # squared distances, then residuals: loops without branches (SIMD, exact arithmetic)
+        dx, dy, dz = x[i] - c0, y[i] - c1, z[i] - c2
         q[i] = dx * dx + dy * dy + dz * dz
+    for i in range(n):
+        e[i] = np.sqrt(q[i]) - r
     idx = np.empty(n, dtype=np.int64)
+    d = np.empty(n)
     k = 0
-    for i in range(n):  # compaction without a branch: write always, advance when inside
-        idx[k] = i
-        k += q[i] <= R2
-    d = np.empty(k)
-    m = 0
-    for j in range(k):
-        dj = np.sqrt(q[idx[j]]) - r
-        idx[m], d[m] = idx[j], dj
-        m += (not close) or abs(dj) < reach
-    return idx[:m].copy(), d[:m].copy()
+    for i in range(n):  # compaction (most points of a kept ball are inside: the branch predicts well)
+        if q[i] <= R2 and ((not close) or abs(e[i]) < reach):
+            idx[k], d[k] = i, e[i]
+            k += 1
+    return idx[:k].copy(), d[:k].copy()
 
 
 def near_shell(X, c, r, reach, by_axis=False):

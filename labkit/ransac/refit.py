@@ -67,8 +67,8 @@ def refit_sphere(xyz, x0, cfg, X=None, shift=None, reader=None):
                 x_start = _start(near[3], x_start - shift, mask=local) + shift
             else:
                 x_start = _start(gather(X, idx, by_axis=True), x_start - shift) + shift
-        return adjust_sphere(gather(xyz, idx) if xyz.flags.c_contiguous else np.take(xyz, idx, axis=0), x0=x_start, sigma=sig, radius=cfg.hold_radius,
-                             alpha_w=cfg.alpha)
+        pts = gather(xyz, idx) if xyz.flags.c_contiguous else np.take(xyz, idx, axis=0)
+        return adjust_sphere(pts, x0=x_start, sigma=sig, radius=cfg.hold_radius, alpha_w=cfg.alpha)
 
     # Robust band and sphere at their fixed point (eqs. 25-26 with t -> k sigma_hat); with a
     # per-point sigma the band is k sigma_i for each point
