@@ -15,12 +15,16 @@ import numpy as np
 
 from ..sphere.sweeps import SIMD, lazy_kernel
 
+_KERNELS = {}  # (kernel, simd) -> lazy_kernel's answer
 
 
 def _jit(kernel, simd=False):
     """The compiled kernel (numba loads on its first call), or None without numba; ``simd``: loops over
     points in SIMD registers (:data:`labkit.sphere.sweeps.SIMD`)."""
-    return lazy_kernel(kernel, **(SIMD if simd else {}))
+    key = (kernel, simd)
+    if key not in _KERNELS:  # (looked up once: lazy_kernel's key costs a few microseconds per call)
+        _KERNELS[key] = lazy_kernel(kernel, **(SIMD if simd else {}))
+    return _KERNELS[key]
 
 
 def _inside(x, y, z, c, R):  # pragma: no cover - compiled
@@ -151,6 +155,32 @@ def gather(X, idx, by_axis=False):
         P = np.take(X, idx, axis=0)
         return np.ascontiguousarray(P.T) if by_axis else P
     return kernel(X, idx, bool(by_axis))
+
+
+def _tally(d, t, margin):  # pragma: no cover - compiled
+    n = d.shape[0]
+    on = np.empty(n, dtype=np.int64)
+    k = inside = outside = 0
+    t3 = 3.0 * t
+    for i in range(n):  # compaction without a branch: write always, advance when on the shell
+        a = d[i]
+        on[k] = i
+        k += abs(a) < t
+        inside += a < -margin
+        outside += (a >= t) & (a < t3)
+    return on[:k].copy(), inside, outside
+
+
+def shell_tally(d, t, margin=np.inf):
+    """For residuals d: the indices with |d| < t (ascending), the number with d < -margin (inside) and
+    with t <= d < 3 t (just outside the shell), in one compiled pass."""
+    d = np.ascontiguousarray(d, dtype=np.float64)
+    kernel = _jit(_tally)
+    if kernel is None:  # pragma: no cover
+        return (np.flatnonzero(np.abs(d) < t), int(np.count_nonzero(d < -margin)),
+                int(np.count_nonzero((d >= t) & (d < 3.0 * t))))
+    on, inside, outside = kernel(d, float(t), float(margin))
+    return on, int(inside), int(outside)
 
 
 def _residuals(x, y, z, c, r):  # pragma: no cover - compiled

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._ball import ball_counts, ball_counts_t, ball_indices, gather, near_shell, plane_counts, shell_points
+from ._ball import ball_counts, ball_counts_t, ball_indices, gather, near_shell, plane_counts, shell_points, shell_tally
 from .config import (
     BACKFACE_SHARE, BAND_K, COARSE_CLEAR, COARSE_POINTS, CONTRAST, INTERIOR_SHARE, MIN_LEVELS, MIN_SPREAD, PLANE_RATIO,
     SHADOW_SHARE, SHAPE_POINTS, TWO_PLANES_POINTS, TWO_PLANES_SHARE, VERIFY_MAX, S,
@@ -154,7 +154,7 @@ class Verifier:
         band = t
         idx, d = self._local(x, band)
         for _ in range(3):
-            on = np.flatnonzero(np.abs(d) < band)
+            on = shell_tally(d, band)[0]
             if len(on) <= S:
                 return None
             x_new = orthogonal_fit(self._by_axis(idx[_even(on, SHAPE_POINTS)]), x, steps=2, by_axis=True)
@@ -164,7 +164,7 @@ class Verifier:
             if not 0.5 * self.cfg.r_min <= x[3] <= 2.0 * self.cfg.r_max:
                 return x  # far outside the radius range: more rounds will not bring it back (reasons() rejects)
             idx, d = self._local(x, 3.0 * t)  # holds every band of the next round too (band <= 3 t)
-            d_in = d[_even(np.flatnonzero(np.abs(d) < band), SHAPE_POINTS)]
+            d_in = d[_even(shell_tally(d, band)[0], SHAPE_POINTS)]
             if len(d_in) > S:
                 band = max(t, min(BAND_K * truncated_mad_scale(np.abs(d_in), band), 3.0 * t))
         return x
@@ -176,26 +176,24 @@ class Verifier:
         if not cfg.r_min <= r <= cfg.r_max:
             return f"the adjusted radius {r:.5g} m lies outside [{cfg.r_min:.5g}, {cfg.r_max:.5g}] m"
         idx, d = self._local(x, 3.0 * max(t, 2.0 * BAND_K * t))
-        on = np.abs(d) < t
-        n_in = int(np.count_nonzero(on))
+        on = shell_tally(d, t)[0]  # the points with |d| < t
+        n_in = len(on)
         if n_in < cfg.min_inliers:
             return f"only {n_in} points on its shell |d| < {t:.3g} m in the full cloud (< min_inliers = {cfg.min_inliers})"
         # robust, and consistent for the cut at t (a scale for the checks: an even subsample of the shell)
-        sigma_hat = truncated_mad_scale(np.abs(d[_even(np.flatnonzero(on), SHAPE_POINTS)]), t)
+        sigma_hat = truncated_mad_scale(np.abs(d[_even(on, SHAPE_POINTS)]), t)
         margin = max(t, 3.5 * sigma_hat)
         # the shell: at least the noise band k sigma_hat (a t below the noise must not thin it out)
         t = max(t, min(BAND_K * sigma_hat, 2.0 * t))
-        on = np.abs(d) < t
-        n_in = int(np.count_nonzero(on))
-        inside = int(np.count_nonzero(d < -margin))
+        on, inside, outside = shell_tally(d, t, margin)  # on the shell, inside (d < -margin), just outside
+        n_in = len(on)
         if inside > INTERIOR_SHARE * n_in:
             return (f"{inside} points lie inside it (for {n_in} on its shell): a solid sphere hides its interior, "
                     "so this is a cut through other surfaces or a volume of points, not a sphere")
-        outside = int(np.count_nonzero((d >= t) & (d < 3.0 * t)))
         if n_in < CONTRAST * outside:
             return (f"too many points just outside the shell ({outside}, for {n_in} on it): no spherical surface "
                     "stands out, the points only pass through the shell (a cylinder, plane pieces, clutter)")
-        sel = _even(np.flatnonzero(on), SHAPE_POINTS)  # the shape statistics (shares, rms, spreads)
+        sel = _even(on, SHAPE_POINTS)  # the shape statistics (shares, rms, spreads)
         P = gather(self.X, idx[sel])
         q = P - _column_mean(P)
         rms_plane = np.sqrt(max(np.linalg.eigvalsh(q.T @ q / len(q))[0], 0.0))

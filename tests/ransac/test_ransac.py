@@ -466,6 +466,32 @@ def test_compiled_ball_kernels_equal_numpy():
     np.testing.assert_allclose(dd, d[idx], rtol=0, atol=1e-15)
 
 
+def test_gather_shell_points_and_tally_equal_numpy_exactly():
+    """The compiled gather, shell points (both layouts, with and without ``close``) and shell tally give
+    exactly numpy's points, indices, residuals and counts."""
+    from labkit.ransac._ball import gather, shell_points, shell_tally
+
+    rng = np.random.default_rng(11)
+    X = rng.normal(size=(30_000, 3))
+    idx = np.sort(rng.choice(len(X), 9_000, replace=False))
+    np.testing.assert_array_equal(gather(X, idx), np.take(X, idx, axis=0))
+    np.testing.assert_array_equal(gather(X, idx, by_axis=True), np.take(X, idx, axis=0).T)
+    c, r, reach = np.array([0.1, -0.2, 0.05]), 1.3, 0.2
+    diff = X - c
+    q = diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1] + diff[:, 2] * diff[:, 2]  # the kernel's order
+    d = np.sqrt(q) - r
+    for close in (False, True):
+        keep = (q <= (r + reach) ** 2) & ((np.abs(d) < reach) if close else True)
+        for P, by_axis in ((X, False), (np.ascontiguousarray(X.T), True)):
+            i, dd = shell_points(P, c, r, reach, close=close, by_axis=by_axis)
+            np.testing.assert_array_equal(i, np.flatnonzero(keep))
+            np.testing.assert_array_equal(dd, d[keep])
+    on, inside, outside = shell_tally(d, 0.05, 0.3)
+    np.testing.assert_array_equal(on, np.flatnonzero(np.abs(d) < 0.05))
+    assert inside == np.count_nonzero(d < -0.3) > 0
+    assert outside == np.count_nonzero((d >= 0.05) & (d < 0.15)) > 0
+
+
 def test_verifier_answers_nested_balls_like_a_full_pass():
     """A ball inside the one the verifier kept is answered from it: the same points, order and residuals
     as a pass over the whole cloud."""
