@@ -367,3 +367,47 @@ def plane_counts(Q, nrm, off, t):
         return (np.abs(Q @ nrm.T - off[None, :]) < t).sum(axis=0)
     T = np.ascontiguousarray(Q.T)  # by axis: contiguous columns
     return kernel(T[0], T[1], T[2], np.ascontiguousarray(nrm), np.ascontiguousarray(off), float(t))
+
+
+def _best_plane(x, y, z, tri, t):  # pragma: no cover - compiled
+    """The plane through the point triple tri[b] with the most points within t: (b or -1, normal, offset)."""
+    best, best_count = -1, -1
+    nb = np.zeros(3)
+    ob = 0.0
+    for b in range(tri.shape[0]):
+        i, j, k = tri[b, 0], tri[b, 1], tri[b, 2]
+        u0, u1, u2 = x[j] - x[i], y[j] - y[i], z[j] - z[i]
+        v0, v1, v2 = x[k] - x[i], y[k] - y[i], z[k] - z[i]
+        n0, n1, n2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0  # as numpy's cross
+        norm = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        if not norm > 1e-12:
+            continue
+        n0, n1, n2 = n0 / norm, n1 / norm, n2 / norm
+        o = (x[i] * n0 + z[i] * n2) + y[i] * n1  # numpy's einsum order for three terms
+        count = 0
+        for m in range(x.shape[0]):  # no branch: the compiler vectorizes the count
+            count += abs(x[m] * n0 + y[m] * n1 + z[m] * n2 - o) < t
+        if count > best_count:  # the first of equal counts, as argmax
+            best, best_count = b, count
+            nb[0], nb[1], nb[2], ob = n0, n1, n2, o
+    return best, nb, ob
+
+
+def best_plane(Q, tri, t):
+    """Of the planes through the point triples Q[tri[b]] (Q (m, 3), tri (B, 3)): the unit normal and offset
+    (n . x = offset) of the one with the most points of Q within t (the first of equal counts), or None
+    when every triple is degenerate; one compiled pass per plane, numpy's arithmetic."""
+    kernel = _jit(_best_plane)
+    if kernel is None:  # pragma: no cover
+        nrm = np.cross(Q[tri[:, 1]] - Q[tri[:, 0]], Q[tri[:, 2]] - Q[tri[:, 0]])
+        norm = np.linalg.norm(nrm, axis=1)
+        ok = norm > 1e-12
+        if not ok.any():
+            return None
+        nrm = nrm[ok] / norm[ok, None]
+        off = np.einsum("bk,bk->b", Q[tri[ok, 0]], nrm)
+        best = int(np.argmax(plane_counts(Q, nrm, off, t)))
+        return nrm[best], float(off[best])
+    T = np.ascontiguousarray(Q.T)
+    b, nrm, off = kernel(T[0], T[1], T[2], np.ascontiguousarray(tri, dtype=np.int64), float(t))
+    return None if b < 0 else (nrm, float(off))

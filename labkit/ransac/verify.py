@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._ball import ball_counts, ball_counts_t, ball_indices, gather, near_shell, plane_counts, shell_points, shell_tally
+from ._ball import ball_counts, ball_counts_t, ball_indices, best_plane, gather, near_shell, shell_points, shell_tally
 from .config import (
     BACKFACE_SHARE, BAND_K, COARSE_CLEAR, COARSE_POINTS, CONTRAST, INTERIOR_SHARE, MIN_LEVELS, MIN_SPREAD, PLANE_RATIO,
     SHADOW_SHARE, SHAPE_POINTS, TWO_PLANES_POINTS, TWO_PLANES_SHARE, VERIFY_MAX, S,
@@ -289,16 +289,10 @@ def _two_plane_share(P, t, trials=256):
         if len(Q) < 3:
             held += len(Q)
             break
-        tri = Q[gen.integers(0, len(Q), size=(trials, 3))]
-        nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        norm = np.linalg.norm(nrm, axis=1)
-        ok = norm > 1e-12
-        if not ok.any():
+        plane = best_plane(Q, gen.integers(0, len(Q), size=(trials, 3)), t)  # the most points within t
+        if plane is None:
             break
-        nrm = nrm[ok] / norm[ok, None]
-        off = np.einsum("bk,bk->b", tri[ok][:, 0], nrm)
-        best = int(np.argmax(plane_counts(Q, nrm, off, t)))  # points within t of each plane (a compiled pass)
-        on = np.abs(Q @ nrm[best] - off[best]) < t
+        on = np.abs(Q @ plane[0] - plane[1]) < t
         idx = np.flatnonzero(left)
         left[idx[on]] = False
         held += int(np.count_nonzero(on))

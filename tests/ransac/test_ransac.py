@@ -492,6 +492,31 @@ def test_gather_shell_points_and_tally_equal_numpy_exactly():
     assert outside == np.count_nonzero((d >= 0.05) & (d < 0.15)) > 0
 
 
+def test_best_plane_equals_the_numpy_route(monkeypatch):
+    """The compiled search for the plane with the most points (the verifier's two-plane test) picks the
+    same plane, normal and offset as numpy's cross products, norms and counts; so does the share."""
+    from labkit.ransac import _ball
+    from labkit.ransac.verify import _two_plane_share
+
+    rng = np.random.default_rng(12)
+    cases = []
+    for k in range(40):
+        u = rng.normal(size=(int(rng.integers(20, 1500)), 3))
+        u /= np.linalg.norm(u, axis=1)[:, None]
+        P = rng.uniform(0.05, 1.0) * u + rng.normal(scale=2e-3, size=u.shape) + rng.normal(size=3)
+        if k % 2:  # a floor and a wall: most points on two planes
+            P[: len(P) // 2, 2] = 0.3 + rng.normal(scale=1e-3, size=len(P) // 2)
+            P[len(P) // 2:, 0] = -0.2 + rng.normal(scale=1e-3, size=len(P) - len(P) // 2)
+        cases.append((P, rng.integers(0, len(P), size=(256, 3)), float(rng.uniform(1e-3, 1e-2))))
+    fast = [(_ball.best_plane(P, tri, t), _two_plane_share(P, t)) for P, tri, t in cases]
+    monkeypatch.setattr(_ball, "_jit", lambda kernel, simd=False: None)
+    slow = [(_ball.best_plane(P, tri, t), _two_plane_share(P, t)) for P, tri, t in cases]
+    for (pf, sf), (ps, ss) in zip(fast, slow):
+        np.testing.assert_array_equal(pf[0], ps[0])
+        assert pf[1] == ps[1] and sf == ss
+    assert max(s for _, s in fast) > 0.9 > min(s for _, s in fast)
+
+
 def test_verifier_answers_nested_balls_like_a_full_pass():
     """A ball inside the one the verifier kept is answered from it: the same points, order and residuals
     as a pass over the whole cloud."""
