@@ -122,6 +122,28 @@ def _shell(x, y, z, c, r, reach, close):  # pragma: no cover - compiled
     return idx[:k].copy(), d[:k].copy()
 
 
+def _shell_sparse(x, y, z, c, r, reach, close):  # pragma: no cover - compiled
+    """:func:`_shell` for points mostly outside the ball: square roots only for those inside."""
+    R2 = (r + reach) * (r + reach)
+    n = x.shape[0]
+    q = np.empty(n)
+    for i in range(n):  # squared distances first: a loop without stores that depend on the data
+        dx, dy, dz = x[i] - c[0], y[i] - c[1], z[i] - c[2]
+        q[i] = dx * dx + dy * dy + dz * dz
+    idx = np.empty(n, dtype=np.int64)
+    k = 0
+    for i in range(n):  # compaction without a branch: write always, advance when inside
+        idx[k] = i
+        k += q[i] <= R2
+    d = np.empty(k)
+    m = 0
+    for j in range(k):
+        dj = np.sqrt(q[idx[j]]) - r
+        idx[m], d[m] = idx[j], dj
+        m += (not close) or abs(dj) < reach
+    return idx[:m].copy(), d[:m].copy()
+
+
 def near_shell(X, c, r, reach, by_axis=False):
     """Indices (ascending), residuals d = |x - c| - r (eq. 25) and coordinates by axis (3, k) of the points
     of X (n, 3), or (3, n) ``by_axis``, with |d| < reach; one compiled pass and a gather."""
@@ -260,6 +282,8 @@ def shell_points(X, c, r, reach, close=False, by_axis=False):
         d = np.sqrt(np.einsum("ij,ij->i", diff, diff)) - r
         keep = np.abs(d) < reach if close else slice(None)
         return idx[keep], d[keep]
+    if not by_axis:  # a whole cloud by point: most points lie outside the ball
+        kernel = _jit(_shell_sparse)
     return kernel(*_columns(X, by_axis), c, float(r), float(reach), bool(close))
 
 
