@@ -323,22 +323,26 @@ def _band_median(d, band, nb):  # pragma: no cover - compiled
     if n == 0:
         return np.nan, 0
     lo_rank, hi_rank = (n - 1) // 2, n // 2  # the middle order statistics (equal for odd n)
-    out = np.empty(2)
-    for j, rank in enumerate((lo_rank, hi_rank)):
-        below, b = 0, 0
-        while below + counts[b] <= rank:
-            below += counts[b]
-            b += 1
-        vals = np.empty(counts[b])
-        k = 0
-        for i in range(d.shape[0]):
-            a = abs(d[i])
-            if a < band and min(int(a * scale), nb) == b:
+    below, b_lo = 0, 0
+    while below + counts[b_lo] <= lo_rank:
+        below += counts[b_lo]
+        b_lo += 1
+    b_hi, upto = b_lo, below + counts[b_lo]
+    while upto <= hi_rank:
+        b_hi += 1
+        upto += counts[b_hi]
+    vals = np.empty(upto - below)  # the values of the middle bucket(s), gathered in one more pass
+    k = 0
+    for i in range(d.shape[0]):
+        a = abs(d[i])
+        if a < band:
+            bucket = min(int(a * scale), nb)
+            if b_lo <= bucket <= b_hi:
                 vals[k] = a
                 k += 1
-        vals.sort()
-        out[j] = vals[rank - below]
-    return (out[0] + out[1]) / 2.0 if lo_rank != hi_rank else out[0], n
+    vals.sort()
+    lo, hi = vals[lo_rank - below], vals[hi_rank - below]
+    return (lo + hi) / 2.0 if lo_rank != hi_rank else lo, n
 
 
 def band_median(d, band, buckets=1024):
