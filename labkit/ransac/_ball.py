@@ -78,14 +78,15 @@ def ball_counts_t(T, c, radii):
     return kernel(T, c, radii * radii)
 
 
-def ball_indices(X, c, R):
-    """Indices (ascending) of the points of X (n, 3), C-contiguous float64, within distance R of c."""
+def ball_indices(X, c, R, by_axis=False):
+    """Indices (ascending) of the points of X (n, 3), or (3, n) ``by_axis``, C-contiguous float64, within
+    distance R of c."""
     c = np.asarray(c, dtype=np.float64)
     kernel = _jit(_inside)
     if kernel is None:  # pragma: no cover
-        d = X - c
+        d = (X.T if by_axis else X) - c
         return np.flatnonzero(np.einsum("ij,ij->i", d, d) <= R * R)
-    return kernel(*_columns(X, False), c, float(R))
+    return kernel(*_columns(X, by_axis), c, float(R))
 
 
 def ball_counts(X, c, radii):

@@ -130,7 +130,8 @@ class Verifier:
                 i, d = shell_points(B0, c, r, reach, by_axis=True)
                 return np.take(idx0, i), d
         R0 = r + max(reach, 2.0 * BAND_K * self.cfg.threshold * 3.0) + max(2.0 * self.cfg.threshold, 0.05 * r)
-        idx0 = ball_indices(self.X, c, R0)
+        # (a small cloud is also stored by axis for the coarse test: contiguous columns read faster)
+        idx0 = ball_indices(self._sub, c, R0, by_axis=True) if self._sub_all else ball_indices(self.X, c, R0)
         self._ball = (c.copy(), R0, idx0, self._by_axis(idx0))
         i, d = shell_points(self._ball[3], c, r, reach, by_axis=True)
         return np.take(idx0, i), d
