@@ -166,6 +166,7 @@ def real_table(args):
         "pyransac3d": lambda pts, rr: run_pyransac3d(pts, 0, None, threshold=0.02, cap=args.peer_trials)[0],
         "skimage": lambda pts, rr: run_skimage(pts, 0, threshold=0.02, max_trials=args.peer_trials)[0],
     }
+    methods = {name: fn for name, fn in methods.items() if name == "labkit" or name in args.methods}
     print(f"\n# 16-beam scans: real (data/real/spheres) and synthetic rooms; t = 20 mm; "
           f"peers {args.peer_trials} hypotheses; load average {os.getloadavg()[0]:.1f}\n")
     print("| scan | points | method | found right | time (s) | centre err (mm) | radius err (mm) | peer time / labkit |")
