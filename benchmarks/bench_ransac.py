@@ -25,14 +25,15 @@ with ``radius_range=(0.2, 0.4)`` (rooms: (0.1, 0.4)) and the scanner at the orig
 peers get ``--peer-trials`` hypotheses (they have no radius prior or local sampling: eq. 27
 for a 2 % target asks for ~6e7 samples).
 
-Measured side by side (2026-12-02, 2 shared cores, load average 9-11, so wall times are pessimistic
-and the CPU times tell the work), ``--speed-only --speed-cells 1e5:0.5 1e6:0.8 --methods labkit
-pyransac3d``: 1e5 points at 50 % outliers labkit 0.068 s (CPU 0.018 s) against pyransac3d 0.804 s
-(CPU 0.234 s), 11.8x (13x in CPU; the sums over points in SIMD loops, the Gauss-Helmert sweeps
-compiled: labkit's CPU time fell from about 29 ms to 17-18 ms); 1e6 points at 80 % outliers labkit
-0.40 s (CPU 0.12 s); pyransac3d 323 s (CPU 86 s, one run) beside labkit 0.41 s in a run a little earlier.
-``--real-only`` in the same session (load 11): labkit right on 14 of 14 scans (4 real, 10 rooms) in 6.3 s
-in all; pyransac3d and scikit-image with 5000 hypotheses right on none (149 s and 261 s).
+Measured side by side (2026-12-02, 2 shared cores; the wall times are pessimistic under load, the
+CPU times tell the work), ``--speed-only --speed-cells 1e4:0.5 1e5:0.5 --methods labkit pyransac3d
+skimage`` at load 4.8-4.9: 1e4 points at 50 % outliers labkit 0.018 s (CPU 0.012 s), pyransac3d
+0.033 s (CPU 0.025 s, 1.8x), scikit-image 0.049 s (CPU 0.044 s, 2.7x); 1e5 points at 50 % outliers
+labkit 0.019 s (CPU 0.019 s), pyransac3d 0.312 s (CPU 0.215 s), 16.6x in wall time (11x in CPU),
+scikit-image 0.922 s (CPU 0.620 s, 49x). 1e6 points at 80 % outliers: labkit 0.17 s (CPU 0.12 s, load 4.9); pyransac3d took 323 s (CPU 86 s, one run) beside
+labkit 0.41 s in an earlier run. ``--real-only --methods labkit`` (load 7.5): labkit right on 14 of
+14 scans (4 real, 10 rooms) in 5.2 s in all; pyransac3d and scikit-image with 5000 hypotheses were
+right on none in an earlier run (149 s and 261 s).
 
 The peers score every hypothesis on all n points in a Python loop, so they are
 run on the first seeds only until a time budget per cell is used up (at least
