@@ -185,7 +185,10 @@ def truncated_mad_scale(abs_d, band):
     median of b/2 or more means no peak inside the band (flat): returns 2 b / k,
     which doubles the band.
     """
-    return scale_from_median(float(np.median(abs_d)), band)
+    median, count = band_median(abs_d, band)  # exact, without a partition of a copy
+    if count != len(abs_d):  # (values at or beyond the band: numpy's median of all of them)
+        median = float(np.median(abs_d))
+    return scale_from_median(median, band)
 
 
 def scale_from_median(m, band):
