@@ -517,6 +517,20 @@ def test_best_plane_equals_the_numpy_route(monkeypatch):
     assert max(s for _, s in fast) > 0.9 > min(s for _, s in fast)
 
 
+def test_truncated_mad_scale_uses_numpys_median_exactly():
+    """The scale from the compiled band median equals the one from numpy's median, inside the band and
+    with values beyond it."""
+    from labkit.ransac.refit import scale_from_median, truncated_mad_scale
+
+    rng = np.random.default_rng(13)
+    for n in (1, 2, 7, 8, 1000, 8192):
+        a = np.abs(rng.normal(scale=1e-3, size=n))
+        band = 3e-3
+        inside = a[a < band]
+        assert truncated_mad_scale(inside, band) == scale_from_median(float(np.median(inside)), band)
+        assert truncated_mad_scale(a, band) == scale_from_median(float(np.median(a)), band)
+
+
 def test_verifier_answers_nested_balls_like_a_full_pass():
     """A ball inside the one the verifier kept is answered from it: the same points, order and residuals
     as a pass over the whole cloud."""
