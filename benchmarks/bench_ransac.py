@@ -27,13 +27,15 @@ for a 2 % target asks for ~6e7 samples).
 
 Measured side by side (2026-12-02, 2 shared cores; the wall times are pessimistic under load, the
 CPU times tell the work), ``--speed-only --speed-cells 1e4:0.5 1e5:0.5 --methods labkit pyransac3d
-skimage`` at load 4.8-4.9: 1e4 points at 50 % outliers labkit 0.018 s (CPU 0.012 s), pyransac3d
-0.033 s (CPU 0.025 s, 1.8x), scikit-image 0.049 s (CPU 0.044 s, 2.7x); 1e5 points at 50 % outliers
-labkit 0.019 s (CPU 0.019 s), pyransac3d 0.312 s (CPU 0.215 s), 16.6x in wall time (11x in CPU),
-scikit-image 0.922 s (CPU 0.620 s, 49x). 1e6 points at 80 % outliers: labkit 0.17 s (CPU 0.12 s, load 4.9); pyransac3d took 323 s (CPU 86 s, one run) beside
-labkit 0.41 s in an earlier run. ``--real-only --methods labkit`` (load 7.5): labkit right on 14 of
-14 scans (4 real, 10 rooms) in 5.2 s in all; pyransac3d and scikit-image with 5000 hypotheses were
-right on none in an earlier run (149 s and 261 s).
+skimage`` at load 6.8-7.1: 1e4 points at 50 % outliers labkit 0.005 s (CPU 0.005 s), pyransac3d
+0.025 s (CPU 0.023 s, 4.6x), scikit-image 0.037 s (CPU 0.036 s, 6.8x); 1e5 points at 50 % outliers
+labkit 0.013 s (CPU 0.013 s), pyransac3d 0.331 s (CPU 0.234 s), 25x in wall time (18x in CPU),
+scikit-image 1.022 s (CPU 0.670 s, 78x). The 1e5 ratio scatters with the load: two other runs of
+the same code gave 16.6x and 11.1x in wall time (11x and 14x in CPU; labkit 13-19 ms of CPU).
+1e6 points at 80 % outliers: labkit 0.19 s (CPU 0.13 s, load 6.9); pyransac3d took 323 s (CPU 86 s,
+one run) beside labkit 0.41 s in an earlier run. ``--real-only --methods labkit`` (load 7.5): labkit
+right on 14 of 14 scans (4 real, 10 rooms) in 5.2 s in all; pyransac3d and scikit-image with 5000
+hypotheses were right on none in an earlier run (149 s and 261 s).
 
 The peers score every hypothesis on all n points in a Python loop, so they are
 run on the first seeds only until a time budget per cell is used up (at least
