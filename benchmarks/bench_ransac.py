@@ -33,8 +33,8 @@ labkit 0.013 s (CPU 0.013 s), pyransac3d 0.331 s (CPU 0.234 s), 25x in wall time
 scikit-image 1.022 s (CPU 0.670 s, 78x). The 1e5 ratio scatters with the load: two other runs of
 the same code gave 16.6x and 11.1x in wall time (11x and 14x in CPU; labkit 13-19 ms of CPU).
 1e6 points at 80 % outliers: labkit 0.19 s (CPU 0.13 s, load 6.9); pyransac3d took 323 s (CPU 86 s,
-one run) beside labkit 0.41 s in an earlier run. ``--real-only --methods labkit`` (load 7.5): labkit
-right on 14 of 14 scans (4 real, 10 rooms) in 5.2 s in all; pyransac3d and scikit-image with 5000
+one run) beside labkit 0.41 s in an earlier run. ``--real-only --methods labkit`` (load 6.1): labkit
+right on 14 of 14 scans (4 real, 10 rooms) in 2.8 s in all; pyransac3d and scikit-image with 5000
 hypotheses were right on none in an earlier run (149 s and 261 s).
 
 The peers score every hypothesis on all n points in a Python loop, so they are
