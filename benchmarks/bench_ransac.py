@@ -25,14 +25,17 @@ with ``radius_range=(0.2, 0.4)`` (rooms: (0.1, 0.4)) and the scanner at the orig
 peers get ``--peer-trials`` hypotheses (they have no radius prior or local sampling: eq. 27
 for a 2 % target asks for ~6e7 samples).
 
-Measured side by side (2026-12-02, 2 shared cores, load average 9-11, so wall times are pessimistic
-and the CPU times tell the work), ``--speed-only --speed-cells 1e5:0.5 1e6:0.8 --methods labkit
-pyransac3d``: 1e5 points at 50 % outliers labkit 0.068 s (CPU 0.018 s) against pyransac3d 0.804 s
-(CPU 0.234 s), 11.8x (13x in CPU; the sums over points in SIMD loops, the Gauss-Helmert sweeps
-compiled: labkit's CPU time fell from about 29 ms to 17-18 ms); 1e6 points at 80 % outliers labkit
-0.40 s (CPU 0.12 s); pyransac3d 323 s (CPU 86 s, one run) beside labkit 0.41 s in a run a little earlier.
-``--real-only`` in the same session (load 11): labkit right on 14 of 14 scans (4 real, 10 rooms) in 6.3 s
-in all; pyransac3d and scikit-image with 5000 hypotheses right on none (149 s and 261 s).
+Measured side by side (2026-12-02, 2 shared cores; the wall times are pessimistic under load, the
+CPU times tell the work), ``--speed-only --speed-cells 1e4:0.5 1e5:0.5 --methods labkit pyransac3d
+skimage`` at load 6.8-7.1: 1e4 points at 50 % outliers labkit 0.005 s (CPU 0.005 s), pyransac3d
+0.025 s (CPU 0.023 s, 4.6x), scikit-image 0.037 s (CPU 0.036 s, 6.8x); 1e5 points at 50 % outliers
+labkit 0.013 s (CPU 0.013 s), pyransac3d 0.331 s (CPU 0.234 s), 25x in wall time (18x in CPU),
+scikit-image 1.022 s (CPU 0.670 s, 78x). The 1e5 ratio scatters with the load: two other runs of
+the same code gave 16.6x and 11.1x in wall time (11x and 14x in CPU; labkit 13-19 ms of CPU).
+1e6 points at 80 % outliers: labkit 0.19 s (CPU 0.13 s, load 6.9); pyransac3d took 323 s (CPU 86 s,
+one run) beside labkit 0.41 s in an earlier run. ``--real-only --methods labkit`` (load 6.1): labkit
+right on 14 of 14 scans (4 real, 10 rooms) in 2.8 s in all; pyransac3d and scikit-image with 5000
+hypotheses were right on none in an earlier run (149 s and 261 s).
 
 The peers score every hypothesis on all n points in a Python loop, so they are
 run on the first seeds only until a time budget per cell is used up (at least
@@ -166,6 +169,7 @@ def real_table(args):
         "pyransac3d": lambda pts, rr: run_pyransac3d(pts, 0, None, threshold=0.02, cap=args.peer_trials)[0],
         "skimage": lambda pts, rr: run_skimage(pts, 0, threshold=0.02, max_trials=args.peer_trials)[0],
     }
+    methods = {name: fn for name, fn in methods.items() if name == "labkit" or name in args.methods}
     print(f"\n# 16-beam scans: real (data/real/spheres) and synthetic rooms; t = 20 mm; "
           f"peers {args.peer_trials} hypotheses; load average {os.getloadavg()[0]:.1f}\n")
     print("| scan | points | method | found right | time (s) | centre err (mm) | radius err (mm) | peer time / labkit |")

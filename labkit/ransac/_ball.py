@@ -15,12 +15,16 @@ import numpy as np
 
 from ..sphere.sweeps import SIMD, lazy_kernel
 
+_KERNELS = {}  # (kernel, simd) -> lazy_kernel's answer
 
 
 def _jit(kernel, simd=False):
     """The compiled kernel (numba loads on its first call), or None without numba; ``simd``: loops over
     points in SIMD registers (:data:`labkit.sphere.sweeps.SIMD`)."""
-    return lazy_kernel(kernel, **(SIMD if simd else {}))
+    key = (kernel, simd)
+    if key not in _KERNELS:  # (looked up once: lazy_kernel's key costs a few microseconds per call)
+        _KERNELS[key] = lazy_kernel(kernel, **(SIMD if simd else {}))
+    return _KERNELS[key]
 
 
 def _inside(x, y, z, c, R):  # pragma: no cover - compiled
@@ -74,14 +78,15 @@ def ball_counts_t(T, c, radii):
     return kernel(T, c, radii * radii)
 
 
-def ball_indices(X, c, R):
-    """Indices (ascending) of the points of X (n, 3), C-contiguous float64, within distance R of c."""
+def ball_indices(X, c, R, by_axis=False):
+    """Indices (ascending) of the points of X (n, 3), or (3, n) ``by_axis``, C-contiguous float64, within
+    distance R of c."""
     c = np.asarray(c, dtype=np.float64)
     kernel = _jit(_inside)
     if kernel is None:  # pragma: no cover
-        d = X - c
+        d = (X.T if by_axis else X) - c
         return np.flatnonzero(np.einsum("ij,ij->i", d, d) <= R * R)
-    return kernel(*_columns(X, False), c, float(R))
+    return kernel(*_columns(X, by_axis), c, float(R))
 
 
 def ball_counts(X, c, radii):
@@ -98,6 +103,28 @@ def ball_counts(X, c, radii):
 
 def _shell(x, y, z, c, r, reach, close):  # pragma: no cover - compiled
     """Indices and d = |p - c| - r of the points within r + reach of c (``close``: and d > -reach)."""
+    R2 = (r + reach) * (r + reach)
+    n = x.shape[0]
+    q = np.empty(n)
+    e = np.empty(n)
+    c0, c1, c2 = c[0], c[1], c[2]
+    for i in range(n):  # squared distances, then residuals: loops without branches (SIMD, exact arithmetic)
+        dx, dy, dz = x[i] - c0, y[i] - c1, z[i] - c2
+        q[i] = dx * dx + dy * dy + dz * dz
+    for i in range(n):
+        e[i] = np.sqrt(q[i]) - r
+    idx = np.empty(n, dtype=np.int64)
+    d = np.empty(n)
+    k = 0
+    for i in range(n):  # compaction (most points of a kept ball are inside: the branch predicts well)
+        if q[i] <= R2 and ((not close) or abs(e[i]) < reach):
+            idx[k], d[k] = i, e[i]
+            k += 1
+    return idx[:k].copy(), d[:k].copy()
+
+
+def _shell_sparse(x, y, z, c, r, reach, close):  # pragma: no cover - compiled
+    """:func:`_shell` for points mostly outside the ball: square roots only for those inside."""
     R2 = (r + reach) * (r + reach)
     n = x.shape[0]
     q = np.empty(n)
@@ -122,10 +149,61 @@ def near_shell(X, c, r, reach, by_axis=False):
     """Indices (ascending), residuals d = |x - c| - r (eq. 25) and coordinates by axis (3, k) of the points
     of X (n, 3), or (3, n) ``by_axis``, with |d| < reach; one compiled pass and a gather."""
     idx, d = shell_points(X, c, r, reach, close=True, by_axis=by_axis)
+    if not by_axis:
+        return idx, d, gather(X, idx, by_axis=True)
     T = np.empty((3, len(idx)))
     for j, col in enumerate(_columns(X, by_axis)):
         np.take(col, idx, out=T[j])
     return idx, d, T
+
+
+def _gather(X, idx, by_axis_out):  # pragma: no cover - compiled
+    k = idx.shape[0]
+    out = np.empty((3, k)) if by_axis_out else np.empty((k, 3))
+    for j in range(k):
+        i = idx[j]
+        if by_axis_out:
+            out[0, j], out[1, j], out[2, j] = X[i, 0], X[i, 1], X[i, 2]
+        else:
+            out[j, 0], out[j, 1], out[j, 2] = X[i, 0], X[i, 1], X[i, 2]
+    return out
+
+
+def gather(X, idx, by_axis=False):
+    """The rows X[idx] of points X (n, 3) C-contiguous float64, as (k, 3) or ``by_axis`` (3, k), in one
+    compiled pass (numpy's take along axis 0 and the transposed copy cost 5-50x more); the same values."""
+    kernel = _jit(_gather)
+    idx = np.asarray(idx, dtype=np.int64)
+    if kernel is None or X.dtype != np.float64 or not X.flags.c_contiguous:  # pragma: no cover
+        P = np.take(X, idx, axis=0)
+        return np.ascontiguousarray(P.T) if by_axis else P
+    return kernel(X, idx, bool(by_axis))
+
+
+def _tally(d, t, margin):  # pragma: no cover - compiled
+    n = d.shape[0]
+    on = np.empty(n, dtype=np.int64)
+    k = inside = outside = 0
+    t3 = 3.0 * t
+    for i in range(n):  # compaction without a branch: write always, advance when on the shell
+        a = d[i]
+        on[k] = i
+        k += abs(a) < t
+        inside += a < -margin
+        outside += (a >= t) & (a < t3)
+    return on[:k].copy(), inside, outside
+
+
+def shell_tally(d, t, margin=np.inf):
+    """For residuals d: the indices with |d| < t (ascending), the number with d < -margin (inside) and
+    with t <= d < 3 t (just outside the shell), in one compiled pass."""
+    d = np.ascontiguousarray(d, dtype=np.float64)
+    kernel = _jit(_tally)
+    if kernel is None:  # pragma: no cover
+        return (np.flatnonzero(np.abs(d) < t), int(np.count_nonzero(d < -margin)),
+                int(np.count_nonzero((d >= t) & (d < 3.0 * t))))
+    on, inside, outside = kernel(d, float(t), float(margin))
+    return on, int(inside), int(outside)
 
 
 def _residuals(x, y, z, c, r):  # pragma: no cover - compiled
@@ -205,6 +283,8 @@ def shell_points(X, c, r, reach, close=False, by_axis=False):
         d = np.sqrt(np.einsum("ij,ij->i", diff, diff)) - r
         keep = np.abs(d) < reach if close else slice(None)
         return idx[keep], d[keep]
+    if not by_axis:  # a whole cloud by point: most points lie outside the ball
+        kernel = _jit(_shell_sparse)
     return kernel(*_columns(X, by_axis), c, float(r), float(reach), bool(close))
 
 
@@ -244,22 +324,26 @@ def _band_median(d, band, nb):  # pragma: no cover - compiled
     if n == 0:
         return np.nan, 0
     lo_rank, hi_rank = (n - 1) // 2, n // 2  # the middle order statistics (equal for odd n)
-    out = np.empty(2)
-    for j, rank in enumerate((lo_rank, hi_rank)):
-        below, b = 0, 0
-        while below + counts[b] <= rank:
-            below += counts[b]
-            b += 1
-        vals = np.empty(counts[b])
-        k = 0
-        for i in range(d.shape[0]):
-            a = abs(d[i])
-            if a < band and min(int(a * scale), nb) == b:
+    below, b_lo = 0, 0
+    while below + counts[b_lo] <= lo_rank:
+        below += counts[b_lo]
+        b_lo += 1
+    b_hi, upto = b_lo, below + counts[b_lo]
+    while upto <= hi_rank:
+        b_hi += 1
+        upto += counts[b_hi]
+    vals = np.empty(upto - below)  # the values of the middle bucket(s), gathered in one more pass
+    k = 0
+    for i in range(d.shape[0]):
+        a = abs(d[i])
+        if a < band:
+            bucket = min(int(a * scale), nb)
+            if b_lo <= bucket <= b_hi:
                 vals[k] = a
                 k += 1
-        vals.sort()
-        out[j] = vals[rank - below]
-    return (out[0] + out[1]) / 2.0 if lo_rank != hi_rank else out[0], n
+    vals.sort()
+    lo, hi = vals[lo_rank - below], vals[hi_rank - below]
+    return (lo + hi) / 2.0 if lo_rank != hi_rank else lo, n
 
 
 def band_median(d, band, buckets=1024):
@@ -312,3 +396,47 @@ def plane_counts(Q, nrm, off, t):
         return (np.abs(Q @ nrm.T - off[None, :]) < t).sum(axis=0)
     T = np.ascontiguousarray(Q.T)  # by axis: contiguous columns
     return kernel(T[0], T[1], T[2], np.ascontiguousarray(nrm), np.ascontiguousarray(off), float(t))
+
+
+def _best_plane(x, y, z, tri, t):  # pragma: no cover - compiled
+    """The plane through the point triple tri[b] with the most points within t: (b or -1, normal, offset)."""
+    best, best_count = -1, -1
+    nb = np.zeros(3)
+    ob = 0.0
+    for b in range(tri.shape[0]):
+        i, j, k = tri[b, 0], tri[b, 1], tri[b, 2]
+        u0, u1, u2 = x[j] - x[i], y[j] - y[i], z[j] - z[i]
+        v0, v1, v2 = x[k] - x[i], y[k] - y[i], z[k] - z[i]
+        n0, n1, n2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0  # as numpy's cross
+        norm = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        if not norm > 1e-12:
+            continue
+        n0, n1, n2 = n0 / norm, n1 / norm, n2 / norm
+        o = (x[i] * n0 + z[i] * n2) + y[i] * n1  # numpy's einsum order for three terms
+        count = 0
+        for m in range(x.shape[0]):  # no branch: the compiler vectorizes the count
+            count += abs(x[m] * n0 + y[m] * n1 + z[m] * n2 - o) < t
+        if count > best_count:  # the first of equal counts, as argmax
+            best, best_count = b, count
+            nb[0], nb[1], nb[2], ob = n0, n1, n2, o
+    return best, nb, ob
+
+
+def best_plane(Q, tri, t):
+    """Of the planes through the point triples Q[tri[b]] (Q (m, 3), tri (B, 3)): the unit normal and offset
+    (n . x = offset) of the one with the most points of Q within t (the first of equal counts), or None
+    when every triple is degenerate; one compiled pass per plane, numpy's arithmetic."""
+    kernel = _jit(_best_plane)
+    if kernel is None:  # pragma: no cover
+        nrm = np.cross(Q[tri[:, 1]] - Q[tri[:, 0]], Q[tri[:, 2]] - Q[tri[:, 0]])
+        norm = np.linalg.norm(nrm, axis=1)
+        ok = norm > 1e-12
+        if not ok.any():
+            return None
+        nrm = nrm[ok] / norm[ok, None]
+        off = np.einsum("bk,bk->b", Q[tri[ok, 0]], nrm)
+        best = int(np.argmax(plane_counts(Q, nrm, off, t)))
+        return nrm[best], float(off[best])
+    T = np.ascontiguousarray(Q.T)
+    b, nrm, off = kernel(T[0], T[1], T[2], np.ascontiguousarray(tri, dtype=np.int64), float(t))
+    return None if b < 0 else (nrm, float(off))

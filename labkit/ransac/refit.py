@@ -10,7 +10,7 @@ from scipy.optimize import brentq
 
 from ..sphere.ghm import adjust_sphere, check_sigma
 from ..core.errors import LabkitError
-from ._ball import band_median, in_shell, near_shell, residuals
+from ._ball import band_median, gather, in_shell, near_shell, residuals
 from .config import BAND_K, SNOOP_ROUNDS, START_STEPS, S
 from .hypotheses import orthogonal_fit, shell_mask
 
@@ -66,9 +66,9 @@ def refit_sphere(xyz, x0, cfg, X=None, shift=None, reader=None):
             if np.count_nonzero(local) == len(idx):  # every inlier is a near point: sum over them in place
                 x_start = _start(near[3], x_start - shift, mask=local) + shift
             else:
-                x_start = _start(np.ascontiguousarray(np.take(X, idx, axis=0).T), x_start - shift) + shift
-        return adjust_sphere(np.take(xyz, idx, axis=0), x0=x_start, sigma=sig, radius=cfg.hold_radius,
-                             alpha_w=cfg.alpha)
+                x_start = _start(gather(X, idx, by_axis=True), x_start - shift) + shift
+        pts = gather(xyz, idx) if xyz.flags.c_contiguous else np.take(xyz, idx, axis=0)
+        return adjust_sphere(pts, x0=x_start, sigma=sig, radius=cfg.hold_radius, alpha_w=cfg.alpha)
 
     # Robust band and sphere at their fixed point (eqs. 25-26 with t -> k sigma_hat); with a
     # per-point sigma the band is k sigma_i for each point
@@ -185,7 +185,10 @@ def truncated_mad_scale(abs_d, band):
     median of b/2 or more means no peak inside the band (flat): returns 2 b / k,
     which doubles the band.
     """
-    return scale_from_median(float(np.median(abs_d)), band)
+    median, count = band_median(abs_d, band)  # exact, without a partition of a copy
+    if count != len(abs_d):  # (values at or beyond the band: numpy's median of all of them)
+        median = float(np.median(abs_d))
+    return scale_from_median(median, band)
 
 
 def scale_from_median(m, band):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._ball import ball_counts, ball_counts_t, ball_indices, near_shell, plane_counts, shell_points
+from ._ball import ball_counts, ball_counts_t, ball_indices, best_plane, gather, near_shell, shell_points, shell_tally
 from .config import (
     BACKFACE_SHARE, BAND_K, COARSE_CLEAR, COARSE_POINTS, CONTRAST, INTERIOR_SHARE, MIN_LEVELS, MIN_SPREAD, PLANE_RATIO,
     SHADOW_SHARE, SHAPE_POINTS, TWO_PLANES_POINTS, TWO_PLANES_SHARE, VERIFY_MAX, S,
@@ -39,7 +39,7 @@ class Verifier:
 
     def _by_axis(self, idx):
         """The points X[idx] stored by axis (3, k), for the compiled sums."""
-        return np.ascontiguousarray(np.take(self.X, idx, axis=0).T)
+        return gather(self.X, idx, by_axis=True)
 
     def ball(self, c, R):
         """Indices of the points within distance R of c (one pass over the cloud, no tree)."""
@@ -130,7 +130,8 @@ class Verifier:
                 i, d = shell_points(B0, c, r, reach, by_axis=True)
                 return np.take(idx0, i), d
         R0 = r + max(reach, 2.0 * BAND_K * self.cfg.threshold * 3.0) + max(2.0 * self.cfg.threshold, 0.05 * r)
-        idx0 = ball_indices(self.X, c, R0)
+        # (a small cloud is also stored by axis for the coarse test: contiguous columns read faster)
+        idx0 = ball_indices(self._sub, c, R0, by_axis=True) if self._sub_all else ball_indices(self.X, c, R0)
         self._ball = (c.copy(), R0, idx0, self._by_axis(idx0))
         i, d = shell_points(self._ball[3], c, r, reach, by_axis=True)
         return np.take(idx0, i), d
@@ -154,7 +155,7 @@ class Verifier:
         band = t
         idx, d = self._local(x, band)
         for _ in range(3):
-            on = np.flatnonzero(np.abs(d) < band)
+            on = shell_tally(d, band)[0]
             if len(on) <= S:
                 return None
             x_new = orthogonal_fit(self._by_axis(idx[_even(on, SHAPE_POINTS)]), x, steps=2, by_axis=True)
@@ -164,7 +165,7 @@ class Verifier:
             if not 0.5 * self.cfg.r_min <= x[3] <= 2.0 * self.cfg.r_max:
                 return x  # far outside the radius range: more rounds will not bring it back (reasons() rejects)
             idx, d = self._local(x, 3.0 * t)  # holds every band of the next round too (band <= 3 t)
-            d_in = d[_even(np.flatnonzero(np.abs(d) < band), SHAPE_POINTS)]
+            d_in = d[_even(shell_tally(d, band)[0], SHAPE_POINTS)]
             if len(d_in) > S:
                 band = max(t, min(BAND_K * truncated_mad_scale(np.abs(d_in), band), 3.0 * t))
         return x
@@ -176,27 +177,25 @@ class Verifier:
         if not cfg.r_min <= r <= cfg.r_max:
             return f"the adjusted radius {r:.5g} m lies outside [{cfg.r_min:.5g}, {cfg.r_max:.5g}] m"
         idx, d = self._local(x, 3.0 * max(t, 2.0 * BAND_K * t))
-        on = np.abs(d) < t
-        n_in = int(np.count_nonzero(on))
+        on = shell_tally(d, t)[0]  # the points with |d| < t
+        n_in = len(on)
         if n_in < cfg.min_inliers:
             return f"only {n_in} points on its shell |d| < {t:.3g} m in the full cloud (< min_inliers = {cfg.min_inliers})"
         # robust, and consistent for the cut at t (a scale for the checks: an even subsample of the shell)
-        sigma_hat = truncated_mad_scale(np.abs(d[_even(np.flatnonzero(on), SHAPE_POINTS)]), t)
+        sigma_hat = truncated_mad_scale(np.abs(d[_even(on, SHAPE_POINTS)]), t)
         margin = max(t, 3.5 * sigma_hat)
         # the shell: at least the noise band k sigma_hat (a t below the noise must not thin it out)
         t = max(t, min(BAND_K * sigma_hat, 2.0 * t))
-        on = np.abs(d) < t
-        n_in = int(np.count_nonzero(on))
-        inside = int(np.count_nonzero(d < -margin))
+        on, inside, outside = shell_tally(d, t, margin)  # on the shell, inside (d < -margin), just outside
+        n_in = len(on)
         if inside > INTERIOR_SHARE * n_in:
             return (f"{inside} points lie inside it (for {n_in} on its shell): a solid sphere hides its interior, "
                     "so this is a cut through other surfaces or a volume of points, not a sphere")
-        outside = int(np.count_nonzero((d >= t) & (d < 3.0 * t)))
         if n_in < CONTRAST * outside:
             return (f"too many points just outside the shell ({outside}, for {n_in} on it): no spherical surface "
                     "stands out, the points only pass through the shell (a cylinder, plane pieces, clutter)")
-        sel = _even(np.flatnonzero(on), SHAPE_POINTS)  # the shape statistics (shares, rms, spreads)
-        P = np.take(self.X, idx[sel], axis=0)
+        sel = _even(on, SHAPE_POINTS)  # the shape statistics (shares, rms, spreads)
+        P = gather(self.X, idx[sel])
         q = P - _column_mean(P)
         rms_plane = np.sqrt(max(np.linalg.eigvalsh(q.T @ q / len(q))[0], 0.0))
         rms_sphere = np.sqrt(np.mean(d[sel] ** 2))
@@ -291,16 +290,10 @@ def _two_plane_share(P, t, trials=256):
         if len(Q) < 3:
             held += len(Q)
             break
-        tri = Q[gen.integers(0, len(Q), size=(trials, 3))]
-        nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        norm = np.linalg.norm(nrm, axis=1)
-        ok = norm > 1e-12
-        if not ok.any():
+        plane = best_plane(Q, gen.integers(0, len(Q), size=(trials, 3)), t)  # the most points within t
+        if plane is None:
             break
-        nrm = nrm[ok] / norm[ok, None]
-        off = np.einsum("bk,bk->b", tri[ok][:, 0], nrm)
-        best = int(np.argmax(plane_counts(Q, nrm, off, t)))  # points within t of each plane (a compiled pass)
-        on = np.abs(Q @ nrm[best] - off[best]) < t
+        on = np.abs(Q @ plane[0] - plane[1]) < t
         idx = np.flatnonzero(left)
         left[idx[on]] = False
         held += int(np.count_nonzero(on))

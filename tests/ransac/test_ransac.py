@@ -466,6 +466,71 @@ def test_compiled_ball_kernels_equal_numpy():
     np.testing.assert_allclose(dd, d[idx], rtol=0, atol=1e-15)
 
 
+def test_gather_shell_points_and_tally_equal_numpy_exactly():
+    """The compiled gather, shell points (both layouts, with and without ``close``) and shell tally give
+    exactly numpy's points, indices, residuals and counts."""
+    from labkit.ransac._ball import gather, shell_points, shell_tally
+
+    rng = np.random.default_rng(11)
+    X = rng.normal(size=(30_000, 3))
+    idx = np.sort(rng.choice(len(X), 9_000, replace=False))
+    np.testing.assert_array_equal(gather(X, idx), np.take(X, idx, axis=0))
+    np.testing.assert_array_equal(gather(X, idx, by_axis=True), np.take(X, idx, axis=0).T)
+    c, r, reach = np.array([0.1, -0.2, 0.05]), 1.3, 0.2
+    diff = X - c
+    q = diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1] + diff[:, 2] * diff[:, 2]  # the kernel's order
+    d = np.sqrt(q) - r
+    for close in (False, True):
+        keep = (q <= (r + reach) ** 2) & ((np.abs(d) < reach) if close else True)
+        for P, by_axis in ((X, False), (np.ascontiguousarray(X.T), True)):
+            i, dd = shell_points(P, c, r, reach, close=close, by_axis=by_axis)
+            np.testing.assert_array_equal(i, np.flatnonzero(keep))
+            np.testing.assert_array_equal(dd, d[keep])
+    on, inside, outside = shell_tally(d, 0.05, 0.3)
+    np.testing.assert_array_equal(on, np.flatnonzero(np.abs(d) < 0.05))
+    assert inside == np.count_nonzero(d < -0.3) > 0
+    assert outside == np.count_nonzero((d >= 0.05) & (d < 0.15)) > 0
+
+
+def test_best_plane_equals_the_numpy_route(monkeypatch):
+    """The compiled search for the plane with the most points (the verifier's two-plane test) picks the
+    same plane, normal and offset as numpy's cross products, norms and counts; so does the share."""
+    from labkit.ransac import _ball
+    from labkit.ransac.verify import _two_plane_share
+
+    rng = np.random.default_rng(12)
+    cases = []
+    for k in range(40):
+        u = rng.normal(size=(int(rng.integers(20, 1500)), 3))
+        u /= np.linalg.norm(u, axis=1)[:, None]
+        P = rng.uniform(0.05, 1.0) * u + rng.normal(scale=2e-3, size=u.shape) + rng.normal(size=3)
+        if k % 2:  # a floor and a wall: most points on two planes
+            P[: len(P) // 2, 2] = 0.3 + rng.normal(scale=1e-3, size=len(P) // 2)
+            P[len(P) // 2:, 0] = -0.2 + rng.normal(scale=1e-3, size=len(P) - len(P) // 2)
+        cases.append((P, rng.integers(0, len(P), size=(256, 3)), float(rng.uniform(1e-3, 1e-2))))
+    fast = [(_ball.best_plane(P, tri, t), _two_plane_share(P, t)) for P, tri, t in cases]
+    monkeypatch.setattr(_ball, "_jit", lambda kernel, simd=False: None)
+    slow = [(_ball.best_plane(P, tri, t), _two_plane_share(P, t)) for P, tri, t in cases]
+    for (pf, sf), (ps, ss) in zip(fast, slow):
+        np.testing.assert_array_equal(pf[0], ps[0])
+        assert pf[1] == ps[1] and sf == ss
+    assert max(s for _, s in fast) > 0.9 > min(s for _, s in fast)
+
+
+def test_truncated_mad_scale_uses_numpys_median_exactly():
+    """The scale from the compiled band median equals the one from numpy's median, inside the band and
+    with values beyond it."""
+    from labkit.ransac.refit import scale_from_median, truncated_mad_scale
+
+    rng = np.random.default_rng(13)
+    for n in (1, 2, 7, 8, 1000, 8192):
+        a = np.abs(rng.normal(scale=1e-3, size=n))
+        band = 3e-3
+        inside = a[a < band]
+        assert truncated_mad_scale(inside, band) == scale_from_median(float(np.median(inside)), band)
+        assert truncated_mad_scale(a, band) == scale_from_median(float(np.median(a)), band)
+
+
 def test_verifier_answers_nested_balls_like_a_full_pass():
     """A ball inside the one the verifier kept is answered from it: the same points, order and residuals
     as a pass over the whole cloud."""
