@@ -35,6 +35,7 @@ from ..core.masks import STABLE_CLASSES
 from ..neighbours.sampling import median_spacing
 from ..synthetic import REGIONS, als_epochs
 from ..transforms import check_transform, skew
+from .agreement import disagreement_covariance
 from .references import (
     Reference, average_references, load_references, manual_reference, reference_from_pairs, reference_from_targets, save_references, truth_reference,
 )
@@ -338,8 +339,17 @@ def _standard(source, target, *, name, dof, extent, max_points, rng, progress=Fa
             raise
         refined = run(**dict(icp_options, max_distance=gate, max_std=icp_options.get("max_std") or 0.1 * md))
     bb = result.history[0]  # the branch-and-bound outcome: how far the start is certified
+    c = as_points(source, name="source").mean(axis=0)  # ICP that walked away from its start: covered
+    d = shift_at(refined.matrix, c) - shift_at(result.matrix, c)
+    extra, T, k = disagreement_covariance(d, np.zeros(3), shift_covariance(refined, c), shift_covariance(result, c))
+    if extra.any():  # the shift's translation parameters take it (d(shift)/dt = I at any point)
+        ti, cov = [refined.parameter_names.index(n) for n in ("tx", "ty", "tz")], refined.covariance.copy()
+        cov[np.ix_(ti, ti)] += extra
+        refined = replace(refined, covariance=cov)
     start = (f"started at max_consensus: consensus {bb.lower:.0f}, certified gap {bb.gap:.0f}, {bb.reason}, "
-             f"shift {np.array2string(result.translation, precision=4)} m")
+             f"shift {np.array2string(result.translation, precision=4)} m; ICP moved it by "
+             f"{np.array2string(d * 1e3, precision=1)} mm, T = {T:.1f} / {k}"
+             + (": the covariance includes (1 - k/T) d d^T" if extra.any() else ""))
     return replace(refined, method=f"max_consensus + {refined.method}",
                    runtime_s=result.runtime_s + refined.runtime_s,
                    message="; ".join(m for m in (refined.message, start) if m))
