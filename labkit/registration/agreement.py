@@ -56,7 +56,7 @@ def disagreement_covariance(refined, start, cov_refined, cov_start):
     >>> extra, T, k = disagreement_covariance([0.0, 0.06, 0.0], np.zeros(3), cov, cov)
     >>> round(T, 1), k, np.sqrt(np.diag(extra)).round(3).tolist()  # 60 mm at a combined 14 mm std
     (18.0, 3, [0.0, 0.055, 0.0])
-    >>> disagreement_covariance([0.0, 0.01, 0.0], np.zeros(3), cov, cov)[0].any()  # within: nothing
+    >>> bool(disagreement_covariance([0.0, 0.01, 0.0], np.zeros(3), cov, cov)[0].any())  # within: nothing
     False
     """
     d = np.asarray(refined, dtype=np.float64) - np.asarray(start, dtype=np.float64)
