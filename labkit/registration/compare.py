@@ -296,7 +296,9 @@ def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "tra
     evenly); ``consensus+icp`` (consensus, then a Tukey ICP with ``dof`` from there: the
     route for shifts larger than ICP's matching distance; with no pair within the gate there, the gate is
     twice the target's point spacing when that is wider, the precision limit stays; X, Y that ICP leaves undetermined
-are filled from the height models where those fix them, :func:`labkit.registration.height_model.fill_held_axes`). ``reach`` (m, optional) is passed to the ICP
+are filled from the height models where those fix them, :func:`labkit.registration.height_model.fill_held_axes`;
+    an ICP that leaves its start beyond their combined std adds the disagreement to its covariance,
+    :func:`labkit.registration.agreement.disagreement_covariance`). ``reach`` (m, optional) is passed to the ICP
     methods: a reach beyond the matching distance runs ICP's coarse-to-fine pyramid first.
     ``max_iterations`` (optional) is passed to every ICP run (default: ICP's own).
     The callables are picklable (for Dask workers in other processes).
@@ -343,9 +345,8 @@ def _standard(source, target, *, name, dof, extent, max_points, rng, progress=Fa
     d = shift_at(refined.matrix, c) - shift_at(result.matrix, c)
     extra, T, k = disagreement_covariance(d, np.zeros(3), shift_covariance(refined, c), shift_covariance(result, c))
     if extra.any():  # the shift's translation parameters take it (d(shift)/dt = I at any point)
-        ti, cov = [refined.parameter_names.index(n) for n in ("tx", "ty", "tz")], refined.covariance.copy()
-        cov[np.ix_(ti, ti)] += extra
-        refined = replace(refined, covariance=cov)
+        E = np.eye(len(refined.parameter_names))[:, [refined.parameter_names.index(n) for n in ("tx", "ty", "tz")]]
+        refined = replace(refined, covariance=refined.covariance + E @ extra @ E.T)
     start = (f"started at max_consensus: consensus {bb.lower:.0f}, certified gap {bb.gap:.0f}, {bb.reason}, "
              f"shift {np.array2string(result.translation, precision=4)} m; ICP moved it by "
              f"{np.array2string(d * 1e3, precision=1)} mm, T = {T:.1f} / {k}"
