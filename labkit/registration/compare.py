@@ -35,6 +35,7 @@ from ..core.masks import STABLE_CLASSES
 from ..neighbours.sampling import median_spacing
 from ..synthetic import REGIONS, als_epochs
 from ..transforms import check_transform, skew
+from .agreement import disagreement_covariance
 from .references import (
     Reference, average_references, load_references, manual_reference, reference_from_pairs, reference_from_targets, save_references, truth_reference,
 )
@@ -295,7 +296,9 @@ def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "tra
     evenly); ``consensus+icp`` (consensus, then a Tukey ICP with ``dof`` from there: the
     route for shifts larger than ICP's matching distance; with no pair within the gate there, the gate is
     twice the target's point spacing when that is wider, the precision limit stays; X, Y that ICP leaves undetermined
-are filled from the height models where those fix them, :func:`labkit.registration.height_model.fill_held_axes`). ``reach`` (m, optional) is passed to the ICP
+are filled from the height models where those fix them, :func:`labkit.registration.height_model.fill_held_axes`;
+    an ICP that disagrees with its start states a covariance that covers the disagreement,
+    :func:`labkit.registration.agreement.disagreement_covariance`). ``reach`` (m, optional) is passed to the ICP
     methods: a reach beyond the matching distance runs ICP's coarse-to-fine pyramid first.
     ``max_iterations`` (optional) is passed to every ICP run (default: ICP's own).
     The callables are picklable (for Dask workers in other processes).
@@ -338,8 +341,16 @@ def _standard(source, target, *, name, dof, extent, max_points, rng, progress=Fa
             raise
         refined = run(**dict(icp_options, max_distance=gate, max_std=icp_options.get("max_std") or 0.1 * md))
     bb = result.history[0]  # the branch-and-bound outcome: how far the start is certified
+    c = as_points(source, name="source").mean(axis=0)  # ICP that walked away from its start: covered
+    d = shift_at(refined.matrix, c) - shift_at(result.matrix, c)
+    f, extra, T, k = disagreement_covariance(d, np.zeros(3), shift_covariance(refined, c), shift_covariance(result, c))
+    if f > 1:  # d d^T: the shift's translation parameters take it (d(shift)/dt = I at any point)
+        E = np.eye(len(refined.parameter_names))[:, [refined.parameter_names.index(n) for n in ("tx", "ty", "tz")]]
+        refined = replace(refined, covariance=f * refined.covariance + E @ extra @ E.T)
     start = (f"started at max_consensus: consensus {bb.lower:.0f}, certified gap {bb.gap:.0f}, {bb.reason}, "
-             f"shift {np.array2string(result.translation, precision=4)} m")
+             f"shift {np.array2string(result.translation, precision=4)} m; ICP moved it by "
+             f"{np.array2string(d * 1e3, precision=1)} mm, T = {T:.1f} / {k}"
+             + (f": covariance x {f:.2f}" if f > 1 else "") + (" + (1 - k/T) d d^T" if extra.any() else ""))
     return replace(refined, method=f"max_consensus + {refined.method}",
                    runtime_s=result.runtime_s + refined.runtime_s,
                    message="; ".join(m for m in (refined.message, start) if m))
