@@ -153,3 +153,35 @@ def test_real_conifer_plot_gets_x_and_y_from_the_crowns(realdata):
     err, std = res.translation - s, res.translation_std
     assert np.all(std < 0.1) and np.all(np.abs(err) <= 3 * std), (err, std, res.message)
     assert "X, Y FROM THE HEIGHT MODEL" in res.message
+
+
+def test_max_consensus_defaults_fill_the_along_ridge_axis_too():
+    from labkit.registration import max_consensus
+
+    rng = np.random.default_rng(6)
+    src, tgt = gable_scene(8000, rng) - SHIFT, gable_scene(8000, rng)
+    plain = max_consensus(src, tgt, height_model=False)
+    assert "X" in plain.degeneracy.undetermined_axes, plain.message
+    res = max_consensus(src, tgt)
+    err, std = res.translation - SHIFT, res.translation_std
+    assert "X" not in res.degeneracy.undetermined_axes and std[0] < 0.1, res.message
+    assert np.all(np.abs(err) <= 3 * std), (err, std)
+    assert "FROM THE HEIGHT MODEL" in res.message and res.height_model is not None
+    assert max_consensus(src, tgt, metric="point_to_point", eps=0.05).height_model is None  # point-to-plane only
+
+
+def test_real_conifer_plot_max_consensus_gets_x_and_y_from_the_crowns(realdata):
+    from labkit import read_cloud
+    from labkit.registration import max_consensus
+
+    path = realdata / "als" / "MixedConifer.laz"
+    if not path.is_file():
+        pytest.skip("MixedConifer.laz absent")
+    cloud = read_cloud(path)
+    half = np.random.default_rng(4).random(len(cloud.xyz)) < 0.5
+    s = SHIFTS[1]
+    src, tgt = cloud.subset(~half), cloud.subset(half)
+    res = max_consensus(src.with_xyz(src.xyz - s), tgt)
+    err, std = res.translation - s, res.translation_std
+    assert np.all(std < 0.1) and np.all(np.abs(err) <= 3 * std), (err, std, res.message)
+    assert "X, Y FROM THE HEIGHT MODEL" in res.message

@@ -38,6 +38,7 @@ from ...neighbours.sampling import even_subset
 from .inputs import candidate_pairs, grid, prepare_problem, search_box
 from .bnb import branch_and_bound, refine
 from .result import AXES, ConsensusCube, PeakShape, peak_shape
+from ..height_model import fill_held_axes
 from ..selection import SELECT, select_points
 
 #: Default work budget of the branch and bound: pair tests (about 6 s on one idle core)
@@ -230,6 +231,7 @@ def max_consensus(
     use_numba: bool | None = None,
     select: str = "auto",
     recentre: bool = True,
+    height_model: bool = True,
 ):
     """Globally best translation by branch and bound, then least squares on the consensus set.
 
@@ -307,6 +309,12 @@ def max_consensus(
         Which points vote (:func:`labkit.registration.selection.select_points`): 'auto' (default) the
         stable classes of classified clouds, the surface points of unclassified ones (vegetation left
         out); ``result.selection`` says which. Given ``weights`` or normals, all points.
+    height_model : bool
+        Point-to-plane only: where the voting surfaces leave X or Y undetermined (the normals of
+        ground and roofs are nearly vertical), match the height models of all points and fill those
+        axes when that determines them, as :func:`labkit.registration.icp` does
+        (:func:`labkit.registration.height_model.fill_held_axes`); ``result.height_model`` and the
+        message say which axes came from where. False: leave them undetermined.
     recentre : bool
         When the best translation lies at a face of the box (within a first-level box or a tenth
         of ``extent``), search once more in a box of the same size centred there along those axes
@@ -364,6 +372,7 @@ def max_consensus(
     # The points that vote: stable classes or surfaces (selection.py)
     choice(select, SELECT, "select")
     own = weights is not None or source_normals is not None or target_normals is not None
+    whole = (source, target)  # the height models use every point (roof edges, crowns)
     source, target, selection = select_points(source, target, "all" if own else select, k=max(int(k), 3))
     # Parameters of the search and of the adjustment
     tol = positive(tol, "tol")
@@ -396,7 +405,10 @@ def max_consensus(
     # Least squares with weights and iterative deletion on the consensus set; sandwich covariance
     res = refine(bb, src_of, D, nrm, pb, opts["reject_sigma"], ext, time.perf_counter() - t0, t0,
                  k=max(4, int(k)), block_size=opts["block_size"], max_std=opts["max_std"])
-    return replace(res, selection=selection, message=f"{res.message}; points: {selection.reason}")
+    res = replace(res, selection=selection, message=f"{res.message}; points: {selection.reason}")
+    if height_model and metric == "point_to_plane":
+        res, _ = fill_held_axes(res, *whole)
+    return res
 
 
 def _search_options(max_points, max_time, max_boxes, gap_tol, init_step, reject_sigma, block_size, max_std,
