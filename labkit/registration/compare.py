@@ -290,13 +290,13 @@ def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "tra
     ``icp`` (point to plane), ``icp-point`` (point to point), ``icp-huber`` and
     ``icp-tukey`` (robust weights) with ``dof``; ``icp-classes`` (point to plane on
     the stable classes :data:`STABLE_CLASSES` of both epochs only - ground, roofs,
-    roads - so that grown vegetation and crowns cannot pull it; seed step 4,
+    roads - so that grown vegetation and crowns cannot pull it; the registration study's step 4,
     "Nutzen nur von best. Klassen"); ``consensus`` (maximum consensus,
     a translation within +-``extent`` m, on at most ``max_points`` source points spread
     evenly); ``consensus+icp`` (consensus, then a Tukey ICP with ``dof`` from there: the
     route for shifts larger than ICP's matching distance; with no pair within the gate there, the gate is
     twice the target's point spacing when that is wider, the precision limit stays; X, Y that ICP leaves undetermined
-are filled from the height models where those fix them, :func:`labkit.registration.height_model.fill_held_axes`;
+    are filled from the height models where those fix them, :func:`labkit.registration.height_model.fill_held_axes`;
     an ICP that disagrees with its start states a covariance that covers the disagreement,
     :func:`labkit.registration.agreement.disagreement_covariance`). ``reach`` (m, optional) is passed to the ICP
     methods: a reach beyond the matching distance runs ICP's coarse-to-fine pyramid first.
