@@ -299,7 +299,7 @@ LAZY_IMPORTS = {
     ("labkit.neighbours.treecache", "labkit.neighbours.kdtree"): "heavy",
     ("labkit.neighbours.sampling", "labkit.neighbours.kdtree"): "heavy",  # regions thins without the compiled tree
     ("labkit.cli.main", "labkit.change.m3c2"): "heavy",
-    ("labkit.registration.compare", "labkit.registration"): "heavy",  # cli imports compare
+    ("labkit.registration.methods", "labkit.registration"): "heavy",  # cli imports compare, which imports methods
     ("labkit.demo", "labkit.features"): "heavy",  # demo is imported by cli
     ("labkit.change.distances", "labkit.features"): "heavy",
     ("labkit.plotting.registration", "labkit.registration.matching.match"): "heavy",
