@@ -326,7 +326,7 @@ def robust_weights(l, A, *, k=REJECT_SIGMAS, bins=GRADIENT_BINS):
     return (np.abs(u) < k).astype(np.float64)
 
 
-def fill_held_axes(result, source, target):
+def fill_held_axes(result, source, target, *, matched=None):
     """Fill the horizontal axes that point-to-plane left undetermined from height-model matching.
 
     ``result`` is an ICP result with ``dof='translation'`` on the selected points; ``source`` and
@@ -339,6 +339,11 @@ def fill_held_axes(result, source, target):
     covariance stays ICP's: it holds the prior of a held shift (the matching distance, eq. 5.15),
     which covers B Sigma_h B^T. Z therefore always comes from the point-to-plane observations;
     the height model's dz is not used (trees grow, its maximum per cell depends on the density).
+
+    ``matched`` (optional) is a :class:`HeightModelShift` of the same clouds made at the start of
+    ``result`` (``max_consensus`` fills its own held axes this way, and ICP started there holds them
+    at those values): it is used instead of matching again when its verdict holds at this precision
+    limit (X and Y determined at a limit no looser, or the same limit). Otherwise the match runs here.
 
     Returns
     -------
@@ -370,13 +375,18 @@ def fill_held_axes(result, source, target):
     if not held[:2].any():
         return result, None
     max_std = deg.max_std if deg.max_std is not None else 0.1
-    try:
-        hm = height_model_shift(source, target, initial=result.translation, max_std=max_std)
-    except LabkitError as exc:
-        return replace(result, message=f"{result.message}; height model: not used ({exc})"), None
+    # determined below a limit is determined below any looser one; "undetermined" holds at the same limit only
+    if isinstance(matched, HeightModelShift) and (matched.max_std == max_std or (
+            matched.max_std <= max_std and bool(matched.determined[:2].all()))):
+        hm, where = matched, " (matched once, at the start)"
+    else:
+        try:
+            hm, where = height_model_shift(source, target, initial=result.translation, max_std=max_std), ""
+        except LabkitError as exc:
+            return replace(result, message=f"{result.message}; height model: not used ({exc})"), None
     fill = held & hm.determined & np.array([True, True, False])
     if not fill.any():
-        note = (f"; the height model (all points, cells of {hm.cell:.3g} m) does not fix X, Y either: "
+        note = (f"; the height model (all points, cells of {hm.cell:.3g} m{where}) does not fix X, Y either: "
                 f"{hm.message or 'not determined'}")
         return replace(result, message=result.message + note, height_model=hm), hm
     free = ~held  # determined by ICP
@@ -401,7 +411,8 @@ def fill_held_axes(result, source, target):
     note = (f"; {names} FROM THE HEIGHT MODEL (+- {std} mm): point-to-plane on the selected surfaces left "
             f"{names} undetermined (normals nearly vertical), the height jumps of all points (roof edges, "
             f"crowns) fix {'them' if fill.sum() > 1 else 'it'}: least-squares matching of the highest point "
-            f"per {hm.cell:.3g} m cell, delete-a-block jackknife over {hm.n_blocks} blocks of {hm.block_size:.3g} m; "
+            f"per {hm.cell:.3g} m cell{where}, delete-a-block jackknife over {hm.n_blocks} blocks of "
+            f"{hm.block_size:.3g} m; "
             f"{'Z' if free[2] else 'the other axes'} from point-to-plane, corrected to that position")
     rest = [a for a, h, f in zip("XYZ", held, fill) if h and not f]
     if rest:

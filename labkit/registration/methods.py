@@ -38,7 +38,8 @@ def standard_methods(names=("icp", "icp-huber", "consensus"), *, dof: str = "tra
     evenly); ``consensus+icp`` (consensus, then a Tukey ICP with ``dof`` from there: the
     route for shifts larger than ICP's matching distance; with no pair within the gate there, the gate is
     twice the target's point spacing when that is wider, the precision limit stays; X, Y that ICP leaves undetermined
-    are filled from the height models where those fix them, :func:`labkit.registration.height_model.fill_held_axes`;
+    are filled from the height models where those fix them, :func:`labkit.registration.height_model.fill_held_axes`
+    (matched once: ICP takes the match max_consensus made for its own held axes);
     an ICP that disagrees with its start states a covariance that covers the disagreement,
     :func:`labkit.registration.agreement.disagreement_covariance`). ``reach`` (m, optional) is passed to the ICP
     methods: a reach beyond the matching distance runs ICP's coarse-to-fine pyramid first.
@@ -73,7 +74,9 @@ def _standard(source, target, *, name, dof, extent, max_points, rng, progress=Fa
     result = max_consensus(source, target, extent=extent, max_points=max_points)  # an even subset votes
     if name == "consensus":
         return result
-    run = partial(icp, source, target, dof=dof, robust="tukey", initial=result.matrix, rng=rng, progress=progress)
+    hm = True if result.height_model is None else result.height_model  # the consensus's match: not made twice
+    run = partial(icp, source, target, dof=dof, robust="tukey", initial=result.matrix, rng=rng, progress=progress,
+                  height_model=hm)
     try:
         refined = run(**icp_options)
     except EmptyRegionError:  # no pair within the gate at the consensus start: points too sparse for the gate?

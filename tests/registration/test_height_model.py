@@ -185,3 +185,31 @@ def test_real_conifer_plot_max_consensus_gets_x_and_y_from_the_crowns(realdata):
     err, std = res.translation - s, res.translation_std
     assert np.all(std < 0.1) and np.all(np.abs(err) <= 3 * std), (err, std, res.message)
     assert "X, Y FROM THE HEIGHT MODEL" in res.message
+
+
+def test_consensus_then_icp_matches_the_height_models_once(monkeypatch):
+    """consensus+icp: ICP holds X where max_consensus filled it and takes that match instead of making another.
+
+    Matching again from ICP's end point (the route before) moves X by a few hundredths of its std
+    (the Gauss-Newton stops within 5 % of the formal std of its start); Y and Z come from ICP alone.
+    """
+    import labkit.registration.height_model as height_model
+    from labkit.registration import icp, max_consensus
+    from labkit.registration.compare import standard_methods
+
+    rng = np.random.default_rng(6)
+    src, tgt = gable_scene(8000, rng) - SHIFT, gable_scene(8000, rng)
+    start = max_consensus(src, tgt, max_points=5000)
+    assert "X FROM THE HEIGHT MODEL" in start.message, start.message
+    twice = icp(src, tgt, robust="tukey", initial=start.matrix, rng=0)  # matches again at its end
+    calls = []
+    match = height_model.height_model_shift
+    monkeypatch.setattr(height_model, "height_model_shift", lambda *a, **k: calls.append(1) or match(*a, **k))
+    res = standard_methods(["consensus+icp"])["consensus+icp"](src, tgt)
+    assert len(calls) == 1  # inside max_consensus only
+    assert "X FROM THE HEIGHT MODEL" in res.message and "matched once, at the start" in res.message, res.message
+    assert res.height_model is not None and res.degeneracy.undetermined_axes == ()
+    std = twice.translation_std
+    assert np.all(np.abs(res.translation - twice.translation) < 0.1 * std), (res.translation, twice.translation, std)
+    assert np.allclose(res.translation_std, std, rtol=0.1)
+    assert np.all(np.abs(res.translation - SHIFT) <= 3 * res.translation_std)

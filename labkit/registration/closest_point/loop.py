@@ -200,12 +200,14 @@ def icp(
         normals, all points take part.
         With stable classes, every class left out (50 points or more in both clouds) is matched at
         the result, its own shift (one translation step) tested against it: ``result.class_checks``.
-    height_model : bool
+    height_model : bool or HeightModelShift
         With ``select='auto'``, ``dof='translation'`` and point-to-plane: where the selected points
         leave X or Y undetermined (the normals of ground and roofs are nearly vertical), match the
         height models of all points (roof edges, crowns) and fill those axes when that determines them
         (:func:`labkit.registration.height_model.fill_held_axes`); ``result.height_model`` and the
-        message say which axes came from where. False: leave them undetermined.
+        message say which axes came from where. False: leave them undetermined. A
+        :class:`~labkit.registration.height_model.HeightModelShift` of the same clouds made at
+        ``initial`` (``result.height_model`` of :func:`max_consensus` started from): used instead of matching again.
     coarse_to_fine : {'auto', True, False}
         Run a voxel pyramid first (:mod:`labkit.registration.closest_point.pyramid`), from twice ``reach`` down to
         ``max_distance``; the covariance and degeneracy report come from the full clouds. 'auto':
@@ -373,7 +375,8 @@ def _with_selection(source, target, options, settings):
                        target_index=back(sel.target_rows, corr.target_index), n_source=sel.n_source)
     if settings["height_model"] and settings["dof"] == "translation" and settings["metric"] == "point_to_plane":
         # X, Y from height jumps where the normals of the selected surfaces leave them undetermined
-        res, _ = fill_held_axes(res, source, target)
+        hm = settings["height_model"]  # True, or a match made at the start (max_consensus): not matched again
+        res, _ = fill_held_axes(res, source, target, matched=None if hm is True else hm)
     checks = check_other_classes(source, target, res, sel, class_shift, **_class_settings(settings, options))
     msg = f"{res.message}; points: {sel.reason}"
     moved = [str(c.code) for c in checks if not c.agree]
