@@ -154,12 +154,14 @@ def apply_transform(T, points, *, origin=None) -> np.ndarray:
     T = check_transform(T)
     xyz = as_points(points)
     R, t = T[:3, :3], T[:3, 3]
+    # einsum, not ``xyz @ R.T``: BLAS picks its kernel by the shape of the block (one row, the edge of a
+    # thread's share), so a point's last bits depend on the points beside it and on the thread count
     if origin is None:
-        return xyz @ R.T + t
+        return np.einsum("ij,kj->ik", xyz, R) + t
     o = _real_array(origin, "origin")
     if o.shape != (3,) or not np.isfinite(o).all():
         raise LabkitError(f"origin must be 3 finite numbers, got {np.asarray(origin).tolist()}")
-    return (xyz - o) @ R.T + t + o
+    return np.einsum("ij,kj->ik", xyz - o, R) + t + o
 
 
 def rotation_from_angles(rx: float, ry: float, rz: float) -> np.ndarray:

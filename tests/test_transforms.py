@@ -103,3 +103,56 @@ def test_apply_transform_about_an_origin_is_a_rotation_about_it():
     p = o + [[1.0, 0, 0], [0, 2.0, 0]]
     out = apply_transform(make_transform(rotation_from_angles(0, 0, np.pi / 2)), p, origin=o)
     np.testing.assert_allclose(out - o, [[0, 1.0, 0], [-2.0, 0, 0]], atol=1e-9)
+
+
+def test_a_point_moves_to_the_same_bits_alone_or_among_others():
+    """Each point's result depends on that point only: not on the batch, its length or where it is cut.
+
+    A threaded product splits the rows among the threads; BLAS computes a lone row (gemv) or the
+    edge of a block with other kernels than the body, which rounds differently in the last bits.
+    """
+    T = make_transform(rotation_from_angles(0.01, -0.02, 0.3), [0.1, -0.2, 0.05])
+    p = np.random.default_rng(4).uniform(-50, 50, (10_007, 3)) + [612_000.0, 5_701_000.0, 80.0]
+    for origin in (None, p[0]):
+        full = apply_transform(T, p, origin=origin)
+        alone = np.concatenate([apply_transform(T, p[i:i + 1], origin=origin) for i in range(500)])
+        np.testing.assert_array_equal(full[:500], alone)
+        chunks = np.concatenate([apply_transform(T, p[i:i + 7], origin=origin) for i in range(0, len(p), 7)])
+        np.testing.assert_array_equal(full, chunks)
+        np.testing.assert_array_equal(full[::-1], apply_transform(T, p[::-1], origin=origin))
+        np.testing.assert_allclose(full, (p - (0 if origin is None else origin)) @ T[:3, :3].T + T[:3, 3]
+                                   + (0 if origin is None else origin), rtol=0, atol=1e-9)
+
+
+#: apply_transform on a million points in a fresh interpreter on the given cores; prints a digest of the bytes
+CHILD = """
+import hashlib, os
+cores = {cores!r}
+if cores is not None:
+    os.sched_setaffinity(0, cores)  # before numpy's thread pool starts
+import numpy as np
+from labkit.transforms import apply_transform, make_transform, rotation_from_angles
+T = make_transform(rotation_from_angles(0.01, -0.02, 0.3), [0.1, -0.2, 0.05])
+p = np.random.default_rng(5).uniform(-50, 50, (1_000_003, 3)) + [612_000.0, 5_701_000.0, 80.0]
+out = [apply_transform(T, p), apply_transform(T, p, origin=p[0])]
+print(hashlib.sha256(b"".join(a.tobytes() for a in out)).hexdigest())
+"""
+
+
+def test_apply_transform_is_bit_identical_on_one_and_all_cores():
+    import os
+    import subprocess
+    import sys
+
+    all_cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
+    one = None if all_cores is None else {all_cores[0]}
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    runs = [subprocess.Popen([sys.executable, "-c", CHILD.format(cores=cores)], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True, env=e)
+            for cores, e in ((None, None), (one, env))]  # side by side: every core vs one core, one thread
+    out = []
+    for run in runs:
+        stdout, stderr = run.communicate(timeout=300)
+        assert run.returncode == 0, stderr[-2000:]
+        out.append(stdout.strip())
+    assert out[0] and out[0] == out[1]
