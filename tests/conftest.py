@@ -60,3 +60,31 @@ def pytest_collection_modifyitems(config, items):
     if left_out:
         config.hook.pytest_deselected(items=left_out)
         items[:] = keep
+
+
+# --- the same bits on any number of cores ---------------------------------------------------
+@pytest.fixture
+def all_cores_and_one():
+    """Run two Python snippets side by side in fresh interpreters: the first on every core, the second
+    pinned to one core with one thread per pool (numba, BLAS, OpenMP). Returns their stripped stdouts
+    (each run must succeed); a test compares them to show that a result does not depend on the threads.
+    """
+    import subprocess
+    import sys
+
+    def run(code_all, code_one, timeout=600):
+        one = {sorted(os.sched_getaffinity(0))[0]} if hasattr(os, "sched_getaffinity") else None
+        single = dict(os.environ, NUMBA_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1",
+                      MKL_NUM_THREADS="1")
+        pin = None if one is None else (lambda: os.sched_setaffinity(0, one))  # before numpy's pools start
+        runs = [subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                 text=True, env=env, preexec_fn=pre)
+                for code, env, pre in ((code_all, None, None), (code_one, single, pin))]
+        out = []
+        for proc in runs:
+            stdout, stderr = proc.communicate(timeout=timeout)
+            assert proc.returncode == 0, stderr[-2000:]
+            out.append(stdout.strip())
+        return out
+
+    return run

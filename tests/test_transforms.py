@@ -124,12 +124,9 @@ def test_a_point_moves_to_the_same_bits_alone_or_among_others():
                                    + (0 if origin is None else origin), rtol=0, atol=1e-9)
 
 
-#: apply_transform on a million points in a fresh interpreter on the given cores; prints a digest of the bytes
+#: apply_transform on a million points in a fresh interpreter; prints a digest of the bytes
 CHILD = """
-import hashlib, os
-cores = {cores!r}
-if cores is not None:
-    os.sched_setaffinity(0, cores)  # before numpy's thread pool starts
+import hashlib
 import numpy as np
 from labkit.transforms import apply_transform, make_transform, rotation_from_angles
 T = make_transform(rotation_from_angles(0.01, -0.02, 0.3), [0.1, -0.2, 0.05])
@@ -139,20 +136,6 @@ print(hashlib.sha256(b"".join(a.tobytes() for a in out)).hexdigest())
 """
 
 
-def test_apply_transform_is_bit_identical_on_one_and_all_cores():
-    import os
-    import subprocess
-    import sys
-
-    all_cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
-    one = None if all_cores is None else {all_cores[0]}
-    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    runs = [subprocess.Popen([sys.executable, "-c", CHILD.format(cores=cores)], stdout=subprocess.PIPE,
-                             stderr=subprocess.PIPE, text=True, env=e)
-            for cores, e in ((None, None), (one, env))]  # side by side: every core vs one core, one thread
-    out = []
-    for run in runs:
-        stdout, stderr = run.communicate(timeout=300)
-        assert run.returncode == 0, stderr[-2000:]
-        out.append(stdout.strip())
+def test_apply_transform_is_bit_identical_on_one_and_all_cores(all_cores_and_one):
+    out = all_cores_and_one(CHILD, CHILD, timeout=300)
     assert out[0] and out[0] == out[1]

@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,12 +11,9 @@ from labkit.registration import icp
 HERE = Path(__file__).resolve().parent
 
 #: one ICP run with defaults (point selection, threaded kd-tree build and queries on > 100,000 points,
-#: height-model fill of the along-ridge X) in a fresh interpreter on the given cores; prints the bytes
+#: height-model fill of the along-ridge X) in a fresh interpreter; prints the bytes
 CHILD = """
-import os, sys
-cores = {cores!r}
-if cores is not None:
-    os.sched_setaffinity(0, cores)  # before numpy, numba and the thread pools start
+import sys
 sys.path.insert(0, {here!r})
 import numpy as np
 from test_height_model import SHIFT, gable_scene
@@ -35,22 +29,9 @@ print(b"".join(np.ascontiguousarray(a).tobytes() for a in (res.translation, res.
 """
 
 
-def _run(cores, first, env=None):
-    code = CHILD.format(cores=cores, here=str(HERE), first=first)
-    return subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env=env)
-
-
-def test_icp_is_bit_identical_across_processes_thread_counts_and_call_order():
-    all_cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
-    one = None if all_cores is None else {all_cores[0]}
-    env = dict(os.environ, NUMBA_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
-    runs = [_run(None, True), _run(one, False, env)]  # side by side: every core vs one core, one BLAS thread
-    out = []
-    for run in runs:
-        stdout, stderr = run.communicate(timeout=600)
-        assert run.returncode == 0, stderr[-2000:]
-        out.append(stdout.strip())
+def test_icp_is_bit_identical_across_processes_thread_counts_and_call_order(all_cores_and_one):
+    code = lambda first: CHILD.format(here=str(HERE), first=first)  # noqa: E731
+    out = all_cores_and_one(code(True), code(False))  # every core vs one core, one thread per pool
     assert out[0] and out[0] == out[1]
 
 
