@@ -13,17 +13,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..sphere.sweeps import SIMD, lazy_kernel
+from ..core.jit import SIMD, compiled, have_numba
 
-_KERNELS = {}  # (kernel, simd) -> lazy_kernel's answer
+_KERNELS = {}  # (kernel, simd) -> the compiled kernel, or None without numba
 
 
 def _jit(kernel, simd=False):
     """The compiled kernel (numba loads on its first call), or None without numba; ``simd``: loops over
-    points in SIMD registers (:data:`labkit.sphere.sweeps.SIMD`)."""
+    points in SIMD registers (:data:`labkit.core.jit.SIMD`)."""
     key = (kernel, simd)
-    if key not in _KERNELS:  # (looked up once: lazy_kernel's key costs a few microseconds per call)
-        _KERNELS[key] = lazy_kernel(kernel, **(SIMD if simd else {}))
+    if key not in _KERNELS:  # (looked up once here: compiled's key costs a few microseconds per call)
+        _KERNELS[key] = compiled(kernel, **(SIMD if simd else {})) if have_numba() else None
     return _KERNELS[key]
 
 

@@ -11,40 +11,16 @@ coordinates: no (3, n) copies, no temporaries of length n but the results.
 The sums run in another order than numpy's, so results agree with the numpy
 route of :mod:`~labkit.sphere.ghm` to rounding (about 1e-15 relative).
 
-:func:`lazy_kernel` is the package's switch for compiled kernels: numba is
-imported on the first call of a kernel, never on import, and without numba
-the callers keep their numpy route.
+The kernels are compiled by :func:`labkit.core.jit.compiled` when they are
+first asked for (numba is imported then, never on import of this module);
+without numba the callers keep their numpy route.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-_COMPILED = {}  # kernel -> its compiled version (None without numba)
-#: Options of the loops that sum over points: numpy's float semantics (a division by zero gives inf or NaN
-#: instead of a branch that raises) and sums that may be reordered, so that the loops run in SIMD registers.
-#: Only for coordinates reduced to a local origin: reordered differences of UTM-sized numbers lose digits.
-SIMD = {"error_model": "numpy", "fastmath": {"reassoc", "nsz", "contract"}}
-
-
-def lazy_kernel(kernel, **options):
-    """``numba.njit(cache=True, nogil=True, **options)(kernel)``, compiled on the first request; None without numba.
-
-    Examples
-    --------
-    >>> from labkit.sphere.sweeps import _statistics, lazy_kernel
-    >>> lazy_kernel(_statistics) is lazy_kernel(_statistics)  # one compilation per kernel and options
-    True
-    """
-    key = (kernel, repr(sorted(options.items())))
-    if key not in _COMPILED:
-        try:
-            import numba
-        except ImportError:  # pragma: no cover - depends on the environment
-            _COMPILED[key] = None
-        else:
-            _COMPILED[key] = numba.njit(cache=True, nogil=True, **options)(kernel)
-    return _COMPILED[key]
+from ..core.jit import compiled, have_numba
 
 
 def _linearize_sums(pts, o, v0, x, q, u, b, w):  # pragma: no cover - compiled
@@ -133,5 +109,6 @@ def point_statistics(pts, origin, it, Qxx, scale, statistics):
 def compiled_sweeps():
     """The three compiled sweeps, or None without numba."""
     # (not SIMD: the coordinates may be UTM-sized, and a reordered l_i = p_i - o would lose their digits)
-    kernels = tuple(lazy_kernel(f, error_model="numpy") for f in (_linearize_sums, _correlates, _statistics))
-    return None if kernels[0] is None else kernels
+    if not have_numba():  # pragma: no cover - depends on the environment
+        return None
+    return tuple(compiled(f, error_model="numpy") for f in (_linearize_sums, _correlates, _statistics))
