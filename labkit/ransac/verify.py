@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
 from ._ball import ball_counts, ball_counts_t, ball_indices, best_plane, gather, near_shell, shell_points, shell_tally
@@ -256,18 +258,41 @@ def _cap_spread(normals, axis):
     """
     if axis is None:
         axis = _column_mean(normals)
-        if np.linalg.norm(axis) < 0.2:
+        if _norm(axis) < 0.2:
             return 1.0  # normals all round the sphere (several stations): no single cap to check
-    a = axis / np.linalg.norm(axis)
+    a = axis / _norm(axis)
     helper = np.array([0.0, 0.0, 1.0]) if abs(a[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    e1 = np.cross(a, helper)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(a, e1)
+    e1 = _cross(a, helper)
+    e1 /= _norm(e1)
+    e2 = _cross(a, e1)
     if len(normals) <= 2:
         return 0.0
     uv = normals @ np.column_stack([e1, e2])
     uv -= _column_mean(uv)
     return float(np.linalg.eigvalsh(uv.T @ uv / (len(uv) - 1))[0])  # (the sample covariance, as np.cov)
+
+
+def _cross(a, b):
+    """np.cross of two 3-vectors (the same products and differences, without its axis handling)."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def _norm(a):
+    """np.linalg.norm of a 3-vector (the same sum of squares, as its dot product)."""
+    return float(np.sqrt(a.dot(a)))
+
+
+_PLANES = threading.local()  # per thread: a generator reset to the state of default_rng(0) for each share
+_PLANE_SEED = np.random.default_rng(0).bit_generator.state
+
+
+def _plane_generator():
+    """This thread's generator, reset to the stream of default_rng(0) (cheaper than building one)."""
+    gen = getattr(_PLANES, "gen", None)
+    if gen is None:
+        gen = _PLANES.gen = np.random.default_rng(0)
+    gen.bit_generator.state = _PLANE_SEED
+    return gen
 
 
 def _two_plane_share(P, t, trials=256):
@@ -282,7 +307,7 @@ def _two_plane_share(P, t, trials=256):
     n = len(P)
     if n < 6:
         return 1.0
-    gen = np.random.default_rng(0)
+    gen = _plane_generator()
     left = np.ones(n, dtype=bool)
     held = 0
     for _ in range(2):
