@@ -6,7 +6,9 @@ import threading
 
 import numpy as np
 
-from ._ball import ball_counts, ball_counts_t, ball_indices, best_plane, gather, near_shell, shell_points, shell_tally
+from ._ball import (
+    ball_counts, ball_counts_t, ball_indices, best_plane, gather, near_shell, residuals, shell_points, shell_tally,
+)
 from .config import (
     BACKFACE_SHARE, BAND_K, COARSE_CLEAR, COARSE_POINTS, CONTRAST, INTERIOR_SHARE, MIN_LEVELS, MIN_SPREAD, PLANE_RATIO,
     SHADOW_SHARE, SHAPE_POINTS, TWO_PLANES_POINTS, TWO_PLANES_SHARE, VERIFY_MAX, S,
@@ -38,6 +40,7 @@ class Verifier:
         self._rejected = []  # polished spheres that failed
         self._R = None  # the same as an array (cached)
         self._ball = None  # (centre, radius, indices, points by axis) of the last ball read from the cloud
+        self._sample = None  # (that ball, an even subsample of its points by axis) for the polishing
 
     def _by_axis(self, idx):
         """The points X[idx] stored by axis (3, k), for the compiled sums."""
@@ -118,25 +121,41 @@ class Verifier:
         dc2 = squared_center_distances(X[:, :3], np.einsum("ij,ij->i", X[:, :3], X[:, :3]), R[:, :3])
         return ((dc2 < tol * tol) & (np.abs(X[:, None, 3] - R[None, :, 3]) < tol)).any(axis=1)
 
-    def _local(self, x, reach):
-        """Indices and residuals d (eq. 25) of the points within r + reach of the centre.
+    def _kept(self, c, r, reach):
+        """The kept ball (centre, radius, indices, points by axis), read anew from the cloud unless it
+        holds every point within r + reach of c.
 
         The polishing rounds and checks of one candidate ask for nearly the same ball
         again and again: the points of a somewhat larger ball are kept, and a ball inside
-        it is answered from them (the same points in the same order, the same d).
+        it is answered from them (the same points in the same order).
         """
-        c, r = np.asarray(x[:3], dtype=np.float64), float(x[3])
         if self._ball is not None:
-            c0, R0, idx0, B0 = self._ball
+            c0, R0 = self._ball[0], self._ball[1]
             if np.linalg.norm(c - c0) + r + reach <= R0 * (1.0 - 1e-9):  # inside the kept ball
-                i, d = shell_points(B0, c, r, reach, by_axis=True)
-                return np.take(idx0, i), d
+                return self._ball
         R0 = r + max(reach, 2.0 * BAND_K * self.cfg.threshold * 3.0) + max(2.0 * self.cfg.threshold, 0.05 * r)
         # (a small cloud is also stored by axis for the coarse test: contiguous columns read faster)
         idx0 = ball_indices(self._sub, c, R0, by_axis=True) if self._sub_all else ball_indices(self.X, c, R0)
         self._ball = (c.copy(), R0, idx0, self._by_axis(idx0))
-        i, d = shell_points(self._ball[3], c, r, reach, by_axis=True)
+        self._sample = None
+        return self._ball
+
+    def _local(self, x, reach):
+        """Indices and residuals d (eq. 25) of the points within r + reach of the centre (from the kept ball)."""
+        c, r = np.asarray(x[:3], dtype=np.float64), float(x[3])
+        _, _, idx0, B0 = self._kept(c, r, reach)
+        i, d = shell_points(B0, c, r, reach, by_axis=True)
         return np.take(idx0, i), d
+
+    def _ball_sample(self, x, reach):
+        """An even subsample of at most about ``SHAPE_POINTS`` points of the kept ball that holds every
+        point within r + reach of the centre, by axis (3, k); every point of a small ball."""
+        c, r = np.asarray(x[:3], dtype=np.float64), float(x[3])
+        ball = self._kept(c, r, reach)
+        if self._sample is None or self._sample[0] is not ball:
+            B0 = ball[3]
+            self._sample = (ball, np.ascontiguousarray(B0[:, :: -(-B0.shape[1] // SHAPE_POINTS)]))
+        return self._sample[1]
 
     def near_shell(self, x, reach):
         """:func:`~labkit.ransac._ball.near_shell` of the cloud, from the kept ball when it holds the shell."""
@@ -152,22 +171,25 @@ class Verifier:
         """Inliers -> orthogonal fit, three rounds; the band widens to k sigma_hat when t is below the noise.
 
         The polished sphere only decides the checks (the detection's sphere comes from the final
-        refit), so fit and scale use an even subsample of at most ``SHAPE_POINTS`` inliers.
+        refit), so fit and scale use an even subsample of at most about ``SHAPE_POINTS`` points of
+        the kept ball around the candidate: every pass of a round runs over that many points only.
         """
         band = t
-        idx, d = self._local(x, band)
+        T = self._ball_sample(x, 3.0 * t)  # holds every band of the rounds (band <= 3 t)
+        d = residuals(T, x, by_axis=True)
         for _ in range(3):
-            on = shell_tally(d, band)[0]
-            if len(on) <= S:
+            inl = np.abs(d) < band
+            if np.count_nonzero(inl) <= S:
                 return None
-            x_new = orthogonal_fit(self._by_axis(idx[_even(on, SHAPE_POINTS)]), x, steps=2, by_axis=True)
+            x_new = orthogonal_fit(T, x, steps=2, mask=inl, by_axis=True)  # on the inliers, without gathering them
             if x_new is None:
                 return None
             x = x_new
             if not 0.5 * self.cfg.r_min <= x[3] <= 2.0 * self.cfg.r_max:
                 return x  # far outside the radius range: more rounds will not bring it back (reasons() rejects)
-            idx, d = self._local(x, 3.0 * t)  # holds every band of the next round too (band <= 3 t)
-            d_in = d[_even(shell_tally(d, band)[0], SHAPE_POINTS)]
+            T = self._ball_sample(x, 3.0 * t)  # (the same points unless the sphere left the kept ball)
+            d = residuals(T, x, by_axis=True)
+            d_in = d[np.abs(d) < band]
             if len(d_in) > S:
                 band = max(t, min(BAND_K * truncated_mad_scale(np.abs(d_in), band), 3.0 * t))
         return x
