@@ -14,7 +14,9 @@ to take it.
 
 from __future__ import annotations
 
+import hashlib
 import importlib.util
+import types
 
 __all__ = ["SIMD", "compiled", "have_numba"]
 
@@ -72,15 +74,30 @@ def compiled(f=None, /, *, signature=None, **options):
     """
     if f is None:
         return lambda g: compiled(g, signature=signature, **options)
-    key = (f, signature, repr(sorted(options.items())))
+    flags = _canonical(options)
+    key = (f, signature, flags)
     kernel = _KERNELS.get(key)
     if kernel is None:
         if have_numba():
             import numba  # (first use: numba's own start-up is paid here, not on import of the caller)
 
             args = () if signature is None else (signature,)
-            kernel = numba.njit(*args, cache=True, nogil=True, **options)(f)
+            kernel = numba.njit(*args, cache=True, nogil=True, **options)(_cache_name(f, flags) if options else f)
         else:  # pragma: no cover - depends on the environment
             kernel = f
         _KERNELS[key] = kernel
     return kernel
+
+
+def _canonical(options):
+    """The options as a string that is the same in every process (sets sorted: their order follows the hash seed)."""
+    return repr(sorted((k, sorted(v) if isinstance(v, (set, frozenset)) else v) for k, v in options.items()))
+
+
+def _cache_name(f, flags):
+    """f under a name of its own for these options: numba's disk cache keys a kernel by its name and argument
+    types only, so the same function compiled with other options (e.g. fastmath) would load the wrong code."""
+    g = types.FunctionType(f.__code__, f.__globals__, f.__name__, f.__defaults__, f.__closure__)
+    g.__qualname__ = f"{f.__qualname__}__{hashlib.sha1(flags.encode()).hexdigest()[:8]}"
+    g.__module__, g.__doc__ = f.__module__, f.__doc__
+    return g

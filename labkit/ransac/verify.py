@@ -7,7 +7,8 @@ import threading
 import numpy as np
 
 from ._ball import (
-    ball_counts, ball_counts_t, ball_indices, best_plane, gather, near_shell, residuals, shell_points, shell_tally,
+    ball_counts, ball_counts_t, ball_indices, ball_tally, best_plane, gather, near_shell, residuals, shell_points,
+    shell_tally,
 )
 from .config import (
     BACKFACE_SHARE, BAND_K, COARSE_CLEAR, COARSE_POINTS, CONTRAST, INTERIOR_SHARE, MIN_LEVELS, MIN_SPREAD, PLANE_RATIO,
@@ -200,26 +201,32 @@ class Verifier:
         c, r = x[:3], float(x[3])
         if not cfg.r_min <= r <= cfg.r_max:
             return f"the adjusted radius {r:.5g} m lies outside [{cfg.r_min:.5g}, {cfg.r_max:.5g}] m"
-        idx, d = self._local(x, 3.0 * max(t, 2.0 * BAND_K * t))
-        on = shell_tally(d, t)[0]  # the points with |d| < t
-        n_in = len(on)
+        # counts on the kept ball (every point within r + reach), shape statistics on its even subsample
+        reach = 3.0 * max(t, 2.0 * BAND_K * t)
+        c = np.asarray(c, dtype=np.float64)
+        B = self._kept(c, r, reach)[3]
+        T = self._ball_sample(x, reach)
+        d = residuals(T, x, by_axis=True, simd=False)  # (a subset of the ball: never more points |d| < t)
+        n_in = int(np.count_nonzero(np.abs(d) < t))
+        if T is not B and n_in < max(cfg.min_inliers, SHAPE_POINTS // 64):  # the subsample alone cannot tell
+            n_in = ball_tally(B, c, r, reach, t)[0]
+            T, d = B, residuals(B, x, by_axis=True, simd=False)
         if n_in < cfg.min_inliers:
             return f"only {n_in} points on its shell |d| < {t:.3g} m in the full cloud (< min_inliers = {cfg.min_inliers})"
-        # robust, and consistent for the cut at t (a scale for the checks: an even subsample of the shell)
-        sigma_hat = truncated_mad_scale(np.abs(d[_even(on, SHAPE_POINTS)]), t)
+        # robust, and consistent for the cut at t (a scale for the checks, from the subsample's shell)
+        sigma_hat = truncated_mad_scale(np.abs(d[_even(np.flatnonzero(np.abs(d) < t), SHAPE_POINTS)]), t)
         margin = max(t, 3.5 * sigma_hat)
         # the shell: at least the noise band k sigma_hat (a t below the noise must not thin it out)
         t = max(t, min(BAND_K * sigma_hat, 2.0 * t))
-        on, inside, outside = shell_tally(d, t, margin)  # on the shell, inside (d < -margin), just outside
-        n_in = len(on)
+        n_in, inside, outside = ball_tally(B, c, r, reach, t, margin)  # on the shell, inside (d < -margin), just outside
         if inside > INTERIOR_SHARE * n_in:
             return (f"{inside} points lie inside it (for {n_in} on its shell): a solid sphere hides its interior, "
                     "so this is a cut through other surfaces or a volume of points, not a sphere")
         if n_in < CONTRAST * outside:
             return (f"too many points just outside the shell ({outside}, for {n_in} on it): no spherical surface "
                     "stands out, the points only pass through the shell (a cylinder, plane pieces, clutter)")
-        sel = _even(on, SHAPE_POINTS)  # the shape statistics (shares, rms, spreads)
-        P = gather(self.X, idx[sel])
+        sel = _even(np.flatnonzero(np.abs(d) < t), SHAPE_POINTS)  # the shape statistics (shares, rms, spreads)
+        P = np.ascontiguousarray(T[:, sel].T)
         q = P - _column_mean(P)
         rms_plane = np.sqrt(max(np.linalg.eigvalsh(q.T @ q / len(q))[0], 0.0))
         rms_sphere = np.sqrt(np.mean(d[sel] ** 2))
