@@ -157,6 +157,23 @@ def near_shell(X, c, r, reach, by_axis=False):
     return idx, d, T
 
 
+def _subtract(P, o, out):  # pragma: no cover - compiled
+    for i in range(P.shape[0]):
+        out[i, 0], out[i, 1], out[i, 2] = P[i, 0] - o[0], P[i, 1] - o[1], P[i, 2] - o[2]
+
+
+def reduced(P, origin):
+    """``P - origin`` for points P (n, 3) float64 as a new array, in one compiled pass (numpy's broadcast
+    runs an inner loop of three per row, about 4x slower); the same numbers."""
+    origin = np.asarray(origin, dtype=np.float64)
+    kernel = _jit(_subtract)
+    if kernel is None or P.dtype != np.float64 or not P.flags.c_contiguous or P.ndim != 2:  # pragma: no cover
+        return np.asarray(P, dtype=np.float64) - origin
+    out = np.empty(P.shape)
+    kernel(P, origin, out)
+    return out
+
+
 def _gather(X, idx, by_axis_out):  # pragma: no cover - compiled
     k = idx.shape[0]
     out = np.empty((3, k)) if by_axis_out else np.empty((k, 3))

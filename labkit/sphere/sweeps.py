@@ -23,11 +23,12 @@ import numpy as np
 from ..core.jit import compiled, have_numba
 
 
-def _linearize_sums(pts, o, v0, x, q, u, b, w):  # pragma: no cover - compiled
+def _linearize_sums(pts, o, v0, x, q, u, b, w, first):  # pragma: no cover - compiled
     """Sweep (1): rows b_i (eq. 10) and misclosures w_i (eq. 8) at l + v0, x; N and n (eq. 21).
 
     l_i = pts_i - o; q has one element (all points alike) or one per point;
-    u = 4 unknowns, or 3 with the radius held. Returns N, n, min r_i, max|l|, largest extent of l.
+    u = 4 unknowns, or 3 with the radius held; ``first``: v0 = 0 (not read: the same numbers, as
+    l + 0 = l and r - 0 = r). Returns N, n, min r_i, max|l|, largest extent of l.
     """
     one = q.shape[0] == 1
     n00 = n01 = n02 = n11 = n12 = n22 = n03 = n13 = n23 = n33 = 0.0  # sums in scalars (registers)
@@ -40,11 +41,16 @@ def _linearize_sums(pts, o, v0, x, q, u, b, w):  # pragma: no cover - compiled
         lo0, lo1, lo2 = min(lo0, l0), min(lo1, l1), min(lo2, l2)
         hi0, hi1, hi2 = max(hi0, l0), max(hi1, l1), max(hi2, l2)
         amax = max(amax, abs(l0), abs(l1), abs(l2))
-        a0, a1, a2 = (l0 + v0[i, 0]) - x[0], (l1 + v0[i, 1]) - x[1], (l2 + v0[i, 2]) - x[2]
+        if first:
+            a0, a1, a2 = l0 - x[0], l1 - x[1], l2 - x[2]
+        else:
+            a0, a1, a2 = (l0 + v0[i, 0]) - x[0], (l1 + v0[i, 1]) - x[1], (l2 + v0[i, 2]) - x[2]
         ri = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)  # (eq. 11)
         rmin = min(rmin, ri)
         b0, b1, b2 = a0 / ri, a1 / ri, a2 / ri  # (eq. 10)
-        wi = ri - x[3] - (b0 * v0[i, 0] + b1 * v0[i, 1] + b2 * v0[i, 2])  # (eq. 8)
+        wi = ri - x[3]  # (eq. 8)
+        if not first:
+            wi -= b0 * v0[i, 0] + b1 * v0[i, 1] + b2 * v0[i, 2]
         b[i, 0], b[i, 1], b[i, 2], w[i] = b0, b1, b2, wi
         p = 1.0 / q[0 if one else i]
         pb0, pb1, pb2 = p * b0, p * b1, p * b2  # a_i^T p_i with a_i = -[b_i, 1] (eq. 9), signs below
