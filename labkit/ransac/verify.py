@@ -226,26 +226,27 @@ class Verifier:
             return (f"too many points just outside the shell ({outside}, for {n_in} on it): no spherical surface "
                     "stands out, the points only pass through the shell (a cylinder, plane pieces, clutter)")
         sel = _even(np.flatnonzero(np.abs(d) < t), SHAPE_POINTS)  # the shape statistics (shares, rms, spreads)
-        P = np.ascontiguousarray(T[:, sel].T)
-        q = P - _column_mean(P)
-        rms_plane = np.sqrt(max(np.linalg.eigvalsh(q.T @ q / len(q))[0], 0.0))
+        Pt = T[:, sel]  # by axis (3, k): every step below is a contiguous loop per coordinate
+        q = Pt - (Pt.sum(axis=1) / Pt.shape[1])[:, None]
+        rms_plane = np.sqrt(max(np.linalg.eigvalsh(q @ q.T / Pt.shape[1])[0], 0.0))
         rms_sphere = np.sqrt(np.mean(d[sel] ** 2))
         if rms_plane < PLANE_RATIO * rms_sphere:
             return (f"the inliers are nearly flat (plane rms {rms_plane * 1e3:.3g} mm vs sphere rms "
                     f"{rms_sphere * 1e3:.3g} mm): a plane patch, not a sphere")
+        P = Pt.T  # (k, 3)
         planes = _two_plane_share(P, t)
         if planes >= TWO_PLANES_SHARE:
             return (f"{planes:.0%} of its inliers lie on one or two planes: pieces of planes (a floor, a wall, "
                     "an edge) cut by the sphere, not a sphere")
-        normals = P - c  # from the model, not from neighbours
-        normals /= np.sqrt(np.einsum("ij,ij->i", normals, normals))[:, None]
-        spread = _cap_spread(normals, None if self.station is None else self.station - c)
+        Nt = Pt - c[:, None]  # the normals from the model, not from neighbours
+        Nt /= np.sqrt(Nt[0] * Nt[0] + Nt[1] * Nt[1] + Nt[2] * Nt[2])
+        spread = _cap_spread(Nt, None if self.station is None else self.station - c)
         if spread < MIN_SPREAD:
             return (f"the inliers cover no cap (their normals spread over {np.degrees(np.sqrt(max(spread, 0))):.1f} deg "
                     "across): a ring or a strip, e.g. one scan line on a round object")
         if self.station is None:
             return ""
-        return self._visibility(c, r, margin, normals, P, n_in)
+        return self._visibility(c, r, margin, Nt.T, P, n_in)
 
     def _visibility(self, c, r, margin, normals, P, n_in):
         s = self.station
@@ -268,25 +269,22 @@ class Verifier:
         return ""
 
 
-def _column_mean(A):
-    """A.mean(axis=0) of an (m, k) array, in einsum's loop (numpy's strided reduction is 4x slower)."""
-    return np.einsum("ij->j", A) / len(A)
-
-
 def _even(sel, m):
     """An even subsample of at most about m of the indices sel (all of them when there are fewer)."""
     return sel if len(sel) <= m else sel[:: -(-len(sel) // m)]
 
 
-def _cap_spread(normals, axis):
-    """Smallest variance of the unit normals across the viewing axis (1/4 for a full hemisphere).
+def _cap_spread(Nt, axis):
+    """Smallest variance of the unit normals Nt (3, k), by axis, across the viewing axis (1/4 for a full
+    hemisphere).
 
     The normals are projected onto the plane normal to ``axis`` (the direction
     to the station, or their mean direction when no station is known); a cap
     spreads in both directions, a ring or strip of one scan line in one only.
     """
+    k = Nt.shape[1]
     if axis is None:
-        axis = _column_mean(normals)
+        axis = Nt.sum(axis=1) / k
         if _norm(axis) < 0.2:
             return 1.0  # normals all round the sphere (several stations): no single cap to check
     a = axis / _norm(axis)
@@ -294,11 +292,11 @@ def _cap_spread(normals, axis):
     e1 = _cross(a, helper)
     e1 /= _norm(e1)
     e2 = _cross(a, e1)
-    if len(normals) <= 2:
+    if k <= 2:
         return 0.0
-    uv = normals @ np.column_stack([e1, e2])
-    uv -= _column_mean(uv)
-    return float(np.linalg.eigvalsh(uv.T @ uv / (len(uv) - 1))[0])  # (the sample covariance, as np.cov)
+    uv = np.vstack([e1, e2]) @ Nt  # (2, k)
+    uv -= (uv.sum(axis=1) / k)[:, None]
+    return float(np.linalg.eigvalsh(uv @ uv.T / (k - 1))[0])  # (the sample covariance, as np.cov)
 
 
 def _cross(a, b):
