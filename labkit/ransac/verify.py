@@ -226,7 +226,7 @@ class Verifier:
             return (f"too many points just outside the shell ({outside}, for {n_in} on it): no spherical surface "
                     "stands out, the points only pass through the shell (a cylinder, plane pieces, clutter)")
         sel = _even(np.flatnonzero(np.abs(d) < t), SHAPE_POINTS)  # the shape statistics (shares, rms, spreads)
-        Pt = T[:, sel]  # by axis (3, k): every step below is a contiguous loop per coordinate
+        Pt = np.take(T, sel, axis=1)  # by axis (3, k), C-contiguous: each step below loops over one coordinate
         q = Pt - (Pt.sum(axis=1) / Pt.shape[1])[:, None]
         rms_plane = np.sqrt(max(np.linalg.eigvalsh(q @ q.T / Pt.shape[1])[0], 0.0))
         rms_sphere = np.sqrt(np.mean(d[sel] ** 2))
