@@ -22,9 +22,10 @@ class Verifier:
     """Is a hypothesis a sphere cap seen by the scanner? Checks on the full cloud (reduced frame).
 
     ``accepts(x)`` is asked for every hypothesis that would become the best:
-    it polishes x on its inliers of the full cloud (rounds of inliers ->
-    orthogonal fit, on an even subsample of at most ``SHAPE_POINTS`` of them)
-    and runs :meth:`reasons`. Rejected spheres are remembered,
+    it polishes x on its inliers (rounds of inliers -> orthogonal fit, on an
+    even subsample of at most about ``SHAPE_POINTS`` points of the ball around
+    it) and runs :meth:`reasons` (counts on every point of the full cloud near
+    the shell, scale and shape statistics on that subsample). Rejected spheres are remembered,
     and hypotheses close to one of them are rejected without a new check.
     """
 
