@@ -32,15 +32,11 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-try:  # numba compiles the kernel; without it np.linalg.eigh does the work
-    import numba
+from ..core.jit import compiled, have_numba
 
-    HAVE_NUMBA = True
-except ImportError:  # pragma: no cover - depends on the environment
-    numba = None
-    HAVE_NUMBA = False
+HAVE_NUMBA = have_numba()  # numba compiles the kernels; without it np.linalg.eigh does the work
 
-__all__ = ["HAVE_NUMBA", "compiled", "eigh3", "eigh3_analytic"]
+__all__ = ["HAVE_NUMBA", "eigh3", "eigh3_analytic"]
 
 _EPS2 = np.finfo(np.float64).eps ** 2
 _TINY = 1e-290  # off-diagonal elements below this (relative to the largest entry, 1) are zero
@@ -48,28 +44,7 @@ _PER_THREAD = 5000  # matrices per thread at least (about 1.5 ms of work, well a
 _MAX_SWEEPS = 30  # 3-5 needed; the cap only stops NaN that slipped through
 
 
-def compiled(f):
-    """``numba.njit(cache=True, nogil=True)`` of ``f`` where numba is installed, else ``f`` itself.
-
-    The one switch of the package's compiled kernels (k-d tree, moments, eigen-solver).
-
-    Examples
-    --------
-    >>> from labkit.neighbours.eigh3 import HAVE_NUMBA
-    >>> from labkit.neighbours.moments import knn_moments  # defined under @compiled
-    >>> type(knn_moments).__name__ == ("CPUDispatcher" if HAVE_NUMBA else "function")
-    True
-    """
-    return numba.njit(cache=True, nogil=True)(f) if HAVE_NUMBA else f
-
-
-def _njit(*args, **kwargs):
-    if HAVE_NUMBA:
-        return numba.njit(*args, cache=True, nogil=True, **kwargs)
-    return lambda f: f  # pragma: no cover
-
-
-@_njit()
+@compiled
 def _rotation(app, aqq, apq):  # pragma: no cover - compiled
     """c, s, t = tan(phi) of the rotation that annihilates a_pq (GvL Alg. 8.5.1)."""
     theta = (aqq - app) / (2.0 * apq)  # cot(2 phi)
@@ -84,7 +59,7 @@ def _rotation(app, aqq, apq):  # pragma: no cover - compiled
     return c, t * c, t
 
 
-@_njit()
+@compiled
 def _small(apq, app, aqq):  # pragma: no cover - compiled
     """True when a_pq is negligible: a_pq^2 <= eps^2 |a_pp a_qq| (Demmel-Veselic).
 
@@ -96,7 +71,7 @@ def _small(apq, app, aqq):  # pragma: no cover - compiled
 
 # Eager signature: compiled (or loaded from the cache) at import, so no call pays numba's
 # one-time start-up (0.1-0.25 s per process, mostly loading numba's own registries).
-@_njit("void(float64[:, :, ::1], float64[:, ::1], float64[:, :, ::1])")
+@compiled(signature="void(float64[:, :, ::1], float64[:, ::1], float64[:, :, ::1])")
 def _jacobi3(C, lam, V):  # pragma: no cover - compiled
     """Cyclic Jacobi on each C[i] (lower triangle); ascending lam[i], eigenvectors in V[i]'s columns."""
     for i in range(C.shape[0]):
@@ -223,7 +198,7 @@ def eigh3(C, *, workers: int = 1):
     return lam.reshape(lead + (3,)), V.reshape(lead + (3, 3))
 
 
-@_njit()
+@compiled
 def _null_vector(a00, a01, a02, a11, a12, a22, e):  # pragma: no cover - compiled
     """Unit vector of the null space of A - e I (rank 2): the longest cross product of two rows."""
     r0x, r0y, r0z = a00 - e, a01, a02
@@ -246,7 +221,7 @@ def _null_vector(a00, a01, a02, a11, a12, a22, e):  # pragma: no cover - compile
     s = 1.0 / math.sqrt(d12)
     return c12x * s, c12y * s, c12z * s
 
-@_njit()
+@compiled
 def _pair(a00, a01, a02, a11, a12, a22, wx, wy, wz):  # pragma: no cover - compiled
     """The two eigenpairs orthogonal to the unit eigenvector w: the 2x2 problem on an orthonormal
     basis (u, v) of w's complement, diagonalised by one plane rotation (exact up to rounding,
@@ -271,12 +246,12 @@ def _pair(a00, a01, a02, a11, a12, a22, wx, wy, wz):  # pragma: no cover - compi
     return c * ux - s * vx, c * uy - s * vy, c * uz - s * vz, e1, s * ux + c * vx, s * uy + c * vy, s * uz + c * vz, e2
 
 
-@_njit()
+@compiled
 def _rq(a00, a01, a02, a11, a12, a22, x, y, z):  # pragma: no cover - compiled
     """Rayleigh quotient v^T A v of a unit vector v."""
     return a00 * x * x + a11 * y * y + a22 * z * z + 2.0 * (a01 * x * y + a02 * x * z + a12 * y * z)
 
-@_njit()
+@compiled
 def _analytic3(C, lam, V):  # pragma: no cover - compiled
     """Closed-form eigen decomposition of each C[i] (lower triangle; Eberly 2014), ascending lam[i]."""
     for i in range(C.shape[0]):

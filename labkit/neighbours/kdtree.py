@@ -36,7 +36,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .eigh3 import HAVE_NUMBA, compiled
+from ..core.jit import compiled
+from .eigh3 import HAVE_NUMBA
 from .kdtree_build import _build_two, _duplicates, _pool, _threads
 from .kdtree_nn import nearest
 from .moments import covariances, knn_moments

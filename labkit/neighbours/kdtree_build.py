@@ -12,7 +12,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from .eigh3 import HAVE_NUMBA, compiled
+from ..core.jit import compiled
+from .eigh3 import HAVE_NUMBA
 
 
 

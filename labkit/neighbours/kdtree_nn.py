@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .eigh3 import compiled
+from ..core.jit import compiled
 from .kdtree_build import _pool
 
 

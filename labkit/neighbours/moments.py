@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .eigh3 import HAVE_NUMBA, compiled
+from ..core.jit import compiled
+from .eigh3 import HAVE_NUMBA
 
 
 __all__ = ["covariances", "knn_moments", "masked_covariances"]

@@ -30,7 +30,8 @@ LOCAL_MAX_PAIRS = 8_000_000  # ... and the neighbour pairs stay affordable
 FINAL_ATTEMPTS = 3  # searches per working set when the final refit of the best fails its checks
 VERIFY_PER_BATCH = 16  # candidates verified per batch at most (the best-scoring ones)
 VERIFY_MAX = 400  # candidates verified per search at most
-SHAPE_POINTS = 8192  # polishing, scale and shape checks of a candidate: an even subsample of at most this many inliers
+SHAPE_POINTS = 8192  # polishing, scale and shape checks of a candidate: an even subsample of about this many
+# points of the ball around it (the counts of the checks take every point)
 COARSE_POINTS = 65_536  # the coarse interior test runs first on an even subsample of about this many points
 COARSE_CLEAR = 100  # ... and rejects there only with this many points deep inside and twice the limit
 

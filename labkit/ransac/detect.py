@@ -11,6 +11,7 @@ import numpy as np
 from ..core.checks import as_points, choice, count, numeric_array, positive, probability
 from ..core.frame import local_origin, reduce
 from ..core.errors import LabkitError
+from ._ball import reduced
 from .config import FINAL_ATTEMPTS, LOCAL_MAX_PAIRS, LOCAL_MAX_SHARE, LOCAL_REACH, S, Config
 from .refit import refit_sphere
 from .result import RansacResult, not_found
@@ -187,7 +188,7 @@ def ransac_sphere(
 
     # Search a random reduction of the cloud; if nothing is found there, a 4x and a 16x larger one
     origin = local_origin(xyz)
-    verifier = Verifier(reduce(xyz, origin), None if station is None else station - origin, cfg)
+    verifier = Verifier(reduced(xyz, origin), None if station is None else station - origin, cfg)
     tried = []
     for size in _reduction_sizes(len(xyz), preliminary_size):
         result, had_best = _detect(xyz, origin, working_set(len(xyz), size, gen), cfg, seed, gen, verifier)

@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
-from ._ball import ball_counts, ball_counts_t, ball_indices, best_plane, gather, near_shell, shell_points, shell_tally
+from ._ball import (
+    ball_counts, ball_counts_t, ball_indices, ball_tally, best_plane, gather, near_shell, residuals, shell_points,
+    shell_tally,
+)
 from .config import (
     BACKFACE_SHARE, BAND_K, COARSE_CLEAR, COARSE_POINTS, CONTRAST, INTERIOR_SHARE, MIN_LEVELS, MIN_SPREAD, PLANE_RATIO,
     SHADOW_SHARE, SHAPE_POINTS, TWO_PLANES_POINTS, TWO_PLANES_SHARE, VERIFY_MAX, S,
@@ -17,9 +22,10 @@ class Verifier:
     """Is a hypothesis a sphere cap seen by the scanner? Checks on the full cloud (reduced frame).
 
     ``accepts(x)`` is asked for every hypothesis that would become the best:
-    it polishes x on its inliers of the full cloud (rounds of inliers ->
-    orthogonal fit, on an even subsample of at most ``SHAPE_POINTS`` of them)
-    and runs :meth:`reasons`. Rejected spheres are remembered,
+    it polishes x on its inliers (rounds of inliers -> orthogonal fit, on an
+    even subsample of at most about ``SHAPE_POINTS`` points of the ball around
+    it) and runs :meth:`reasons` (counts on every point of the full cloud near
+    the shell, scale and shape statistics on that subsample). Rejected spheres are remembered,
     and hypotheses close to one of them are rejected without a new check.
     """
 
@@ -36,6 +42,7 @@ class Verifier:
         self._rejected = []  # polished spheres that failed
         self._R = None  # the same as an array (cached)
         self._ball = None  # (centre, radius, indices, points by axis) of the last ball read from the cloud
+        self._sample = None  # (that ball, an even subsample of its points by axis) for the polishing
 
     def _by_axis(self, idx):
         """The points X[idx] stored by axis (3, k), for the compiled sums."""
@@ -116,25 +123,41 @@ class Verifier:
         dc2 = squared_center_distances(X[:, :3], np.einsum("ij,ij->i", X[:, :3], X[:, :3]), R[:, :3])
         return ((dc2 < tol * tol) & (np.abs(X[:, None, 3] - R[None, :, 3]) < tol)).any(axis=1)
 
-    def _local(self, x, reach):
-        """Indices and residuals d (eq. 25) of the points within r + reach of the centre.
+    def _kept(self, c, r, reach):
+        """The kept ball (centre, radius, indices, points by axis), read anew from the cloud unless it
+        holds every point within r + reach of c.
 
         The polishing rounds and checks of one candidate ask for nearly the same ball
         again and again: the points of a somewhat larger ball are kept, and a ball inside
-        it is answered from them (the same points in the same order, the same d).
+        it is answered from them (the same points in the same order).
         """
-        c, r = np.asarray(x[:3], dtype=np.float64), float(x[3])
         if self._ball is not None:
-            c0, R0, idx0, B0 = self._ball
+            c0, R0 = self._ball[0], self._ball[1]
             if np.linalg.norm(c - c0) + r + reach <= R0 * (1.0 - 1e-9):  # inside the kept ball
-                i, d = shell_points(B0, c, r, reach, by_axis=True)
-                return np.take(idx0, i), d
+                return self._ball
         R0 = r + max(reach, 2.0 * BAND_K * self.cfg.threshold * 3.0) + max(2.0 * self.cfg.threshold, 0.05 * r)
         # (a small cloud is also stored by axis for the coarse test: contiguous columns read faster)
         idx0 = ball_indices(self._sub, c, R0, by_axis=True) if self._sub_all else ball_indices(self.X, c, R0)
         self._ball = (c.copy(), R0, idx0, self._by_axis(idx0))
-        i, d = shell_points(self._ball[3], c, r, reach, by_axis=True)
+        self._sample = None
+        return self._ball
+
+    def _local(self, x, reach):
+        """Indices and residuals d (eq. 25) of the points within r + reach of the centre (from the kept ball)."""
+        c, r = np.asarray(x[:3], dtype=np.float64), float(x[3])
+        _, _, idx0, B0 = self._kept(c, r, reach)
+        i, d = shell_points(B0, c, r, reach, by_axis=True)
         return np.take(idx0, i), d
+
+    def _ball_sample(self, x, reach):
+        """An even subsample of at most about ``SHAPE_POINTS`` points of the kept ball that holds every
+        point within r + reach of the centre, by axis (3, k); every point of a small ball."""
+        c, r = np.asarray(x[:3], dtype=np.float64), float(x[3])
+        ball = self._kept(c, r, reach)
+        if self._sample is None or self._sample[0] is not ball:
+            B0 = ball[3]
+            self._sample = (ball, np.ascontiguousarray(B0[:, :: -(-B0.shape[1] // SHAPE_POINTS)]))
+        return self._sample[1]
 
     def near_shell(self, x, reach):
         """:func:`~labkit.ransac._ball.near_shell` of the cloud, from the kept ball when it holds the shell."""
@@ -150,22 +173,25 @@ class Verifier:
         """Inliers -> orthogonal fit, three rounds; the band widens to k sigma_hat when t is below the noise.
 
         The polished sphere only decides the checks (the detection's sphere comes from the final
-        refit), so fit and scale use an even subsample of at most ``SHAPE_POINTS`` inliers.
+        refit), so fit and scale use an even subsample of at most about ``SHAPE_POINTS`` points of
+        the kept ball around the candidate: every pass of a round runs over that many points only.
         """
         band = t
-        idx, d = self._local(x, band)
+        T = self._ball_sample(x, 3.0 * t)  # holds every band of the rounds (band <= 3 t)
+        d = residuals(T, x, by_axis=True)
         for _ in range(3):
-            on = shell_tally(d, band)[0]
-            if len(on) <= S:
+            inl = np.abs(d) < band
+            if np.count_nonzero(inl) <= S:
                 return None
-            x_new = orthogonal_fit(self._by_axis(idx[_even(on, SHAPE_POINTS)]), x, steps=2, by_axis=True)
+            x_new = orthogonal_fit(T, x, steps=2, mask=inl, by_axis=True)  # on the inliers, without gathering them
             if x_new is None:
                 return None
             x = x_new
             if not 0.5 * self.cfg.r_min <= x[3] <= 2.0 * self.cfg.r_max:
                 return x  # far outside the radius range: more rounds will not bring it back (reasons() rejects)
-            idx, d = self._local(x, 3.0 * t)  # holds every band of the next round too (band <= 3 t)
-            d_in = d[_even(shell_tally(d, band)[0], SHAPE_POINTS)]
+            T = self._ball_sample(x, 3.0 * t)  # (the same points unless the sphere left the kept ball)
+            d = residuals(T, x, by_axis=True)
+            d_in = d[np.abs(d) < band]
             if len(d_in) > S:
                 band = max(t, min(BAND_K * truncated_mad_scale(np.abs(d_in), band), 3.0 * t))
         return x
@@ -176,45 +202,52 @@ class Verifier:
         c, r = x[:3], float(x[3])
         if not cfg.r_min <= r <= cfg.r_max:
             return f"the adjusted radius {r:.5g} m lies outside [{cfg.r_min:.5g}, {cfg.r_max:.5g}] m"
-        idx, d = self._local(x, 3.0 * max(t, 2.0 * BAND_K * t))
-        on = shell_tally(d, t)[0]  # the points with |d| < t
-        n_in = len(on)
+        # counts on the kept ball (every point within r + reach), shape statistics on its even subsample
+        reach = 3.0 * max(t, 2.0 * BAND_K * t)
+        c = np.asarray(c, dtype=np.float64)
+        B = self._kept(c, r, reach)[3]
+        T = self._ball_sample(x, reach)
+        d = residuals(T, x, by_axis=True, simd=False)  # (a subset of the ball: never more points |d| < t)
+        n_in = int(np.count_nonzero(np.abs(d) < t))
+        if T is not B and n_in < max(cfg.min_inliers, SHAPE_POINTS // 64):  # the subsample alone cannot tell
+            n_in = ball_tally(B, c, r, reach, t)[0]
+            T, d = B, residuals(B, x, by_axis=True, simd=False)
         if n_in < cfg.min_inliers:
             return f"only {n_in} points on its shell |d| < {t:.3g} m in the full cloud (< min_inliers = {cfg.min_inliers})"
-        # robust, and consistent for the cut at t (a scale for the checks: an even subsample of the shell)
-        sigma_hat = truncated_mad_scale(np.abs(d[_even(on, SHAPE_POINTS)]), t)
+        # robust, and consistent for the cut at t (a scale for the checks, from the subsample's shell)
+        sigma_hat = truncated_mad_scale(np.abs(d[_even(np.flatnonzero(np.abs(d) < t), SHAPE_POINTS)]), t)
         margin = max(t, 3.5 * sigma_hat)
         # the shell: at least the noise band k sigma_hat (a t below the noise must not thin it out)
         t = max(t, min(BAND_K * sigma_hat, 2.0 * t))
-        on, inside, outside = shell_tally(d, t, margin)  # on the shell, inside (d < -margin), just outside
-        n_in = len(on)
+        n_in, inside, outside = ball_tally(B, c, r, reach, t, margin)  # on the shell, inside (d < -margin), just outside
         if inside > INTERIOR_SHARE * n_in:
             return (f"{inside} points lie inside it (for {n_in} on its shell): a solid sphere hides its interior, "
                     "so this is a cut through other surfaces or a volume of points, not a sphere")
         if n_in < CONTRAST * outside:
             return (f"too many points just outside the shell ({outside}, for {n_in} on it): no spherical surface "
                     "stands out, the points only pass through the shell (a cylinder, plane pieces, clutter)")
-        sel = _even(on, SHAPE_POINTS)  # the shape statistics (shares, rms, spreads)
-        P = gather(self.X, idx[sel])
-        q = P - _column_mean(P)
-        rms_plane = np.sqrt(max(np.linalg.eigvalsh(q.T @ q / len(q))[0], 0.0))
+        sel = _even(np.flatnonzero(np.abs(d) < t), SHAPE_POINTS)  # the shape statistics (shares, rms, spreads)
+        Pt = np.take(T, sel, axis=1)  # by axis (3, k), C-contiguous: each step below loops over one coordinate
+        q = Pt - (Pt.sum(axis=1) / Pt.shape[1])[:, None]
+        rms_plane = np.sqrt(max(np.linalg.eigvalsh(q @ q.T / Pt.shape[1])[0], 0.0))
         rms_sphere = np.sqrt(np.mean(d[sel] ** 2))
         if rms_plane < PLANE_RATIO * rms_sphere:
             return (f"the inliers are nearly flat (plane rms {rms_plane * 1e3:.3g} mm vs sphere rms "
                     f"{rms_sphere * 1e3:.3g} mm): a plane patch, not a sphere")
+        P = Pt.T  # (k, 3)
         planes = _two_plane_share(P, t)
         if planes >= TWO_PLANES_SHARE:
             return (f"{planes:.0%} of its inliers lie on one or two planes: pieces of planes (a floor, a wall, "
                     "an edge) cut by the sphere, not a sphere")
-        normals = P - c  # from the model, not from neighbours
-        normals /= np.sqrt(np.einsum("ij,ij->i", normals, normals))[:, None]
-        spread = _cap_spread(normals, None if self.station is None else self.station - c)
+        Nt = Pt - c[:, None]  # the normals from the model, not from neighbours
+        Nt /= np.sqrt(Nt[0] * Nt[0] + Nt[1] * Nt[1] + Nt[2] * Nt[2])
+        spread = _cap_spread(Nt, None if self.station is None else self.station - c)
         if spread < MIN_SPREAD:
             return (f"the inliers cover no cap (their normals spread over {np.degrees(np.sqrt(max(spread, 0))):.1f} deg "
                     "across): a ring or a strip, e.g. one scan line on a round object")
         if self.station is None:
             return ""
-        return self._visibility(c, r, margin, normals, P, n_in)
+        return self._visibility(c, r, margin, Nt.T, P, n_in)
 
     def _visibility(self, c, r, margin, normals, P, n_in):
         s = self.station
@@ -237,37 +270,57 @@ class Verifier:
         return ""
 
 
-def _column_mean(A):
-    """A.mean(axis=0) of an (m, k) array, in einsum's loop (numpy's strided reduction is 4x slower)."""
-    return np.einsum("ij->j", A) / len(A)
-
-
 def _even(sel, m):
     """An even subsample of at most about m of the indices sel (all of them when there are fewer)."""
     return sel if len(sel) <= m else sel[:: -(-len(sel) // m)]
 
 
-def _cap_spread(normals, axis):
-    """Smallest variance of the unit normals across the viewing axis (1/4 for a full hemisphere).
+def _cap_spread(Nt, axis):
+    """Smallest variance of the unit normals Nt (3, k), by axis, across the viewing axis (1/4 for a full
+    hemisphere).
 
     The normals are projected onto the plane normal to ``axis`` (the direction
     to the station, or their mean direction when no station is known); a cap
     spreads in both directions, a ring or strip of one scan line in one only.
     """
+    k = Nt.shape[1]
     if axis is None:
-        axis = _column_mean(normals)
-        if np.linalg.norm(axis) < 0.2:
+        axis = Nt.sum(axis=1) / k
+        if _norm(axis) < 0.2:
             return 1.0  # normals all round the sphere (several stations): no single cap to check
-    a = axis / np.linalg.norm(axis)
+    a = axis / _norm(axis)
     helper = np.array([0.0, 0.0, 1.0]) if abs(a[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    e1 = np.cross(a, helper)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(a, e1)
-    if len(normals) <= 2:
+    e1 = _cross(a, helper)
+    e1 /= _norm(e1)
+    e2 = _cross(a, e1)
+    if k <= 2:
         return 0.0
-    uv = normals @ np.column_stack([e1, e2])
-    uv -= _column_mean(uv)
-    return float(np.linalg.eigvalsh(uv.T @ uv / (len(uv) - 1))[0])  # (the sample covariance, as np.cov)
+    uv = np.vstack([e1, e2]) @ Nt  # (2, k)
+    uv -= (uv.sum(axis=1) / k)[:, None]
+    return float(np.linalg.eigvalsh(uv @ uv.T / (k - 1))[0])  # (the sample covariance, as np.cov)
+
+
+def _cross(a, b):
+    """np.cross of two 3-vectors (the same products and differences, without its axis handling)."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def _norm(a):
+    """np.linalg.norm of a 3-vector (the same sum of squares, as its dot product)."""
+    return float(np.sqrt(a.dot(a)))
+
+
+_PLANES = threading.local()  # per thread: a generator reset to the state of default_rng(0) for each share
+_PLANE_SEED = np.random.default_rng(0).bit_generator.state
+
+
+def _plane_generator():
+    """This thread's generator, reset to the stream of default_rng(0) (cheaper than building one)."""
+    gen = getattr(_PLANES, "gen", None)
+    if gen is None:
+        gen = _PLANES.gen = np.random.default_rng(0)
+    gen.bit_generator.state = _PLANE_SEED
+    return gen
 
 
 def _two_plane_share(P, t, trials=256):
@@ -282,7 +335,7 @@ def _two_plane_share(P, t, trials=256):
     n = len(P)
     if n < 6:
         return 1.0
-    gen = np.random.default_rng(0)
+    gen = _plane_generator()
     left = np.ones(n, dtype=bool)
     held = 0
     for _ in range(2):

@@ -439,11 +439,11 @@ def _iterate_compiled(pts, origin, x0, cov, fixed, tol, max_iter, sweeps):
     linearize, correlates = sweeps[0], sweeps[1]
     n, u = len(pts), (3 if fixed else 4)
     q = np.atleast_1d(np.asarray(cov.C, dtype=np.float64))  # diag(B Sigma_ll B^T) = sigma_i^2 (|b_i| = 1)
-    v0, x = np.zeros((n, 3)), x0.copy()
+    v0, x = np.empty((n, 3)), x0.copy()  # (v0 = 0 in the first sweep, which does not read it)
     b, w, k = np.empty((n, 3)), np.empty(n), np.zeros(n)
     dxs, omegas, converged, reason, N = [], [], False, "", None
     for it in range(max_iter):
-        N_it, rhs, rmin, amax, extent = linearize(pts, origin, v0, x, q, u, b, w)  # (eqs. 8-11, 21)
+        N_it, rhs, rmin, amax, extent = linearize(pts, origin, v0, x, q, u, b, w, it == 0)  # (eqs. 8-11, 21)
         if it == 0:
             tol_eff, scale = max(tol, 64 * _EPS * (amax + abs(x0[3]))), (amax, extent)
         if rmin <= 0 or not np.isfinite(rhs).all():

@@ -11,47 +11,24 @@ coordinates: no (3, n) copies, no temporaries of length n but the results.
 The sums run in another order than numpy's, so results agree with the numpy
 route of :mod:`~labkit.sphere.ghm` to rounding (about 1e-15 relative).
 
-:func:`lazy_kernel` is the package's switch for compiled kernels: numba is
-imported on the first call of a kernel, never on import, and without numba
-the callers keep their numpy route.
+The kernels are compiled by :func:`labkit.core.jit.compiled` when they are
+first asked for (numba is imported then, never on import of this module);
+without numba the callers keep their numpy route.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-_COMPILED = {}  # kernel -> its compiled version (None without numba)
-#: Options of the loops that sum over points: numpy's float semantics (a division by zero gives inf or NaN
-#: instead of a branch that raises) and sums that may be reordered, so that the loops run in SIMD registers.
-#: Only for coordinates reduced to a local origin: reordered differences of UTM-sized numbers lose digits.
-SIMD = {"error_model": "numpy", "fastmath": {"reassoc", "nsz", "contract"}}
+from ..core.jit import compiled, have_numba
 
 
-def lazy_kernel(kernel, **options):
-    """``numba.njit(cache=True, nogil=True, **options)(kernel)``, compiled on the first request; None without numba.
-
-    Examples
-    --------
-    >>> from labkit.sphere.sweeps import _statistics, lazy_kernel
-    >>> lazy_kernel(_statistics) is lazy_kernel(_statistics)  # one compilation per kernel and options
-    True
-    """
-    key = (kernel, repr(sorted(options.items())))
-    if key not in _COMPILED:
-        try:
-            import numba
-        except ImportError:  # pragma: no cover - depends on the environment
-            _COMPILED[key] = None
-        else:
-            _COMPILED[key] = numba.njit(cache=True, nogil=True, **options)(kernel)
-    return _COMPILED[key]
-
-
-def _linearize_sums(pts, o, v0, x, q, u, b, w):  # pragma: no cover - compiled
+def _linearize_sums(pts, o, v0, x, q, u, b, w, first):  # pragma: no cover - compiled
     """Sweep (1): rows b_i (eq. 10) and misclosures w_i (eq. 8) at l + v0, x; N and n (eq. 21).
 
     l_i = pts_i - o; q has one element (all points alike) or one per point;
-    u = 4 unknowns, or 3 with the radius held. Returns N, n, min r_i, max|l|, largest extent of l.
+    u = 4 unknowns, or 3 with the radius held; ``first``: v0 = 0 (not read: the same numbers, as
+    l + 0 = l and r - 0 = r). Returns N, n, min r_i, max|l|, largest extent of l.
     """
     one = q.shape[0] == 1
     n00 = n01 = n02 = n11 = n12 = n22 = n03 = n13 = n23 = n33 = 0.0  # sums in scalars (registers)
@@ -64,11 +41,16 @@ def _linearize_sums(pts, o, v0, x, q, u, b, w):  # pragma: no cover - compiled
         lo0, lo1, lo2 = min(lo0, l0), min(lo1, l1), min(lo2, l2)
         hi0, hi1, hi2 = max(hi0, l0), max(hi1, l1), max(hi2, l2)
         amax = max(amax, abs(l0), abs(l1), abs(l2))
-        a0, a1, a2 = (l0 + v0[i, 0]) - x[0], (l1 + v0[i, 1]) - x[1], (l2 + v0[i, 2]) - x[2]
+        if first:
+            a0, a1, a2 = l0 - x[0], l1 - x[1], l2 - x[2]
+        else:
+            a0, a1, a2 = (l0 + v0[i, 0]) - x[0], (l1 + v0[i, 1]) - x[1], (l2 + v0[i, 2]) - x[2]
         ri = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)  # (eq. 11)
         rmin = min(rmin, ri)
         b0, b1, b2 = a0 / ri, a1 / ri, a2 / ri  # (eq. 10)
-        wi = ri - x[3] - (b0 * v0[i, 0] + b1 * v0[i, 1] + b2 * v0[i, 2])  # (eq. 8)
+        wi = ri - x[3]  # (eq. 8)
+        if not first:
+            wi -= b0 * v0[i, 0] + b1 * v0[i, 1] + b2 * v0[i, 2]
         b[i, 0], b[i, 1], b[i, 2], w[i] = b0, b1, b2, wi
         p = 1.0 / q[0 if one else i]
         pb0, pb1, pb2 = p * b0, p * b1, p * b2  # a_i^T p_i with a_i = -[b_i, 1] (eq. 9), signs below
@@ -133,5 +115,6 @@ def point_statistics(pts, origin, it, Qxx, scale, statistics):
 def compiled_sweeps():
     """The three compiled sweeps, or None without numba."""
     # (not SIMD: the coordinates may be UTM-sized, and a reordered l_i = p_i - o would lose their digits)
-    kernels = tuple(lazy_kernel(f, error_model="numpy") for f in (_linearize_sums, _correlates, _statistics))
-    return None if kernels[0] is None else kernels
+    if not have_numba():  # pragma: no cover - depends on the environment
+        return None
+    return tuple(compiled(f, error_model="numpy") for f in (_linearize_sums, _correlates, _statistics))

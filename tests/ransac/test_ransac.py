@@ -469,12 +469,14 @@ def test_compiled_ball_kernels_equal_numpy():
 def test_gather_shell_points_and_tally_equal_numpy_exactly():
     """The compiled gather, shell points (both layouts, with and without ``close``) and shell tally give
     exactly numpy's points, indices, residuals and counts."""
-    from labkit.ransac._ball import gather, shell_points, shell_tally
+    from labkit.ransac._ball import ball_tally, gather, reduced, residuals, shell_points, shell_tally
 
     rng = np.random.default_rng(11)
     X = rng.normal(size=(30_000, 3))
     idx = np.sort(rng.choice(len(X), 9_000, replace=False))
     np.testing.assert_array_equal(gather(X, idx), np.take(X, idx, axis=0))
+    origin = np.array([5e5, 5.4e6, 120.0])
+    np.testing.assert_array_equal(reduced(X + origin, origin), (X + origin) - origin)
     np.testing.assert_array_equal(gather(X, idx, by_axis=True), np.take(X, idx, axis=0).T)
     c, r, reach = np.array([0.1, -0.2, 0.05]), 1.3, 0.2
     diff = X - c
@@ -490,6 +492,14 @@ def test_gather_shell_points_and_tally_equal_numpy_exactly():
     np.testing.assert_array_equal(on, np.flatnonzero(np.abs(d) < 0.05))
     assert inside == np.count_nonzero(d < -0.3) > 0
     assert outside == np.count_nonzero((d >= 0.05) & (d < 0.15)) > 0
+    # the counts without storing the points: those of the residuals of the points within r + reach
+    T = np.ascontiguousarray(X.T)
+    ball = q <= (r + reach) ** 2
+    assert ball_tally(T, c, r, reach, 0.05, 0.1) == (
+        np.count_nonzero(ball & (np.abs(d) < 0.05)), np.count_nonzero(ball & (d < -0.1)),
+        np.count_nonzero(ball & (d >= 0.05) & (d < 0.15)))
+    assert min(ball_tally(T, c, r, reach, 0.05, 0.1)) > 0
+    np.testing.assert_array_equal(residuals(T, np.append(c, r), by_axis=True, simd=False), d)
 
 
 def test_best_plane_equals_the_numpy_route(monkeypatch):
