@@ -121,8 +121,8 @@ def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, xy, N_eps, o
     Ji = cho_solve(c, np.eye(len(J)))
     info = np.zeros((n_cells, g.shape[1], g.shape[1]))
     np.add.at(info, cell.ravel(), (w * factor)[keep, None, None] * AA[keep][:, fixed][:, :, fixed])
-    G_eff = effective_cells(info, Ji) * (n_cells - 1) / n_cells  # n_cells - 1 when all inform alike
-    t_factor = student_t.ppf(norm.cdf(SIGMAS), np.maximum(G_eff - 1, 1.0)) / SIGMAS
+    dof = effective_cells(info, Ji) * (n_cells - 1) / n_cells  # n_cells - 1 when all cells inform alike
+    t_factor = student_t.ppf(norm.cdf(SIGMAS), np.maximum(dof, 1.0)) / SIGMAS
     cov[np.ix_(fixed, fixed)] = Ji @ M @ Ji * (m / max(m - g.shape[1], 1)) * np.outer(t_factor, t_factor)
     return cov
 
