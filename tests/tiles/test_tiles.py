@@ -531,10 +531,13 @@ def test_sparse_synthetic_tiles_with_the_widened_gate_are_honest(tmp_path):
 @pytest.mark.slow
 def test_sparse_synthetic_tiles_where_icp_walks_from_its_start_state_it():
     """A synthetic ALS survey at 0.5 pts/m^2 (about 1.4 m between points: pairs within ICP's 1 m gate) in 50 m tiles
-    through consensus+icp: ICP walks away from a right consensus start on some tiles (Y 60 mm, Z 10 mm off while
-    its residuals say 9 and 3 mm), so the covariance must cover the disagreement. Every stated component within
-    3 std of the truth (measured: largest 1.7 std; 6.6 and 3.2 std before), every tile still 'ok', and the tiles
-    whose ICP agrees with its start keep ICP's std."""
+    through consensus+icp: ICP walks away from a right consensus start on some tiles (up to 116 mm in X, 59 mm
+    in Y), so the covariance must cover the disagreement. ICP's own std covers the walks now (the t factor of
+    the few cells that fix X and Y: 77 mm in Y where it walked 59 mm; the residuals alone once said 9 mm and
+    the start's disagreement had to add d d^T), and the agreement test scales it on the tiles where the two
+    still differ by more than their stds say. Every stated component within 3 std of the truth (measured:
+    largest 2.1 std; 6.6 and 3.2 std before either), every tile still 'ok', and the tiles whose ICP agrees with
+    its start keep ICP's std."""
     from labkit import regions
     from labkit.synthetic import als_epochs
 
@@ -545,7 +548,7 @@ def test_sparse_synthetic_tiles_where_icp_walks_from_its_start_state_it():
     z = np.abs(field.translations - pair.truth[:3, 3]) / np.sqrt([np.diag(s.covariance) for s in field.tiles])
     assert np.all(z <= 3), z.round(1)
     scaled = ["covariance x" in s.message for s in field.tiles]
-    assert 2 <= sum(scaled) < 16 and any("d d^T" in s.message for s in field.tiles), [s.message for s in field.tiles]
+    assert 2 <= sum(scaled) < 16, [s.message for s in field.tiles]
 
 
 @pytest.mark.slow

@@ -34,6 +34,47 @@ def few_clusters_factor(n_cells, sigmas=SIGMAS):
     return float(student_t.ppf(norm.cdf(sigmas), n_cells - 1) / sigmas)
 
 
+def effective_cells(info, Ji):
+    """Effective number of cells behind each parameter's sandwich variance (Satterthwaite).
+
+    The sandwich variance of parameter j is a sum over cells of squared scores, each with expected
+    size a_cj = (J^-1 J_c J^-1)_jj under independent rows (J_c: the cell's information). A sum of
+    independent a_c chi^2_1 terms behaves like a scaled chi^2 with (sum a_c)^2 / sum a_c^2 degrees
+    of freedom: the number of cells when they inform j equally, about the number of informative
+    cells otherwise. On sparse ALS a horizontal axis rests on the few cells with building walls and
+    roof edges: the variance estimated from them scatters from sampling to sampling (its std by
+    40 %, about 3 effective cells), and a stated std read with the normal quantile was up to 6.7
+    std from the truth. See C. Carter, K. Schnepel, D. Steigerwald (2017): Asymptotic behavior of a
+    t-test robust to cluster heterogeneity. Review of Economics and Statistics 99(4), 698-709.
+
+    Parameters
+    ----------
+    info : ndarray (G, p, p)
+        Information of each cell.
+    Ji : ndarray (p, p)
+        Inverse of the bread.
+
+    Returns
+    -------
+    ndarray (p,)
+        The effective number of cells per parameter, at most G.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> equal = np.broadcast_to(np.eye(2), (10, 2, 2))
+    >>> effective_cells(equal, np.eye(2) / 10).tolist()
+    [10.0, 10.0]
+    >>> one = np.zeros((10, 2, 2)); one[:, 0, 0] = 1; one[:3, 1, 1] = 1  # the second: 3 cells
+    >>> effective_cells(one, np.diag([0.1, 1 / 3])).round(6).tolist()
+    [10.0, 3.0]
+    """
+    a = np.einsum("ij,cjk,ki->ci", Ji, info, Ji)  # a_cj = (J^-1 J_c J^-1)_jj
+    with np.errstate(invalid="ignore", divide="ignore"):
+        g = a.sum(axis=0) ** 2 / (a**2).sum(axis=0)
+    return np.where(np.isfinite(g), np.minimum(g, len(info)), len(info))
+
+
 def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, xy, N_eps, opts):
     """Cluster-robust sandwich J^-1 M J^-1 in the scaled parameters (eq. 5.13); inf where held.
 
@@ -41,7 +82,8 @@ def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, xy, N_eps, o
     rows); J = -d(A^T P l)/dx: sum w A_i^T [psi'(u) e e^T + psi(u)/u (I - e e^T)] A_i over the kept
     rows minus psi(k) w A_i^T e e^T A_i times the density of |u| at the deletion limit k (the
     boundary moves with x, eq. 5.14); e = unit direction of the standardized residual. With few cells
-    the std is scaled by :func:`few_clusters_factor` (t_(G-1) instead of the normal quantile).
+    the std of each parameter is scaled by :func:`few_clusters_factor` of its effective number of
+    cells (:func:`effective_cells`): t instead of the normal quantile.
     """
     p = A.shape[2]
     fixed = ~free
@@ -77,8 +119,11 @@ def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, xy, N_eps, o
     except np.linalg.LinAlgError:
         return cov
     Ji = cho_solve(c, np.eye(len(J)))
-    small_sample = m / max(m - g.shape[1], 1) * few_clusters_factor(n_cells) ** 2
-    cov[np.ix_(fixed, fixed)] = Ji @ M @ Ji * small_sample
+    info = np.zeros((n_cells, g.shape[1], g.shape[1]))
+    np.add.at(info, cell.ravel(), (w * factor)[keep, None, None] * AA[keep][:, fixed][:, :, fixed])
+    dof = effective_cells(info, Ji) * (n_cells - 1) / n_cells  # n_cells - 1 when all cells inform alike
+    t_factor = student_t.ppf(norm.cdf(SIGMAS), np.maximum(dof, 1.0)) / SIGMAS
+    cov[np.ix_(fixed, fixed)] = Ji @ M @ Ji * (m / max(m - g.shape[1], 1)) * np.outer(t_factor, t_factor)
     return cov
 
 

@@ -179,7 +179,8 @@ def icp(
         other parameters is added to their covariance (eq. 5.15). 0: the conditional covariance alone.
     covariance : {'formal', 'block'}
         ``'formal'``: sigma0^2 N^-1 (eq. 5.11). ``'block'`` (default): the cluster-robust sandwich
-        J^-1 M J^-1 over square cells of the correspondences (eq. 5.13).
+        J^-1 M J^-1 over square cells of the correspondences (eq. 5.13), each std read with the t quantile
+        of the cells that inform it (few on sparse ALS, where walls and roof edges alone fix X and Y).
     block_size : float
         Cell edge (m) for ``covariance='block'``.
     consistency_alpha : float or None
