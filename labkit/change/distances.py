@@ -282,12 +282,7 @@ def distances_before_after(source, target, transform, *, kind: str = "point_to_p
     # neighbouring queries in small groups that walk the tree together (its nodes stay in cache)
     order, starts = _spatial_order(src)
     with progress_steps(progress, 2 * n, f"distances ({kind})", "pts") as step:
-        passes, warm = [], None
-        for name, tr in (("before", None), ("after", T)):
-            out = _nearest(tree, src, order, starts, tr, origin, tgt, kind, warm,
-                           lambda c, name=name: step(c, info=name))
-            passes.append(out)
-            warm = out[1]  # the nearest point before: a first candidate after (a small move), same answer
+        passes = _nearest(tree, src, order, starts, T, origin, tgt, kind, step)
     kk = min(COVERAGE_K, len(tgt) - 1)
     if kind == "cloud_to_cloud":
         covered = _covered(tree, tgt, src, T, passes[1][1], None, kk) if coverage else None
@@ -306,12 +301,15 @@ def distances_before_after(source, target, transform, *, kind: str = "point_to_p
         spacing = np.zeros(len(tgt)) if fuse else None
         with progress_steps(progress, len(at), "normals", "pts") as step:  # of the used target points
             nrm[at] = _normals_at(tree, at, k, step, spacing, kk)
-    before, after = (_dot(nrm, j, v) for _, j, v in passes)
-    covered = _covered(tree, tgt, src, T, passes[1][1], nrm, kk, passes[1][2], spacing) if coverage else None
+    before = _dot(nrm, *passes[0][1:])
+    if not coverage:
+        return DistanceChange(before, _dot(nrm, *passes[1][1:]), kind, None)
+    after = np.empty(n)  # filled with the coverage test, from the same normals and offsets
+    covered = _covered(tree, tgt, src, T, passes[1][1], nrm, kk, passes[1][2], spacing, after)
     return DistanceChange(before, after, kind, covered)
 
 
-def _covered(tree, tgt, src, T, j, nrm, kk, v=None, spacing=None):
+def _covered(tree, tgt, src, T, j, nrm, kk, v=None, spacing=None, dist=None):
     """Coverage of the moved source points: |offset along the tangent plane at q_j| <= factor x spacing(q_j).
 
     The offset p - q_j is split into its part along the target normal n_j (the change,
@@ -319,7 +317,8 @@ def _covered(tree, tgt, src, T, j, nrm, kk, v=None, spacing=None):
     the horizontal part is used. The spacing of q_j is the distance to its
     ``kk`` = :data:`COVERAGE_K`-th neighbour, at least half the median spacing (exact copies)
     of the used target points; ``spacing`` (per target row, optional) gives it where it is
-    known already, else it is searched here.
+    known already, else it is searched here. ``dist`` (optional, with ``nrm`` and ``v``) receives
+    the point-to-plane distances n_j . v of these points (:func:`_dot`), taken on the way.
     """
     used = np.zeros(len(tgt), dtype=bool)
     used[j] = True
@@ -337,9 +336,12 @@ def _covered(tree, tgt, src, T, j, nrm, kk, v=None, spacing=None):
         if n is None:
             along = np.hypot(off[:, 0], off[:, 1])
         else:
+            d = np.einsum("ij,ij->i", n, off)  # (eq. 4); NaN where the normal is unknown
+            if dist is not None:
+                dist[sl] = d
             ok = np.isfinite(n).all(axis=1)
             n = np.where(ok[:, None], n, 0.0)
-            tang = off - np.einsum("ij,ij->i", n, off)[:, None] * n  # (I - n n^T)(p - q_j)
+            tang = off - np.where(ok, d, 0.0)[:, None] * n  # (I - n n^T)(p - q_j)
             along = np.where(ok, np.linalg.norm(tang, axis=1), np.hypot(off[:, 0], off[:, 1]))
         out[sl] = along <= COVERAGE_FACTOR * np.maximum(spacing[j[sl]], floor)
     return out
@@ -411,36 +413,38 @@ def _spatial_order(points, per_cell=GROUP):
     return order, np.append(np.flatnonzero(np.r_[True, key[1:] != key[:-1]]), len(key))
 
 
-def _nearest(tree, src, order, starts, transform, origin, tgt, kind, warm, report):
-    """Nearest target point of every (moved) source point: distance (cloud to cloud only), target row
-    and p - q_j (float32; point to plane only).
+def _nearest(tree, src, order, starts, transform, origin, tgt, kind, report):
+    """Nearest target point of every source point, before and after ``transform``: per pass the
+    distance (cloud to cloud only), target row and p - q_j (float32; point to plane only).
 
     The source is visited in ``order``, chunk by chunk of whole groups ``starts``
     (:func:`_spatial_order`), each group's points searched together
     (:meth:`~labkit.neighbours.kdtree.KDTree.nearest_in_groups`: the per-point search's answer,
-    ties included); ``warm`` (target rows per source point, optional) are first candidates
-    that only shorten the search. The results are scattered back to the source's rows.
+    ties included); a chunk is searched before and after the transformation in turn, the nearest
+    point before being the first candidate after (a small move: a shorter search, the same answer).
+    The results are scattered back to the source's rows.
     """
     n = len(src)
     c2c = kind == "cloud_to_cloud"
-    dist = np.empty(n) if c2c else None
-    j = np.empty(n, dtype=np.int32 if len(tgt) < 2**31 else np.int64)
-    v = None if c2c else np.empty((n, 3), dtype=np.float32)
-    rep = None if warm is None else _leaf_positions(tree)
+    passes = [(np.empty(n) if c2c else None, np.empty(n, dtype=np.int32 if len(tgt) < 2**31 else np.int64),
+               None if c2c else np.empty((n, 3), dtype=np.float32)) for _ in range(2)]
     cuts = np.unique(np.append(starts[np.searchsorted(starts, np.arange(0, n, CHUNK))], n))
     for a, b in zip(cuts[:-1], cuts[1:]):
         rows = order[a:b]
-        p = src[rows] if transform is None else apply_transform(transform, src[rows])
         groups = starts[np.searchsorted(starts, a) : np.searchsorted(starts, b) + 1] - a
-        first = None if rep is None else rep[warm[rows]]
-        d, jj = tree.nearest_in_groups(p - origin, groups, workers=-1, warm=first)
-        if c2c:
-            dist[rows] = d
-        else:
-            v[rows] = p - tgt[jj]  # float32: mm on offsets of metres (the plane distance is taken in float64)
-        j[rows] = jj
-        report(len(p))
-    return dist, j, v
+        p = src[rows]
+        warm = np.full(len(rows), -1, dtype=np.intp)  # leaf position of the nearest point, for the next pass
+        for (dist, j, v), name in zip(passes, ("before", "after")):
+            if name == "after":
+                p = apply_transform(transform, p)
+            d, jj = tree.nearest_in_groups(p - origin, groups, workers=-1, warm=warm)
+            if c2c:
+                dist[rows] = d
+            else:
+                v[rows] = p - tgt[jj]  # float32: mm on offsets of metres (the plane distance is taken in float64)
+            j[rows] = jj
+            report(len(p), info=name)
+    return passes
 
 
 def _normals_at(tree, at, k, report, spacing=None, kk=None):
