@@ -420,7 +420,7 @@ def _spatial_order(points, per_cell=GROUP):
     m = cell.max(axis=0, initial=0) + 1
     key = (cell[:, 0] * m[1] + cell[:, 1]) * m[2] + cell[:, 2]
     del cell
-    order = np.argsort(key, kind="stable")
+    order = np.argsort(key)  # (the order within a cell does not matter: 3x faster than a stable sort)
     key = key[order]
     return order, np.append(np.flatnonzero(np.r_[True, key[1:] != key[:-1]]), len(key))
 
