@@ -245,11 +245,14 @@ def distances_before_after(source, target, transform, *, kind: str = "point_to_p
     passes ("before", "after") over the source points, chunk by chunk; default silent.
 
     Built for large clouds: one compiled kd-tree of the target (in a local frame)
-    serves both passes; the source is queried in chunks of :data:`CHUNK` points on all cores;
+    serves both passes; the source is queried in chunks of :data:`CHUNK` points on all cores,
+    in small cells of about :data:`GROUP` points that walk the tree together, each chunk before
+    and after the transformation in turn (the nearest point before is the first candidate after);
     the target normals (PCA of ``k`` neighbours, exact duplicates merged, oriented up - the
     normals of :func:`labkit.features.normals`) are computed only at the target points that are
-    somebody's nearest neighbour, not for the whole target. Same values as
-    :func:`point_to_plane_distance` and :func:`cloud_to_cloud`.
+    somebody's nearest neighbour, not for the whole target, and the same neighbour search gives
+    the local spacing of the coverage rule. Same values as :func:`point_to_plane_distance` and
+    :func:`cloud_to_cloud`.
 
     References
     ----------
