@@ -324,7 +324,7 @@ def local_noise(points, k: int = 20, radius: float | None = None, *, chunk_size:
     return pca.noise
 
 
-def pca_at(tree, at, k: int, *, chunk_size: int = CHUNK_SIZE, step=None):
+def pca_at(tree, at, k: int, *, chunk_size: int = CHUNK_SIZE, step=None, seen=None):
     """Normals (oriented up) and local noise of ``k`` neighbours at the points ``at`` of a kd-tree one already has.
 
     The numbers of ``local_pca(points, k=k, at=at)`` (eqs. 1-5: the normal, and the noise
@@ -346,6 +346,10 @@ def pca_at(tree, at, k: int, *, chunk_size: int = CHUNK_SIZE, step=None):
         Query points per chunk (memory grows with chunk_size * k).
     step : callable, optional
         ``step(n)`` hears of every finished chunk of n points (a progress reporter).
+    seen : callable, optional
+        ``seen(rows, nb)`` receives each chunk's positions in ``at`` and their ``k`` neighbours as
+        leaf positions of the tree, (len(rows), k), sorted by distance (-1: none): for a caller that
+        needs more from the same search (e.g. the distance to a neighbour) without searching again.
 
     Returns
     -------
@@ -391,6 +395,8 @@ def pca_at(tree, at, k: int, *, chunk_size: int = CHUNK_SIZE, step=None):
         ok = determined(lam, k)
         nrm[rows] = np.where(ok[:, None], V[:, :, 2], np.nan)  # (eq. 4)
         noise[rows] = np.where(ok, plane_noise(lam[:, 2], k), np.nan)  # (eq. 5)
+        if seen is not None:
+            seen(rows, nb)
         if step is not None:
             step(len(rows))
     return np.where(nrm[:, 2:3] < 0, -nrm, nrm), noise

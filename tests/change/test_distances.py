@@ -110,15 +110,17 @@ def test_a_target_line_gives_nan_distances_next_to_it():
     np.testing.assert_allclose(change.after[:20], 0.05, atol=1e-6)
 
 
-@pytest.mark.parametrize("kind", ["point_to_plane", "cloud_to_cloud"])
-def test_coverage_mask_is_the_rule_computed_with_scipy(epochs, kind):
+@pytest.mark.parametrize("kind, k", [("point_to_plane", 10), ("point_to_plane", 5), ("cloud_to_cloud", 10)])
+def test_coverage_mask_is_the_rule_computed_with_scipy(epochs, kind, k):
     """covered = offset along the tangent plane (horizontal without a normal) <= 1.5 spacings of the nearest
-    target point, the spacing being its 6th distinct neighbour's distance, floored at half the median (scipy)."""
+    target point, the spacing being its 6th distinct neighbour's distance, floored at half the median (scipy).
+    With k = 10 the spacing comes from the normals' own neighbour search, with k = 5 (fewer than 7
+    neighbours) and without normals from a search of its own."""
     from labkit.change.distances import COVERAGE_FACTOR, COVERAGE_K
 
     src, tgt, T = epochs
     src = np.r_[src, src[:40] + [20.0, 0.0, 0.0]]  # 40 points beyond the target's edge
-    change = distances_before_after(src, tgt, T, kind=kind)
+    change = distances_before_after(src, tgt, T, kind=kind, k=k)
     p, q = _apply(T, src) - UTM, tgt - UTM
     j = _nearest(p, q)
     distinct = np.unique(q, axis=0)
@@ -127,7 +129,7 @@ def test_coverage_mask_is_the_rule_computed_with_scipy(epochs, kind):
     off = p - q[j]
     along = np.hypot(off[:, 0], off[:, 1])
     if kind == "point_to_plane":
-        n = _brute_normals(q, 10)[j]
+        n = _brute_normals(q, k)[j]
         along = np.linalg.norm(off - np.einsum("ij,ij->i", n, off)[:, None] * n, axis=1)
     ratio = along / (COVERAGE_FACTOR * spacing)
     clear = np.abs(ratio - 1) > 1e-6  # not on the threshold itself (normals from two eigen-solvers)

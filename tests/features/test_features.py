@@ -378,6 +378,27 @@ def test_pca_at_equals_local_pca_and_a_numpy_pca_on_a_tree_of_utm_points():
     assert np.isnan(n[-1]).all()  # point 7: three neighbours, one of them its copy (a line)
 
 
+def test_pca_at_shows_each_chunks_neighbours_as_scipy_finds_them():
+    """``seen(rows, nb)``: every position of ``at`` once, with its k nearest distinct points (scipy's distances)."""
+    from scipy.spatial import cKDTree
+
+    from labkit.neighbours.kdtree import KDTree
+
+    rng = np.random.default_rng(5)
+    pts = np.c_[rng.uniform(0, 10, (800, 2)), rng.normal(0, 0.01, 800)]
+    pts[::50] = pts[1::50][: len(pts[::50])]  # exact copies: merged
+    tree = KDTree(pts, merge_duplicates=True)
+    at = rng.choice(800, 300, replace=False)
+    got = {}
+    n, _ = F.pca_at(tree, at, 8, chunk_size=70, seen=lambda rows, nb: got.update(zip(rows.tolist(), nb.copy())))
+    assert sorted(got) == list(range(len(at)))
+    nb = np.array([got[i] for i in range(len(at))])
+    dist = np.linalg.norm(tree.data[nb] - pts[at][:, None, :], axis=2)
+    distinct = np.unique(pts, axis=0)
+    np.testing.assert_allclose(dist, cKDTree(distinct).query(pts[at], 8)[0], rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(n, F.pca_at(tree, at, 8)[0])  # the same normals with or without it
+
+
 def test_pca_at_marks_a_line_and_reports_chunks_and_refuses_bad_arguments():
     from labkit.neighbours.kdtree import KDTree
 
