@@ -8,7 +8,7 @@ import numpy as np
 
 from ...core.masks import STABLE_CLASSES
 from .adjustment import NAMES, design
-from ..consistency import group_consistency
+from ..consistency import family_level, group_consistency
 from ..result import RegistrationResult
 
 #: Groups of the consistency test by the classes (ASPRS) of a correspondence's two points, in order of
@@ -125,6 +125,7 @@ def consistency_test(adj, matcher, opts):
             tests.append(test)
     if not tests:
         return None
+    tests = family_level(tests, opts.consistency_alpha)
     rejecting = [t for t in tests if not t.agree]
     test = max(rejecting, key=lambda t: float(np.trace(t.between))) if rejecting else tests[0]
     if len(translation) < 3:  # report offsets on all three axes (NaN where held)
