@@ -198,8 +198,7 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
         return None
     N_all = np.einsum("mru,m,mrv->uv", A, P, A)
     x0 = np.linalg.lstsq(N_all, np.einsum("mru,m,mr->u", A, P, l), rcond=None)[0]  # the result's own step
-    deff, nu_all = design_effect(A, l, P, cells, x0)
-    ys, Ws, Vs, used, ns, deltas, offs_std, scores, nus = [], [], [], [], [], [], [], [], []
+    fits = []  # each group's own fit in the directions it determines
     for g, name in enumerate(names):
         rows = labels == g
         if rows.sum() < max(min_n, 2 * u):
@@ -212,11 +211,15 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
         y = (V.T @ np.einsum("mru,m,mr->u", Ag, Pg, lg)) / lam  # the group's own estimate of V^T x
         v = np.einsum("mru,u->mr", Ag, V @ y) - lg
         _, cell = np.unique(cells[rows], return_inverse=True)
-        C, nu = cell_jackknife(Ag @ V, Pg, v, cell.ravel(), lam)
-        if C is None:  # too few cells: formal sigma0^2 N^-1, widened by the correlation seen in all cells
+        fits.append((name, rows, Ag @ V, Pg, v, cell.ravel(), lam, V, y))
+    deff, nu_all = design_effect(fits)
+    ys, Ws, Vs, used, ns, deltas, offs_std, scores, nus = [], [], [], [], [], [], [], [], []
+    for name, rows, B, Pg, v, cell, lam, V, y in fits:
+        C, nu = cell_jackknife(B, Pg, v, cell, lam)
+        if C is None:  # too few cells: formal sigma0^2 N^-1, widened by the correlation within the groups
             m, r = len(v), len(lam)
-            C = np.diag(1 / lam) * float(np.einsum("mr,m,mr->", v, Pg, v)) / max(m * A.shape[1] - r, 1)
-            C, nu = C * deff, (nu_all if deff > 1 else max(m * A.shape[1] - r, 1))
+            C = np.diag(1 / lam) * float(np.einsum("mr,m,mr->", v, Pg, v)) / max(v.size - r, 1)
+            C, nu = C * deff, (nu_all if deff > 1 else max(v.size - r, 1))
         try:
             W = np.linalg.inv(0.5 * (C + C.T))
         except np.linalg.LinAlgError:
@@ -282,29 +285,31 @@ def cell_jackknife(B, P, v, cell, lam):
     return np.einsum("ci,cj->ij", d, d) * (nc - 1) / nc, float(size.sum() ** 2 / (size**2).sum()) - 1
 
 
-def design_effect(A, l, P, cells, x):
-    """How much the cluster-robust covariance of all rows exceeds the formal one (at least 1), and its dof.
+def design_effect(fits):
+    """How much the groups' cell-robust covariances exceed their formal ones (at least 1), and its dof.
 
-    The mean eigenvalue of (sigma0^2 N^-1)^-1 times the cluster-robust covariance over all cells
-    (eq. 5.13) at the common estimate ``x``: the widening of a group too small for its own cells by
-    the correlation of neighbouring residuals; the dof are the number of cells minus one.
+    Pooled over the groups, each about its own estimate (so that a disagreement between the groups
+    does not count as correlation): sum_g tr(Lambda_g^-1 sum_c g_c g_c^T) over its expectation for
+    uncorrelated residuals, sum_g sigma0_g^2 (r_g - sum_c tr((Lambda_g^-1 N_c)^2)) (g_c, N_c: a cell's
+    score sum and normal matrix; eq. 5.13). It widens the formal covariance of a group with too few cells
+    of its own by the correlation of neighbouring residuals; dof: the cells minus one per group.
     """
-    u = A.shape[2]
-    v = np.einsum("mru,u->mr", A, x) - l
-    _, cell = np.unique(cells, return_inverse=True)
-    nc = int(cell.max()) + 1 if len(cell) else 0
-    if nc < 2:
+    num = den = nu = 0.0
+    for _, _, B, P, v, cell, lam, _, _ in fits:
+        nc, k = int(cell.max()) + 1, len(lam)
+        if nc < 2:
+            continue
+        Nc = np.zeros((nc, k, k))
+        np.add.at(Nc, cell, np.einsum("mri,m,mrj->mij", B, P, B))
+        g = np.zeros((nc, k))
+        np.add.at(g, cell, np.einsum("mri,m,mr->mi", B, P, v))
+        s02 = float(np.einsum("mr,m,mr->", v, P, v)) / max(v.size - k, 1)
+        num += float(np.sum(g**2 / lam))
+        den += s02 * (k - float(np.einsum("cij,cji->", Nc / lam, Nc / lam)))
+        nu += nc - 1
+    if den <= 0 or nu < 1:
         return 1.0, np.inf
-    g = np.zeros((nc, u))
-    np.add.at(g, cell.ravel(), np.einsum("mru,m,mr->mu", A, P, v))
-    m = len(l)
-    M = np.einsum("ci,cj->ij", g, g) * nc / (nc - 1) * m / max(m - u, 1)
-    N = np.einsum("mru,m,mrv->uv", A, P, A)
-    s02 = float(np.einsum("mr,m,mr->", v, P, v)) / max(l.size - u, 1)
-    if s02 <= 0:
-        return 1.0, np.inf
-    ratio = float(np.trace(np.linalg.lstsq(N, M, rcond=None)[0])) / (s02 * u)
-    return max(1.0, ratio), float(nc - 1)
+    return max(1.0, num / den), nu
 
 
 def welch_james(H, Vs, Ws, nus, dof):
