@@ -16,8 +16,10 @@ class Consistency(ReportMixin):
 
     Every group's own least-squares estimate (in the directions that the group determines) is
     compared with the common estimate of all groups; the statistic is a generalized Cochran Q,
-    T = sum_g (y_g - V_g^T x)^T C_g^-1 (y_g - V_g^T x) (eq. 5.16), chi-square with
-    ``dof = sum_g r_g - rank`` degrees of freedom when one transformation fits every group.
+    T = sum_g (y_g - V_g^T x)^T C_g^-1 (y_g - V_g^T x) (eq. 5.16) with ``dof = sum_g r_g - rank``.
+    The C_g are estimated from a group's cells (delete-one-cell jackknife), so T is referred to
+    the Welch-James F approximation rather than to chi-square: with the few cells of a group the
+    chi-square test rejected several times too often when one transformation fits every group.
 
     Attributes
     ----------
@@ -174,6 +176,9 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
     .. [2] W. G. Cochran (1954): The combination of estimates from different
        experiments. Biometrics 10(1), 101-129 (the Q statistic that eq. 5.16
        generalizes to vector estimates in the directions each group determines).
+    .. [3] S. Johansen (1980): The Welch-James approximation to the distribution of the
+       residual sum of squares in a weighted linear regression. Biometrika 67(1), 85-92
+       (the F reference for estimated covariances, :func:`welch_james`).
 
     Examples
     --------
