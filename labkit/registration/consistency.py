@@ -272,11 +272,13 @@ def cell_jackknife(B, P, v, cell, lam):
     (Lambda - N_c)^-1 g_c (g_c: the cell's score sum), exactly for least squares; the spread of these
     moves is the cluster-robust covariance (eq. 5.13) without its downward bias when the cells are
     few (each cell's own leverage is taken out). Degrees of freedom: the effective number of cells
-    (n_c^2 summed, from the cells' sizes) minus one. None, None when there are fewer than 2 k + 1
-    cells or one cell carries a direction nearly alone.
+    (from the cells' sizes: (sum n_c)^2 / sum n_c^2) minus one. None, None when there are fewer
+    than 2 k + 1 effective cells or one cell carries a direction nearly alone.
     """
     k, nc = len(lam), int(cell.max()) + 1
-    if nc < 2 * k + 1:
+    size = np.bincount(cell).astype(float)
+    cells_eff = float(size.sum() ** 2 / (size**2).sum())  # n_c for cells of equal size, fewer otherwise
+    if cells_eff < 2 * k + 1:
         return None, None
     Nc = np.zeros((nc, k, k))
     np.add.at(Nc, cell, np.einsum("mri,m,mrj->mij", B, P, B))
@@ -286,8 +288,7 @@ def cell_jackknife(B, P, v, cell, lam):
     if np.linalg.eigvalsh(scaled)[:, -1].max() > 0.9:  # leaving that cell out loses a direction
         return None, None
     d = np.linalg.solve(np.diag(lam)[None] - Nc, g[:, :, None])[:, :, 0]
-    size = np.bincount(cell).astype(float)
-    return np.einsum("ci,cj->ij", d, d) * (nc - 1) / nc, float(size.sum() ** 2 / (size**2).sum()) - 1
+    return np.einsum("ci,cj->ij", d, d) * (nc - 1) / nc, cells_eff - 1
 
 
 def design_effect(fits):
