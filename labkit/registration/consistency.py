@@ -224,7 +224,7 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
         if C is None:  # too few cells: formal sigma0^2 N^-1, widened by the correlation within the groups
             m, r = len(v), len(lam)
             C = np.diag(1 / lam) * float(np.einsum("mr,m,mr->", v, Pg, v)) / max(v.size - r, 1)
-            C, nu = C * deff, (nu_all if deff > 1 else max(v.size - r, 1))
+            C, nu = C * deff, min(nu_all, max(v.size - r, 1))  # as uncertain as the design effect
         try:
             W = np.linalg.inv(0.5 * (C + C.T))
         except np.linalg.LinAlgError:
