@@ -6,7 +6,7 @@ import pytest
 
 from labkit.core.distributions import chi2_sf
 from labkit.registration import icp
-from labkit.registration.consistency import group_consistency, welch_james
+from labkit.registration.consistency import family_level, group_consistency, welch_james
 from labkit.synthetic import wavy_surface
 
 SHIFT = np.array([0.05, 0.02, 0.03])
@@ -65,3 +65,23 @@ def test_power_on_a_lifted_quadrant():
     found = [not c.agree and c.grouping == "block" and c.worst == "block NE" for c in lifted]
     assert np.mean(found) >= 0.5, np.mean(found)
     assert all(icp(*_wavy_pair(9000 + seed)).consistency.agree for seed in range(20))
+
+
+def test_family_level_shares_alpha_between_the_groupings():
+    # two groupings tested together at 1 %: each at 0.5 %; a p of 0.8 % no longer rejects and loses its spread
+    rng = np.random.default_rng(2)
+    m = 400
+    A = np.broadcast_to(np.eye(3), (m, 3, 3)).copy()
+    labels, cells = np.repeat([0, 1], m // 2), np.arange(m) % 40
+    tests = []
+    for offset in (0.0035, 0.05):  # p = 0.0072 and far below
+        l = rng.normal(0.0, 0.01, (m, 3))
+        l[labels == 1, 2] += offset
+        tests.append(group_consistency(A, l, np.ones(m), labels, ["a", "b"], cells, translation=[0, 1, 2], alpha=0.01))
+    together = family_level(tests, 0.01)
+    assert [t.alpha for t in together] == [0.005, 0.005] and all(t.family == 2 for t in together)
+    for alone, joint in zip(tests, together):
+        assert joint.agree == (alone.p_value >= 0.005)
+        assert np.any(joint.between) == (not joint.agree)
+    assert not tests[0].agree and together[0].agree  # rejected alone at 1 %, not at its share
+    assert not together[1].agree and "0.01 / 2 groupings" in together[1].summary()
