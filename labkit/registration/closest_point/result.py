@@ -103,7 +103,9 @@ def consistency_test(adj, matcher, opts):
     of the groups of :data:`CLASS_GROUPS`), by terciles of the local noise (vegetation is rough) and by
     the four spatial quadrants (a changed or mis-modelled part of the area). The result reports the
     grouping that disagrees with the largest spread between its groups (that spread enters the
-    covariance, eq. 5.17), or the first tested grouping when all agree.
+    covariance, eq. 5.17), or the first tested grouping when all agree. The groupings share the level:
+    each is tested at ``consistency_alpha`` / k (:func:`~labkit.registration.consistency.family_level`),
+    so that agreeing groups are reported as disagreeing in about ``consistency_alpha`` of the cases.
     """
     corr = adj.corr
     ok = corr.accepted
