@@ -15,7 +15,7 @@ Examples
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import betaincc, chdtrc, chdtri, fdtri, gammaincinv, ndtri, stdtrit
+from scipy.special import betaincc, chdtrc, chdtri, fdtrc, fdtri, gammaincinv, ndtri, stdtrit
 
 
 def chi2_sf(x, dof):
@@ -31,6 +31,11 @@ def chi2_isf(p, dof):
 def chi2_ppf(p, dof):
     """x with P(X <= x) = p for X ~ chi2(dof): ``scipy.stats.chi2.ppf(p, dof)``."""
     return 2 * gammaincinv(np.asarray(dof) / 2, p)
+
+
+def f_sf(x, dfn, dfd):
+    """P(X > x) for X ~ F(dfn, dfd): ``scipy.stats.f.sf(x, dfn, dfd)``."""
+    return fdtrc(dfn, dfd, np.maximum(x, 0.0))  # 1 below the support
 
 
 def f_ppf(p, dfn, dfd):

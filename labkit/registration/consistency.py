@@ -6,7 +6,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..core.distributions import chi2_sf
+from ..core.distributions import chi2_sf, f_sf
 from ..core.report import ReportMixin, fmt
 
 
@@ -16,8 +16,10 @@ class Consistency(ReportMixin):
 
     Every group's own least-squares estimate (in the directions that the group determines) is
     compared with the common estimate of all groups; the statistic is a generalized Cochran Q,
-    T = sum_g (y_g - V_g^T x)^T C_g^-1 (y_g - V_g^T x) (eq. 5.16), chi-square with
-    ``dof = sum_g r_g - rank`` degrees of freedom when one transformation fits every group.
+    T = sum_g (y_g - V_g^T x)^T C_g^-1 (y_g - V_g^T x) (eq. 5.16) with ``dof = sum_g r_g - rank``.
+    The C_g are estimated from a group's cells (delete-one-cell jackknife), so T is referred to
+    the Welch-James F approximation rather than to chi-square: with the few cells of a group the
+    chi-square test rejected several times too often when one transformation fits every group.
 
     Attributes
     ----------
@@ -32,9 +34,10 @@ class Consistency(ReportMixin):
     dof : int
         Degrees of freedom.
     p_value : float
-        chi-square tail probability of T.
+        Tail probability of T: T / ``scale`` ~ F(dof, ``denominator_dof``), the Welch-James reference
+        for groups whose covariances are estimated from a few cells (chi-square when they are known).
     alpha : float
-        Level of the test.
+        Level of this grouping's test: the level of the whole test divided by ``family``.
     contribution : ndarray
         Each group's share of T (its own sum in eq. 5.16).
     offset : ndarray (g, 3)
@@ -51,6 +54,10 @@ class Consistency(ReportMixin):
     std_ratio : ndarray (3,)
         Standard deviation of dX, dY, dZ with ``between`` divided by the one without (1 when the
         groups agree; set by the registration method).
+    scale, denominator_dof : float
+        Of the reference distribution (see ``p_value``).
+    family : int
+        Number of groupings tested together (Bonferroni: each at ``alpha``; see :func:`family_level`).
 
     Examples
     --------
@@ -77,6 +84,9 @@ class Consistency(ReportMixin):
     offset_std: np.ndarray
     between: np.ndarray | None = None
     std_ratio: np.ndarray = field(default_factory=lambda: np.ones(3))
+    scale: float = np.nan
+    denominator_dof: float = np.inf
+    family: int = 1
 
     #: The groups' spread counts as affecting the result when it widens a standard deviation by more.
     AFFECTS = 2.0
@@ -97,6 +107,16 @@ class Consistency(ReportMixin):
         """The group with the largest share of the test statistic."""
         return self.groups[int(np.argmax(self.contribution))] if self.groups else ""
 
+    @property
+    def _reference(self):
+        if not np.isfinite(self.denominator_dof):
+            return ""
+        return f" from T / {self.scale:.2f} ~ F({self.dof}, {self.denominator_dof:.0f})"
+
+    @property
+    def _level(self):
+        return f" = {self.alpha * self.family:g} / {self.family} groupings" if self.family > 1 else ""
+
     def _report(self):
         if self.agree:
             verdict = "the groups agree"
@@ -106,7 +126,8 @@ class Consistency(ReportMixin):
             verdict = "INCONSISTENT: the shift depends on the group, changes between the epochs suspected"
         rows = [
             ("groups by", self.grouping),
-            ("T / dof", f"{self.statistic:.1f} / {self.dof}  (p = {self.p_value:.2g}, alpha = {self.alpha:g})"),
+            ("T / dof", f"{self.statistic:.1f} / {self.dof}  (p = {self.p_value:.2g}{self._reference}, alpha = "
+                        f"{self.alpha:.2g}{self._level})"),
             ("verdict", verdict),
         ]
         for name, n, c, off, s in zip(self.groups, self.n, self.contribution, self.offset, self.offset_std):
@@ -155,6 +176,9 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
     .. [2] W. G. Cochran (1954): The combination of estimates from different
        experiments. Biometrics 10(1), 101-129 (the Q statistic that eq. 5.16
        generalizes to vector estimates in the directions each group determines).
+    .. [3] S. Johansen (1980): The Welch-James approximation to the distribution of the
+       residual sum of squares in a weighted linear regression. Biometrika 67(1), 85-92
+       (the F reference for estimated covariances, :func:`welch_james`).
 
     Examples
     --------
@@ -179,7 +203,7 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
         return None
     N_all = np.einsum("mru,m,mrv->uv", A, P, A)
     x0 = np.linalg.lstsq(N_all, np.einsum("mru,m,mr->u", A, P, l), rcond=None)[0]  # the result's own step
-    ys, Ws, Vs, used, ns, deltas, offs_std, scores = [], [], [], [], [], [], [], []
+    fits = []  # each group's own fit in the directions it determines
     for g, name in enumerate(names):
         rows = labels == g
         if rows.sum() < max(min_n, 2 * u):
@@ -191,21 +215,21 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
         lam, V = lam[keep], V[:, keep]
         y = (V.T @ np.einsum("mru,m,mr->u", Ag, Pg, lg)) / lam  # the group's own estimate of V^T x
         v = np.einsum("mru,u->mr", Ag, V @ y) - lg
-        s = np.einsum("mru,m,mr,ua->ma", Ag, Pg, v, V)  # scores in the group's directions
         _, cell = np.unique(cells[rows], return_inverse=True)
-        G = np.zeros((cell.max() + 1, len(lam)))
-        np.add.at(G, cell.ravel(), s)
-        m, nc, r = len(s), len(G), len(lam)
-        if nc >= 2 * r + 1:  # cluster-robust (eq. 5.13)
-            M = np.einsum("ci,cj->ij", G, G) * nc / (nc - 1) * m / max(m - r, 1)
-        else:  # too few cells: formal sigma0^2 N
-            vPv = float(np.einsum("mr,m,mr->", v, Pg, v))
-            M = np.diag(lam) * vPv / max(m * A.shape[1] - r, 1)
-        C = M / np.outer(lam, lam)
+        fits.append((name, rows, Ag @ V, Pg, v, cell.ravel(), lam, V, y))
+    deff, nu_all = design_effect(fits)
+    ys, Ws, Vs, used, ns, deltas, offs_std, scores, nus = [], [], [], [], [], [], [], [], []
+    for name, rows, B, Pg, v, cell, lam, V, y in fits:
+        C, nu = cell_jackknife(B, Pg, v, cell, lam)
+        if C is None:  # too few cells: formal sigma0^2 N^-1, widened by the correlation within the groups
+            m, r = len(v), len(lam)
+            C = np.diag(1 / lam) * float(np.einsum("mr,m,mr->", v, Pg, v)) / max(v.size - r, 1)
+            C, nu = C * deff, min(nu_all, max(v.size - r, 1))  # as uncertain as the design effect
         try:
             W = np.linalg.inv(0.5 * (C + C.T))
         except np.linalg.LinAlgError:
             continue
+        nus.append(nu)
         ys.append(y), Ws.append(W), Vs.append(V), used.append(name), ns.append(int(rows.sum()))
         # the group's estimate relative to the result, on the parameters it determines
         determined = 1 - (V**2).sum(axis=1) < 0.05  # little share in the directions the group leaves free
@@ -221,7 +245,13 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
     parts = np.array([float((y - V.T @ x) @ W @ (y - V.T @ x)) for V, W, y in zip(Vs, Ws, ys)])
     T = float(parts.sum())
     dof = int(sum(len(y) for y in ys) - rank)
-    p = float(chi2_sf(T, dof)) if dof > 0 else 1.0
+    scale, nu_f = welch_james(H, Vs, Ws, nus, dof)
+    if dof <= 0:
+        p = 1.0
+    elif np.isfinite(nu_f) and nu_f < 1e6:
+        p = float(f_sf(T / scale, dof, nu_f))
+    else:  # covariances known as good as exactly: the chi-square test
+        p = float(chi2_sf(T * dof / scale, dof))
     delta, offset_std = np.array(deltas), np.array(offs_std)
     offset = np.where(np.isnan(offset_std), np.nan, delta)[:, translation]
     between = np.zeros((u, u))
@@ -231,7 +261,82 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
         Ni_S = np.linalg.lstsq(N_all, S.T, rcond=None)[0]  # N^-1 s_g: each group's influence on the result
         between = Ni_S @ Ni_S.T * k / (k - 1)
     return Consistency(grouping, tuple(used), np.array(ns), T, dof, p, float(alpha), parts, offset,
-                       offset_std[:, translation], between)
+                       offset_std[:, translation], between, scale=scale, denominator_dof=nu_f)
+
+
+def cell_jackknife(B, P, v, cell, lam):
+    """Delete-one-cell jackknife covariance of a group's estimate, and its degrees of freedom.
+
+    B (m, r, k) are the group's design rows in its eigen-directions (normal matrix ``diag(lam)``),
+    v (m, r) its residuals about its own estimate. Leaving cell c out moves the estimate by
+    (Lambda - N_c)^-1 g_c (g_c: the cell's score sum), exactly for least squares; the spread of these
+    moves is the cluster-robust covariance (eq. 5.13) without its downward bias when the cells are
+    few (each cell's own leverage is taken out). Degrees of freedom: the effective number of cells
+    (from the cells' sizes: (sum n_c)^2 / sum n_c^2) minus one. None, None when there are fewer
+    than 2 k + 1 effective cells or one cell carries a direction nearly alone.
+    """
+    k, nc = len(lam), int(cell.max()) + 1
+    size = np.bincount(cell).astype(float)
+    cells_eff = float(size.sum() ** 2 / (size**2).sum())  # n_c for cells of equal size, fewer otherwise
+    if cells_eff < 2 * k + 1:
+        return None, None
+    Nc = np.zeros((nc, k, k))
+    np.add.at(Nc, cell, np.einsum("mri,m,mrj->mij", B, P, B))
+    g = np.zeros((nc, k))
+    np.add.at(g, cell, np.einsum("mri,m,mr->mi", B, P, v))
+    scaled = Nc / np.sqrt(np.outer(lam, lam))
+    if np.linalg.eigvalsh(scaled)[:, -1].max() > 0.9:  # leaving that cell out loses a direction
+        return None, None
+    d = np.linalg.solve(np.diag(lam)[None] - Nc, g[:, :, None])[:, :, 0]
+    return np.einsum("ci,cj->ij", d, d) * (nc - 1) / nc, cells_eff - 1
+
+
+def design_effect(fits):
+    """How much the groups' cell-robust covariances exceed their formal ones (at least 1), and its dof.
+
+    Pooled over the groups, each about its own estimate (so that a disagreement between the groups
+    does not count as correlation): sum_g tr(Lambda_g^-1 sum_c g_c g_c^T) over its expectation for
+    uncorrelated residuals, sum_g sigma0_g^2 (r_g - sum_c tr((Lambda_g^-1 N_c)^2)) (g_c, N_c: a cell's
+    score sum and normal matrix; eq. 5.13). It widens the formal covariance of a group with too few cells
+    of its own by the correlation of neighbouring residuals; dof: the cells minus one per group.
+    """
+    num = den = nu = 0.0
+    for _, _, B, P, v, cell, lam, _, _ in fits:
+        nc, k = int(cell.max()) + 1, len(lam)
+        if nc < 2:
+            continue
+        Nc = np.zeros((nc, k, k))
+        np.add.at(Nc, cell, np.einsum("mri,m,mrj->mij", B, P, B))
+        g = np.zeros((nc, k))
+        np.add.at(g, cell, np.einsum("mri,m,mr->mi", B, P, v))
+        s02 = float(np.einsum("mr,m,mr->", v, P, v)) / max(v.size - k, 1)
+        num += float(np.sum(g**2 / lam))
+        den += s02 * (k - float(np.einsum("cij,cji->", Nc / lam, Nc / lam)))
+        nu += nc - 1
+    if den <= 0 or nu < 1:
+        return 1.0, np.inf
+    return max(1.0, num / den), nu
+
+
+def welch_james(H, Vs, Ws, nus, dof):
+    """Scale c and denominator dof nu of T / c ~ F(dof, nu): T with estimated group covariances.
+
+    Johansen's (1980) approximation for a weighted least-squares fit whose weights are inverse
+    covariances estimated with ``nus`` degrees of freedom (the multivariate form of Welch's test):
+    Q_g = I - V_g^T H^-1 V_g W_g, a = sum_g (tr Q_g^2 + (tr Q_g)^2) / (2 nu_g),
+    c = dof + 2 a - 6 a / (dof + 2), nu = dof (dof + 2) / (3 a). With known covariances (nu infinite)
+    c = dof and nu = inf: the chi-square test.
+    """
+    if dof <= 0:
+        return 1.0, np.inf
+    Hi = np.linalg.pinv(H)
+    a = 0.0
+    for V, W, nu in zip(Vs, Ws, nus):
+        Q = np.eye(len(W)) - V.T @ Hi @ V @ W
+        a += 0.5 * (np.trace(Q @ Q) + np.trace(Q) ** 2) / nu
+    if a <= 0:
+        return float(dof), np.inf
+    return dof + 2 * a - 6 * a / (dof + 2), dof * (dof + 2) / (3 * a)
 
 
 def block_consistency(A, l, P, xyz, cells, degeneracy, *, alpha=1e-3, rel_threshold=1e-2) -> Consistency | None:
@@ -272,3 +377,19 @@ def block_consistency(A, l, P, xyz, cells, degeneracy, *, alpha=1e-3, rel_thresh
     off[:, free], std[:, free] = test.offset, test.offset_std
     return replace(test, offset=off, offset_std=std)
 
+
+
+def family_level(tests, alpha):
+    """The groupings' tests at level ``alpha`` together: each at alpha / k (Bonferroni over k groupings).
+
+    ICP tests up to three groupings of one set of correspondences and reports a disagreement when any
+    rejects: each at ``alpha`` would give about k times ``alpha`` false alarms. A test that no longer
+    rejects at its share of the level loses its ``between``.
+    """
+    k = len(tests)
+    out = []
+    for t in tests:
+        level = alpha / k
+        between = t.between if t.between is not None and t.p_value < level else np.zeros_like(t.between)
+        out.append(replace(t, alpha=level, family=k, between=between))
+    return out

@@ -8,7 +8,7 @@ import numpy as np
 
 from ...core.masks import STABLE_CLASSES
 from .adjustment import NAMES, design
-from ..consistency import group_consistency
+from ..consistency import family_level, group_consistency
 from ..result import RegistrationResult
 
 #: Groups of the consistency test by the classes (ASPRS) of a correspondence's two points, in order of
@@ -103,7 +103,9 @@ def consistency_test(adj, matcher, opts):
     of the groups of :data:`CLASS_GROUPS`), by terciles of the local noise (vegetation is rough) and by
     the four spatial quadrants (a changed or mis-modelled part of the area). The result reports the
     grouping that disagrees with the largest spread between its groups (that spread enters the
-    covariance, eq. 5.17), or the first tested grouping when all agree.
+    covariance, eq. 5.17), or the first tested grouping when all agree. The groupings share the level:
+    each is tested at ``consistency_alpha`` / k (:func:`~labkit.registration.consistency.family_level`),
+    so that agreeing groups are reported as disagreeing in about ``consistency_alpha`` of the cases.
     """
     corr = adj.corr
     ok = corr.accepted
@@ -125,6 +127,7 @@ def consistency_test(adj, matcher, opts):
             tests.append(test)
     if not tests:
         return None
+    tests = family_level(tests, opts.consistency_alpha)
     rejecting = [t for t in tests if not t.agree]
     test = max(rejecting, key=lambda t: float(np.trace(t.between))) if rejecting else tests[0]
     if len(translation) < 3:  # report offsets on all three axes (NaN where held)
