@@ -63,18 +63,26 @@ class NeighbourRows:
 
     ``rows`` (n, k): the neighbours of row i, sorted by distance (exact duplicates merged: each
     distinct point once, by the row of one of its copies); read only where ``known[i]``, i.e. where
-    they are the cloud's unique k nearest (no other point at the k-th distance).
+    they are the cloud's unique k nearest (no other point at the k-th distance). ``pca`` (optional):
+    the local PCA of those neighbourhoods per row, eigenvalues (n, 3) and eigenvectors (n, 3, 3)
+    (:func:`labkit.registration.matching.local_surface._pca_rows`), read where ``known``.
     """
 
-    def __init__(self, rows: np.ndarray, known: np.ndarray, k: int):
-        self.rows, self.known, self.k = rows, known, int(k)
+    def __init__(self, rows: np.ndarray, known: np.ndarray, k: int, pca=None):
+        self.rows, self.known, self.k, self.pca = rows, known, int(k), pca
 
-    def at(self, tree, pos):
+    def at(self, tree, pos, pca=False, neighbours=True):
         """For the points ``pos`` (leaf positions) of ``tree`` (a kd-tree of the same cloud, duplicates
-        merged): where their neighbours are known (m,) bool, and those neighbours as leaf positions."""
+        merged): where their neighbours are known (m,) bool, and those neighbours as leaf positions
+        (None without ``neighbours``); with ``pca`` also their kept PCA (eigenvalues, eigenvectors), or
+        None where none is kept."""
         row = tree.indices[pos]
         known = self.known[row]
-        return known, tree.representative[self.rows[row[known]]]
+        rk = row[known]
+        nb = tree.representative[self.rows[rk]] if neighbours else None
+        if not pca:
+            return known, nb
+        return known, nb, None if self.pca is None else (self.pca[0][rk], self.pca[1][rk])
 
 
 def keep_neighbours(points: np.ndarray, rows: NeighbourRows) -> None:
