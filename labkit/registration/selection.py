@@ -182,7 +182,7 @@ def _kept_rows(info, mask):
     pos = tree.representative[np.flatnonzero(mask)]
     rows = np.zeros((len(pos), k), dtype=np.int32 if len(pos) < 2**31 else np.int64)
     neighbour_rows(nb, pos, tree.indices, new, clean, k, rows)
-    return NeighbourRows(rows, clean[pos], k, (lam[pos], vecs[pos]))  # the PCA per selected row
+    return NeighbourRows(rows, clean[pos], k, (lam, vecs, pos))  # the PCA of every distinct point, and where
 
 
 def _is_surface(noise, lam):
