@@ -158,7 +158,9 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragm
     With ``moments`` the neighbours are not written: row ``pos - start`` of ``cen`` and ``C``
     gets the centroid (eq. 1) and covariance (eq. 2, divided by k) of the point's k neighbours,
     summed while they are in cache, in the order and arithmetic of
-    :func:`labkit.neighbours.moments.covariances` (the same numbers); ``idx`` is then not touched.
+    :func:`labkit.neighbours.moments.covariances` (the same numbers: both call
+    :func:`~labkit.neighbours.moments.knn_moments`, which sums differences to the nearest neighbour, the point
+    itself); ``idx`` is then not touched.
     """
     most = 1
     for t in range(len(leaves)):

@@ -44,8 +44,10 @@ def covariances(local, counts, flat, cols=None):
         D = []
         for a in range(3):
             g = cols[a][flat]  # (c, k)
-            cen[:, a] = g.mean(axis=1)  # (eq. 1)
-            g -= cen[:, a, None]
+            g -= g[:, :1].copy()  # differences to the first neighbour, as the compiled kernel
+            m = g.mean(axis=1)
+            cen[:, a] = cols[a][flat[:, 0]] + m  # (eq. 1)
+            g -= m[:, None]
             D.append(g)
         C = np.empty((len(flat), 3, 3))
         for a in range(3):
@@ -71,27 +73,35 @@ def knn_moments(x, y, z, ids, k, cen, C, r):  # pragma: no cover - compiled
     """Row ``r`` of ``cen`` and ``C``: centroid (eq. 1) and mean outer product of the deviations (eq. 2) of the
     points ``ids[:k]`` of the coordinate columns x, y, z, in two passes (no temporaries).
 
+    The sums run over the differences to the first neighbour (for a point's own neighbourhood: the
+    point itself). A difference of two coordinates does not depend on the frame they were reduced to
+    (an integer origin leaves the reduction exact): the covariance of one neighbourhood is then the same
+    to the bit in every such frame, so ICP can reuse what the surface selection computed in the whole
+    cloud's frame; and large coordinates lose no digits to the centroid.
+
     The one compiled covariance kernel: :func:`covariances` and the k-d tree's search of whole leaves
     (:meth:`labkit.neighbours.kdtree.KDTree.knn_moments_of_leaves`) both call it, so both give the same numbers.
     """
+    q0 = ids[0]
+    x0, y0, z0 = x[q0], y[q0], z[q0]
     sx = sy = sz = 0.0
     for j in range(k):
         q = ids[j]
-        sx += x[q]
-        sy += y[q]
-        sz += z[q]
+        sx += x[q] - x0
+        sy += y[q] - y0
+        sz += z[q] - z0
     cx, cy, cz = sx / k, sy / k, sz / k
     xx = xy = xz = yy = yz = zz = 0.0
     for j in range(k):
         q = ids[j]
-        dx, dy, dz = x[q] - cx, y[q] - cy, z[q] - cz
+        dx, dy, dz = (x[q] - x0) - cx, (y[q] - y0) - cy, (z[q] - z0) - cz
         xx += dx * dx
         xy += dx * dy
         xz += dx * dz
         yy += dy * dy
         yz += dy * dz
         zz += dz * dz
-    cen[r, 0], cen[r, 1], cen[r, 2] = cx, cy, cz
+    cen[r, 0], cen[r, 1], cen[r, 2] = x0 + cx, y0 + cy, z0 + cz
     C[r, 0, 0], C[r, 1, 1], C[r, 2, 2] = xx / k, yy / k, zz / k
     C[r, 0, 1] = C[r, 1, 0] = xy / k
     C[r, 0, 2] = C[r, 2, 0] = xz / k

@@ -63,24 +63,45 @@ class NeighbourRows:
 
     ``rows`` (n, k): the neighbours of row i, sorted by distance (exact duplicates merged: each
     distinct point once, by the row of one of its copies); read only where ``known[i]``, i.e. where
-    they are the cloud's unique k nearest (no other point at the k-th distance).
+    they are the cloud's unique k nearest (no other point at the k-th distance). ``pca`` (optional):
+    the local PCA of those neighbourhoods, eigenvalues (N, 3) and eigenvectors (N, 3, 3)
+    (:func:`labkit.registration.matching.local_surface._pca_rows`) of the first pass's points, and
+    the position (n,) of every row among them; read where ``known``.
     """
 
-    def __init__(self, rows: np.ndarray, known: np.ndarray, k: int):
-        self.rows, self.known, self.k = rows, known, int(k)
+    def __init__(self, rows: np.ndarray, known: np.ndarray, k: int, pca=None):
+        self.rows, self.known, self.k, self.pca = rows, known, int(k), pca
 
-    def at(self, tree, pos):
+    def at(self, tree, pos, pca=False, neighbours=True):
         """For the points ``pos`` (leaf positions) of ``tree`` (a kd-tree of the same cloud, duplicates
-        merged): where their neighbours are known (m,) bool, and those neighbours as leaf positions."""
+        merged): where their neighbours are known (m,) bool, and those neighbours as leaf positions
+        (None without ``neighbours``); with ``pca`` also their kept PCA (eigenvalues, eigenvectors), or
+        None where none is kept."""
         row = tree.indices[pos]
         known = self.known[row]
-        return known, tree.representative[self.rows[row[known]]]
+        rk = row[known]
+        nb = tree.representative[self.rows[rk]] if neighbours else None
+        if not pca:
+            return known, nb
+        if self.pca is None:
+            return known, nb, None
+        lam, vecs, at = self.pca
+        first = at[rk]
+        return known, nb, (lam[first], vecs[first])
+
+
+def _drop_dead(_ref) -> None:
+    """Drop the entries whose array is gone (called when a kept array dies): their neighbours and
+    PCA, some 200 bytes per point, go with it instead of waiting for the next cloud. No lock: the
+    garbage collector may call this while this thread holds it; one assignment of the list."""
+    _rows[:] = [e for e in _rows if e[0]() is not None]
 
 
 def keep_neighbours(points: np.ndarray, rows: NeighbourRows) -> None:
-    """Keep ``rows`` for the array ``points`` (a weak reference; the two latest arrays are kept)."""
+    """Keep ``rows`` for the array ``points`` (a weak reference; the two latest arrays are kept, each until
+    it is gone)."""
     try:
-        ref = weakref.ref(points)
+        ref = weakref.ref(points, _drop_dead)
     except TypeError:  # pragma: no cover - arrays support weak references
         return
     key = _key(points, np.zeros(3), True)

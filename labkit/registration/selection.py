@@ -146,7 +146,8 @@ def surface_mask(points, k=20):
 
 def _surface_test(points, k, neighbours=False):
     """:func:`surface_mask`, and with ``neighbours`` (clouds up to :data:`KEEP_NEIGHBOURS` points) also
-    (tree, the k neighbours of each distinct point as leaf positions, where they are unique and all kept)."""
+    (tree, the k neighbours of each distinct point as leaf positions, where they are unique and all kept,
+    and their PCA: ICP's normals reuse both where the neighbourhood holds only selected points)."""
     xyz = _xyz(points)
     k = int(min(max(k, 10), len(xyz)))
     # the tree ICP's matching would build on the same array (kept for it when every point stays)
@@ -157,27 +158,31 @@ def _surface_test(points, k, neighbours=False):
     keep = np.empty(tree.n, dtype=bool)  # per distinct point, in leaf order
     leaves = tree.leaf_bounds
     cut = np.unique(leaves[np.searchsorted(leaves, np.arange(0, tree.n, CHUNK))].tolist() + [tree.n])
-    nbs = []
+    nbs, lams, vecs = [], [], []
     for a, b in zip(cut[:-1], cut[1:]):  # chunks of whole leaves
-        keep[a:b], nb = _surface_rows(tree, cols, a, b, k, extra)
+        keep[a:b], nb, pca = _surface_rows(tree, cols, a, b, k, extra)
         if extra:
             nbs.append(nb)
+            lams.append(pca[0])
+            vecs.append(pca[1])
     if not extra:
         return keep[tree.representative], None
-    nb = nbs[0] if len(nbs) == 1 else np.concatenate(nbs)  # one chunk (most clouds): no copy of (n, k + 1) indices
+    one = len(nbs) == 1  # one chunk (most clouds): no copy of (n, k + 1) indices
+    nb = nbs[0] if one else np.concatenate(nbs)
+    pca = (lams[0], vecs[0]) if one else (np.concatenate(lams), np.concatenate(vecs))
     clean = np.empty(tree.n, dtype=bool)  # the same k nearest among the kept points
     unique_kept_neighbours(tree.data, nb, keep, k, clean)
-    return keep[tree.representative], (tree, nb, clean, k)
+    return keep[tree.representative], (tree, nb, clean, k, pca)
 
 
 def _kept_rows(info, mask):
     """The neighbours of ``_surface_test`` as rows of the selected points ``mask`` (:class:`NeighbourRows`)."""
-    tree, nb, clean, k = info
+    tree, nb, clean, k, (lam, vecs) = info
     new = np.cumsum(mask) - 1  # row among the selected points of every input row
     pos = tree.representative[np.flatnonzero(mask)]
     rows = np.zeros((len(pos), k), dtype=np.int32 if len(pos) < 2**31 else np.int64)
     neighbour_rows(nb, pos, tree.indices, new, clean, k, rows)
-    return NeighbourRows(rows, clean[pos], k)
+    return NeighbourRows(rows, clean[pos], k, (lam, vecs, pos))  # the PCA of every distinct point, and where
 
 
 def _is_surface(noise, lam):
@@ -188,13 +193,13 @@ def _is_surface(noise, lam):
 
 def _surface_rows(tree, cols, a, b, k, extra=0):
     """The surface test of :func:`surface_mask` at the tree's distinct points ``a..b-1`` (leaf bounds), and
-    their k + ``extra`` neighbours."""
-    noise, lam, nb = roughness(tree, cols, a, b, k, decided=_is_surface, extra=extra)  # eigenvalues: l3, l2, l1
+    their k + ``extra`` neighbours and their PCA (:func:`~labkit.registration.matching.local_surface.roughness`)."""
+    noise, lam, nb, pca = roughness(tree, cols, a, b, k, decided=_is_surface, extra=extra, pca=True)  # l3, l2, l1
     # the spread about a local quadric: a curved surface (sparse hills, a sphere) is no volume
     noise = np.where(np.isfinite(noise), noise, np.sqrt(lam[:, 0]))
     with np.errstate(invalid="ignore"):
         valid = (lam[:, 1] > 1e-12 * lam[:, 2]) & np.isfinite(lam[:, 2])  # not a point, not a line (features.determined)
-    return valid & _is_surface(noise, lam), nb
+    return valid & _is_surface(noise, lam), nb, pca
 
 
 def select_points(source, target, select="auto", k=20):

@@ -111,6 +111,30 @@ def test_compiled_and_numpy_knn_covariances_agree(monkeypatch):
     assert np.allclose(cen_c, cen_n, rtol=0, atol=1e-12) and np.allclose(cen_c, X.mean(axis=1), atol=1e-12)
 
 
+@pytest.mark.parametrize("numba", [True, False])
+def test_knn_covariances_are_the_same_in_every_integer_frame(monkeypatch, numba):
+    """The kNN kernel sums differences to the first neighbour: the same covariances to the bit for
+    coordinates reduced to another whole-metre origin (LAS-like millimetre coordinates, UTM-sized), and
+    centroids that move with the origin."""
+    import labkit.neighbours.moments as M
+
+    monkeypatch.setattr(M, "HAVE_NUMBA", M.HAVE_NUMBA and numba)
+    rng = np.random.default_rng(8)
+    xyz = np.round(UTM + rng.normal(size=(3000, 3)) * [40.0, 30.0, 2.0], 3)
+    idx = rng.integers(0, 3000, size=(800, 20))
+    out = []
+    for origin in (np.round(xyz.mean(axis=0)), np.round(xyz.mean(axis=0)) + [7.0, -3.0, 1.0], np.zeros(3)):
+        local = xyz - origin
+        cen, C = M.covariances(local, None, idx, local.T.copy())
+        out.append((cen + origin, C))
+    for cen, C in out[1:]:
+        assert np.array_equal(C, out[0][1])
+        assert np.allclose(cen, out[0][0], rtol=0, atol=1e-8)
+    X = xyz[idx] - xyz[idx].mean(axis=1, keepdims=True)  # the definition (eq. 2)
+    C_ref = np.einsum("cka,ckb->cab", X, X) / idx.shape[1]
+    assert np.allclose(out[0][1], C_ref, rtol=1e-9, atol=1e-12 * np.abs(C_ref).max())
+
+
 def test_knn_and_radius_neighbourhoods_match_brute_force():
     rng = np.random.default_rng(9)
     xyz = rng.uniform(0, 5, (800, 3)) + UTM

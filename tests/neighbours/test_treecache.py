@@ -65,3 +65,15 @@ def test_one_entry_weakly_kept_and_forget_drops_it():
     del a
     gc.collect()
     assert _treecache._last[0]() is None  # the array is not kept alive by the cache
+
+
+def test_kept_neighbours_go_with_their_array():
+    from labkit.neighbours.treecache import NeighbourRows, keep_neighbours, kept_neighbours
+
+    pts = _cloud(500)
+    rows = NeighbourRows(np.zeros((500, 4), dtype=np.int32), np.ones(500, dtype=bool), 4)
+    keep_neighbours(pts, rows)
+    assert kept_neighbours(pts, 4) is rows and kept_neighbours(pts.copy(), 4) is None
+    del pts
+    gc.collect()
+    assert _treecache._rows == []  # no rows of a dead array held until the next cloud comes

@@ -28,8 +28,8 @@ def test_icp_with_grouped_search_equals_the_per_point_search(monkeypatch):
 
 def test_compiled_matching_steps_equal_their_numpy_route(monkeypatch):
     """ICP (rigid, every source point, plane and quadric) bitwise as with the numpy forms of the compiled steps
-    of the matcher: the cached normals and noise scattered to the pairs, the angle between the normals and
-    the distances of the duplicate rule."""
+    of the matcher: the cached normals and noise scattered to the pairs, the foot points on the quadrics and
+    their normals, the angle between the normals and the distances of the duplicate rule."""
     from labkit.registration.matching import local_surface, matcher
 
     rng = np.random.default_rng(7)
@@ -40,6 +40,7 @@ def test_compiled_matching_steps_equal_their_numpy_route(monkeypatch):
         new = icp(source, target, **kw)
         with monkeypatch.context() as m:
             m.setattr(local_surface, "_scatter_cached", local_surface._scatter_cached_numpy)
+            m.setattr(local_surface, "_foot_into", local_surface._foot_into_numpy)
             m.setattr(matcher, "_cos_normals", matcher._cos_normals_numpy)
             m.setattr(matcher, "_dot_rows_at", matcher._dot_rows_at_numpy)
             old = icp(source, target, **kw)

@@ -52,6 +52,7 @@ def test_input_not_modified():
 def test_icp_reuses_the_selection_neighbourhoods_with_the_same_result(monkeypatch, surface):
     from labkit.neighbours import kdtree, treecache
     from labkit.registration import icp
+    from labkit.registration.matching import local_surface
 
     target = _scene(np.random.default_rng(5))
     source = _scene(np.random.default_rng(6)) - [0.03, -0.02, 0.01]
@@ -63,16 +64,28 @@ def test_icp_reuses_the_selection_neighbourhoods_with_the_same_result(monkeypatc
         return real(self, pos, k, workers)
 
     monkeypatch.setattr(kdtree.KDTree, "query_leaf_positions", counting)
+    decomposed = []  # rows of local PCA (covariance and eigen-decomposition) computed
+    pca_rows = local_surface._pca_rows
+
+    def counting_pca(tree, cols, nb, k):
+        decomposed.append(len(nb))
+        return pca_rows(tree, cols, nb, k)
+
+    monkeypatch.setattr(local_surface, "_pca_rows", counting_pca)
     runs = []
     for limit in (selection.KEEP_NEIGHBOURS, 0):  # the neighbours of the surface test kept, and not
         monkeypatch.setattr(selection, "KEEP_NEIGHBOURS", limit)
         treecache.forget()
         searched.clear()
-        runs.append((icp(source, target, surface=surface, rng=0), sum(searched)))
-    (reused, n_reused), (own, n_own) = runs
+        decomposed.clear()
+        runs.append((icp(source, target, surface=surface, rng=0), sum(searched), sum(decomposed)))
+    (reused, n_reused, pca_reused), (own, n_own, pca_own) = runs
     assert reused.selection.rule == "surface points"
     assert n_reused < 0.5 * n_own  # ICP searched only next to the points left out
-    np.testing.assert_allclose(reused.matrix, own.matrix, rtol=0, atol=1e-9)
+    # ICP decomposed only those too: the selection's PCA of the two whole clouds (about 6,300 points) served the rest
+    assert pca_reused < pca_own - 0.5 * (len(source) + len(target))
+    # the covariances sum differences of the coordinates: the same normals in the selection's frame and ICP's
+    np.testing.assert_array_equal(reused.matrix, own.matrix)
     np.testing.assert_allclose(reused.covariance, own.covariance, rtol=1e-9, atol=1e-18)
     assert reused.message == own.message and reused.iterations == own.iterations
     np.testing.assert_array_equal(reused.correspondences.rule, own.correspondences.rule)

@@ -54,17 +54,27 @@ def _leaf_geometry(tree, cols, pos, k, quadric=False, eigenvalues=False, known=N
     k / (k - 3) (lam[:, 0] = sigma_n^2), come just before it: the surface test of
     :func:`labkit.registration.selection.surface_mask` reads them from the same search.
     ``known`` (:class:`labkit.neighbours.treecache.NeighbourRows`, optional): the neighbours a first
-    pass found; only the points whose neighbours it does not know are searched.
+    pass found; only the points whose neighbours it does not know are searched, and where it holds
+    their PCA too (eigenvalues and eigenvectors) only the rest is decomposed (the same numbers:
+    the covariances depend only on differences of the coordinates, :func:`~labkit.neighbours.moments.knn_moments`).
     """
     k = min(k, tree.n)
     threads = -1 if len(pos) > 2000 else 1  # threads cost more than they save on small queries
+    pca = None
     if known is not None and known.k == k:
-        have, nb_known = known.at(tree, pos)
+        # the plane needs no neighbours where their PCA is known; the quadric fits them
+        have, nb_known, pca_known = known.at(tree, pos, pca=True, neighbours=quadric or known.pca is None)
         nb = np.empty((len(pos), k), dtype=np.intp)
-        nb[have] = nb_known
+        if nb_known is not None:
+            nb[have] = nb_known
         rest = np.flatnonzero(~have)
         if len(rest):
             nb[rest] = tree.query_leaf_positions(pos[rest], k, workers=threads if len(rest) > 2000 else 1)
+        if pca_known is not None:
+            pca = np.empty((len(pos), 3)), np.empty((len(pos), 3, 3))
+            pca[0][have], pca[1][have] = pca_known
+            if len(rest):
+                pca[0][rest], pca[1][rest] = _pca_rows(tree, cols, nb[rest], k)
     else:
         nb = tree.query_leaf_positions(pos, k, workers=threads)
     m = len(pos)
@@ -72,7 +82,8 @@ def _leaf_geometry(tree, cols, pos, k, quadric=False, eigenvalues=False, known=N
     out = [None] * len(shapes)  # written in place by the row chunks: no second copy of large results
 
     def work(a, b):
-        part = _geometry_rows(tree, cols, pos[a:b], nb[a:b], k, quadric)
+        part = _geometry_rows(tree, cols, pos[a:b], nb[a:b], k, quadric,
+                              None if pca is None else (pca[0][a:b], pca[1][a:b]))[: len(shapes)]
         if a == 0 and b == m:
             out[:] = part
             return
@@ -89,7 +100,7 @@ def _leaf_geometry(tree, cols, pos, k, quadric=False, eigenvalues=False, known=N
     return (n, noise, variation, *fit, *([lam] if eigenvalues else []), tilt)
 
 
-def roughness(tree, cols, a, b, k, decided=None, extra=0):
+def roughness(tree, cols, a, b, k, decided=None, extra=0, pca=False):
     """Noise about the local quadric and the PCA eigenvalues at the tree's distinct points ``a..b-1``.
 
     One k-nearest-neighbour search for both, leaf by leaf on the cores (``a``, ``b``: leaf bounds,
@@ -105,15 +116,17 @@ def roughness(tree, cols, a, b, k, decided=None, extra=0):
     k l3, so sigma_q^2 = RSS / (k - 6) <= k l3 / (k - 6) (and the plane's k l3 / (k - 3) is smaller),
     widened by 1e-6 against rounding. ``decided`` must be monotone: true for a noise means true for
     any smaller one. ``extra`` more neighbours are searched and returned (not used for the noise).
+    With ``pca`` the PCA itself comes last: eigenvalues (m, 3) scaled by k / (k - 3) and eigenvectors
+    (m, 3, 3), as :func:`_leaf_geometry` would decompose these neighbourhoods again.
     """
     k = min(k, tree.n)
     nb = tree.knn_of_leaves(a, b, min(k + extra, tree.n), workers=-1)
     pos = np.arange(a, b)
     m = b - a
-    lam, noise = np.empty((m, 3)), np.empty(m)
+    lam, noise, vecs = np.empty((m, 3)), np.empty(m), np.empty((m, 3, 3))
 
     def plane(u, v):
-        _, noise[u:v], _, lam[u:v], _ = _geometry_rows(tree, cols, pos[u:v], nb[u:v, :k], k, False)
+        _, noise[u:v], _, lam[u:v], _, vecs[u:v] = _geometry_rows(tree, cols, pos[u:v], nb[u:v, :k], k, False)
 
     _in_row_chunks(plane, m)
     lam_1k = lam * ((k - 3) / k)  # back to the covariance 1/k sum
@@ -125,16 +138,17 @@ def roughness(tree, cols, a, b, k, decided=None, extra=0):
         todo &= ~sure
     rows = np.flatnonzero(todo)
     if len(rows):
-        noise[rows] = _leaf_geometry_at(tree, cols, pos[rows], nb[rows, :k], k)
-    return noise, lam_1k, nb
+        noise[rows] = _leaf_geometry_at(tree, cols, pos[rows], nb[rows, :k], k, (lam[rows], vecs[rows]))
+    return (noise, lam_1k, nb) + (((lam, vecs),) if pca else ())
 
 
-def _leaf_geometry_at(tree, cols, pos, nb, k):
-    """The quadric's noise (the plane's where none was fitted) at ``pos`` with the neighbours ``nb``, on the cores."""
+def _leaf_geometry_at(tree, cols, pos, nb, k, pca):
+    """The quadric's noise (the plane's where none was fitted) at ``pos`` with the neighbours ``nb`` and
+    their PCA ``pca`` (eigenvalues, eigenvectors), on the cores."""
     out = np.empty(len(pos))
 
     def work(u, v):
-        out[u:v] = _geometry_rows(tree, cols, pos[u:v], nb[u:v], k, True)[1]
+        out[u:v] = _geometry_rows(tree, cols, pos[u:v], nb[u:v], k, True, (pca[0][u:v], pca[1][u:v]))[1]
 
     _in_row_chunks(work, len(pos))
     return out
@@ -155,13 +169,25 @@ def _in_row_chunks(work, m, rows=50_000):
 _alloc_lock = threading.Lock()
 
 
-def _geometry_rows(tree, cols, pos, nb, k, quadric):
-    """The PCA (and quadric) of :func:`_leaf_geometry` at the points ``pos`` with neighbours ``nb``:
-    normal, noise, variation, eigenvalues, tangents (and coefficients, frame, slope covariance)."""
+def _pca_rows(tree, cols, nb, k):
+    """Eigenvalues (m, 3), ascending and scaled by k / (k - 3), and eigenvectors (m, 3, 3) of the
+    neighbourhoods ``nb``: the local PCA (notebook 04, eqs. 1-5) that :func:`_geometry_rows` starts from."""
     _, cov = covariances(tree.data, None, nb, cols)  # the local PCA's kernel (notebook 04, eqs. 1-2)
     cov *= k / (k - 3) if k > 3 else np.nan  # redundancy k - 3 of the plane (eq. 5): lambda_min is sigma_n^2
     lam, vecs = eigh3_analytic(cov)  # as np.linalg.eigh (closed form), ascending: normal = eigenvector of lambda_min
-    lam = np.clip(lam, 0, None)
+    return np.clip(lam, 0, None), vecs
+
+
+def _geometry_rows(tree, cols, pos, nb, k, quadric, pca=None):
+    """The PCA (and quadric) of :func:`_leaf_geometry` at the points ``pos`` with neighbours ``nb``:
+    normal, noise, variation, eigenvalues, tangents (and coefficients, frame, slope covariance), and
+    the eigenvectors last. ``pca``: (eigenvalues, eigenvectors) of these rows from :func:`_pca_rows`,
+    when a first pass computed them (the covariances depend only on differences of the coordinates:
+    the same numbers in any frame)."""
+    if pca is None:
+        lam, vecs = _pca_rows(tree, cols, nb, k)
+    else:  # the quadric's frame changes the eigenvectors in place below
+        lam, vecs = pca[0], pca[1].copy() if quadric else pca[1]
     with np.errstate(invalid="ignore"):
         ok = lam[:, 1] > 1e-12 * lam[:, 2]  # not a point, not a line (features._determined)
     n = vecs[:, :, 0]
@@ -180,7 +206,7 @@ def _geometry_rows(tree, cols, pos, nb, k, quadric):
         _, n_q = _on_quadric(coef[fit], vecs[fit], np.zeros((int(fit.sum()), 3)))
         n[fit] = n_q  # the surface normal at the point itself
         return n, np.where(fit, sig, noise), np.where(ok, variation, np.nan), lam, tangents, coef, vecs, slope
-    return n, noise, np.where(ok, variation, np.nan), lam, tangents
+    return n, noise, np.where(ok, variation, np.nan), lam, tangents, vecs
 
 
 def _plane_tilt(lam, tangents, k):
@@ -321,6 +347,50 @@ else:  # pragma: no cover - depends on the environment
     _scatter_cached = _scatter_cached_numpy
 
 
+def _foot_into_numpy(slot, pos, rows, coef_buf, frame_buf, d, nt):
+    """d[rows] and nt[rows] replaced, where a quadric was fitted, by the offset to the foot point on the
+    quadric of the cached points ``pos`` (through the point itself) from ``q - d`` and the normal there."""
+    s = slot[pos]
+    coef = coef_buf[s]
+    coef[:, 5] = 0.0  # the surface through the measured q itself (see _Matcher.__call__)
+    off, normal = _on_quadric(coef, frame_buf[s], -d[rows])
+    fit = np.isfinite(off[:, 0])
+    d[rows[fit]], nt[rows[fit]] = off[fit], normal[fit]
+
+
+if HAVE_NUMBA:
+
+    @numba.njit(cache=True, nogil=True)
+    def _foot_into(slot, pos, rows, coef_buf, frame_buf, d, nt):  # pragma: no cover - compiled
+        """:func:`_foot_into_numpy` in one pass, without gathered copies: the same arithmetic in numpy's order
+        (the products of :func:`_on_quadric` left to right, its row sums over strided frame columns in
+        sequence), the same numbers to the bit."""
+        for r in range(rows.shape[0]):
+            i, s = rows[r], slot[pos[r]]
+            a, b, c, e1, e2 = coef_buf[s, 0], coef_buf[s, 1], coef_buf[s, 2], coef_buf[s, 3], coef_buf[s, 4]
+            F = frame_buf[s]
+            w0, w1, w2 = -d[i, 0], -d[i, 1], -d[i, 2]
+            u = (w0 * F[0, 2] + w1 * F[1, 2]) + w2 * F[2, 2]  # along t1
+            v = (w0 * F[0, 1] + w1 * F[1, 1]) + w2 * F[2, 1]  # along t2
+            h = (w0 * F[0, 0] + w1 * F[1, 0]) + w2 * F[2, 0]  # along n
+            hs = ((((a * u * u + b * u * v) + c * v * v) + e1 * u) + e2 * v) + 0.0
+            gu, gv = (2 * a * u + b * v) + e1, (b * u + 2 * c * v) + e2
+            n0 = (F[0, 0] - gu * F[0, 2]) - gv * F[0, 1]
+            n1 = (F[1, 0] - gu * F[1, 2]) - gv * F[1, 1]
+            n2 = (F[2, 0] - gu * F[2, 2]) - gv * F[2, 1]
+            length = np.sqrt((n0 * n0 + n1 * n1) + n2 * n2)
+            n0, n1, n2 = n0 / length, n1 / length, n2 / length
+            if n2 < 0:
+                n0, n1, n2 = -n0, -n1, -n2
+            o = hs - h
+            off0 = o * F[0, 0]
+            if np.isfinite(off0):
+                d[i, 0], d[i, 1], d[i, 2] = off0, o * F[1, 0], o * F[2, 0]
+                nt[i, 0], nt[i, 1], nt[i, 2] = n0, n1, n2
+else:  # pragma: no cover - depends on the environment
+    _foot_into = _foot_into_numpy
+
+
 def _on_quadric(coef, frame, w):
     """Offset from points to the local quadric along its frame normal, and the surface normal there.
 
@@ -425,6 +495,13 @@ class Geometry:
         coef = self._get("coef", pos)  # a copy (fancy indexing)
         coef[:, 5] = 0.0  # the surface through the measured q itself (see _Matcher.__call__)
         return _on_quadric(coef, self._get("frame", pos), w)
+
+    def foot_at_rows(self, index, rows, d, nt):
+        """:meth:`foot` from ``q - d[rows]`` written into ``d[rows]`` and ``nt[rows]`` where a quadric was
+        fitted (requires :meth:`at` first): one compiled pass instead of the gathered copies."""
+        if "coef" not in self._store or len(rows) == 0:
+            return  # no quadric computed: nothing fitted
+        _foot_into(self.slot, self.tree.representative[index], rows, self._store["coef"], self._store["frame"], d, nt)
 
     def plane_tilt(self, index):
         """Covariance (m, 3, 3) of the random tilt of the PCA plane normals at the points ``index``

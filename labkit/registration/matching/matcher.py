@@ -133,9 +133,7 @@ class _Matcher:
             # kept): q_j's noise then enters one residual only, as with the plane; the fitted value
             # would spread every target point's noise over the ~k residuals around it, correlated
             # beyond the block cells (stated std 1.4-1.6 times too small on sparse hills)
-            off, n_s = self.geometry.foot(j, -d[live])
-            fit = np.isfinite(off[:, 0])
-            d[live[fit]], nt[live[fit]] = off[fit], n_s[fit]  # the quadric's normal at the foot point
+            self.geometry.foot_at_rows(j, live, d, nt)  # d[live], nt[live]: offset and the quadric's normal there
         # a target point whose neighbourhood is a point or a line has no normal
         rule[live[np.isnan(nt[live, 0]) & (rule[live] == 0)]] = _CODE["degenerate"]
         # (4) gates on the target point: class, noise, normal angle
