@@ -229,6 +229,17 @@ def _hills(rng, n, size=40.0, noise=0.02):
     return np.column_stack([xy, z]) + rng.normal(0, noise, (n, 3))
 
 
+def test_max_consensus_carries_the_inputs_crs_into_its_result():
+    """Like icp: the frame of the inputs is the frame of the result (and of a registration file)."""
+    from labkit import PointCloud
+
+    pair = als_epochs("xyz", size=(20.0, 20.0), density=4, rng=5)
+    src, tgt = pair.source.xyz, pair.target.xyz
+    kw = dict(extent=0.3, tol=0.01, max_points=300)
+    res = max_consensus(PointCloud(src, crs="EPSG:25832"), PointCloud(tgt, crs="EPSG:25832"), **kw)
+    assert res.crs == "EPSG:25832" and "25832" in res.summary()
+    assert max_consensus(src, tgt, **kw).crs is None  # arrays state no CRS
+
 @pytest.mark.slow
 def test_stated_std_matches_monte_carlo_spread():
     """Monte Carlo over independent epoch pairs: spread of the error / stated std per axis.

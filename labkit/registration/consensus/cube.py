@@ -32,7 +32,7 @@ from dataclasses import replace
 import numpy as np
 
 from ...core.checks import choice, count, non_negative, positive
-from ...core.crs import check_same_crs
+from ...core.crs import check_same_crs, crs_of
 from . import kernels as K
 from ...neighbours.sampling import even_subset
 from .inputs import candidate_pairs, grid, prepare_problem, search_box
@@ -405,7 +405,8 @@ def max_consensus(
     # Least squares with weights and iterative deletion on the consensus set; sandwich covariance
     res = refine(bb, src_of, D, nrm, pb, opts["reject_sigma"], ext, time.perf_counter() - t0, t0,
                  k=max(4, int(k)), block_size=opts["block_size"], max_std=opts["max_std"])
-    res = replace(res, selection=selection, message=f"{res.message}; points: {selection.reason}")
+    res = replace(res, selection=selection, message=f"{res.message}; points: {selection.reason}",
+                  crs=crs_of(whole[0]) or crs_of(whole[1]))  # the frame of the result, as icp states it
     if height_model and metric == "point_to_plane":
         res, _ = fill_held_axes(res, *whole)
     return res
