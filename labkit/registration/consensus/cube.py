@@ -297,9 +297,10 @@ def max_consensus(
     block_size : float, optional
         Edge (m) of the square (XY) blocks of the jackknife covariance; default: twice and four
         times the radius of the target's k-neighbourhoods (median distance to the k-th
-        neighbour; two voting points closer than twice it share target points), and the larger
-        of the two covariances counts (errors correlated over longer distances, such as the
-        shape of the terrain, show as a growth with the block edge).
+        neighbour; two voting points closer than twice it share target points), and per axis the
+        larger of the two variances counts (errors correlated over longer distances, such as the
+        shape of the terrain or one roof, show as a growth with the block edge); each is scaled
+        for its number of blocks (Student's t with B - 1 degrees of freedom, as ICP's sandwich).
     max_std : float, optional
         A direction of the translation is determined when its standard deviation is at
         most ``max_std`` (m); default eps / 2. Weaker directions keep the branch-and-bound
