@@ -334,7 +334,9 @@ def max_consensus(
     source, estimating -t) and states the mean of the two, with a jackknife that deletes each block
     from both fits (unless ``weights`` are given: the target has none). The mean cancels that bias
     to first order only; half the measured bias enters the covariance as the std of the remainder.
-    Monte Carlo on real random halves: tests/registration/test_real_als_trust.py.
+    Monte Carlo on real random halves: tests/registration/test_real_als_trust.py; on 50 m tiles of sparse
+    ALS (0.5 pts/m^2, 160 tiles) rms error / stated std 1.05, 1.08, 1.06 in X, Y, Z, 2 of 480 components
+    beyond 3 std (1.15, 1.20, 1.16 and 5 of 480 with the plain jackknife): tests/registration/test_consensus.py.
 
     Returns
     -------
