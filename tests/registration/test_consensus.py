@@ -240,6 +240,17 @@ def test_max_consensus_carries_the_inputs_crs_into_its_result():
     assert res.crs == "EPSG:25832" and "25832" in res.summary()
     assert max_consensus(src, tgt, **kw).crs is None  # arrays state no CRS
 
+
+def test_too_few_jackknife_blocks_state_no_precision():
+    """Blocks as large as the scene: no resampling can check sigma0^2 N^-1 (1.14-1.52 times too small on
+    the hills below), so nothing is stated; with the default blocks the same scene is determined."""
+    pair = als_epochs("xyz", size=(20.0, 20.0), density=4, rng=5)
+    kw = dict(extent=0.3, tol=0.01, max_points=300, height_model=False)
+    res = max_consensus(pair.source, pair.target, block_size=15.0, **kw)
+    assert res.degeneracy.undetermined_axes == ("X", "Y", "Z") and "fewer than 8 blocks" in res.message
+    assert np.all(res.translation_std > 0.1)  # the search box, not a confident number
+    assert max_consensus(pair.source, pair.target, **kw).degeneracy.well_posed
+
 @pytest.mark.slow
 def test_stated_std_matches_monte_carlo_spread():
     """Monte Carlo over independent epoch pairs: spread of the error / stated std per axis.
