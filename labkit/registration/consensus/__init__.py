@@ -1,4 +1,4 @@
 """Maximum consensus: the consensus cube and search (:mod:`.cube`), its
-inputs, compiled kernels, records (:mod:`.result`) and branch and
-bound (:mod:`.bnb`).
+inputs, compiled kernels, records (:mod:`.result`), branch and bound
+(:mod:`.bnb`) and the jackknife covariance of its refinement (:mod:`.jackknife`).
 """

@@ -32,7 +32,7 @@ from dataclasses import replace
 import numpy as np
 
 from ...core.checks import choice, count, non_negative, positive
-from ...core.crs import check_same_crs
+from ...core.crs import check_same_crs, crs_of
 from . import kernels as K
 from ...neighbours.sampling import even_subset
 from .inputs import candidate_pairs, grid, prepare_problem, search_box
@@ -297,9 +297,10 @@ def max_consensus(
     block_size : float, optional
         Edge (m) of the square (XY) blocks of the jackknife covariance; default: twice and four
         times the radius of the target's k-neighbourhoods (median distance to the k-th
-        neighbour; two voting points closer than twice it share target points), and the larger
-        of the two covariances counts (errors correlated over longer distances, such as the
-        shape of the terrain, show as a growth with the block edge).
+        neighbour; two voting points closer than twice it share target points), and per axis the
+        larger of the two variances counts (errors correlated over longer distances, such as the
+        shape of the terrain or one roof, show as a growth with the block edge); each is scaled
+        for its number of blocks (Student's t with B - 1 degrees of freedom, as ICP's sandwich).
     max_std : float, optional
         A direction of the translation is determined when its standard deviation is at
         most ``max_std`` (m); default eps / 2. Weaker directions keep the branch-and-bound
@@ -333,7 +334,9 @@ def max_consensus(
     source, estimating -t) and states the mean of the two, with a jackknife that deletes each block
     from both fits (unless ``weights`` are given: the target has none). The mean cancels that bias
     to first order only; half the measured bias enters the covariance as the std of the remainder.
-    Monte Carlo on real random halves: tests/registration/test_real_als_trust.py.
+    Monte Carlo on real random halves: tests/registration/test_real_als_trust.py; on 50 m tiles of sparse
+    ALS (0.5 pts/m^2, 160 tiles) rms error / stated std 1.05, 1.08, 1.06 in X, Y, Z, 2 of 480 components
+    beyond 3 std (1.15, 1.20, 1.16 and 5 of 480 with the plain jackknife): tests/registration/test_consensus.py.
 
     Returns
     -------
@@ -405,7 +408,8 @@ def max_consensus(
     # Least squares with weights and iterative deletion on the consensus set; sandwich covariance
     res = refine(bb, src_of, D, nrm, pb, opts["reject_sigma"], ext, time.perf_counter() - t0, t0,
                  k=max(4, int(k)), block_size=opts["block_size"], max_std=opts["max_std"])
-    res = replace(res, selection=selection, message=f"{res.message}; points: {selection.reason}")
+    res = replace(res, selection=selection, message=f"{res.message}; points: {selection.reason}",
+                  crs=crs_of(whole[0]) or crs_of(whole[1]))  # the frame of the result, as icp states it
     if height_model and metric == "point_to_plane":
         res, _ = fill_held_axes(res, *whole)
     return res
