@@ -32,20 +32,31 @@ else:  # pragma: no cover - the kd-tree route in _change_search is used instead
 
 PARALLEL_FROM = 50_000  # core points; below, one thread (measured: starting the OpenMP team on a loaded
 #                         2-core machine cost 30-60 ms against 0.5 ms of work for 829 cores)
+COUNTING_CELLS = 8  # voxels in the grid's box per point up to which VoxelGrid sorts by counting (8 bytes each)
 
 
 class VoxelGrid:
     """Points sorted by voxel: ``points[start[j]:start[j + 1]]`` lie in the voxel of key ``keys[j]``."""
 
     def __init__(self, local: np.ndarray, cell: float):
-        low, high = (local.min(axis=0), local.max(axis=0)) if len(local) else (np.zeros(3), np.zeros(3))
+        if len(local):  # column by column: about 10x faster than min(axis=0) on an (n, 3) array
+            low = np.array([local[:, a].min() for a in range(3)])
+            high = np.array([local[:, a].max() for a in range(3)])
+        else:
+            low, high = np.zeros(3), np.zeros(3)
         while np.prod([int(s // cell) + 4 for s in high - low], dtype=object) > 2**62:  # keys must fit int64
             cell *= 2.0
         self.cell = float(cell)
         self.lo = low - self.cell
-        ijk = np.floor((local - self.lo) / self.cell).astype(np.int64)
         # floor((x - lo) / cell) is monotone in x: its largest value is the one of the largest x
         self.dims = np.floor((high - self.lo) / self.cell).astype(np.int64) + 3
+        total = int(np.prod(self.dims, dtype=object))
+        if HAVE_NUMBA and local.dtype == np.float64 and total <= COUNTING_CELLS * len(local) + 2**16:
+            # few voxels per point: a counting sort (one pass, stable) instead of a comparison sort
+            self.points, self.keys, self.start = _counting_sort(np.ascontiguousarray(local),
+                                                                self.lo, self.cell, self.dims, total)
+            return
+        ijk = np.floor((local - self.lo) / self.cell).astype(np.int64)
         key = (ijk[:, 0] * self.dims[1] + ijk[:, 1]) * self.dims[2] + ijk[:, 2]
         order = np.argsort(key, kind="stable")
         self.points = np.ascontiguousarray(local[order])
@@ -53,6 +64,48 @@ class VoxelGrid:
         first = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]])  # first point of each voxel
         self.keys = sorted_keys[first]
         self.start = np.append(first, len(key)).astype(np.int64)
+
+if HAVE_NUMBA:
+
+    @_serial
+    def _counting_sort(local, lo, cell, dims, total):
+        """Points sorted by voxel key (stable), the occupied keys and their start offsets, by counting sort.
+
+        The keys are those of the comparison-sort route bit for bit: the same floor((x - lo) / cell).
+        """
+        n = local.shape[0]
+        key = np.empty(n, dtype=np.int64)
+        count = np.zeros(total, dtype=np.int64)
+        for i in range(n):
+            ix = np.int64(np.floor((local[i, 0] - lo[0]) / cell))
+            iy = np.int64(np.floor((local[i, 1] - lo[1]) / cell))
+            iz = np.int64(np.floor((local[i, 2] - lo[2]) / cell))
+            k = (ix * dims[1] + iy) * dims[2] + iz
+            key[i] = k
+            count[k] += 1
+        occupied = 0
+        for v in range(total):
+            if count[v] > 0:
+                occupied += 1
+        keys = np.empty(occupied, dtype=np.int64)
+        start = np.empty(occupied + 1, dtype=np.int64)
+        j, offset = 0, 0
+        for v in range(total):  # count[v] becomes the next free slot of voxel v
+            c = count[v]
+            if c > 0:
+                keys[j] = v
+                start[j] = offset
+                j += 1
+            count[v] = offset
+            offset += c
+        start[occupied] = n
+        points = np.empty((n, 3))
+        for i in range(n):  # in input order: the points of one voxel keep their order (stable)
+            q = count[key[i]]
+            count[key[i]] = q + 1
+            points[q, 0], points[q, 1], points[q, 2] = local[i, 0], local[i, 1], local[i, 2]
+        return points, keys, start
+
 
 
 if HAVE_NUMBA:

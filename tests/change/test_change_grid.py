@@ -52,3 +52,19 @@ def test_grid_sorts_every_point_into_its_voxel():
     for j in rng.choice(len(grid.keys), 50, replace=False):
         assert np.all(key[grid.start[j]:grid.start[j + 1]] == grid.keys[j])
     assert np.all(np.diff(grid.keys) > 0) and grid.start[-1] == len(pts)
+
+
+@pytest.mark.parametrize("cell", [0.1, 0.3, 2.0])
+def test_counting_sort_gives_the_comparison_sort_grid_bitwise(cell, monkeypatch):
+    # several distinct points per voxel, duplicates and points on voxel faces (coordinates on a 0.1 lattice):
+    # the counting sort must give the same keys and keep the input order within a voxel
+    rng = np.random.default_rng(5)
+    pts = np.round(rng.uniform(-3, 3, (4000, 3)) * [1, 1, 0.2], 1)
+    pts = np.vstack([pts, pts[::7]])[rng.permutation(4000 + 572)]
+    counted = g.VoxelGrid(pts, cell)
+    assert len(pts) * g.COUNTING_CELLS + 2**16 >= np.prod(counted.dims)  # the counting route was taken
+    monkeypatch.setattr(g, "HAVE_NUMBA", False)  # the argsort route
+    sorted_ = g.VoxelGrid(pts, cell)
+    for a in ("points", "keys", "start", "lo", "dims"):
+        assert np.array_equal(getattr(counted, a), getattr(sorted_, a)), a
+    assert counted.cell == sorted_.cell
