@@ -70,6 +70,13 @@ jackknife) and the counted work budget, 2026-12-02, seed 0 (``--methods max_cons
   variance). Suspected: the delete-a-block jackknife counts the block-to-block spread of the local plane
   biases, the same in every half, as noise. Not a deliberate margin; left as is (honest, not tuned).
 
+With the t factor of the effective cells per parameter (icp), the jackknife's t factor and per-axis block
+edge (max_consensus) and the group test referred to Welch-James F at alpha / k (2026-12-02 afternoon, seed 0,
+``--no-open3d``, idle machine beside a CI run): icp 44 / 0 / 0 (+4 refused on interesting.las), max_consensus
+48 / 0 / 0, consensus+icp 48 / 0 / 0, the same rows undetermined as before; Autzen 2010 -> 2023: icp
+(-457, +874, +257) mm +-(570, 322, 65), max_consensus (-975, +819, +161) mm +-(111, 89, 12), within (0.89, 0.17,
+1.45) combined std.
+
 Why X and Y stay undetermined where they do (icp defaults, 2026-12-02; seed 0, all four shifts):
 
 - MixedConifer: the stable class is a height-normalised flat floor: the two horizontal directions
