@@ -216,11 +216,12 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
         y = (V.T @ np.einsum("mru,m,mr->u", Ag, Pg, lg)) / lam  # the group's own estimate of V^T x
         v = np.einsum("mru,u->mr", Ag, V @ y) - lg
         _, cell = np.unique(cells[rows], return_inverse=True)
-        fits.append((name, rows, Ag @ V, Pg, v, cell.ravel(), lam, V, y))
+        B, cell = Ag @ V, cell.ravel()
+        fits.append((name, rows, B, Pg, v, cell, lam, V, y, *cell_sums(B, Pg, v, cell)))
     deff, nu_all = design_effect(fits)
     ys, Ws, Vs, used, ns, deltas, offs_std, scores, nus = [], [], [], [], [], [], [], [], []
-    for name, rows, B, Pg, v, cell, lam, V, y in fits:
-        C, nu = cell_jackknife(B, Pg, v, cell, lam)
+    for name, rows, B, Pg, v, cell, lam, V, y, Nc, gc in fits:
+        C, nu = cell_jackknife(Nc, gc, cell, lam)
         if C is None:  # too few cells: formal sigma0^2 N^-1, widened by the correlation within the groups
             m, r = len(v), len(lam)
             C = np.diag(1 / lam) * float(np.einsum("mr,m,mr->", v, Pg, v)) / max(v.size - r, 1)
@@ -264,26 +265,36 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
                        offset_std[:, translation], between, scale=scale, denominator_dof=nu_f)
 
 
-def cell_jackknife(B, P, v, cell, lam):
+def cell_sums(B, P, v, cell):
+    """Each cell's normal matrix N_c (nc, k, k) and score sum g_c (nc, k) of a group's own fit.
+
+    B (m, r, k) are the group's design rows in its eigen-directions, P (m,) their weights, v (m, r) the
+    residuals about the group's own estimate, ``cell`` (m,) the cell index of each row.
+    """
+    nc, k = int(cell.max()) + 1, B.shape[2]
+    Nc = np.zeros((nc, k, k))
+    np.add.at(Nc, cell, np.einsum("mri,m,mrj->mij", B, P, B))
+    g = np.zeros((nc, k))
+    np.add.at(g, cell, np.einsum("mri,m,mr->mi", B, P, v))
+    return Nc, g
+
+
+def cell_jackknife(Nc, g, cell, lam):
     """Delete-one-cell jackknife covariance of a group's estimate, and its degrees of freedom.
 
-    B (m, r, k) are the group's design rows in its eigen-directions (normal matrix ``diag(lam)``),
-    v (m, r) its residuals about its own estimate. Leaving cell c out moves the estimate by
+    ``Nc``, ``g``: the cells' normal matrices and score sums (:func:`cell_sums`) of the group's fit in
+    its eigen-directions (normal matrix ``diag(lam)``); ``cell``: each row's cell. Leaving cell c out moves the estimate by
     (Lambda - N_c)^-1 g_c (g_c: the cell's score sum), exactly for least squares; the spread of these
     moves is the cluster-robust covariance (eq. 5.13) without its downward bias when the cells are
     few (each cell's own leverage is taken out). Degrees of freedom: the effective number of cells
     (from the cells' sizes: (sum n_c)^2 / sum n_c^2) minus one. None, None when there are fewer
     than 2 k + 1 effective cells or one cell carries a direction nearly alone.
     """
-    k, nc = len(lam), int(cell.max()) + 1
+    k, nc = len(lam), len(g)
     size = np.bincount(cell).astype(float)
     cells_eff = float(size.sum() ** 2 / (size**2).sum())  # n_c for cells of equal size, fewer otherwise
     if cells_eff < 2 * k + 1:
         return None, None
-    Nc = np.zeros((nc, k, k))
-    np.add.at(Nc, cell, np.einsum("mri,m,mrj->mij", B, P, B))
-    g = np.zeros((nc, k))
-    np.add.at(g, cell, np.einsum("mri,m,mr->mi", B, P, v))
     scaled = Nc / np.sqrt(np.outer(lam, lam))
     if np.linalg.eigvalsh(scaled)[:, -1].max() > 0.9:  # leaving that cell out loses a direction
         return None, None
@@ -301,14 +312,10 @@ def design_effect(fits):
     of its own by the correlation of neighbouring residuals; dof: the cells minus one per group.
     """
     num = den = nu = 0.0
-    for _, _, B, P, v, cell, lam, _, _ in fits:
-        nc, k = int(cell.max()) + 1, len(lam)
+    for _, _, _, P, v, _, lam, _, _, Nc, g in fits:
+        nc, k = len(g), len(lam)
         if nc < 2:
             continue
-        Nc = np.zeros((nc, k, k))
-        np.add.at(Nc, cell, np.einsum("mri,m,mrj->mij", B, P, B))
-        g = np.zeros((nc, k))
-        np.add.at(g, cell, np.einsum("mri,m,mr->mi", B, P, v))
         s02 = float(np.einsum("mr,m,mr->", v, P, v)) / max(v.size - k, 1)
         num += float(np.sum(g**2 / lam))
         den += s02 * (k - float(np.einsum("cij,cji->", Nc / lam, Nc / lam)))
