@@ -7,7 +7,12 @@ a local origin; results are moved back to the caller's frame at the end.
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
+
+_ORIGIN_POINTS = 4096  # an origin is the mean of about this many evenly strided points
+_SUMS = []  # [the compiled column sums] once built
 
 
 def local_origin(*clouds: np.ndarray) -> np.ndarray:
@@ -19,7 +24,33 @@ def local_origin(*clouds: np.ndarray) -> np.ndarray:
     coordinates stored with millimetre resolution.
     """
     first = np.asarray(clouds[0], dtype=np.float64)
-    return np.round(first[:: max(1, len(first) // 4096)].mean(axis=0))
+    step = max(1, len(first) // _ORIGIN_POINTS)
+    kernel = _sums_kernel() if first.ndim == 2 and first.shape[1] == 3 and len(first) else None
+    if kernel is None:
+        return np.round(first[::step].mean(axis=0))
+    sums, m = kernel(first, step)
+    return np.round(sums / m)
+
+
+def _strided_sums(a, step):  # pragma: no cover - compiled
+    """Column sums of the rows a[::step] (n, 3), row after row: numpy's order for a mean over axis 0."""
+    s0 = s1 = s2 = 0.0
+    m = 0
+    for i in range(0, a.shape[0], step):
+        s0, s1, s2, m = s0 + a[i, 0], s1 + a[i, 1], s2 + a[i, 2], m + 1
+    return np.array([s0, s1, s2]), m
+
+
+def _sums_kernel():
+    """:func:`_strided_sums` compiled, once numba is loaded by another step (a mean of 4096 points is not
+    worth loading it: numpy's mean over axis 0 takes about 0.1 ms, this pass a few microseconds)."""
+    if not _SUMS:
+        if "numba" not in sys.modules:
+            return None
+        from .jit import compiled
+
+        _SUMS.append(compiled(_strided_sums))
+    return _SUMS[0]
 
 
 def reduce(points: np.ndarray, origin: np.ndarray) -> np.ndarray:
