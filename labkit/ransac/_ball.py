@@ -162,16 +162,29 @@ def _subtract(P, o, out):  # pragma: no cover - compiled
         out[i, 0], out[i, 1], out[i, 2] = P[i, 0] - o[0], P[i, 1] - o[1], P[i, 2] - o[2]
 
 
-def reduced(P, origin):
+def _subtract_both(P, o, out, T):  # pragma: no cover - compiled
+    for i in range(P.shape[0]):
+        a, b, e = P[i, 0] - o[0], P[i, 1] - o[1], P[i, 2] - o[2]
+        out[i, 0], out[i, 1], out[i, 2] = a, b, e
+        T[0, i], T[1, i], T[2, i] = a, b, e
+
+
+def reduced(P, origin, by_axis=False):
     """``P - origin`` for points P (n, 3) float64 as a new array, in one compiled pass (numpy's broadcast
-    runs an inner loop of three per row, about 4x slower); the same numbers."""
+    runs an inner loop of three per row, about 4x slower); the same numbers. ``by_axis``: also the same
+    numbers stored by axis (3, n), written in the same pass: ``(P - origin, (P - origin).T)``."""
     origin = np.asarray(origin, dtype=np.float64)
-    kernel = _jit(_subtract)
+    kernel = _jit(_subtract_both if by_axis else _subtract)
     if kernel is None or P.dtype != np.float64 or not P.flags.c_contiguous or P.ndim != 2:  # pragma: no cover
-        return np.asarray(P, dtype=np.float64) - origin
+        out = np.asarray(P, dtype=np.float64) - origin
+        return (out, np.ascontiguousarray(out.T)) if by_axis else out
     out = np.empty(P.shape)
-    kernel(P, origin, out)
-    return out
+    if not by_axis:
+        kernel(P, origin, out)
+        return out
+    T = np.empty((3, len(P)))
+    kernel(P, origin, out, T)
+    return out, T
 
 
 def _gather(X, idx, by_axis_out):  # pragma: no cover - compiled
@@ -283,6 +296,27 @@ def _in_shell(x, y, z, c, r, t):  # pragma: no cover - compiled
         d = np.sqrt(dx * dx + dy * dy + dz * dz) - r
         out[i] = d * d < t2
     return out
+
+
+def _mark_shell(x, y, z, idx, c, r, t, mask):  # pragma: no cover - compiled
+    t2 = t * t
+    for i in range(x.shape[0]):  # :func:`_in_shell`'s arithmetic
+        dx, dy, dz = x[i] - c[0], y[i] - c[1], z[i] - c[2]
+        d = np.sqrt(dx * dx + dy * dy + dz * dz) - r
+        if d * d < t2:
+            mask[idx[i]] = True
+
+
+def mark_shell(T, idx, c, r, t, n):
+    """A mask of n points, True at idx[i] for the points T[:, i] (by axis, (3, k)) with d^2 < t^2: the mask
+    ``m[idx[in_shell(T, c, r, t, by_axis=True)]] = True`` in one compiled pass, without the temporaries."""
+    mask = np.zeros(n, dtype=np.bool_)
+    kernel = _jit(_mark_shell)
+    if kernel is None or T.dtype != np.float64:  # pragma: no cover
+        mask[idx[in_shell(T, c, r, t, by_axis=True)]] = True
+        return mask
+    kernel(T[0], T[1], T[2], idx, np.ascontiguousarray(c, dtype=np.float64), float(r), float(t), mask)
+    return mask
 
 
 def in_shell(X, c, r, t, by_axis=False):

@@ -12,7 +12,7 @@ from ..core.checks import as_points, choice, count, numeric_array, positive, pro
 from ..core.frame import local_origin, reduce
 from ..core.errors import LabkitError
 from ._ball import reduced
-from .config import FINAL_ATTEMPTS, LOCAL_MAX_PAIRS, LOCAL_MAX_SHARE, LOCAL_REACH, S, Config
+from .config import COARSE_POINTS, FINAL_ATTEMPTS, LOCAL_MAX_PAIRS, LOCAL_MAX_SHARE, LOCAL_REACH, S, Config
 from .refit import refit_sphere
 from .result import RansacResult, not_found
 from .sampling import LocalSampler, UniformSampler, mean_neighbourhood_share, pick_sampling, working_set
@@ -188,7 +188,10 @@ def ransac_sphere(
 
     # Search a random reduction of the cloud; if nothing is found there, a 4x and a 16x larger one
     origin = local_origin(xyz)
-    verifier = Verifier(reduced(xyz, origin), None if station is None else station - origin, cfg)
+    # (a cloud the coarse test reads whole is also stored by axis, written in the same pass)
+    whole = len(xyz) < 2 * COARSE_POINTS
+    X, by_axis = reduced(xyz, origin, by_axis=True) if whole else (reduced(xyz, origin), None)
+    verifier = Verifier(X, None if station is None else station - origin, cfg, by_axis)
     tried = []
     for size in _reduction_sizes(len(xyz), preliminary_size):
         result, had_best = _detect(xyz, origin, working_set(len(xyz), size, gen), cfg, seed, gen, verifier)

@@ -10,7 +10,7 @@ from scipy.optimize import brentq
 
 from ..sphere.ghm import adjust_sphere, check_sigma
 from ..core.errors import LabkitError
-from ._ball import band_median, gather, in_shell, near_shell, residuals
+from ._ball import band_median, gather, mark_shell, near_shell, residuals
 from .config import BAND_K, SNOOP_ROUNDS, START_STEPS, S
 from .hypotheses import orthogonal_fit, shell_mask
 
@@ -116,9 +116,7 @@ def _band_mask(xyz, x, band, near):
     move = float(np.linalg.norm(x[:3] - x_s[:3]) + abs(x[3] - x_s[3]))
     if np.ndim(band) != 0 or not move < 0.999 * (reach - band):
         return shell_mask(xyz, x, band)
-    mask = np.zeros(len(xyz), dtype=bool)
-    mask[idx[in_shell(T, x[:3], x[3], band, by_axis=True)]] = True
-    return mask
+    return mark_shell(T, idx, x[:3], x[3], band, len(xyz))
 
 
 def _start(T, x, steps=START_STEPS, mask=None):

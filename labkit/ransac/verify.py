@@ -29,11 +29,15 @@ class Verifier:
     and hypotheses close to one of them are rejected without a new check.
     """
 
-    def __init__(self, X, station, cfg):
+    def __init__(self, X, station, cfg, by_axis=None):
         self.X, self.station, self.cfg = np.ascontiguousarray(X, dtype=np.float64), station, cfg
         step = len(self.X) // COARSE_POINTS
-        # the coarse test runs on an even subsample (or, for a small cloud, on every point), stored by axis (3, m)
-        self._sub = np.ascontiguousarray(self.X[:: max(step, 1)].T)
+        # the coarse test runs on an even subsample (or, for a small cloud, on every point), stored by axis (3, m);
+        # ``by_axis``: X stored by axis already (X.T, C-contiguous)
+        if step < 2 and by_axis is not None:
+            self._sub = by_axis
+        else:
+            self._sub = np.ascontiguousarray(self.X[:: max(step, 1)].T)
         self._scale = len(self.X) / self._sub.shape[1] if step >= 2 else 1.0
         self._sub_all = step < 2
         self.n_rejected, self.n_checked = 0, 0
