@@ -396,13 +396,16 @@ def normal_equations(P, shift, c, r, mask=None, by_axis=False):
 def _band_median(d, band, nb):  # pragma: no cover - compiled
     """Median of |d_i| < band and their count: buckets by value, then the one or two middle buckets only."""
     scale = nb / band
-    counts = np.zeros(nb + 1, dtype=np.int64)
-    n = 0
-    for i in range(d.shape[0]):
+    m = d.shape[0]
+    bucket = np.empty(m, dtype=np.int32)
+    over = float(nb + 1)
+    for i in range(m):  # the bucket of each |d| (nb + 1: not inside the band), in a loop without branches
         a = abs(d[i])
-        if a < band:
-            counts[min(int(a * scale), nb)] += 1  # monotone in a: the buckets keep the order
-            n += 1
+        bucket[i] = int(min(a * scale, float(nb)) if a < band else over)  # monotone in a: the buckets keep the order
+    counts = np.zeros(nb + 2, dtype=np.int64)
+    for i in range(m):
+        counts[bucket[i]] += 1
+    n = m - counts[nb + 1]
     if n == 0:
         return np.nan, 0
     lo_rank, hi_rank = (n - 1) // 2, n // 2  # the middle order statistics (equal for odd n)
@@ -414,15 +417,12 @@ def _band_median(d, band, nb):  # pragma: no cover - compiled
     while upto <= hi_rank:
         b_hi += 1
         upto += counts[b_hi]
-    vals = np.empty(upto - below)  # the values of the middle bucket(s), gathered in one more pass
+    vals = np.empty(upto - below + 1)  # the values of the middle bucket(s), gathered in one more pass
     k = 0
-    for i in range(d.shape[0]):
-        a = abs(d[i])
-        if a < band:
-            bucket = min(int(a * scale), nb)
-            if b_lo <= bucket <= b_hi:
-                vals[k] = a
-                k += 1
+    for i in range(m):  # compaction without a branch: write always, advance when in the middle bucket(s)
+        vals[k] = d[i]
+        k += (bucket[i] >= b_lo) & (bucket[i] <= b_hi)
+    vals = np.abs(vals[:k])
     vals.sort()
     lo, hi = vals[lo_rank - below], vals[hi_rank - below]
     return (lo + hi) / 2.0 if lo_rank != hi_rank else lo, n
