@@ -11,6 +11,8 @@ import sys
 
 import numpy as np
 
+from .jit import compiled
+
 _ORIGIN_POINTS = 4096  # an origin is the mean of about this many evenly strided points
 _SUMS = []  # [the compiled column sums] once built
 
@@ -47,8 +49,6 @@ def _sums_kernel():
     if not _SUMS:
         if "numba" not in sys.modules:
             return None
-        from .jit import compiled
-
         _SUMS.append(compiled(_strided_sums))
     return _SUMS[0]
 

@@ -114,13 +114,11 @@ def _shell(x, y, z, c, r, reach, close):  # pragma: no cover - compiled
     for i in range(n):
         e[i] = np.sqrt(q[i]) - r
     idx = np.empty(n, dtype=np.int64)
-    d = np.empty(n)
     k = 0
-    for i in range(n):  # compaction (most points of a kept ball are inside: the branch predicts well)
-        if q[i] <= R2 and ((not close) or abs(e[i]) < reach):
-            idx[k], d[k] = i, e[i]
-            k += 1
-    return idx[:k].copy(), d[:k].copy()
+    for i in range(n):  # compaction in place (k <= i) without a branch: write always, advance when kept
+        idx[k], e[k] = i, e[i]
+        k += (q[i] <= R2) & ((not close) | (abs(e[i]) < reach))
+    return idx[:k], e[:k]  # (views: no copies of the kept part)
 
 
 def _shell_sparse(x, y, z, c, r, reach, close):  # pragma: no cover - compiled

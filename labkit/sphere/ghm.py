@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import stdtrit  # scipy.stats.t.ppf without importing scipy.stats
-from scipy.linalg import cho_factor, cho_solve
+from scipy.linalg.lapack import dpotrf, dpotrs
 
 from ..core.checks import as_points, numeric_array, positive, probability
 from ..core.frame import local_origin
@@ -319,7 +319,7 @@ class _Iteration:
     k: np.ndarray
     b: np.ndarray
     qbb: np.ndarray
-    N_chol: tuple
+    N_chol: np.ndarray  # the upper Cholesky factor of N
     N: np.ndarray
     dx_history: np.ndarray
     omega_history: np.ndarray
@@ -387,7 +387,10 @@ def _factor(N):
             f"the normal matrix N is singular (reciprocal condition {lam[0] / lam[-1]:.1e}): "
             "the points lie on a plane, a circle or coincide"
         )
-    return cho_factor(N, check_finite=False)
+    c, info = dpotrf(N, lower=0, clean=0)  # the upper factor of cho_factor, without its wrappers (they cost more)
+    if info > 0:
+        raise np.linalg.LinAlgError(f"{info}-th leading minor of the array is not positive definite")
+    return c
 
 
 def _iterate(L, x0, cov, fixed, tol, max_iter):
@@ -462,8 +465,7 @@ def _iterate_compiled(pts, origin, x0, cov, fixed, tol, max_iter, sweeps):
 
 def _solve(N, rhs):
     """Cholesky factor of N and dx = -N^-1 A^T P w (eq. 21)."""
-    N_chol = _factor(N)
-    return N_chol, -cho_solve(N_chol, rhs, check_finite=False)
+    return (N_chol := _factor(N)), -dpotrs(N_chol, rhs, lower=0)[0]
 
 
 def _advance(x, dx, dxs):
@@ -501,7 +503,7 @@ def _result(it, per_point, origin, fixed, tol, alpha, alpha_w, sigma0_apriori, s
     # sigma0 (eq. 23) and Sigma_xx = sigma0^2 N^-1 (eq. 24 corrected)
     omega = float(it.omega_history[-1])  # v^T Sigma^-1 v of the last iteration
     sigma0 = float(np.sqrt(omega / dof)) if dof > 0 else np.nan
-    Qxx = cho_solve(it.N_chol, np.eye(u), check_finite=False)
+    Qxx = dpotrs(it.N_chol, np.eye(u), lower=0)[0]  # (cho_solve's routine)
     Sigma_xx = np.zeros((4, 4))
     Sigma_xx[:u, :u] = (sigma0 if dof > 0 else sigma0_apriori) ** 2 * Qxx
     undetermined = ""
