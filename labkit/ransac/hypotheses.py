@@ -107,4 +107,4 @@ def orthogonal_fit(P, x, steps=3, mask=None, by_axis=False):
             return None
         x = x + step
     x[:3] += shift
-    return x if np.all(np.isfinite(x)) and x[3] > 0 else None
+    return x if np.isfinite(x).all() and x[3] > 0 else None

@@ -31,6 +31,7 @@ def _linearize_sums(pts, o, v0, x, q, u, b, w, first):  # pragma: no cover - com
     l + 0 = l and r - 0 = r). Returns N, n, min r_i, max|l|, largest extent of l.
     """
     one = q.shape[0] == 1
+    p_one = 1.0 / q[0]  # the weight of every point when all are alike (one division, not one per point)
     n00 = n01 = n02 = n11 = n12 = n22 = n03 = n13 = n23 = n33 = 0.0  # sums in scalars (registers)
     g0 = g1 = g2 = g3 = 0.0
     rmin, amax = np.inf, 0.0
@@ -52,7 +53,7 @@ def _linearize_sums(pts, o, v0, x, q, u, b, w, first):  # pragma: no cover - com
         if not first:
             wi -= b0 * v0[i, 0] + b1 * v0[i, 1] + b2 * v0[i, 2]
         b[i, 0], b[i, 1], b[i, 2], w[i] = b0, b1, b2, wi
-        p = 1.0 / q[0 if one else i]
+        p = p_one if one else 1.0 / q[i]
         pb0, pb1, pb2 = p * b0, p * b1, p * b2  # a_i^T p_i with a_i = -[b_i, 1] (eq. 9), signs below
         n00, n01, n02, n03 = n00 + pb0 * b0, n01 + pb0 * b1, n02 + pb0 * b2, n03 + pb0
         n11, n12, n13, n22, n23, n33 = n11 + pb1 * b1, n12 + pb1 * b2, n13 + pb1, n22 + pb2 * b2, n23 + pb2, n33 + p
