@@ -149,7 +149,7 @@ class SphereFit(ReportMixin):
     @property
     def flagged(self) -> np.ndarray:
         """Points whose |w| exceeds the critical value (candidate gross errors)."""
-        return np.abs(np.nan_to_num(self.w_test)) > self.w_critical
+        return np.abs(self.w_test) > self.w_critical  # (NaN compares False: no copy without NaN needed)
 
     @property
     def largest_w(self) -> int:
