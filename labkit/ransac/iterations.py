@@ -66,6 +66,18 @@ def required_iterations(outlier_ratio, p=0.99, s=S):
     return N
 
 
+def required_for_ratio(eps, p, s=S):
+    """:func:`required_iterations` for one outlier ratio eps in [0, 1] and a p checked already (the same N, on
+    scalars: no checks, arrays or error states; the search asks after every new best)."""
+    w_s = np.float64(1.0 - eps) ** int(s)
+    if w_s <= 0:
+        return math.inf
+    if w_s >= 1:
+        return 1
+    N = max(np.ceil(np.log1p(-p) / np.log1p(-w_s) * (1 - 1e-12)), 1.0)  # (eq. 27)
+    return math.inf if np.isinf(N) else int(N)
+
+
 def required_from_probability(w, p):
     """N of eq. (27) written with the outlier-free sample probability w directly."""
     if w <= 0:

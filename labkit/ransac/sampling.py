@@ -8,7 +8,7 @@ from scipy.spatial import cKDTree
 from ..core.errors import LabkitError
 from .config import S
 from .hypotheses import score_hypotheses
-from .iterations import required_from_probability, required_iterations
+from .iterations import required_for_ratio, required_from_probability
 
 
 def working_set(n, size, gen):
@@ -41,7 +41,7 @@ class UniformSampler:
         return gen.integers(0, self.m, size=(size, S))
 
     def required(self, inlier_mask, p):
-        return required_iterations(1.0 - np.count_nonzero(inlier_mask) / self.m, p)
+        return required_for_ratio(1.0 - np.count_nonzero(inlier_mask) / self.m, p)
 
 
 class LocalSampler:

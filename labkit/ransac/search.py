@@ -133,7 +133,7 @@ def _next_batch(N, cfg, n_valid, n_drawn, cap):
     remaining = min(N, cfg.max_iterations) - n_valid
     rate = max(n_valid / max(n_drawn, 1), 0.05)
     wanted = remaining / rate if np.isfinite(remaining) else math.inf
-    return int(np.clip(min(wanted, max(n_valid, FIRST_BATCH)), MIN_BATCH, cap))
+    return int(min(max(min(wanted, max(n_valid, FIRST_BATCH)), MIN_BATCH), cap))  # (np.clip's result)
 
 
 def _search_reason(x, n_valid, n_drawn, N, cfg, had_range=True):
