@@ -27,7 +27,9 @@ def local_origin(*clouds: np.ndarray) -> np.ndarray:
     """
     first = np.asarray(clouds[0], dtype=np.float64)
     step = max(1, len(first) // _ORIGIN_POINTS)
-    kernel = _sums_kernel() if first.ndim == 2 and first.shape[1] == 3 and len(first) else None
+    # (rows in memory order: numpy then sums row after row; over another layout it may sum pairwise)
+    rows = first.ndim == 2 and first.shape[1] == 3 and len(first) and first.flags.c_contiguous
+    kernel = _sums_kernel() if rows else None
     if kernel is None:
         return np.round(first[::step].mean(axis=0))
     sums, m = kernel(first, step)

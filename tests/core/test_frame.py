@@ -1,6 +1,7 @@
 """labkit.core.frame: the local origin of UTM-sized coordinates and the reduction to it, without losing digits."""
 
 import numpy as np
+import pytest
 
 from labkit.core.frame import local_origin, reduce
 
@@ -54,3 +55,21 @@ def test_reduction_keeps_the_millimetre_spread_that_raw_utm_squares_lose():
     local = reduce(pts, local_origin(pts))
     assert abs(one_pass(local[:, 1]) - truth) < 1e-3 * truth  # reduced: right to 0.1 %
     assert abs(one_pass(y) - truth) > truth  # raw UTM: the 1e-6 m^2 drowns in the rounding of 2.9e13 m^2
+
+
+def test_origin_by_the_compiled_sums_is_numpys_rounded_mean(monkeypatch):
+    """With numba loaded the strided column sums of a C-contiguous cloud run compiled: the same origin, to the
+    last bit of the mean, as numpy's mean over axis 0 (which sums a Fortran-ordered cloud pairwise)."""
+    from labkit.core import frame
+
+    pytest.importorskip("numba")
+    rng = np.random.default_rng(3)
+    for n in (1, 3, 4095, 4096, 8193, 100_000, 333_333):
+        pts = UTM + rng.normal(scale=rng.uniform(0.01, 500.0), size=(n, 3))
+        for arr in (pts, np.asfortranarray(pts), pts[::-1]):
+            step = max(1, n // 4096)
+            if arr.flags.c_contiguous:  # (the compiled route; other layouts take numpy's)
+                sums, m = frame._strided_sums(arr, step)  # the kernel's arithmetic, run by Python
+                np.testing.assert_array_equal(sums / m, arr[::step].mean(axis=0))
+            np.testing.assert_array_equal(local_origin(arr), np.round(arr[::step].mean(axis=0)))
+    assert frame._sums_kernel() is not None  # (numba was imported above: the compiled route ran)

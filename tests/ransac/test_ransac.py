@@ -469,7 +469,7 @@ def test_compiled_ball_kernels_equal_numpy():
 def test_gather_shell_points_and_tally_equal_numpy_exactly():
     """The compiled gather, shell points (both layouts, with and without ``close``) and shell tally give
     exactly numpy's points, indices, residuals and counts."""
-    from labkit.ransac._ball import ball_tally, gather, reduced, residuals, shell_points, shell_tally
+    from labkit.ransac._ball import ball_tally, gather, in_shell, mark_shell, reduced, residuals, shell_points, shell_tally
 
     rng = np.random.default_rng(11)
     X = rng.normal(size=(30_000, 3))
@@ -477,6 +477,9 @@ def test_gather_shell_points_and_tally_equal_numpy_exactly():
     np.testing.assert_array_equal(gather(X, idx), np.take(X, idx, axis=0))
     origin = np.array([5e5, 5.4e6, 120.0])
     np.testing.assert_array_equal(reduced(X + origin, origin), (X + origin) - origin)
+    both, by_axis = reduced(X + origin, origin, by_axis=True)
+    np.testing.assert_array_equal(both, (X + origin) - origin)
+    assert by_axis.flags.c_contiguous and np.array_equal(by_axis, ((X + origin) - origin).T)
     np.testing.assert_array_equal(gather(X, idx, by_axis=True), np.take(X, idx, axis=0).T)
     c, r, reach = np.array([0.1, -0.2, 0.05]), 1.3, 0.2
     diff = X - c
@@ -500,6 +503,12 @@ def test_gather_shell_points_and_tally_equal_numpy_exactly():
         np.count_nonzero(ball & (d >= 0.05) & (d < 0.15)))
     assert min(ball_tally(T, c, r, reach, 0.05, 0.1)) > 0
     np.testing.assert_array_equal(residuals(T, np.append(c, r), by_axis=True, simd=False), d)
+    # the band mask marked from the points by axis: in_shell's points, scattered to their indices
+    mask = mark_shell(np.ascontiguousarray(X[idx].T), idx, c, r, 0.05, len(X) + 3)
+    expected = np.zeros(len(X) + 3, dtype=bool)
+    expected[idx[in_shell(X[idx], c, r, 0.05)]] = True
+    np.testing.assert_array_equal(mask, expected)
+    assert 0 < np.count_nonzero(mask) < len(idx)
 
 
 def test_best_plane_equals_the_numpy_route(monkeypatch):
@@ -662,3 +671,17 @@ def test_compiled_detection_equals_the_numpy_route(seed, monkeypatch):
     np.testing.assert_allclose(fast.fit.x, slow.fit.x, rtol=0, atol=1e-9)
     np.testing.assert_allclose(fast.fit.std, slow.fit.std, rtol=1e-9)
     np.testing.assert_allclose(fast.fit.w_test, slow.fit.w_test, rtol=0, atol=1e-9)
+
+
+def test_required_for_ratio_is_required_iterations():
+    """The search's scalar N after a new best (no checks, no arrays) equals eq. (27) of the public function,
+    type included (an int, or math.inf)."""
+    from labkit.ransac.iterations import required_for_ratio
+
+    rng = np.random.default_rng(14)
+    ratios = [0.0, 1.0, 1.0 - 1e-300, 1e-17, 0.5] + [1.0 - k / 997 for k in range(998)] + list(rng.uniform(0, 1, 2000))
+    for p in (0.5, 0.99, 0.999, 1.0 - 1e-12):
+        for eps in ratios:
+            fast, slow = required_for_ratio(eps, p), required_iterations(eps, p)
+            assert fast == slow and type(fast) is type(slow), (eps, p)
+    assert required_for_ratio(1.0, 0.99) == math.inf and required_for_ratio(0.0, 0.99) == 1

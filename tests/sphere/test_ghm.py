@@ -420,3 +420,19 @@ def test_compiled_sweeps_equal_the_numpy_route(seed, kind, monkeypatch):
         np.testing.assert_allclose(getattr(fast, name), getattr(slow, name), rtol=1e-9, atol=1e-12)
     assert fast.main_check == pytest.approx(slow.main_check, abs=1e-15)
     assert fast.sigma0 == pytest.approx(slow.sigma0, rel=1e-9)
+
+
+def test_flagged_treats_undefined_and_infinite_w_as_the_numpy_route():
+    """flagged: |w| beyond the critical value; an undefined w (NaN: redundancy number 0) is never flagged, an
+    infinite one always (as |nan_to_num(w)| > w_crit), and with an undefined critical value nothing is."""
+    from dataclasses import replace
+
+    from labkit.synthetic import sphere_points
+
+    fit = gauss_helmert_model(sphere_points(40, 3, radius=0.2, noise=0.001), sigma=0.001)
+    w = fit.w_test.copy()
+    w[:4] = [np.nan, np.inf, -np.inf, 100.0]
+    for crit in (fit.w_critical, np.inf, np.nan):
+        odd = replace(fit, w_test=w, w_critical=crit)
+        np.testing.assert_array_equal(odd.flagged, np.abs(np.nan_to_num(w)) > crit)
+    assert replace(fit, w_test=w).flagged[:4].tolist() == [False, True, True, True]
