@@ -211,7 +211,7 @@ def _detect(xyz, origin, idx, cfg, seed, gen, verifier):
     """
     # The working set, reduced to the local origin, and its sampler
     W = reduce(xyz[idx], origin)
-    extent = float(np.linalg.norm(np.ptp(W, axis=0)))
+    extent = float(np.linalg.norm(np.ptp(np.ascontiguousarray(W.T), axis=1)))  # (numpy's ptp over rows is slow)
     if not cfg.known:  # no sphere larger than the scan (a cropped cap is as wide as about its radius)
         cfg = replace(cfg, r_max=max(extent, 1e-9))
     sampling = pick_sampling(cfg.sampling, cfg.known, cfg.r_max, extent)

@@ -113,7 +113,8 @@ def _band_mask(xyz, x, band, near):
     outside its band (|d| changes by at most that much), so only T needs the test.
     """
     x_s, reach, idx, T = near
-    move = float(np.linalg.norm(x[:3] - x_s[:3]) + abs(x[3] - x_s[3]))
+    dc = x[:3] - x_s[:3]
+    move = float(np.sqrt(dc.dot(dc)) + abs(x[3] - x_s[3]))  # (np.linalg.norm's sum, without its checks)
     if np.ndim(band) != 0 or not move < 0.999 * (reach - band):
         return shell_mask(xyz, x, band)
     return mark_shell(T, idx, x[:3], x[3], band, len(xyz))

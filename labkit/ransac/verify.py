@@ -137,7 +137,7 @@ class Verifier:
         """
         if self._ball is not None:
             c0, R0 = self._ball[0], self._ball[1]
-            if np.linalg.norm(c - c0) + r + reach <= R0 * (1.0 - 1e-9):  # inside the kept ball
+            if _norm(c - c0) + r + reach <= R0 * (1.0 - 1e-9):  # inside the kept ball
                 return self._ball
         R0 = r + max(reach, 2.0 * BAND_K * self.cfg.threshold * 3.0) + max(2.0 * self.cfg.threshold, 0.05 * r)
         # (a small cloud is also stored by axis for the coarse test: contiguous columns read faster)
@@ -168,7 +168,7 @@ class Verifier:
         c, r = np.asarray(x[:3], dtype=np.float64), float(x[3])
         if self._ball is not None:
             c0, R0, idx0, B0 = self._ball
-            if np.linalg.norm(c - c0) + r + reach <= R0 * (1.0 - 1e-9):
+            if _norm(c - c0) + r + reach <= R0 * (1.0 - 1e-9):
                 i, d, T = near_shell(B0, c, r, reach, by_axis=True)
                 return np.take(idx0, i), d, T
         return near_shell(self.X, c, r, reach)
