@@ -100,7 +100,7 @@ def _replay(X, scores, best, n_valid, N, W, Wsq, sampler, cfg, verifier=None):
         # best-scoring others, still walked in sample order
         prefix = np.flatnonzero(scores > np.maximum.accumulate(np.concatenate([[best.score], scores]))[:-1])
         top = candidates[np.argsort(-scores[candidates], kind="stable")[:VERIFY_PER_BATCH]]
-        candidates = np.union1d(prefix, top)
+        candidates = np.array(sorted(set(prefix.tolist()) | set(top.tolist())), dtype=np.int64)  # (np.union1d)
     events = []
     it = n_valid + np.arange(1, len(X) + 1)  # iteration number of each valid sample
     for j in candidates:
