@@ -92,6 +92,8 @@ def orthogonal_fit(P, x, steps=3, mask=None, by_axis=False):
             return None
     x = np.array(x, dtype=np.float64)
     shift, x = x[:3].copy(), np.array([0.0, 0.0, 0.0, x[3]])  # work relative to the current centre (UTM-safe)
+    if mask is None:  # every point, in every step
+        mask = np.ones(P.shape[1] if by_axis else P.shape[0], dtype=np.bool_)
     for _ in range(steps):
         # Jacobian rows J_i = -[u_i, 1] (u_i the unit radial vector); J^T J and J^T d
         # summed in one compiled pass, without forming the n x 4 matrix J
