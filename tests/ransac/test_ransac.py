@@ -469,7 +469,9 @@ def test_compiled_ball_kernels_equal_numpy():
 def test_gather_shell_points_and_tally_equal_numpy_exactly():
     """The compiled gather, shell points (both layouts, with and without ``close``) and shell tally give
     exactly numpy's points, indices, residuals and counts."""
-    from labkit.ransac._ball import ball_tally, gather, in_shell, mark_shell, reduced, residuals, shell_points, shell_tally
+    from labkit.ransac._ball import (
+        ball_tally, gather, in_shell, mark_shell, reduced, residuals, shell_points, shell_tally,
+    )
 
     rng = np.random.default_rng(11)
     X = rng.normal(size=(30_000, 3))
