@@ -15,6 +15,7 @@ This module holds the loop; each step lives in a module named after it:
 - update, damping and stopping rules: :mod:`labkit.registration.closest_point.iteration`
 - result, message and consistency test: :mod:`labkit.registration.closest_point.result`
 - coarse-to-fine pyramid: :mod:`labkit.registration.closest_point.pyramid`
+- one oblique weak direction held alone, moved to the outlines: :mod:`labkit.registration.closest_point.outline`
 
 (The module is not called ``icp``: ``labkit.registration.icp`` is the function.)
 """

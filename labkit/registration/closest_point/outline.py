@@ -18,18 +18,34 @@ point-to-plane residuals ignore.
    Source outline points are paired with the nearest target outline point of a similar normal, and
    the shift ``s`` along ``u`` minimises the Huber-weighted residuals along the target's normal,
    n . (q - p - s u): outlines across ``u`` (gable ends) carry ``s``, outlines along ``u`` carry
-   nothing. Re-matched until the step is below 0.1 mm (or the middle of a 2-cycle between two sets of pairs). The other axes are corrected to the new
-   position with the precision matrix of step 1 (eq. 5.15), as :func:`~labkit.registration.height_model.fill_held_axes` does.
+   nothing. Re-matched until the step is below 0.1 mm (or to the middle of a 2-cycle between two
+   sets of pairs). The other axes are corrected to the new position with the precision matrix of
+   step 1 (eq. 5.15), as :func:`~labkit.registration.height_model.fill_held_axes` does.
 
-**The precision is not claimed.** The cluster-robust std of ``s`` over square cells of the outline
-pairs (eq. 5.13) was 20-30 mm on random halves of the sample_c roof, but the estimates of three random
-splits were -17, +134 and +81 mm from the truth (the same for four start shifts each): the errors of one
-outline are correlated along its whole length (an outline is a few segments, not many independent
-cells), and a std from two gable ends cannot be checked. So the held axes are *moved* to the outline
-estimate but stay undetermined (std inf); the message gives the estimate. A second caution why: where
-two epochs were clipped to the same tile, the clip edge is an outline at the same coordinates in both
-and pulls ``s`` to zero; an undetermined component may be anywhere, so this does no harm to the stated
-precision.
+Why outlines and not a consensus count scanned along ``u``: on sample_c a count of source points with
+a target point within r, scanned over +-1 m, had either a plateau as wide as 2 r (r twice the point
+spacing: the centre 0-190 mm off) or, with r of one spacing, peaks where the scan lines of the two
+halves coincide (0.6-0.8 m off). The outline fit does not depend on the start: the same estimate from
+all four start shifts of the benchmark.
+
+**The precision is not claimed.** Measured (2026-12-02): on random halves of sample_c (six splits,
+four shifts each) the along-ridge error is -17, +133, +81, -13, -18, -5 mm (the same for the four
+shifts of a split; held, it was the whole shift along the ridges, 0.05-0.70 m); the cluster-robust std of
+``s`` over 2 m cells of the outline pairs (eq. 5.13) said 22-32 mm. On independent samplings of one
+gable roof 40 x 30 m (3.3 points per m^2 a cloud, 30 samplings) the rms error was 63 mm against a
+stated 29 mm (errors up to 5.4 std); at 6.7 points per m^2 40 mm against 18 mm. Neighbouring
+outline points share most of their 30 neighbours, so the errors of one outline are correlated over
+several metres, and the along-ridge
+information comes from two gable ends: a std from them cannot be checked. So the held axes are *moved*
+to the outline estimate but stay undetermined (std inf); the message gives the move. A second reason:
+where two epochs were clipped to the same tile, the clip edge is an outline at the same coordinates in
+both and pulls ``s`` to zero (tests/registration/test_outline.py); a component that is not stated may
+be anywhere, so that does no harm to a stated precision.
+
+What the turned run states is Z; the direction across the ridges is solved there (to millimetres) but
+not stated, since X and Y both share ``u``. With X and Y held off the truth, Z on sloped roofs had
+13-23 mm and the quadrants disagreed; solved across the ridges, sample_c's Z has 1.6-4 mm with errors of
+0-2 mm over the 24 halves, and the group test of the turned run replaces the stale one.
 
 Runs only where the outcome cannot hurt a stated component: ``dof='translation'``, point-to-plane,
 X and Y both held with exactly one undetermined direction (nearly horizontal), no rotation in the start.
@@ -73,7 +89,7 @@ class OutlineShift:
         Shift (m) along ``direction`` added to the start.
     std : float
         Cluster-robust std of ``shift`` over square cells of the pairs (eq. 5.13); an internal
-        figure: over random splits of real roofs the errors were about 3 times larger.
+        figure, not a stated precision: the errors were 2-3 times larger (module docstring).
     n_pairs, n_cells : int
         Outline pairs used at the solution, and the cells they fall in.
     information : float
