@@ -123,3 +123,12 @@ def test_real_roof_halves_move_toward_the_truth_and_state_only_z(realdata):
         assert abs(err[2]) <= 3 * std[2] and std[2] < 0.01
         off.append(np.hypot(*err[:2]))
     assert max(off) < 0.2 and np.sqrt(np.mean(np.square(off))) < 0.12, off  # held: 0.39 m
+
+
+def test_sparse_clouds_are_left_held():
+    """Spacing beyond half the matching distance: the outline band is wider than the gate, nothing moves."""
+    rng = np.random.default_rng(4)
+    src, tgt = gable_roof(800, rng) - SHIFT, gable_roof(800, rng)  # 0.6 m median spacing
+    res, held = icp(src, tgt), icp(src, tgt, outlines=False)
+    assert "outlines: not used (point spacing" in res.message
+    assert np.array_equal(res.translation, held.translation)

@@ -29,18 +29,19 @@ halves coincide (0.6-0.8 m off). The outline fit does not depend on the start: t
 all four start shifts of the benchmark.
 
 **The precision is not claimed.** Measured (2026-12-02): on random halves of sample_c (six splits,
-four shifts each) the along-ridge error is -17, +133, +81, -13, -18, -5 mm (the same for the four
-shifts of a split; held, it was the whole shift along the ridges, 0.05-0.70 m); the cluster-robust std of
-``s`` over 2 m cells of the outline pairs (eq. 5.13) said 22-32 mm. On independent samplings of one
-gable roof 40 x 30 m (3.3 points per m^2 a cloud, 30 samplings) the rms error was 63 mm against a
-stated 29 mm (errors up to 5.4 std); at 6.7 points per m^2 40 mm against 18 mm. Neighbouring
-outline points share most of their 30 neighbours, so the errors of one outline are correlated over
-several metres, and the along-ridge
-information comes from two gable ends: a std from them cannot be checked. So the held axes are *moved*
-to the outline estimate but stay undetermined (std inf); the message gives the move. A second reason:
-where two epochs were clipped to the same tile, the clip edge is an outline at the same coordinates in
-both and pulls ``s`` to zero (tests/registration/test_outline.py); a component that is not stated may
-be anywhere, so that does no harm to a stated precision.
+four shifts each) the along-ridge error is -9, +75, +84, -3, +2, -12 mm (the same for the four shifts
+of a split; every component within 80 mm in all 24 rows; held, the error was the whole shift along the
+ridges, 0.05-0.70 m); the internal std of ``s`` (cluster-robust over 2 m cells of the outline pairs,
+eq. 5.13) said 16-21 mm. On independent samplings of one gable roof 40 x 30 m (3.3 points per m^2 a
+cloud, 30 samplings) the rms error was 56 mm against an internal 20 mm (errors up to 6 of it); at 6.7
+points per m^2 38 mm against 13 mm. Neighbouring outline points share most of their 30 neighbours, so
+the errors of one outline are correlated over several metres, and the along-ridge information comes
+from two gable ends: a std from them cannot be checked. So the held axes are *moved* to the outline
+estimate but stay undetermined (std inf); the message gives the move. A second reason: where two
+epochs were clipped to the same tile, the clip edge is an outline at the same coordinates in both and
+pulls ``s`` to zero (tests/registration/test_outline.py); a component that is not stated may be
+anywhere, so that does no harm to a stated precision. Sparse clouds (point spacing beyond half the
+matching distance, ``SPACING_SHARE``) are left held.
 
 What the turned run states is Z; the direction across the ridges is solved there (to millimetres) but
 not stated, since X and Y both share ``u``. With X and Y held off the truth, Z on sloped roofs had
@@ -60,7 +61,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ...core.errors import LabkitError
-from ...neighbours.sampling import even_subset
+from ...neighbours.sampling import even_subset, median_spacing
 from .result import disagreement_text
 
 #: Plan-view neighbours of the outline test, and the centroid offset (share of their mean distance) beyond
@@ -72,6 +73,11 @@ OUTLINE_SHARE = 0.5
 #: Points per cloud the outline test looks at (an even subset in space beyond): on a roof of 200,000 points
 #: it cost 1.4 s CPU a cloud, and 50,000 leave about 40 points per m^2 there, far more than the fit needs.
 OUTLINE_POINTS = 50_000
+#: Largest point spacing, as a share of the matching distance, at which the outlines are used. The outline
+#: band of 30 neighbours is 3-4 spacings wide; beyond half the gate, pairs within the gate sample the band's
+#: random structure: on warsaw_small (0.62 m spacing of the selected points, gate 1 m) the outline
+#: estimate was 0.28 m off at an internal std of 39 mm (sample_c: 0.36 m; the synthetic roofs of the tests 0.2-0.28 m).
+SPACING_SHARE = 0.5
 #: Outline pairs need normals within about 45 degrees (cosine).
 NORMAL_AGREE = 0.7
 #: Huber constant (robust sigmas) and deletion limit of the outline residuals (eq. 5.8-5.9).
@@ -141,8 +147,11 @@ def outline_shift(source_xy, target_xy, direction, *, gate=1.0, block_size=2.0):
 
     Point-to-line residuals n . (q - p - s u) of source outline points p against the nearest target
     outline point q within ``gate`` whose normal n agrees; Huber weights, deletion beyond
-    ``DELETE`` robust sigmas, re-matched each step. None when the outlines carry too little across
-    ``direction`` (fewer than ``MIN_INFORMATION`` pairs across it or ``MIN_CELLS`` cells).
+    ``DELETE`` robust sigmas, re-matched each step. Symmetric: the same fit of the target onto the
+    source gives -s as well, and the two are averaged (each half's outline is the other's reference
+    once; on sample_c this took the rms error over six splits from 66 to 47 mm, on a synthetic roof
+    from 61 to 55 mm). None when the outlines carry too little across ``direction`` (fewer than
+    ``MIN_INFORMATION`` pairs across it or ``MIN_CELLS`` cells) in either fit.
 
     Examples
     --------
@@ -159,7 +168,19 @@ def outline_shift(source_xy, target_xy, direction, *, gate=1.0, block_size=2.0):
     rt, nt = outline_points(target_xy)
     if len(rs) < MIN_CELLS or len(rt) < MIN_CELLS:
         return None
-    p, q = source_xy[rs], target_xy[rt]
+    forward = _one_way(source_xy[rs], ns, target_xy[rt], nt, u, gate, block_size)
+    backward = _one_way(target_xy[rt], nt, source_xy[rs], ns, u, gate, block_size)
+    if forward is None or backward is None:
+        return None
+    return OutlineShift(
+        shift=0.5 * (forward.shift - backward.shift), std=0.5 * float(np.hypot(forward.std, backward.std)),
+        n_pairs=forward.n_pairs + backward.n_pairs, n_cells=max(forward.n_cells, backward.n_cells),
+        information=forward.information + backward.information, converged=forward.converged and backward.converged,
+    )  # fmt: skip
+
+
+def _one_way(p, ns, q, nt, u, gate, block_size):
+    """The shift s of the outline points p (normals ns) onto q (normals nt) along u: OutlineShift or None."""
     tree = cKDTree(q)
     s, converged, path = 0.0, False, []
     for _ in range(ITERATIONS):
@@ -256,9 +277,14 @@ def refine_weak_direction(result, source, target, settings, icp_function):
     u = weak_direction(result)
     if u is None:
         return result
+    src, tgt = _points(source), _points(target)
+    gate = settings["options"].max_distance if np.isfinite(settings["options"].max_distance) else 1.0
+    spacing = max(median_spacing(src), median_spacing(tgt))
+    if not spacing <= SPACING_SHARE * gate:
+        return replace(result, message=f"{result.message}; outlines: not used (point spacing {spacing:.2g} m, "
+                                       f"more than {SPACING_SHARE:g} of the matching distance)")
     # 1. ICP in a frame whose first axis is u: only that axis is held (x' = Q (x - c) + c)
     Q = _turn(u)
-    src, tgt = _points(source), _points(target)
     c = tgt.mean(axis=0)
     start = np.eye(4)
     start[:3, 3] = Q @ result.translation
@@ -274,7 +300,6 @@ def refine_weak_direction(result, source, target, settings, icp_function):
                                        f"ICP held {', '.join(res.degeneracy.undetermined_axes) or 'nothing'})")
     # 2. point-to-line matching of the plan-view outlines along u (the turned frame's x axis)
     t = np.array(res.translation, dtype=np.float64)
-    gate = settings["options"].max_distance if np.isfinite(settings["options"].max_distance) else 1.0
     src, tgt = src[even_subset(src, OUTLINE_POINTS)], tgt[even_subset(tgt, OUTLINE_POINTS)]  # dense clouds
     est = outline_shift(((src - c) @ Q.T)[:, :2] + t[:2], ((tgt - c) @ Q.T)[:, :2], np.array([1.0, 0.0]),
                         gate=gate, block_size=settings["block_size"])
