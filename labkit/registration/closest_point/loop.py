@@ -15,6 +15,7 @@ This module holds the loop; each step lives in a module named after it:
 - update, damping and stopping rules: :mod:`labkit.registration.closest_point.iteration`
 - result, message and consistency test: :mod:`labkit.registration.closest_point.result`
 - coarse-to-fine pyramid: :mod:`labkit.registration.closest_point.pyramid`
+- one oblique weak direction held alone, moved to the outlines: :mod:`labkit.registration.closest_point.outline`
 
 (The module is not called ``icp``: ``labkit.registration.icp`` is the function.)
 """
@@ -44,6 +45,7 @@ from ..result import RegistrationResult
 from ..selection import SELECT, check_other_classes, select_points
 from ..height_model import fill_held_axes
 from .class_shift import class_shift
+from .outline import refine_weak_direction
 
 
 @dataclass(frozen=True, eq=False)
@@ -137,6 +139,7 @@ def icp(
     reach=None,
     select="auto",
     height_model=True,
+    outlines=True,
     rng=0,
     progress=False,
 ) -> RegistrationResult:
@@ -209,6 +212,11 @@ def icp(
         message say which axes came from where. False: leave them undetermined. A
         :class:`~labkit.registration.height_model.HeightModelShift` of the same clouds made at
         ``initial`` (``result.height_model`` of :func:`max_consensus` started from): used instead of matching again.
+    outlines : bool
+        With ``select='auto'``, ``dof='translation'`` and point-to-plane: where X and Y are still held
+        because of one oblique undetermined direction (parallel ridges), hold that direction alone, solve
+        the rest and move it to where the plan-view outlines agree; X and Y stay undetermined
+        (:func:`labkit.registration.closest_point.outline.refine_weak_direction`). False: hold X and Y.
     coarse_to_fine : {'auto', True, False}
         Run a voxel pyramid first (:mod:`labkit.registration.closest_point.pyramid`), from twice ``reach`` down to
         ``max_distance``; the covariance and degeneracy report come from the full clouds. 'auto':
@@ -378,6 +386,9 @@ def _with_selection(source, target, options, settings):
         # X, Y from height jumps where the normals of the selected surfaces leave them undetermined
         hm = settings["height_model"]  # True, or a match made at the start (max_consensus): not matched again
         res, _ = fill_held_axes(res, source, target, matched=None if hm is True else hm)
+    if settings["outlines"] and settings["dof"] == "translation" and settings["metric"] == "point_to_plane":
+        # one oblique weak direction: held alone, the rest solved, moved to the outlines' estimate
+        res = refine_weak_direction(res, src, tgt, dict(settings, options=options), icp)
     checks = check_other_classes(source, target, res, sel, class_shift, **_class_settings(settings, options))
     msg = f"{res.message}; points: {sel.reason}"
     moved = [str(c.code) for c in checks if not c.agree]
@@ -390,7 +401,7 @@ def _with_selection(source, target, options, settings):
 def _class_settings(settings, options):
     """The caller's settings for the check of one left-out class: one level, no group test, no progress."""
     out = {k: v for k, v in settings.items()
-           if k not in ("initial", "coarse_to_fine", "reach", "progress", "height_model")}
+           if k not in ("initial", "coarse_to_fine", "reach", "progress", "height_model", "outlines")}
     return dict(out, options=options, coarse_to_fine=False, consistency_alpha=None)
 
 
