@@ -125,7 +125,7 @@ def adjust(corr, R, t, opts):
         xy = corr.source_xyz[ok_rows, :2] - opts.origin[:2]
         free = np.isinf(np.diag(Q_s))
         args = (A_all, l_all, w, u, centred, keep, factor, dx_s, free, xy, N - N_sig, opts)
-        block = lambda: block_covariance(*args) / np.outer(S, S)  # noqa: E731 - evaluated for the last step only
+        block = lambda cell=None: block_covariance(*args, cell=cell) / np.outer(S, S)  # noqa: E731 - the last step only
     return Adjustment(
         dx=dx, N=N, Qxx=Qxx, block_cov=block, held_cov=held_cov, sigma0=float(sigma0), rms=rms, redundancy=r,
         degeneracy=deg, corr=corr, scale=float(scale), n_deleted=int((~keep).sum()),
