@@ -407,15 +407,19 @@ class KDTree:
             _knn_leaves(self.data, *self._nodes, self._leaves[j0:j1], k, _NO_IDX, cen, C, True)
         return cen, C
 
-    def nearest_in_groups(self, q, starts, distance_upper_bound: float = np.inf, workers: int = 1, warm=None):
+    def nearest_in_groups(self, q, starts, distance_upper_bound: float = np.inf, workers: int = 1, warm=None,
+                          memory=None):
         """As ``query(q, k=1, ...)`` (the same distances and indices, ties included), the rows
         ``starts[g]:starts[g + 1]`` of ``q`` searched together (:func:`labkit.neighbours.kdtree_nn.nearest`):
         fast when each group lies close together (e.g. the leaves of a tree over the queries).
 
         ``warm`` (optional, int array per row of ``q``): a leaf-order position to try first, or -1;
         overwritten with the leaf-order position of each row's nearest point (-1: none), the warm
-        start of the next call (ICP's next iteration). The answer is the same with or without it."""
-        d2, leaf = nearest(self, q, starts, float(distance_upper_bound), _threads(workers), warm)
+        start of the next call (ICP's next iteration). ``memory`` (optional, with ``warm``): per row
+        where it was last searched (m, 3) and the squared distance of its second nearest point from
+        there (m,), zeros at first; rows that provably kept their nearest point are not searched
+        (see :func:`~labkit.neighbours.kdtree_nn.nearest`). The answer is the same with or without them."""
+        d2, leaf = nearest(self, q, starts, float(distance_upper_bound), _threads(workers), warm, memory)
         if warm is not None:
             warm[:] = leaf
         found = leaf >= 0

@@ -16,7 +16,7 @@ def test_icp_with_grouped_search_equals_the_per_point_search(monkeypatch):
     kw = dict(dof="rigid", sample=None, rng=0, covariance="formal", consistency_alpha=None)
     new = icp(source, target, **kw)
 
-    def per_point(self, q, starts, distance_upper_bound=np.inf, workers=1, warm=None):
+    def per_point(self, q, starts, distance_upper_bound=np.inf, workers=1, warm=None, memory=None):
         return self.query(q, k=1, distance_upper_bound=distance_upper_bound, workers=workers)
 
     monkeypatch.setattr(KDTree, "nearest_in_groups", per_point)

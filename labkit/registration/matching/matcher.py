@@ -91,6 +91,10 @@ class _Matcher:
         # per sampled source point: leaf position of its nearest target point in the last call (-1: none);
         # a warm start of the next search, which changes no answer (KDTree.nearest_in_groups)
         object.__setattr__(self, "_warm", np.full(len(self.source), -1, dtype=np.intp))
+        # per sampled source point: where it was last searched and the squared distance of its second
+        # nearest target point then; where it moved less than that leaves room for, it is not searched again
+        object.__setattr__(self, "_at", np.zeros((len(self.source), 3)))
+        object.__setattr__(self, "_second", np.zeros(len(self.source)))
 
     def __call__(self, R=None, t=None) -> Correspondences:
         """Correspondences of the source moved by p' = R p + t (local frame)."""
@@ -114,8 +118,10 @@ class _Matcher:
             g = self.query_groups[ok]
             starts = np.append(np.flatnonzero(np.r_[True, g[1:] != g[:-1]]), len(g))
             warm = self._warm[live]  # each query's nearest target point in the previous call: a first bound
-            dist, j = self.tree.nearest_in_groups(p[live], starts, opt["max_distance"], workers=workers, warm=warm)
-            self._warm[live] = warm
+            memory = self._at[live], self._second[live]
+            dist, j = self.tree.nearest_in_groups(p[live], starts, opt["max_distance"], workers=workers, warm=warm,
+                                                  memory=memory)
+            self._warm[live], self._at[live], self._second[live] = warm, *memory
         # back to ascending rows (one scatter), so that the steps below read and write in order
         nearest = np.full(m, -1)
         nearest[live] = np.where(np.isfinite(dist), j, -1)
