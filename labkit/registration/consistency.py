@@ -298,18 +298,35 @@ def cell_labels(cells):
     return rank[key]
 
 
+def sum_by_cell(cell, values, n_cells):
+    """Per cell the sum of the rows of ``values`` (m, ...) whose ``cell`` (m,) it is: (n_cells, ...).
+
+    The same numbers as ``np.add.at(np.zeros(...), cell, values)`` (each cell's rows added in row order,
+    from zero), by one ``np.bincount`` per trailing element instead of the slow unbuffered ``add.at``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> sum_by_cell(np.array([1, 0, 1]), np.array([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]]), 3).tolist()
+    [[3.0, 4.0], [6.0, 8.0], [0.0, 0.0]]
+    """
+    values = np.asarray(values, dtype=np.float64)
+    flat = values.reshape(len(values), -1)
+    out = np.empty((n_cells, flat.shape[1]))
+    for c in range(flat.shape[1]):
+        out[:, c] = np.bincount(cell, weights=flat[:, c], minlength=n_cells)
+    return out.reshape((n_cells,) + values.shape[1:])
+
+
 def cell_sums(B, P, v, cell):
     """Each cell's normal matrix N_c (nc, k, k) and score sum g_c (nc, k) of a group's own fit.
 
     B (m, r, k) are the group's design rows in its eigen-directions, P (m,) their weights, v (m, r) the
     residuals about the group's own estimate, ``cell`` (m,) the cell index of each row.
     """
-    nc, k = int(cell.max()) + 1, B.shape[2]
-    Nc = np.zeros((nc, k, k))
-    np.add.at(Nc, cell, np.einsum("mri,m,mrj->mij", B, P, B))
-    g = np.zeros((nc, k))
-    np.add.at(g, cell, np.einsum("mri,m,mr->mi", B, P, v))
-    return Nc, g
+    nc = int(cell.max()) + 1
+    Nc = sum_by_cell(cell, np.einsum("mri,m,mrj->mij", B, P, B), nc)
+    return Nc, sum_by_cell(cell, np.einsum("mri,m,mr->mi", B, P, v), nc)
 
 
 def cell_jackknife(Nc, g, cell, lam):

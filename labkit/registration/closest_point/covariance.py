@@ -10,7 +10,7 @@ from scipy.linalg import cho_factor, cho_solve
 from scipy.stats import norm, t as student_t
 
 from .weights import deletion_limit, psi_prime
-from ..consistency import cell_labels
+from ..consistency import cell_labels, sum_by_cell
 
 #: The level at which a stated std is read: |error| <= 3 std (two-sided 99.73 %).
 SIGMAS = 3.0
@@ -95,8 +95,7 @@ def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, xy, N_eps, o
     g = np.einsum("mru,m,mr->mu", A, P, v)[keep][:, fixed]  # score of each kept correspondence
     if cell is None:
         cell = cell_labels(block_cells(xy[keep], opts.block_size))
-    G = np.zeros((cell.max() + 1, g.shape[1]))
-    np.add.at(G, cell, g)
+    G = sum_by_cell(cell, g, int(cell.max()) + 1)
     n_cells, m = len(G), len(g)
     if n_cells < 2 * g.shape[1]:
         return cov  # too few cells for a sandwich: NaN, the caller falls back to the formal one
@@ -120,8 +119,7 @@ def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, xy, N_eps, o
     except np.linalg.LinAlgError:
         return cov
     Ji = cho_solve(c, np.eye(len(J)))
-    info = np.zeros((n_cells, g.shape[1], g.shape[1]))
-    np.add.at(info, cell, (w * factor)[keep, None, None] * AA[keep][:, fixed][:, :, fixed])
+    info = sum_by_cell(cell, (w * factor)[keep, None, None] * AA[keep][:, fixed][:, :, fixed], n_cells)
     dof = effective_cells(info, Ji) * (n_cells - 1) / n_cells  # n_cells - 1 when all cells inform alike
     t_factor = student_t.ppf(norm.cdf(SIGMAS), np.maximum(dof, 1.0)) / SIGMAS
     cov[np.ix_(fixed, fixed)] = Ji @ M @ Ji * (m / max(m - g.shape[1], 1)) * np.outer(t_factor, t_factor)
