@@ -90,11 +90,21 @@ class _Matcher:
     def __post_init__(self):
         # per sampled source point: leaf position of its nearest target point in the last call (-1: none);
         # a warm start of the next search, which changes no answer (KDTree.nearest_in_groups)
-        object.__setattr__(self, "_warm", np.full(len(self.source), -1, dtype=np.intp))
-        # per sampled source point: where it was last searched and the squared distance of its second
-        # nearest target point then; where it moved less than that leaves room for, it is not searched again
-        object.__setattr__(self, "_at", np.zeros((len(self.source), 3)))
-        object.__setattr__(self, "_second", np.zeros(len(self.source)))
+        # the queries (the sampled source points the source rules leave) in leaf order, and their groups:
+        # the same in every call, as are the source rules
+        ok = self.source_rule[self.query_order] == 0 if self.query_order is not None else None
+        live = None if ok is None else self.query_order[ok]
+        starts = None
+        if self.query_groups is not None:
+            g = self.query_groups[ok]
+            starts = np.append(np.flatnonzero(np.r_[True, g[1:] != g[:-1]]), len(g))
+        object.__setattr__(self, "_queries", (live, starts))
+        # per query (in that order): the warm start and the memory of the search (KDTree.nearest_in_groups):
+        # the leaf position of its nearest target point in the last call (-1: none), where it was last
+        # searched and the squared distance of its second nearest target point then. They change no answer.
+        n = 0 if live is None else len(live)
+        object.__setattr__(self, "_warm", np.full(n, -1, dtype=np.intp))
+        object.__setattr__(self, "_memory", (np.zeros((n, 3)), np.zeros(n)))
 
     def __call__(self, R=None, t=None) -> Correspondences:
         """Correspondences of the source moved by p' = R p + t (local frame)."""
@@ -103,8 +113,7 @@ class _Matcher:
         t = np.zeros(3) if t is None else t
         p = _rotated(self.source, R, t)  # not `@`: a BLAS call per iteration (see _rotated)
         rule = self.source_rule.copy()
-        ok = rule[self.query_order] == 0
-        live = self.query_order[ok]  # in leaf order: neighbouring queries in cache
+        live, starts = self._queries  # in leaf order: neighbouring queries in cache
         m = len(p)
         tidx = np.full(m, -1)
         d = np.full((m, 3), np.nan)
@@ -115,13 +124,8 @@ class _Matcher:
         if self.query_groups is None:
             dist, j = self.tree.query(p[live], k=1, distance_upper_bound=opt["max_distance"], workers=workers)
         else:  # the same answer; a source leaf's points walk the target tree together
-            g = self.query_groups[ok]
-            starts = np.append(np.flatnonzero(np.r_[True, g[1:] != g[:-1]]), len(g))
-            warm = self._warm[live]  # each query's nearest target point in the previous call: a first bound
-            memory = self._at[live], self._second[live]
-            dist, j = self.tree.nearest_in_groups(p[live], starts, opt["max_distance"], workers=workers, warm=warm,
-                                                  memory=memory)
-            self._warm[live], self._at[live], self._second[live] = warm, *memory
+            dist, j = self.tree.nearest_in_groups(p[live], starts, opt["max_distance"], workers=workers,
+                                                  warm=self._warm, memory=self._memory)
         # back to ascending rows (one scatter), so that the steps below read and write in order
         nearest = np.full(m, -1)
         nearest[live] = np.where(np.isfinite(dist), j, -1)
