@@ -37,6 +37,7 @@ import numpy as np
 
 from ...core.checks import as_points, as_rng, choice, positive
 from ...core.frame import local_origin, reduce
+from ...core.threads import side_by_side
 from ...neighbours.kdtree import KDTree
 from ...neighbours.treecache import kept_neighbours, local_tree
 from ...core.errors import LabkitError
@@ -154,9 +155,20 @@ def prepare(
     src_l = reduce(src, origin)
     if tree is not None and getattr(tree, "n", None) != len(tgt):
         raise LabkitError(f"the given tree holds {getattr(tree, 'n', '?')} points, the target has {len(tgt)}")
+    sample = opt.sample
+    need_src_geo = (
+        opt.max_angle_deg is not None or opt.noise_weighting or opt.max_noise is not None
+        or (isinstance(sample, tuple) and sample[0] == "normal_space")
+        or (isinstance(sample, str) and sample == "auto" and len(src_l) > AUTO_LIMIT)
+    )  # fmt: skip
+    if need_src_geo and len(src_l) < k:
+        raise LabkitError(f"the source needs at least k = {k} points for its normals, got {len(src_l)}")
     # the target's compiled kd-tree (exact duplicates merged) and its geometry cache: once per call
-    # (kept for the next step on the same target, e.g. the distances of labkit register)
-    tree = local_tree(tgt, origin, merge_duplicates=True)
+    # (kept for the next step on the same target, e.g. the distances of labkit register); the source's
+    # tree for its normals built beside it (the same trees as one after the other)
+    tree, src_tree = side_by_side(
+        (local_tree, tgt, origin, True), (lambda: KDTree(src_l, merge_duplicates=True) if need_src_geo else None,)
+    )
     surface = _auto_surface(tree, k) if opt.surface == "auto" else opt.surface
     quadric = surface == "quadric"
     tgt_geo = Geometry(
@@ -164,18 +176,10 @@ def prepare(
         known=kept_neighbours(tgt, min(k, tree.n)),  # the neighbours the point selection found, where it kept them
     )
     n_tgt = len(tgt)  # the tree holds the target (one copy of a large cloud, read through _TreePoints)
-    sample = opt.sample
-    need_src_geo = (
-        opt.max_angle_deg is not None or opt.noise_weighting or opt.max_noise is not None
-        or (isinstance(sample, tuple) and sample[0] == "normal_space")
-        or (isinstance(sample, str) and sample == "auto" and len(src_l) > AUTO_LIMIT)
-    )  # fmt: skip
     src_geo = None
     if need_src_geo:
-        if len(src_l) < k:
-            raise LabkitError(f"the source needs at least k = {k} points for its normals, got {len(src_l)}")
         src_geo = Geometry(
-            src_l, k, _given_normals(opt.source_normals, len(src_l), "source_normals"), quadric=quadric,
+            src_l, k, _given_normals(opt.source_normals, len(src_l), "source_normals"), src_tree, quadric=quadric,
             known=kept_neighbours(src, k),
         )
     # (1) sampling
