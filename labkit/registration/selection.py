@@ -269,8 +269,7 @@ def select_points(source, target, select="auto", k=20):
     if ms.all() and mt.all():
         xyz_t = _xyz(target)
         keep_tree(xyz_t, local_origin(xyz_t), True, tree_t)  # ICP's matching asks for the target's tree next
-        _keep(source, near_s, ms)
-        _keep(target, near_t, mt)
+        _keep((source, near_s, ms), (target, near_t, mt))
         return source, target, Selection("all points", (), ns, nt, ns, nt, "all points (every neighbourhood a surface)")
     if ms.sum() < MIN_SELECTED or mt.sum() < MIN_SELECTED:
         return source, target, Selection(
@@ -281,15 +280,18 @@ def select_points(source, target, select="auto", k=20):
               f"scatter (vegetation) left out: local noise > {100 * SMOOTH_NOISE:.0f} cm and noise/sqrt(l2) > "
               f"{MAX_SCATTER:g} in {k}-neighbourhoods")
     src, tgt = _subset(source, ms), _subset(target, mt)
-    _keep(src, near_s, ms)  # ICP's normals reuse the neighbourhoods that only hold selected points
-    _keep(tgt, near_t, mt)
+    _keep((src, near_s, ms), (tgt, near_t, mt))  # ICP's normals reuse the neighbourhoods that only hold selected points
     return (src, tgt, Selection("surface points", (), ns, nt, int(ms.sum()), int(mt.sum()), reason,
                                 np.flatnonzero(ms), np.flatnonzero(mt)))
 
 
-def _keep(cloud, info, mask):
-    if info is not None:
-        keep_neighbours(_xyz(cloud), _kept_rows(info, mask))
+def _keep(*clouds):
+    """Keep the neighbours of each (cloud, info, mask) for ICP's normals (the rows made side by side)."""
+    rows = side_by_side(*[(lambda info, mask: None if info is None else _kept_rows(info, mask), info, mask)
+                          for _, info, mask in clouds])
+    for (cloud, _, _), kept in zip(clouds, rows):
+        if kept is not None:
+            keep_neighbours(_xyz(cloud), kept)
 
 
 @dataclass(frozen=True, eq=False)
