@@ -125,8 +125,11 @@ def roughness(tree, cols, a, b, k, decided=None, extra=0, pca=False):
     m = b - a
     lam, noise, vecs = np.empty((m, 3)), np.empty(m), np.empty((m, 3, 3))
 
-    def plane(u, v):
-        _, noise[u:v], _, lam[u:v], _, vecs[u:v] = _geometry_rows(tree, cols, pos[u:v], nb[u:v, :k], k, False)
+    def plane(u, v):  # the PCA and the plane's noise of _geometry_rows (its normals and variation are not needed)
+        lam[u:v], vecs[u:v] = _pca_rows(tree, cols, nb[u:v, :k], k)
+        with np.errstate(invalid="ignore"):
+            ok = lam[u:v, 1] > 1e-12 * lam[u:v, 2]  # not a point, not a line
+        noise[u:v] = np.where(ok, np.sqrt(lam[u:v, 0]), np.nan)
 
     _in_row_chunks(plane, m)
     lam_1k = lam * ((k - 3) / k)  # back to the covariance 1/k sum
