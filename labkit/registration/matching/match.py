@@ -44,7 +44,7 @@ from ...core.errors import LabkitError
 from .correspondences import _CODE, MIN_SIGMA, RULES, Correspondences, _replace  # noqa: F401 - re-exported
 from .local_surface import Geometry, _leaf_geometry, _local_geometry, _on_quadric, _plane_tilt  # noqa: F401
 from .matcher import (
-    _class_sigma, _classes_of, _Matcher, _reject_duplicates, _require_classes, _TreePoints,
+    _class_sigma, _classes_of, _Matcher, _reject_duplicates, _require_classes, _TreePoints, first_search,
 )  # noqa: F401
 from ...neighbours.sampling import (
     MAX_VARIATION, auto_sample, normal_space_sample, voxel_keys, voxel_sample,
@@ -124,6 +124,7 @@ def prepare(
     origin=None,
     surface="plane",
     points=None,
+    start=None,
 ) -> _Matcher:
     """Build the fixed part of the matching once (kd-tree, sampling, exclusions).
 
@@ -131,7 +132,9 @@ def prepare(
     :class:`~labkit.registration.MatchOptions`); ``origin`` is the shared local
     origin (default: from the target); ``points`` the coordinates of source and target
     as the caller already checked them (:func:`labkit.core.checks.as_points`; default:
-    checked here). ICP calls this once and the returned matcher in every iteration.
+    checked here). ICP calls this once and the returned matcher in every iteration. ``start`` (R, t),
+    optional: the transformation of the matcher's first call, whose nearest-neighbour search is then made
+    here beside the source's normals (the same correspondences).
 
     Examples
     --------
@@ -213,11 +216,17 @@ def prepare(
     if opt.classes is not None:
         _require_classes(source, "source")
         _require_classes(target, "target")
-    src_normals, src_noise = (None, None) if src_geo is None else src_geo.at(idx, need_noise=True)
+    src_pts = src_l[idx]
+    normals_of_source = lambda: (None, None) if src_geo is None else src_geo.at(idx, need_noise=True)  # noqa: E731
+    if start is None:
+        (src_normals, src_noise), memory = normals_of_source(), None
+    else:  # the first call's nearest target points beside the source's normals (they do not depend on each other)
+        (src_normals, src_noise), memory = side_by_side(
+            (normals_of_source,), (first_search, tree, src_pts, order, groups, *start, settings["max_distance"]))
     rule, sigma = _source_rules(src_cls, idx, src_noise, settings)
     return _Matcher(
-        src_l[idx], idx, src_normals, sigma, rule, _TreePoints(tree, n_tgt), tree, tgt_geo, tgt_cls, settings, origin, len(src),
-        None if src_cls is None else src_cls[idx], order, groups,
+        src_pts, idx, src_normals, sigma, rule, _TreePoints(tree, n_tgt), tree, tgt_geo, tgt_cls, settings, origin, len(src),
+        None if src_cls is None else src_cls[idx], order, groups, memory,
     )  # fmt: skip
 
 
