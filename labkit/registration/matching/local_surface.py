@@ -476,6 +476,10 @@ class Geometry:
             self.slot[new] = np.arange(self.n_computed, self.n_computed + len(new))
             self._grow(values)
 
+    def at_positions(self, pos):
+        """Compute and cache the points at the leaf positions ``pos`` (e.g. a search's answers) ahead of :meth:`at`."""
+        self._compute(np.asarray(pos, dtype=np.intp))
+
     def at(self, index, need_noise=False):
         pos = self.tree.representative[index]
         if need_noise or self.given is None:

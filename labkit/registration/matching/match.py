@@ -220,9 +220,14 @@ def prepare(
     normals_of_source = lambda: (None, None) if src_geo is None else src_geo.at(idx, need_noise=True)  # noqa: E731
     if start is None:
         (src_normals, src_noise), memory = normals_of_source(), None
-    else:  # the first call's nearest target points beside the source's normals (they do not depend on each other)
-        (src_normals, src_noise), memory = side_by_side(
-            (normals_of_source,), (first_search, tree, src_pts, order, groups, *start, settings["max_distance"]))
+    else:  # the first call's nearest target points, and their geometry, beside the source's normals
+        def ahead():
+            found = first_search(tree, src_pts, order, groups, *start, settings["max_distance"])
+            if tgt_geo.given is None:  # the target's normals at those points: the first call finds them cached
+                tgt_geo.at_positions(found[0][found[0] >= 0])
+            return found
+
+        (src_normals, src_noise), memory = side_by_side((normals_of_source,), (ahead,))
     rule, sigma = _source_rules(src_cls, idx, src_noise, settings)
     return _Matcher(
         src_pts, idx, src_normals, sigma, rule, _TreePoints(tree, n_tgt), tree, tgt_geo, tgt_cls, settings, origin, len(src),
