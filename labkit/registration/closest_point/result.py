@@ -7,6 +7,7 @@ from dataclasses import replace
 import numpy as np
 
 from ...core.masks import STABLE_CLASSES
+from ...core.threads import side_by_side
 from .adjustment import NAMES, design
 from .covariance import block_cells
 from ..consistency import cell_labels, family_level, group_consistency
@@ -24,7 +25,11 @@ def icp_result(R, t, origin, adj, history, converged, matcher, opts, runtime):
     if adj.block_cov is not None or opts.consistency_alpha is not None:
         ok = adj.corr.accepted
         cell = cell_labels(block_cells(adj.corr.source_xyz[ok, :2] - opts.origin[:2], opts.block_size))
-    block = None if adj.block_cov is None else adj.block_cov(cell)
+    # the block covariance and the group test (independent) side by side
+    block, test = side_by_side(
+        (lambda: None if adj.block_cov is None else adj.block_cov(cell),),
+        (lambda: None if opts.consistency_alpha is None else consistency_test(adj, matcher, opts, cell),),
+    )
     if block is not None and np.isfinite(np.diag(block)).any():
         cov = block  # (eq. 5.13)
     cov = cov + adj.held_cov  # prior of held rotations (eq. 5.15); inf stays inf
@@ -56,7 +61,6 @@ def icp_result(R, t, origin, adj, history, converged, matcher, opts, runtime):
             "information about the shift (only the components along the normals do), consider "
             "metric='point_to_plane'"
         )
-    test = None if opts.consistency_alpha is None else consistency_test(adj, matcher, opts, cell)
     if test is not None and not test.agree:  # the groups' spread enters the stated precision (eq. 5.17)
         free = deg.parameter_determined
         S = np.where([n.startswith("r") for n in NAMES[opts.dof]], opts.L, 1.0)[free]
