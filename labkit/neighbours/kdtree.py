@@ -170,6 +170,11 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragm
     worst = np.empty(most)
     stack = np.empty(2 * depth + 4, np.int64)
     lower = np.empty(2 * depth + 4)  # lower bound of the squared box-to-box distance of each stacked node
+    biggest = 1
+    for node in range(nodes.shape[0]):
+        if nodes[node, 2] < 0:
+            biggest = max(biggest, nodes[node, 1] - nodes[node, 0])
+    dbuf = np.empty(biggest)  # squared distances of one query to the points of one leaf
     start = nodes[leaves[0], 0]
     for t in range(len(leaves)):
         leaf = leaves[t]
@@ -184,9 +189,11 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragm
             qx, qy, qz = X[a + qi, 0], X[a + qi, 1], X[a + qi, 2]
             w = np.inf
             filled = 0
-            for i in range(a, b):
+            for i in range(a, b):  # the distances first (vector code), then the list in the same order
                 dx, dy, dz = X[i, 0] - qx, X[i, 1] - qy, X[i, 2] - qz
-                d2 = dx * dx + dy * dy + dz * dz
+                dbuf[i - a] = dx * dx + dy * dy + dz * dz
+            for i in range(a, b):
+                d2 = dbuf[i - a]
                 if filled < k:  # still filling: shift only the entries found so far
                     _insert(bd[qi], bi[qi], d2, i, filled + 1)
                     filled += 1
@@ -221,9 +228,11 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragm
                     gq = _gap2(box[node, 0], box[node, 3], qx, qx) + _gap2(box[node, 1], box[node, 4], qy, qy)
                     gq += _gap2(box[node, 2], box[node, 5], qz, qz)
                     if gq < w:
-                        for i in range(s, e):
+                        for i in range(s, e):  # the distances first (no dependence between them: vector code)
                             dx, dy, dz = X[i, 0] - qx, X[i, 1] - qy, X[i, 2] - qz
-                            d2 = dx * dx + dy * dy + dz * dz
+                            dbuf[i - s] = dx * dx + dy * dy + dz * dz
+                        for i in range(s, e):  # then the list, in the same order as before
+                            d2 = dbuf[i - s]
                             if d2 < w:
                                 _insert(bd[qi], bi[qi], d2, i, k)
                                 w = bd[qi, k - 1]
@@ -407,15 +416,19 @@ class KDTree:
             _knn_leaves(self.data, *self._nodes, self._leaves[j0:j1], k, _NO_IDX, cen, C, True)
         return cen, C
 
-    def nearest_in_groups(self, q, starts, distance_upper_bound: float = np.inf, workers: int = 1, warm=None):
+    def nearest_in_groups(self, q, starts, distance_upper_bound: float = np.inf, workers: int = 1, warm=None,
+                          memory=None):
         """As ``query(q, k=1, ...)`` (the same distances and indices, ties included), the rows
         ``starts[g]:starts[g + 1]`` of ``q`` searched together (:func:`labkit.neighbours.kdtree_nn.nearest`):
         fast when each group lies close together (e.g. the leaves of a tree over the queries).
 
         ``warm`` (optional, int array per row of ``q``): a leaf-order position to try first, or -1;
         overwritten with the leaf-order position of each row's nearest point (-1: none), the warm
-        start of the next call (ICP's next iteration). The answer is the same with or without it."""
-        d2, leaf = nearest(self, q, starts, float(distance_upper_bound), _threads(workers), warm)
+        start of the next call (ICP's next iteration). ``memory`` (optional, with ``warm``): per row
+        where it was last searched (m, 3) and the squared distance of its second nearest point from
+        there (m,), zeros at first; rows that provably kept their nearest point are not searched
+        (see :func:`~labkit.neighbours.kdtree_nn.nearest`). The answer is the same with or without them."""
+        d2, leaf = nearest(self, q, starts, float(distance_upper_bound), _threads(workers), warm, memory)
         if warm is not None:
             warm[:] = leaf
         found = leaf >= 0

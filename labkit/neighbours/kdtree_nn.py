@@ -44,7 +44,7 @@ def _gap2(lo, hi, a, b):  # pragma: no cover - compiled
 
 
 @compiled
-def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, idx, dist2, tie, warm):  # pragma: no cover - compiled
+def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, idx, dist2, tie, warm, second):  # pragma: no cover
     """Nearest row of X (leaf order) of every row of Q, squared distance < bound2.
 
     Q's rows come in groups: group g holds rows group_start[g]:group_start[g + 1]. Missing
@@ -52,7 +52,11 @@ def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, idx, dist2, tie, wa
     lies at exactly the nearest distance (the index is then the per-point search's business).
     ``warm[q]`` (a row of X, or -1; an empty array: none) is a first candidate, e.g. the nearest
     point of the previous ICP iteration: its distance bounds the walk from the start.
+    ``second`` (an empty array: not wanted) gets the squared distance of every query's second
+    nearest point (bound2 when there is none within the bound; the nearest distance at a tie): the
+    walk then prunes by that larger distance, so that no point nearer than it is missed.
     """
+    want2 = second.shape[0] > 0
     stack = np.empty(2 * depth + 4, np.int64)
     lower = np.empty(2 * depth + 4)
     for g in range(group_start.shape[0] - 1):
@@ -74,7 +78,11 @@ def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, idx, dist2, tie, wa
                 if d2 < bound2:
                     dist2[q] = d2
                     idx[q] = i
-            wmax = max(wmax, dist2[q])
+            if want2:
+                second[q] = bound2
+                wmax = max(wmax, bound2)
+            else:
+                wmax = max(wmax, dist2[q])
             lo0, hi0 = min(lo0, Q[q, 0]), max(hi0, Q[q, 0])
             lo1, hi1 = min(lo1, Q[q, 1]), max(hi1, Q[q, 1])
             lo2, hi2 = min(lo2, Q[q, 2]), max(hi2, Q[q, 2])
@@ -96,25 +104,35 @@ def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, idx, dist2, tie, wa
                 wmax = 0.0
                 for q in range(a, b):
                     w = dist2[q]
+                    w2 = second[q] if want2 else w  # the walk's reach for this query
                     qx, qy, qz = Q[q, 0], Q[q, 1], Q[q, 2]
                     gq = _gap2(box[node, 0], box[node, 3], qx, qx) + _gap2(box[node, 1], box[node, 4], qy, qy)
                     gq += _gap2(box[node, 2], box[node, 5], qz, qz)
-                    if gq <= w:
+                    if gq <= w2:
                         best = idx[q]
                         tied = tie[q]
                         for i in range(s, e):
                             dx, dy, dz = X[i, 0] - qx, X[i, 1] - qy, X[i, 2] - qz
                             d2 = dx * dx + dy * dy + dz * dz
                             if d2 < w:
+                                if want2:
+                                    w2 = w  # the former nearest is now the second
                                 w = d2
                                 best = i
                                 tied = False
                             elif d2 == w and best >= 0 and i != best:  # (the warm start met again)
                                 tied = True
+                                w2 = d2
+                            elif want2 and d2 < w2 and i != best:
+                                w2 = d2
                         dist2[q] = w
                         idx[q] = best
                         tie[q] = tied
-                    wmax = max(wmax, w)
+                        if want2:
+                            second[q] = w2
+                        else:
+                            w2 = w
+                    wmax = max(wmax, w2)
                 continue
             d = int(box[node, 7])
             v = box[node, 6]
@@ -133,7 +151,32 @@ def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, idx, dist2, tie, wa
             sp += 1
 
 
-def nearest(tree, Q, starts, bound, threads, warm=None):
+@compiled
+def _still_nearest(X, Q, warm, at, second, bound2, idx, dist2, done):  # pragma: no cover - compiled
+    """done[q] where the warm candidate is provably still the nearest point of query q (then idx, dist2 set).
+
+    When query q was last searched from ``at[q]``, every other point lay at least sqrt(second[q]) from
+    there, so now at least sqrt(second[q]) - |Q[q] - at[q]| from Q[q] (triangle inequality); a candidate
+    nearer than that is the unique nearest point. The margin 1e-9 (relative) covers the rounding of the
+    distances, each of which is correct to a few units in the last place.
+    """
+    for q in range(Q.shape[0]):
+        done[q] = False
+        i = warm[q]
+        if i < 0:
+            continue
+        dx, dy, dz = X[i, 0] - Q[q, 0], X[i, 1] - Q[q, 1], X[i, 2] - Q[q, 2]
+        d2 = dx * dx + dy * dy + dz * dz
+        if not d2 < bound2:
+            continue
+        mx, my, mz = Q[q, 0] - at[q, 0], Q[q, 1] - at[q, 1], Q[q, 2] - at[q, 2]
+        if (np.sqrt(d2) + np.sqrt(mx * mx + my * my + mz * mz)) * (1.0 + 1e-9) < np.sqrt(second[q]):
+            idx[q] = i
+            dist2[q] = d2
+            done[q] = True
+
+
+def nearest(tree, Q, starts, bound, threads, warm=None, memory=None):
     """Leaf-order index and squared distance of the nearest tree point of every row of ``Q`` (squared
     distance < bound**2; else -1 and bound**2), exactly as ``tree._run(Q, 1, bound, threads)``.
 
@@ -143,20 +186,52 @@ def nearest(tree, Q, starts, bound, threads, warm=None):
     the index as it always did. ``warm`` (per row a leaf-order position or -1) gives a first candidate
     of every row, e.g. its nearest point in the previous ICP iteration: an exact bound, the same
     answer sooner (a candidate as near as the nearest point counts as a tie).
+
+    ``memory`` (optional, with ``warm``): a pair (at (m, 3), second (m,)) per row, read and overwritten:
+    where the row was last searched and the squared distance of its second nearest point from there
+    (0: unknown; start with zeros). A row whose warm candidate is nearer than any other point can be
+    since then (:func:`_still_nearest`) is answered without a search; the others are searched (with
+    their second nearest point, the memory of the next call). ICP's later iterations move the
+    source by less than the spacing of the target: most rows are not searched again. The same answer.
     """
     Q = np.ascontiguousarray(Q, dtype=np.float64)
     m = len(Q)
     bound2 = bound * bound if np.isfinite(bound) else np.inf
-    idx, d2, tie = np.empty(m, np.intp), np.empty(m), np.zeros(m, np.bool_)
+    idx, d2 = np.empty(m, np.intp), np.empty(m)
     starts = np.ascontiguousarray(starts, dtype=np.int64)
-    args = (tree.data, *tree._nodes)
     warm = _NO_WARM if warm is None else np.ascontiguousarray(warm, dtype=np.intp)
+    if memory is None or not len(warm):
+        _search(tree, Q, starts, bound, bound2, threads, warm, _NO_SECOND, idx, d2)
+        return d2, idx
+    at, second = memory
+    done = np.empty(m, np.bool_)
+    _still_nearest(tree.data, Q, warm, at, second, bound2, idx, d2, done)
+    todo = np.flatnonzero(~done)
+    if len(todo):
+        group = np.searchsorted(starts, todo, side="right")  # rows of one group stay together
+        sub = np.append(np.flatnonzero(np.r_[True, group[1:] != group[:-1]]), len(todo)).astype(np.int64)
+        idx_t, d2_t, s2 = np.empty(len(todo), np.intp), np.empty(len(todo)), np.empty(len(todo))
+        _search(tree, Q[todo], sub, bound, bound2, threads, warm[todo], s2, idx_t, d2_t)
+        idx[todo], d2[todo] = idx_t, d2_t
+        at[todo], second[todo] = Q[todo], s2
+    return d2, idx
+
+
+_NO_SECOND = np.empty(0)
+
+
+def _search(tree, Q, starts, bound, bound2, threads, warm, second, idx, d2):
+    """:func:`_nn_groups` on the threads, ties answered again by the per-point kernel (their second
+    nearest point is then as near as the nearest: no row is left out of the next search for it)."""
+    m = len(Q)
+    tie = np.zeros(m, np.bool_)
+    args = (tree.data, *tree._nodes)
     threads = min(threads, max(1, m // 4000))
     if threads <= 1 or len(starts) <= 2:
-        _nn_groups(*args, Q, starts, bound2, idx, d2, tie, warm)
+        _nn_groups(*args, Q, starts, bound2, idx, d2, tie, warm, second)
     else:
         cut = np.unique(np.linspace(0, len(starts) - 1, threads + 1).astype(int))
-        jobs = [_pool(threads).submit(_nn_groups, *args, Q, starts[a:b + 1], bound2, idx, d2, tie, warm)
+        jobs = [_pool(threads).submit(_nn_groups, *args, Q, starts[a:b + 1], bound2, idx, d2, tie, warm, second)
                 for a, b in zip(cut[:-1], cut[1:])]
         for job in jobs:
             job.result()
@@ -164,4 +239,5 @@ def nearest(tree, Q, starts, bound, threads, warm=None):
     if len(redo):
         d2_r, idx_r = tree._run(Q[redo], 1, bound, 1)
         d2[redo], idx[redo] = d2_r[:, 0], idx_r[:, 0]
-    return d2, idx
+        if len(second):
+            second[redo] = 0.0

@@ -41,13 +41,21 @@ def local_tree(points: np.ndarray, origin, merge_duplicates: bool):
     from .kdtree import KDTree  # here, not at the top: `labkit.cli` imports this module and stays free of numba
 
     tree = KDTree(np.asarray(points, dtype=np.float64) - origin, merge_duplicates=merge_duplicates)
+    keep_tree(points, origin, merge_duplicates, tree, key)
+    return tree
+
+
+def keep_tree(points: np.ndarray, origin, merge_duplicates: bool, tree, key=None) -> None:
+    """Keep ``tree`` (of ``points - origin``) as :func:`local_tree` keeps the last tree it built: when two
+    clouds' trees were built side by side, the caller says which one a later step will ask for."""
+    global _last
     try:
         ref = weakref.ref(points)
     except TypeError:  # pragma: no cover - arrays support weak references
-        return tree
+        return
+    key = _key(points, origin, merge_duplicates) if key is None else key
     with _lock:
         _last = (ref, key, tree)
-    return tree
 
 
 def forget() -> None:

@@ -215,8 +215,8 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
         lam, V = lam[keep], V[:, keep]
         y = (V.T @ np.einsum("mru,m,mr->u", Ag, Pg, lg)) / lam  # the group's own estimate of V^T x
         v = np.einsum("mru,u->mr", Ag, V @ y) - lg
-        _, cell = np.unique(cells[rows], return_inverse=True)
-        B, cell = Ag @ V, cell.ravel()
+        cell = cell_labels(cells[rows])
+        B = Ag @ V
         fits.append((name, rows, B, Pg, v, cell, lam, V, y, *cell_sums(B, Pg, v, cell)))
     deff, nu_all = design_effect(fits)
     ys, Ws, Vs, used, ns, deltas, offs_std, scores, nus = [], [], [], [], [], [], [], [], []
@@ -265,18 +265,68 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
                        offset_std[:, translation], between, scale=scale, denominator_dof=nu_f)
 
 
+def cell_labels(cells):
+    """Dense labels 0..G-1 of the cells (m, d) or (m,) of integers, numbered in lexicographic order of the cells.
+
+    The same labels as ``np.unique(cells, axis=0, return_inverse=True)[1]`` (raveled), without its sort of
+    rows: the rows become one integer key each (the same order), labelled by one pass over the range of
+    the keys when it is at most a few times m, else by the sort of the keys (1-D).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> cells = np.array([[2, -1], [0, 5], [2, -1], [0, -3]])
+    >>> cell_labels(cells).tolist(), np.unique(cells, axis=0, return_inverse=True)[1].ravel().tolist()
+    ([2, 1, 2, 0], [2, 1, 2, 0])
+    """
+    c = np.asarray(cells).reshape(len(cells), -1).astype(np.int64, copy=False)
+    if len(c) == 0:
+        return np.zeros(0, dtype=np.intp)
+    lo = c.min(axis=0)
+    span = c.max(axis=0) - lo + 1
+    if float(np.prod(span.astype(np.float64))) >= 2.0**62:  # keys would overflow: the sort of rows
+        return np.unique(c, axis=0, return_inverse=True)[1].ravel()
+    key = np.zeros(len(c), dtype=np.int64)
+    for col in range(c.shape[1]):  # row-major: lexicographic order of the rows is the order of the keys
+        key = key * span[col] + (c[:, col] - lo[col])
+    top = int(np.prod(span))
+    if top > 4 * len(c) + 1024:  # sparse keys: sort them
+        return np.unique(key, return_inverse=True)[1].ravel()
+    used = np.zeros(top, dtype=bool)
+    used[key] = True
+    rank = np.cumsum(used) - 1
+    return rank[key]
+
+
+def sum_by_cell(cell, values, n_cells):
+    """Per cell the sum of the rows of ``values`` (m, ...) whose ``cell`` (m,) it is: (n_cells, ...).
+
+    The same numbers as ``np.add.at(np.zeros(...), cell, values)`` (each cell's rows added in row order,
+    from zero), by one ``np.bincount`` per trailing element instead of the slow unbuffered ``add.at``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> sum_by_cell(np.array([1, 0, 1]), np.array([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]]), 3).tolist()
+    [[3.0, 4.0], [6.0, 8.0], [0.0, 0.0]]
+    """
+    values = np.asarray(values, dtype=np.float64)
+    flat = values.reshape(len(values), -1)
+    out = np.empty((n_cells, flat.shape[1]))
+    for c in range(flat.shape[1]):
+        out[:, c] = np.bincount(cell, weights=flat[:, c], minlength=n_cells)
+    return out.reshape((n_cells,) + values.shape[1:])
+
+
 def cell_sums(B, P, v, cell):
     """Each cell's normal matrix N_c (nc, k, k) and score sum g_c (nc, k) of a group's own fit.
 
     B (m, r, k) are the group's design rows in its eigen-directions, P (m,) their weights, v (m, r) the
     residuals about the group's own estimate, ``cell`` (m,) the cell index of each row.
     """
-    nc, k = int(cell.max()) + 1, B.shape[2]
-    Nc = np.zeros((nc, k, k))
-    np.add.at(Nc, cell, np.einsum("mri,m,mrj->mij", B, P, B))
-    g = np.zeros((nc, k))
-    np.add.at(g, cell, np.einsum("mri,m,mr->mi", B, P, v))
-    return Nc, g
+    nc = int(cell.max()) + 1
+    Nc = sum_by_cell(cell, np.einsum("mri,m,mrj->mij", B, P, B), nc)
+    return Nc, sum_by_cell(cell, np.einsum("mri,m,mr->mi", B, P, v), nc)
 
 
 def cell_jackknife(Nc, g, cell, lam):
@@ -372,7 +422,7 @@ def block_consistency(A, l, P, xyz, cells, degeneracy, *, alpha=1e-3, rel_thresh
     xy = np.asarray(xyz)[:, :2]
     above = (xy > np.median(xy, axis=0)).astype(int)
     labels = above[:, 0] + 2 * above[:, 1]
-    _, cell = np.unique(np.asarray(cells).reshape(len(A), -1), axis=0, return_inverse=True)
+    cell = cell_labels(np.asarray(cells).reshape(len(A), -1))
     test = group_consistency(np.asarray(A)[:, None, free], np.asarray(l)[:, None], np.asarray(P), labels,
                              ["block SW", "block SE", "block NW", "block NE"], cell.ravel(),
                              translation=list(range(int(free.sum()))), rel_threshold=rel_threshold, alpha=alpha,

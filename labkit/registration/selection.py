@@ -35,7 +35,8 @@ from ..core.errors import LabkitError
 from ..core.masks import ASPRS_NAMES, STABLE_CLASSES
 from ..core.frame import local_origin
 from ..neighbours.kdtree import neighbour_rows, unique_kept_neighbours
-from ..neighbours.treecache import NeighbourRows, forget, keep_neighbours, local_tree
+from ..core.threads import side_by_side
+from ..neighbours.treecache import NeighbourRows, forget, keep_neighbours, keep_tree, local_tree
 from .matching.local_surface import roughness
 
 __all__ = ["MAX_SCATTER", "MIN_SELECTED", "SELECT", "SMOOTH_NOISE", "ClassCheck", "Selection", "check_other_classes",
@@ -147,7 +148,8 @@ def surface_mask(points, k=20):
 def _surface_test(points, k, neighbours=False):
     """:func:`surface_mask`, and with ``neighbours`` (clouds up to :data:`KEEP_NEIGHBOURS` points) also
     (tree, the k neighbours of each distinct point as leaf positions, where they are unique and all kept,
-    and their PCA: ICP's normals reuse both where the neighbourhood holds only selected points)."""
+    and their PCA: ICP's normals reuse both where the neighbourhood holds only selected points), else
+    None; last the kd-tree of the cloud (reduced to its local origin)."""
     xyz = _xyz(points)
     k = int(min(max(k, 10), len(xyz)))
     # the tree ICP's matching would build on the same array (kept for it when every point stays)
@@ -166,13 +168,13 @@ def _surface_test(points, k, neighbours=False):
             lams.append(pca[0])
             vecs.append(pca[1])
     if not extra:
-        return keep[tree.representative], None
+        return keep[tree.representative], None, tree
     one = len(nbs) == 1  # one chunk (most clouds): no copy of (n, k + 1) indices
     nb = nbs[0] if one else np.concatenate(nbs)
     pca = (lams[0], vecs[0]) if one else (np.concatenate(lams), np.concatenate(vecs))
     clean = np.empty(tree.n, dtype=bool)  # the same k nearest among the kept points
     unique_kept_neighbours(tree.data, nb, keep, k, clean)
-    return keep[tree.representative], (tree, nb, clean, k, pca)
+    return keep[tree.representative], (tree, nb, clean, k, pca), tree
 
 
 def _kept_rows(info, mask):
@@ -261,10 +263,13 @@ def select_points(source, target, select="auto", k=20):
                                   np.flatnonzero(ms), np.flatnonzero(mt)))
     if min(ns, nt) <= 3:
         return source, target, Selection("all points", (), ns, nt, ns, nt, "all points (too few for a local surface)")
-    (ms, near_s), (mt, near_t) = _surface_test(source, k, True), _surface_test(target, k, True)
+    # the two clouds side by side: one's serial steps overlap the other's work (the same numbers)
+    (ms, near_s, _), (mt, near_t, tree_t) = side_by_side((_surface_test, source, k, True),
+                                                          (_surface_test, target, k, True))
     if ms.all() and mt.all():
-        _keep(source, near_s, ms)
-        _keep(target, near_t, mt)
+        xyz_t = _xyz(target)
+        keep_tree(xyz_t, local_origin(xyz_t), True, tree_t)  # ICP's matching asks for the target's tree next
+        _keep((source, near_s, ms), (target, near_t, mt))
         return source, target, Selection("all points", (), ns, nt, ns, nt, "all points (every neighbourhood a surface)")
     if ms.sum() < MIN_SELECTED or mt.sum() < MIN_SELECTED:
         return source, target, Selection(
@@ -275,15 +280,18 @@ def select_points(source, target, select="auto", k=20):
               f"scatter (vegetation) left out: local noise > {100 * SMOOTH_NOISE:.0f} cm and noise/sqrt(l2) > "
               f"{MAX_SCATTER:g} in {k}-neighbourhoods")
     src, tgt = _subset(source, ms), _subset(target, mt)
-    _keep(src, near_s, ms)  # ICP's normals reuse the neighbourhoods that only hold selected points
-    _keep(tgt, near_t, mt)
+    _keep((src, near_s, ms), (tgt, near_t, mt))  # ICP's normals reuse the neighbourhoods that only hold selected points
     return (src, tgt, Selection("surface points", (), ns, nt, int(ms.sum()), int(mt.sum()), reason,
                                 np.flatnonzero(ms), np.flatnonzero(mt)))
 
 
-def _keep(cloud, info, mask):
-    if info is not None:
-        keep_neighbours(_xyz(cloud), _kept_rows(info, mask))
+def _keep(*clouds):
+    """Keep the neighbours of each (cloud, info, mask) for ICP's normals (the rows made side by side)."""
+    rows = side_by_side(*[(lambda info, mask: None if info is None else _kept_rows(info, mask), info, mask)
+                          for _, info, mask in clouds])
+    for (cloud, _, _), kept in zip(clouds, rows):
+        if kept is not None:
+            keep_neighbours(_xyz(cloud), kept)
 
 
 @dataclass(frozen=True, eq=False)

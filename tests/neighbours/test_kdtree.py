@@ -145,10 +145,22 @@ def test_grouped_nearest_equals_the_per_point_search_index_for_index(name, bound
             d, i = tree.nearest_in_groups(Q, leaf_groups, bound, workers=workers, warm=warm)
             assert np.array_equal(d, d0) and np.array_equal(i, i0)
             assert np.array_equal(np.where(warm >= 0, tree.indices[warm], tree.n), i0)  # the next warm start
+    # with a memory (ICP's iterations: the queries move by less and less) rows that provably kept their
+    # nearest point are not searched again; every answer is still the per-point search's
+    warm, memory = np.full(len(Q), -1), (np.zeros((len(Q), 3)), np.zeros(len(Q)))
+    skipped = 0
+    for step in (0.3, 0.01, 0.001, 1e-4, 0.0):
+        Qs = Q + step * np.array([0.6, -0.8, 0.0]) if name != "ties" else np.round(Q + step, 1)
+        d0, i0 = tree.query(Qs, k=1, distance_upper_bound=bound)
+        before = memory[0].copy()
+        d, i = tree.nearest_in_groups(Qs, leaf_groups, bound, workers=2, warm=warm, memory=memory)
+        assert np.array_equal(d, d0) and np.array_equal(i, i0)
+        skipped += int((memory[0] == before).all(axis=1).sum()) if step < 0.3 else 0
+    assert skipped > (i0 < tree.n).sum()  # over the four small steps, more than once per row with a nearest point
     if name == "ties":  # the case the fallback is for: equally near target points
         from labkit.neighbours.kdtree_nn import _nn_groups
 
         n = len(Q)
         idx, d2, tie = np.empty(n, np.intp), np.empty(n), np.zeros(n, np.bool_)
-        _nn_groups(tree.data, *tree._nodes, Q, leaf_groups, np.inf, idx, d2, tie, np.empty(0, np.intp))
+        _nn_groups(tree.data, *tree._nodes, Q, leaf_groups, np.inf, idx, d2, tie, np.empty(0, np.intp), np.empty(0))
         assert tie.sum() > 10

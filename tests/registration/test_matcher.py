@@ -16,7 +16,7 @@ def test_icp_with_grouped_search_equals_the_per_point_search(monkeypatch):
     kw = dict(dof="rigid", sample=None, rng=0, covariance="formal", consistency_alpha=None)
     new = icp(source, target, **kw)
 
-    def per_point(self, q, starts, distance_upper_bound=np.inf, workers=1, warm=None):
+    def per_point(self, q, starts, distance_upper_bound=np.inf, workers=1, warm=None, memory=None):
         return self.query(q, k=1, distance_upper_bound=distance_upper_bound, workers=workers)
 
     monkeypatch.setattr(KDTree, "nearest_in_groups", per_point)
@@ -49,3 +49,20 @@ def test_compiled_matching_steps_equal_their_numpy_route(monkeypatch):
         for name in ("target_index", "rule", "weight", "normal_angle", "target_normal", "d"):
             assert np.array_equal(getattr(new.correspondences, name), getattr(old.correspondences, name),
                                   equal_nan=name != "target_index" and name != "rule"), name
+
+
+def test_first_search_made_ahead_changes_no_correspondence():
+    """prepare(start=(R, t)) searches the first call's nearest target points beside the source's normals:
+    the first and later calls give the same correspondences as a matcher that searches them itself."""
+    from labkit.registration.matching.match import prepare
+
+    rng = np.random.default_rng(11)
+    target = np.round(wavy_surface(20_000, rng, noise=0.002), 3)
+    source = np.round(wavy_surface(8_000, rng, noise=0.002), 3) - [0.021, -0.013, 0.008]
+    R, t = np.eye(3), np.array([0.02, -0.01, 0.01])
+    ahead, plain = prepare(source, target, start=(R, t)), prepare(source, target)
+    assert ahead.search_memory is not None and plain.search_memory is None
+    for move in (t, t + 0.001, t + 1e-6):
+        a, b = ahead(R, move), plain(R, move)
+        for name in ("target_index", "d", "weight", "rule"):
+            assert np.array_equal(getattr(a, name), getattr(b, name), equal_nan=True)

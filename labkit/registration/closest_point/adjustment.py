@@ -122,10 +122,12 @@ def adjust(corr, R, t, opts):
     held_cov = held_rotation_covariance(N_sig, deg, opts) / np.outer(S, S)
     block = None
     if opts.covariance == "block":
-        xy = corr.source_xyz[ok_rows, :2] - opts.origin[:2]
         free = np.isinf(np.diag(Q_s))
-        args = (A_all, l_all, w, u, centred, keep, factor, dx_s, free, xy, N - N_sig, opts)
-        block = lambda: block_covariance(*args) / np.outer(S, S)  # noqa: E731 - evaluated for the last step only
+        args = (A_all, l_all, w, u, centred, keep, factor, dx_s, free)
+
+        def block(cell=None):  # evaluated for the last step only; ``cell``: the block cells of its kept rows
+            xy = corr.source_xyz[ok_rows, :2] - opts.origin[:2] if cell is None else None
+            return block_covariance(*args, xy, N - N_sig, opts, cell=cell) / np.outer(S, S)
     return Adjustment(
         dx=dx, N=N, Qxx=Qxx, block_cov=block, held_cov=held_cov, sigma0=float(sigma0), rms=rms, redundancy=r,
         degeneracy=deg, corr=corr, scale=float(scale), n_deleted=int((~keep).sum()),
@@ -135,10 +137,10 @@ def adjust(corr, R, t, opts):
 def design(corr, R, t, opts):
     """Design rows A (m, r, u), observations l (m, r) and weights of the accepted rows."""
     ok = corr.accepted
-    p = corr.source_xyz[ok] - opts.origin  # current source points, local frame
+    rigid = opts.dof == "rigid"
+    p = corr.source_xyz[ok] - opts.origin if rigid else None  # current source points, local frame (rotations)
     d = corr.d[ok]
     n = corr.target_normal[ok]
-    rigid = opts.dof == "rigid"
     if opts.metric == "point_to_plane":
         l = np.einsum("ij,ij->i", n, d)[:, None]  # l_i = n . (q - p)  (eq. 5.2)
         A = n[:, None, :]

@@ -10,6 +10,7 @@ from scipy.linalg import cho_factor, cho_solve
 from scipy.stats import norm, t as student_t
 
 from .weights import deletion_limit, psi_prime
+from ..consistency import cell_labels, sum_by_cell
 
 #: The level at which a stated std is read: |error| <= 3 std (two-sided 99.73 %).
 SIGMAS = 3.0
@@ -75,7 +76,7 @@ def effective_cells(info, Ji):
     return np.where(np.isfinite(g), np.minimum(g, len(info)), len(info))
 
 
-def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, xy, N_eps, opts):
+def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, xy, N_eps, opts, cell=None):
     """Cluster-robust sandwich J^-1 M J^-1 in the scaled parameters (eq. 5.13); inf where held.
 
     M = sum over cells c of g_c g_c^T with g_c = sum_(i in c) A_i^T p_i v_i (scores of the kept
@@ -92,10 +93,9 @@ def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, xy, N_eps, o
     P = w * factor
     v = np.einsum("mru,u->mr", A, dx_s) - l
     g = np.einsum("mru,m,mr->mu", A, P, v)[keep][:, fixed]  # score of each kept correspondence
-    cells = np.floor(xy[keep] / opts.block_size).astype(np.int64)
-    _, cell = np.unique(cells, axis=0, return_inverse=True)
-    G = np.zeros((cell.max() + 1, g.shape[1]))
-    np.add.at(G, cell.ravel(), g)
+    if cell is None:
+        cell = cell_labels(block_cells(xy[keep], opts.block_size))
+    G = sum_by_cell(cell, g, int(cell.max()) + 1)
     n_cells, m = len(G), len(g)
     if n_cells < 2 * g.shape[1]:
         return cov  # too few cells for a sandwich: NaN, the caller falls back to the formal one
@@ -119,12 +119,16 @@ def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, xy, N_eps, o
     except np.linalg.LinAlgError:
         return cov
     Ji = cho_solve(c, np.eye(len(J)))
-    info = np.zeros((n_cells, g.shape[1], g.shape[1]))
-    np.add.at(info, cell.ravel(), (w * factor)[keep, None, None] * AA[keep][:, fixed][:, :, fixed])
+    info = sum_by_cell(cell, (w * factor)[keep, None, None] * AA[keep][:, fixed][:, :, fixed], n_cells)
     dof = effective_cells(info, Ji) * (n_cells - 1) / n_cells  # n_cells - 1 when all cells inform alike
     t_factor = student_t.ppf(norm.cdf(SIGMAS), np.maximum(dof, 1.0)) / SIGMAS
     cov[np.ix_(fixed, fixed)] = Ji @ M @ Ji * (m / max(m - g.shape[1], 1)) * np.outer(t_factor, t_factor)
     return cov
+
+
+def block_cells(xy, block_size):
+    """The square cell (m, 2) of side ``block_size`` of every point ``xy`` (m, 2): the clusters of eq. 5.13."""
+    return np.floor(xy / block_size).astype(np.int64)
 
 
 def held_rotation_covariance(N, deg, opts):

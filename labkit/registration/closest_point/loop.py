@@ -329,7 +329,7 @@ def icp(
     origin = local_origin(tgt_xyz)
     R, t = _initial_local(initial, origin)
     # 2. kd-tree of the target, sampling and exclusions: once
-    matcher = prepare(source, target, options=options, rng=rng, origin=origin, points=(src_xyz, tgt_xyz))
+    matcher = prepare(source, target, options=options, rng=rng, origin=origin, points=(src_xyz, tgt_xyz), start=(R, t))
     L = max(float(np.sqrt((matcher.source**2).sum(axis=1).mean())), 1.0)
     opts = IcpSettings(
         origin=origin, dof=dof, metric=metric, robust=robust, reject_sigma=reject_sigma, L=L,

@@ -7,8 +7,10 @@ from dataclasses import replace
 import numpy as np
 
 from ...core.masks import STABLE_CLASSES
+from ...core.threads import side_by_side
 from .adjustment import NAMES, design
-from ..consistency import family_level, group_consistency
+from .covariance import block_cells
+from ..consistency import cell_labels, family_level, group_consistency
 from ..result import RegistrationResult
 
 #: Groups of the consistency test by the classes (ASPRS) of a correspondence's two points, in order of
@@ -19,7 +21,15 @@ CLASS_GROUPS = (("vegetation", (3, 4, 5)), ("buildings", (6,)), ("ground/road", 
 def icp_result(R, t, origin, adj, history, converged, matcher, opts, runtime):
     deg = adj.degeneracy
     cov = adj.sigma0**2 * adj.Qxx  # (eq. 5.11)
-    block = None if adj.block_cov is None else adj.block_cov()
+    cell = None  # the block cells of the final pairs (eq. 5.13), shared by the covariance and the group test
+    if adj.block_cov is not None or opts.consistency_alpha is not None:
+        ok = adj.corr.accepted
+        cell = cell_labels(block_cells(adj.corr.source_xyz[ok, :2] - opts.origin[:2], opts.block_size))
+    # the block covariance and the group test (independent) side by side
+    block, test = side_by_side(
+        (lambda: None if adj.block_cov is None else adj.block_cov(cell),),
+        (lambda: None if opts.consistency_alpha is None else consistency_test(adj, matcher, opts, cell),),
+    )
     if block is not None and np.isfinite(np.diag(block)).any():
         cov = block  # (eq. 5.13)
     cov = cov + adj.held_cov  # prior of held rotations (eq. 5.15); inf stays inf
@@ -51,7 +61,6 @@ def icp_result(R, t, origin, adj, history, converged, matcher, opts, runtime):
             "information about the shift (only the components along the normals do), consider "
             "metric='point_to_plane'"
         )
-    test = None if opts.consistency_alpha is None else consistency_test(adj, matcher, opts)
     if test is not None and not test.agree:  # the groups' spread enters the stated precision (eq. 5.17)
         free = deg.parameter_determined
         S = np.where([n.startswith("r") for n in NAMES[opts.dof]], opts.L, 1.0)[free]
@@ -96,7 +105,7 @@ def resolution_floor(cov, adj):
     return cov
 
 
-def consistency_test(adj, matcher, opts):
+def consistency_test(adj, matcher, opts, cell=None):
     """Model test of the final correspondences: one transformation for every group? (eq. 5.16)
 
     Three groupings are tested where the data allow them: by class (when both clouds carry two or more
@@ -106,6 +115,8 @@ def consistency_test(adj, matcher, opts):
     covariance, eq. 5.17), or the first tested grouping when all agree. The groupings share the level:
     each is tested at ``consistency_alpha`` / k (:func:`~labkit.registration.consistency.family_level`),
     so that agreeing groups are reported as disagreeing in about ``consistency_alpha`` of the cases.
+    ``cell``: the block cell label of every accepted pair (:func:`~labkit.registration.consistency.cell_labels`),
+    when the caller has them (the block covariance uses the same); default: made here.
     """
     corr = adj.corr
     ok = corr.accepted
@@ -113,14 +124,13 @@ def consistency_test(adj, matcher, opts):
     free = adj.degeneracy.parameter_determined
     A = A[:, :, free]  # held parameters stay out of the test
     xy = corr.source_xyz[ok, :2] - opts.origin[:2]
-    cells = np.floor(xy / opts.block_size).astype(np.int64)
-    _, cells = np.unique(cells, axis=0, return_inverse=True)
+    cells = cell_labels(block_cells(xy, opts.block_size)) if cell is None else cell
     names_free = [n for n, f in zip(NAMES[opts.dof], free) if f]
     translation = [names_free.index(n) for n in ("tx", "ty", "tz") if n in names_free]
     tests = []
     for labels, names, grouping in _groupings(corr, ok, xy, matcher):
         test = group_consistency(
-            A, l, P, labels, names, cells.ravel(), translation=translation, rel_threshold=opts.rel_threshold,
+            A, l, P, labels, names, cells, translation=translation, rel_threshold=opts.rel_threshold,
             alpha=opts.consistency_alpha, grouping=grouping,
         )  # fmt: skip
         if test is not None:

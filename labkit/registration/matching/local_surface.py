@@ -125,8 +125,11 @@ def roughness(tree, cols, a, b, k, decided=None, extra=0, pca=False):
     m = b - a
     lam, noise, vecs = np.empty((m, 3)), np.empty(m), np.empty((m, 3, 3))
 
-    def plane(u, v):
-        _, noise[u:v], _, lam[u:v], _, vecs[u:v] = _geometry_rows(tree, cols, pos[u:v], nb[u:v, :k], k, False)
+    def plane(u, v):  # the PCA and the plane's noise of _geometry_rows (its normals and variation are not needed)
+        lam[u:v], vecs[u:v] = _pca_rows(tree, cols, nb[u:v, :k], k)
+        with np.errstate(invalid="ignore"):
+            ok = lam[u:v, 1] > 1e-12 * lam[u:v, 2]  # not a point, not a line
+        noise[u:v] = np.where(ok, np.sqrt(lam[u:v, 0]), np.nan)
 
     _in_row_chunks(plane, m)
     lam_1k = lam * ((k - 3) / k)  # back to the covariance 1/k sum
@@ -457,22 +460,30 @@ class Geometry:
             return np.full((len(pos),) + self._SHAPES[name], np.nan)
         return self._store[name][self.slot[pos]]
 
+    def _compute(self, pos):
+        """Compute and cache the points ``pos`` (leaf positions) that the cache does not hold yet."""
+        todo = self.slot[pos] < 0
+        if todo.any():
+            mark = np.zeros(self.tree.n, dtype=bool)
+            mark[pos[todo]] = True
+            new = np.flatnonzero(mark)  # sorted leaf positions: coherent queries, no sort
+            out = _leaf_geometry(self.tree, self.cols, new, self.k, self.quadric, known=self.known)
+            values = dict(normals=out[0], noise=out[1])
+            if self.keep_tilt:
+                values["tilt"] = out[-1]()
+            if self.quadric:
+                values.update(coef=out[3], frame=out[4], slope=out[5])
+            self.slot[new] = np.arange(self.n_computed, self.n_computed + len(new))
+            self._grow(values)
+
+    def at_positions(self, pos):
+        """Compute and cache the points at the leaf positions ``pos`` (e.g. a search's answers) ahead of :meth:`at`."""
+        self._compute(np.asarray(pos, dtype=np.intp))
+
     def at(self, index, need_noise=False):
         pos = self.tree.representative[index]
         if need_noise or self.given is None:
-            todo = self.slot[pos] < 0
-            if todo.any():
-                mark = np.zeros(self.tree.n, dtype=bool)
-                mark[pos[todo]] = True
-                new = np.flatnonzero(mark)  # sorted leaf positions: coherent queries, no sort
-                out = _leaf_geometry(self.tree, self.cols, new, self.k, self.quadric, known=self.known)
-                values = dict(normals=out[0], noise=out[1])
-                if self.keep_tilt:
-                    values["tilt"] = out[-1]()
-                if self.quadric:
-                    values.update(coef=out[3], frame=out[4], slope=out[5])
-                self.slot[new] = np.arange(self.n_computed, self.n_computed + len(new))
-                self._grow(values)
+            self._compute(pos)
         normals = self._get("normals", pos) if self.given is None else self.given[index]
         noise = self._get("noise", pos) if need_noise or self.given is None else np.full(len(pos), np.nan)
         return normals, noise
@@ -480,12 +491,11 @@ class Geometry:
     def at_rows(self, index, rows, normals, noise, need_noise=False):
         """:meth:`at` written into ``normals[rows]`` and ``noise[rows]``: once the cache holds the points, one
         compiled pass gathers and scatters their rows instead of four copies."""
-        if self.given is not None or not HAVE_NUMBA or "normals" not in self._store or len(index) == 0:
+        if self.given is not None or not HAVE_NUMBA or len(index) == 0:
             normals[rows], noise[rows] = self.at(index, need_noise)
             return
         pos = self.tree.representative[index]
-        if (self.slot[pos] < 0).any():
-            self.at(index, need_noise)  # computes the points not cached yet
+        self._compute(pos)  # the points not cached yet
         _scatter_cached(self.slot, pos, rows, self._store["normals"], self._store["noise"], normals, noise)
 
     def foot(self, index, w):

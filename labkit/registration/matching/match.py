@@ -37,13 +37,14 @@ import numpy as np
 
 from ...core.checks import as_points, as_rng, choice, positive
 from ...core.frame import local_origin, reduce
+from ...core.threads import side_by_side
 from ...neighbours.kdtree import KDTree
 from ...neighbours.treecache import kept_neighbours, local_tree
 from ...core.errors import LabkitError
 from .correspondences import _CODE, MIN_SIGMA, RULES, Correspondences, _replace  # noqa: F401 - re-exported
 from .local_surface import Geometry, _leaf_geometry, _local_geometry, _on_quadric, _plane_tilt  # noqa: F401
 from .matcher import (
-    _class_sigma, _classes_of, _Matcher, _reject_duplicates, _require_classes, _TreePoints,
+    _class_sigma, _classes_of, _Matcher, _reject_duplicates, _require_classes, _TreePoints, first_search,
 )  # noqa: F401
 from ...neighbours.sampling import (
     MAX_VARIATION, auto_sample, normal_space_sample, voxel_keys, voxel_sample,
@@ -123,6 +124,7 @@ def prepare(
     origin=None,
     surface="plane",
     points=None,
+    start=None,
 ) -> _Matcher:
     """Build the fixed part of the matching once (kd-tree, sampling, exclusions).
 
@@ -130,7 +132,9 @@ def prepare(
     :class:`~labkit.registration.MatchOptions`); ``origin`` is the shared local
     origin (default: from the target); ``points`` the coordinates of source and target
     as the caller already checked them (:func:`labkit.core.checks.as_points`; default:
-    checked here). ICP calls this once and the returned matcher in every iteration.
+    checked here). ICP calls this once and the returned matcher in every iteration. ``start`` (R, t),
+    optional: the transformation of the matcher's first call, whose nearest-neighbour search is then made
+    here beside the source's normals (the same correspondences).
 
     Examples
     --------
@@ -154,9 +158,20 @@ def prepare(
     src_l = reduce(src, origin)
     if tree is not None and getattr(tree, "n", None) != len(tgt):
         raise LabkitError(f"the given tree holds {getattr(tree, 'n', '?')} points, the target has {len(tgt)}")
+    sample = opt.sample
+    need_src_geo = (
+        opt.max_angle_deg is not None or opt.noise_weighting or opt.max_noise is not None
+        or (isinstance(sample, tuple) and sample[0] == "normal_space")
+        or (isinstance(sample, str) and sample == "auto" and len(src_l) > AUTO_LIMIT)
+    )  # fmt: skip
+    if need_src_geo and len(src_l) < k:
+        raise LabkitError(f"the source needs at least k = {k} points for its normals, got {len(src_l)}")
     # the target's compiled kd-tree (exact duplicates merged) and its geometry cache: once per call
-    # (kept for the next step on the same target, e.g. the distances of labkit register)
-    tree = local_tree(tgt, origin, merge_duplicates=True)
+    # (kept for the next step on the same target, e.g. the distances of labkit register); the source's
+    # tree for its normals built beside it (the same trees as one after the other)
+    tree, src_tree = side_by_side(
+        (local_tree, tgt, origin, True), (lambda: KDTree(src_l, merge_duplicates=True) if need_src_geo else None,)
+    )
     surface = _auto_surface(tree, k) if opt.surface == "auto" else opt.surface
     quadric = surface == "quadric"
     tgt_geo = Geometry(
@@ -164,18 +179,10 @@ def prepare(
         known=kept_neighbours(tgt, min(k, tree.n)),  # the neighbours the point selection found, where it kept them
     )
     n_tgt = len(tgt)  # the tree holds the target (one copy of a large cloud, read through _TreePoints)
-    sample = opt.sample
-    need_src_geo = (
-        opt.max_angle_deg is not None or opt.noise_weighting or opt.max_noise is not None
-        or (isinstance(sample, tuple) and sample[0] == "normal_space")
-        or (isinstance(sample, str) and sample == "auto" and len(src_l) > AUTO_LIMIT)
-    )  # fmt: skip
     src_geo = None
     if need_src_geo:
-        if len(src_l) < k:
-            raise LabkitError(f"the source needs at least k = {k} points for its normals, got {len(src_l)}")
         src_geo = Geometry(
-            src_l, k, _given_normals(opt.source_normals, len(src_l), "source_normals"), quadric=quadric,
+            src_l, k, _given_normals(opt.source_normals, len(src_l), "source_normals"), src_tree, quadric=quadric,
             known=kept_neighbours(src, k),
         )
     # (1) sampling
@@ -209,11 +216,22 @@ def prepare(
     if opt.classes is not None:
         _require_classes(source, "source")
         _require_classes(target, "target")
-    src_normals, src_noise = (None, None) if src_geo is None else src_geo.at(idx, need_noise=True)
+    src_pts = src_l[idx]
+    normals_of_source = lambda: (None, None) if src_geo is None else src_geo.at(idx, need_noise=True)  # noqa: E731
+    if start is None:
+        (src_normals, src_noise), memory = normals_of_source(), None
+    else:  # the first call's nearest target points, and their geometry, beside the source's normals
+        def ahead():
+            found = first_search(tree, src_pts, order, groups, *start, settings["max_distance"])
+            if tgt_geo.given is None:  # the target's normals at those points: the first call finds them cached
+                tgt_geo.at_positions(found[0][found[0] >= 0])
+            return found
+
+        (src_normals, src_noise), memory = side_by_side((normals_of_source,), (ahead,))
     rule, sigma = _source_rules(src_cls, idx, src_noise, settings)
     return _Matcher(
-        src_l[idx], idx, src_normals, sigma, rule, _TreePoints(tree, n_tgt), tree, tgt_geo, tgt_cls, settings, origin, len(src),
-        None if src_cls is None else src_cls[idx], order, groups,
+        src_pts, idx, src_normals, sigma, rule, _TreePoints(tree, n_tgt), tree, tgt_geo, tgt_cls, settings, origin, len(src),
+        None if src_cls is None else src_cls[idx], order, groups, memory,
     )  # fmt: skip
 
 

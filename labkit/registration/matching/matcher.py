@@ -86,11 +86,29 @@ class _Matcher:
     source_class: np.ndarray | None = None  # class of each sampled source point (None: no classification)
     query_order: np.ndarray | None = None  # sampled source points in spatial (leaf) order: coherent queries
     query_groups: np.ndarray | None = None  # per row of query_order: its leaf in the source's tree (ascending)
+    search_memory: tuple | None = None  # (warm, (at, second)) per row of query_order: a search made ahead (first_search)
 
     def __post_init__(self):
-        # per sampled source point: leaf position of its nearest target point in the last call (-1: none);
-        # a warm start of the next search, which changes no answer (KDTree.nearest_in_groups)
-        object.__setattr__(self, "_warm", np.full(len(self.source), -1, dtype=np.intp))
+        # the queries (the sampled source points the source rules leave) in leaf order, and their groups:
+        # the same in every call, as are the source rules
+        ok = self.source_rule[self.query_order] == 0 if self.query_order is not None else None
+        live = None if ok is None else self.query_order[ok]
+        starts = None
+        if self.query_groups is not None:
+            g = self.query_groups[ok]
+            starts = np.append(np.flatnonzero(np.r_[True, g[1:] != g[:-1]]), len(g))
+        object.__setattr__(self, "_queries", (live, starts))
+        # per query (in that order): the warm start and the memory of the search (KDTree.nearest_in_groups):
+        # the leaf position of its nearest target point in the last call (-1: none), where it was last
+        # searched and the squared distance of its second nearest target point then. They change no answer.
+        n = 0 if live is None else len(live)
+        if self.search_memory is not None and live is not None:  # the rows of the search made ahead that are queries
+            warm, (at, second) = self.search_memory
+            object.__setattr__(self, "_warm", np.ascontiguousarray(warm[ok], dtype=np.intp))
+            object.__setattr__(self, "_memory", (np.ascontiguousarray(at[ok]), np.ascontiguousarray(second[ok])))
+        else:
+            object.__setattr__(self, "_warm", np.full(n, -1, dtype=np.intp))
+            object.__setattr__(self, "_memory", (np.zeros((n, 3)), np.zeros(n)))
 
     def __call__(self, R=None, t=None) -> Correspondences:
         """Correspondences of the source moved by p' = R p + t (local frame)."""
@@ -99,8 +117,7 @@ class _Matcher:
         t = np.zeros(3) if t is None else t
         p = _rotated(self.source, R, t)  # not `@`: a BLAS call per iteration (see _rotated)
         rule = self.source_rule.copy()
-        ok = rule[self.query_order] == 0
-        live = self.query_order[ok]  # in leaf order: neighbouring queries in cache
+        live, starts = self._queries  # in leaf order: neighbouring queries in cache
         m = len(p)
         tidx = np.full(m, -1)
         d = np.full((m, 3), np.nan)
@@ -111,11 +128,8 @@ class _Matcher:
         if self.query_groups is None:
             dist, j = self.tree.query(p[live], k=1, distance_upper_bound=opt["max_distance"], workers=workers)
         else:  # the same answer; a source leaf's points walk the target tree together
-            g = self.query_groups[ok]
-            starts = np.append(np.flatnonzero(np.r_[True, g[1:] != g[:-1]]), len(g))
-            warm = self._warm[live]  # each query's nearest target point in the previous call: a first bound
-            dist, j = self.tree.nearest_in_groups(p[live], starts, opt["max_distance"], workers=workers, warm=warm)
-            self._warm[live] = warm
+            dist, j = self.tree.nearest_in_groups(p[live], starts, opt["max_distance"], workers=workers,
+                                                  warm=self._warm, memory=self._memory)
         # back to ascending rows (one scatter), so that the steps below read and write in order
         nearest = np.full(m, -1)
         nearest[live] = np.where(np.isfinite(dist), j, -1)
@@ -178,6 +192,18 @@ class _Matcher:
         if not opt["class_sigma"] and not opt["noise_weighting"]:
             return np.full(len(j), np.sqrt(0.5))  # unit weights: p = 1
         return np.sqrt(np.maximum(var, MIN_SIGMA**2))
+
+
+def first_search(tree, source, query_order, query_groups, R, t, max_distance):
+    """The nearest target point of every query (the rows ``query_order`` of ``source`` moved by R, t), as the
+    search memory of a :class:`_Matcher` (its ``search_memory``): made ahead, e.g. beside the source's
+    normals, the matcher's first call at (R, t) then finds every answer already known (the same answers)."""
+    q = _rotated(source, R, t)[query_order]
+    g = query_groups
+    starts = np.append(np.flatnonzero(np.r_[True, g[1:] != g[:-1]]), len(g))
+    warm, memory = np.full(len(q), -1, dtype=np.intp), (np.zeros((len(q), 3)), np.zeros(len(q)))
+    tree.nearest_in_groups(q, starts, max_distance, workers=-1 if len(q) > 20000 else 1, warm=warm, memory=memory)
+    return warm, memory
 
 
 def _rotated_numpy(points, R, t=None):
