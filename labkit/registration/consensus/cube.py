@@ -407,7 +407,8 @@ def max_consensus(
         bb = replace(bb, reason=f"{bb.reason}; {moved}")
     # Least squares with weights and iterative deletion on the consensus set; sandwich covariance
     res = refine(bb, src_of, D, nrm, pb, opts["reject_sigma"], ext, time.perf_counter() - t0, t0,
-                 k=max(4, int(k)), block_size=opts["block_size"], max_std=opts["max_std"])
+                 k=max(4, int(k)), block_size=opts["block_size"], max_std=opts["max_std"], center=c,
+                 use_numba=use_numba)
     res = replace(res, selection=selection, message=f"{res.message}; points: {selection.reason}",
                   crs=crs_of(whole[0]) or crs_of(whole[1]))  # the frame of the result, as icp states it
     if height_model and metric == "point_to_plane":
