@@ -100,7 +100,7 @@ def hill_centre(s, counts, window: float, max_iter: int = 50) -> float:
             break
         x = s[sel] - centre
         a, b, _ = np.polyfit(x, c[sel] - c[sel].mean(), 2)
-        if a >= 0:  # no maximum in this window
+        if a >= -1e-9 * abs(b):  # no maximum in this window (a valley or a straight slope)
             break
         step = float(np.clip(-b / (2 * a), -window / 2, window / 2))
         centre = float(np.clip(centre + step, s[0], s[-1]))
