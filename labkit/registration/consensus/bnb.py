@@ -310,7 +310,7 @@ def _fit_with_deletion(A, l, p, tilt, t, t_ref, box_var, k_del, max_std, max_rou
 def _held_effect(t, deg, box_var, members, src, w, tgt, tree, k, reject_sigma, max_std):
     """Covariance that the held (undetermined) directions pass on to the determined ones.
 
-    A held component keeps the branch-and-bound value, anywhere within the search box. On
+    The least squares leave a held component where it was put, anywhere within the search box. On
     undulating ground the local planes at a wrong horizontal position lie at another height,
     so the determined components depend on the held ones through the association (not
     through N, whose eigen-directions are uncoupled). The dependence is measured by moving

@@ -303,9 +303,11 @@ def max_consensus(
         for its number of blocks (Student's t with B - 1 degrees of freedom, as ICP's sandwich).
     max_std : float, optional
         A direction of the translation is determined when its standard deviation is at
-        most ``max_std`` (m); default eps / 2. Weaker directions keep the branch-and-bound
-        value, are named undetermined and get the variance of a uniform distribution over
-        the box.
+        most ``max_std`` (m); default eps / 2. Weaker directions are named undetermined and
+        get the variance of a uniform distribution over the box; their value is the centre of
+        the consensus hill along them (:func:`labkit.registration.consensus.plateau.centre_held`),
+        not its highest point, which lands anywhere on a top that is flat within the counting
+        noise (on real ALS halves of parallel roofs 0.2-0.6 m off, the centre within 6 cm).
     select : {'auto', 'all'}
         Which points vote (:func:`labkit.registration.selection.select_points`): 'auto' (default) the
         stable classes of classified clouds, the surface points of unclassified ones (vegetation left
