@@ -307,7 +307,8 @@ def max_consensus(
         get the variance of a uniform distribution over the box; their value is the centre of
         the consensus hill along them (:func:`labkit.registration.consensus.plateau.centre_held`),
         not its highest point, which lands anywhere on a top that is flat within the counting
-        noise (on real ALS halves of parallel roofs 0.2-0.6 m off, the centre within 6 cm).
+        noise (on 6 random halves of a real ALS file of parallel roofs up to 0.6 m off, the
+        centre within 7 cm).
     select : {'auto', 'all'}
         Which points vote (:func:`labkit.registration.selection.select_points`): 'auto' (default) the
         stable classes of classified clouds, the surface points of unclassified ones (vegetation left
