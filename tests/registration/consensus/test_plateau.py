@@ -76,6 +76,15 @@ def test_hill_centre_finds_the_centre_of_bumpy_flat_topped_hills():
     assert np.sqrt(np.mean(np.square(argmax_err))) > 0.25
 
 
+def test_hill_centre_keeps_a_sharp_peak():
+    """A narrow peak at 0 on broad flanks centred at 1.5: the quadratic would follow the flanks to a
+    translation far below the top; the start is kept."""
+    s = np.linspace(-3, 3, 241)
+    counts = np.rint(3000.0 - 100.0 * (s - 1.5) ** 2 + 1000.0 * np.exp(-(s / 0.05) ** 2))
+    assert hill_centre(s, counts, 1.5) == 0.0
+    assert abs(hill_centre(s, counts - 1000.0 * np.exp(-(s / 0.05) ** 2), 1.5) - 1.5) < 0.01  # without the peak
+
+
 def test_hill_centre_without_a_maximum_stays_put():
     s = np.linspace(-2, 2, 81)
     assert hill_centre(s, 100.0 + 5.0 * s, 1.0) == 0.0  # a straight slope: no maximum in any window
