@@ -20,7 +20,6 @@ from ..consistency import block_consistency
 from ..degeneracy import degeneracy_report
 from .inputs import even_subset
 from .jackknife import largest, sandwich, symmetric_cov
-from .plateau import centre_held
 from ..result import RegistrationResult
 
 NAMES = ("tx", "ty", "tz")
@@ -419,7 +418,7 @@ def _reverse_side(fwd, pb, src, tgt, R, E, bb, opts):
 
 
 def refine(bb, src_of, D, nrm, pb, reject_sigma, ext, runtime_bb, t0, max_outer: int = 50, k: int = 12,
-           block_size: float | None = None, max_std: float | None = None, center=None, use_numba=None):
+           block_size: float | None = None, max_std: float | None = None):
     """Least squares on the consensus set with weights and iterative deletion (eq. 6.10-6.14).
 
     The consensus set of the branch-and-bound optimum names the source points that
@@ -431,9 +430,6 @@ def refine(bb, src_of, D, nrm, pb, reject_sigma, ext, runtime_bb, t0, max_outer:
     of edge ``block_size`` (:func:`.jackknife.sandwich`), sigma0^2 N^-1 where the blocks are too few.
     A direction is determined when its standard deviation is at most ``max_std`` (default
     eps / 2: known to better than the consensus tolerance itself).
-    Given the centre ``center`` of the search box, the held directions then move from the
-    branch-and-bound maximum to the centre of the consensus hill along them
-    (:func:`.plateau.centre_held`); they stay reported undetermined.
     The pairs of the consensus test itself are not used as observations: of all
     target points within the search radius they are the one whose plane fits best
     at the branch-and-bound translation, and residuals truncated at eps both pull the
@@ -501,10 +497,6 @@ def refine(bb, src_of, D, nrm, pb, reject_sigma, ext, runtime_bb, t0, max_outer:
         # Monte Carlo spread / stated of 1.10, 0.83, 1.03 without it (tests/test_consensus.py)
         keep = fwd.keep
         test = block_consistency(fwd.A[keep], fwd.l[keep], fwd.p[keep], src[members[keep]], fwd.cells, deg)
-    moved = np.zeros(3)
-    if center is not None and deg is not None and not deg.constrained.all():
-        t, moved = centre_held(t, deg, pb, np.asarray(center, dtype=np.float64), ext, box_var, max_std,
-                               use_numba=use_numba)
     undetermined = deg.undetermined_axes if deg is not None else NAMES
     msg = (f"branch and bound: consensus {bb.lower:.6g}, certified upper bound {bb.upper:.6g} "
            f"(gap {bb.gap:.6g}) after {bb.splits} splits, {bb.reason}; eps {E * 1000:.1f} mm, "
@@ -512,10 +504,9 @@ def refine(bb, src_of, D, nrm, pb, reject_sigma, ext, runtime_bb, t0, max_outer:
     if deg is None:
         msg += "; too few consistent points for the least-squares refinement"
     elif not deg.well_posed:
-        where = ("kept the branch-and-bound value there" if not np.any(moved != 0) else
-                 f"the centre of the consensus hill there ({np.array2string(1000 * moved, precision=0)} mm "
-                 "from the branch-and-bound maximum)")
-        msg += f"; undetermined along {', '.join(undetermined)}: {where}, variance = uniform over the search box"
+        msg += (f"; undetermined along {', '.join(undetermined)}: kept the branch-and-bound value there "
+                "(max_consensus moves it to the centre of the consensus hill: see 'held directions'), "
+                "variance = uniform over the search box")
     if deg is not None:
         msg += f"; covariance: {kind}"
     if test is not None and not test.agree:

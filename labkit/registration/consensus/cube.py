@@ -37,6 +37,7 @@ from . import kernels as K
 from ...neighbours.sampling import even_subset
 from .inputs import candidate_pairs, grid, prepare_problem, search_box
 from .bnb import branch_and_bound, refine
+from .plateau import centre_result
 from .result import AXES, ConsensusCube, PeakShape, peak_shape
 from ..height_model import fill_held_axes
 from ..selection import SELECT, select_points
@@ -410,13 +411,15 @@ def max_consensus(
         bb = replace(bb, reason=f"{bb.reason}; {moved}")
     # Least squares with weights and iterative deletion on the consensus set; sandwich covariance
     res = refine(bb, src_of, D, nrm, pb, opts["reject_sigma"], ext, time.perf_counter() - t0, t0,
-                 k=max(4, int(k)), block_size=opts["block_size"], max_std=opts["max_std"], center=c,
-                 use_numba=use_numba)
+                 k=max(4, int(k)), block_size=opts["block_size"], max_std=opts["max_std"])
     res = replace(res, selection=selection, message=f"{res.message}; points: {selection.reason}",
                   crs=crs_of(whole[0]) or crs_of(whole[1]))  # the frame of the result, as icp states it
+    before = None if res.degeneracy is None else np.asarray(res.degeneracy.axis_determined, dtype=bool)
     if height_model and metric == "point_to_plane":
         res, _ = fill_held_axes(res, *whole)
-    return res
+    filled = None if before is None else np.asarray(res.degeneracy.axis_determined, dtype=bool) & ~before
+    # what neither the refinement nor the height model determines: the centre of the consensus hill
+    return centre_result(res, pb, c, ext, opts["max_std"] or pb.eps / 2, filled, use_numba=use_numba)
 
 
 def _search_options(max_points, max_time, max_boxes, gap_tol, init_step, reject_sigma, block_size, max_std,

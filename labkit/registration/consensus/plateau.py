@@ -1,10 +1,12 @@
 """The centre of the consensus hill along the directions the refinement leaves undetermined (eq. 6.9).
 
-Used by :func:`labkit.registration.consensus.bnb.refine` for the held directions of
-:func:`labkit.registration.max_consensus`.
+Used by :func:`labkit.registration.max_consensus` for the directions that neither its refinement
+nor the height model determine.
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 
@@ -117,7 +119,7 @@ def hill_centre(s, counts, window: float, max_iter: int = 50) -> float:
     return centre if float(np.interp(centre, s, c)) >= top - noise else 0.0
 
 
-def centre_held(t, deg, pb, center, ext, box_var, max_std, *, use_numba=None):
+def centre_held(t, deg, pb, center, ext, box_var, max_std, *, fixed=None, use_numba=None):
     """Move ``t`` along the held directions to the centre of the consensus hill; the other axes stay.
 
     For each undetermined eigen-direction u of the refinement (the least squares keep the
@@ -142,6 +144,9 @@ def centre_held(t, deg, pb, center, ext, box_var, max_std, *, use_numba=None):
         Variance (m^2) given to a held direction.
     max_std : float
         Standard deviation (m) below which an axis counts as determined.
+    fixed : ndarray of bool (3,), optional
+        Axes that must not move whatever their share in the held directions (filled by the
+        height model).
     use_numba : bool, optional
 
     Returns
@@ -154,6 +159,8 @@ def centre_held(t, deg, pb, center, ext, box_var, max_std, *, use_numba=None):
     t0 = np.asarray(t, dtype=np.float64)
     Vu = deg.eigenvectors[:, ~deg.constrained]
     free = np.sqrt(box_var * (Vu**2).sum(axis=1)) >= max_std  # the axes the held directions leave loose
+    if fixed is not None:
+        free &= ~np.asarray(fixed, dtype=bool)
     out = t0.copy()
     if Vu.shape[1] == 0 or not free.any():
         return out, np.zeros(3)
@@ -168,3 +175,41 @@ def centre_held(t, deg, pb, center, ext, box_var, max_std, *, use_numba=None):
         out = np.clip(out + hill_centre(s, counts, WINDOW * half) * d, center - ext, center + ext)
     out = np.where(free, out, t0)
     return out, out - t0
+
+
+def centre_result(res, pb, center, ext, max_std, fixed=None, *, use_numba=None):
+    """The result of :func:`labkit.registration.max_consensus` with its held directions at the hill centre.
+
+    :func:`centre_held` on ``res.translation`` with the box variance of the refinement
+    ((2 max(ext))^2 / 12); the covariance and the degeneracy report stay as they are (the held
+    directions remain undetermined) and the message says where the held value lies.
+
+    Parameters
+    ----------
+    res : RegistrationResult
+        The refined result (``res.degeneracy`` None: returned unchanged).
+    pb : Problem
+        The prepared problem of the search.
+    center, ext : ndarray (3,)
+        Centre and half-widths of the search box (m).
+    max_std : float
+        The refinement's precision limit (m).
+    fixed : ndarray of bool (3,), optional
+        Axes that must not move (those the height model filled).
+    use_numba : bool, optional
+
+    Returns
+    -------
+    RegistrationResult
+    """
+    deg = res.degeneracy
+    if deg is None or deg.constrained.all():
+        return res
+    box_var = float((2 * np.max(ext)) ** 2 / 12)
+    t, moved = centre_held(res.translation, deg, pb, np.asarray(center, dtype=np.float64), ext, box_var, max_std,
+                           fixed=fixed, use_numba=use_numba)
+    if not np.any(moved != 0):
+        return res
+    note = (f"; held directions: the centre of the consensus hill along them, "
+            f"{np.array2string(1000 * moved, precision=0)} mm from the branch-and-bound maximum")
+    return replace(res, translation=t, message=res.message + note)
