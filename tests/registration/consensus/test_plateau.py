@@ -113,7 +113,6 @@ def test_held_direction_lands_at_the_hill_centre_on_finite_gable_roofs(monkeypat
             assert "centre of the consensus hill" in res.message
     plateau, argmax = np.array(plateau), np.array(argmax)
     assert all(fixed)
-    print("Y errors (mm): hill centre", np.round(1000 * plateau[:, 1]), "argmax", np.round(1000 * argmax[:, 1]))
     assert np.max(np.abs(plateau[:, 1])) < 0.1
     assert np.sqrt(np.mean(argmax[:, 1] ** 2)) > 3 * np.sqrt(np.mean(plateau[:, 1] ** 2))
     again = max_consensus(src, tgt, height_model=False)  # deterministic
