@@ -1,4 +1,5 @@
 """Maximum consensus: the consensus cube and search (:mod:`.cube`), its
 inputs, compiled kernels, records (:mod:`.result`), branch and bound
-(:mod:`.bnb`) and the jackknife covariance of its refinement (:mod:`.jackknife`).
+(:mod:`.bnb`), the jackknife covariance of its refinement (:mod:`.jackknife`)
+and the centre of the consensus hill along held directions (:mod:`.plateau`).
 """

