@@ -221,3 +221,49 @@ def test_consensus_icp_widens_the_gate_on_sparse_data_instead_of_refusing(realda
     s = SHIFTS[0]
     res = standard_methods(("consensus+icp",), rng=0)["consensus+icp"](src.with_xyz(src.xyz - s), tgt)
     assert _verdict(res, s) != "WRONG", (res.translation - s, res.translation_std)
+
+
+def _right(res, truth):
+    """Every component within 10 cm of the truth, whether stated or reported undetermined."""
+    return res is not None and bool(np.all(np.abs(res.translation - truth) <= RIGHT))
+
+
+#: where the data carry the shift, the values (not only the stated ones) land within 10 cm in three of
+#: four shifts: also along the ridges of sample_c's roofs (outlines, the consensus hill's centre) and
+#: across warsaw_small's 1,500 points a half. interesting.las is left out: 19-27 m between points
+#: (NN in one half), so no method can place a half to 10 cm and every one reports X and Y undetermined.
+DETERMINED = [f for f in FILES if f != "als/interesting.las"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", DETERMINED)
+def test_icp_values_right_within_10_cm(realdata, name):
+    path = realdata / name
+    if not path.is_file():
+        pytest.skip(f"{name} absent")
+    tgt, src0 = _halves(path)
+    right = [_right(icp(src0.with_xyz(src0.xyz - s), tgt, rng=0), s) for s in SHIFTS]
+    assert sum(right) >= 3, right
+
+
+@pytest.mark.slow
+def test_max_consensus_values_right_along_the_ridges(realdata):
+    """sample_c's parallel ridges leave one horizontal direction to the ends of the roofs; the centre of
+    the consensus hill along it lands within 10 cm (the argmax was 0.2-0.6 m off). Not asserted on
+    warsaw_small: its 1,500 points a half leave the hill's centre 0.1-0.3 m off in some splits."""
+    path = realdata / "als" / "sample_c.las"
+    if not path.is_file():
+        pytest.skip("sample_c.las absent")
+    tgt, src0 = _halves(path)
+    results = [(max_consensus(src0.with_xyz(src0.xyz - s), tgt), s) for s in SHIFTS]
+    assert all(not r.degeneracy.well_posed or np.any(r.translation_std[:2] >= CONFIDENT) for r, _ in results)
+    assert sum(_right(r, s) for r, s in results) >= 3, [r.translation - s for r, s in results]
+
+
+def test_sparse_file_states_no_horizontal_shift(realdata):
+    path = realdata / "als" / "interesting.las"
+    if not path.is_file():
+        pytest.skip("interesting.las absent")
+    tgt, src = _halves(path)
+    res = max_consensus(src.with_xyz(src.xyz - SHIFTS[0]), tgt, max_boxes=1000)
+    assert np.all(res.translation_std[:2] >= CONFIDENT), res.translation_std
