@@ -183,7 +183,7 @@ class Verifier:
         band = t
         T = self._ball_sample(x, 3.0 * t)  # holds every band of the rounds (band <= 3 t)
         d = residuals(T, x, by_axis=True)
-        for _ in range(3):
+        for round_ in range(3):
             inl = np.abs(d) < band
             if np.count_nonzero(inl) <= S:
                 return None
@@ -193,6 +193,8 @@ class Verifier:
             x = x_new
             if not 0.5 * self.cfg.r_min <= x[3] <= 2.0 * self.cfg.r_max:
                 return x  # far outside the radius range: more rounds will not bring it back (reasons() rejects)
+            if round_ == 2:
+                break  # (the residuals and band below only serve a next round)
             T = self._ball_sample(x, 3.0 * t)  # (the same points unless the sphere left the kept ball)
             d = residuals(T, x, by_axis=True)
             d_in = d[np.abs(d) < band]
@@ -212,14 +214,18 @@ class Verifier:
         B = self._kept(c, r, reach)[3]
         T = self._ball_sample(x, reach)
         d = residuals(T, x, by_axis=True, simd=False)  # (a subset of the ball: never more points |d| < t)
-        n_in = int(np.count_nonzero(np.abs(d) < t))
+        abs_d = np.abs(d)
+        on = np.flatnonzero(abs_d < t)
+        n_in = len(on)
         if T is not B and n_in < max(cfg.min_inliers, SHAPE_POINTS // 64):  # the subsample alone cannot tell
             n_in = ball_tally(B, c, r, reach, t)[0]
             T, d = B, residuals(B, x, by_axis=True, simd=False)
+            abs_d = np.abs(d)
+            on = np.flatnonzero(abs_d < t)
         if n_in < cfg.min_inliers:
             return f"only {n_in} points on its shell |d| < {t:.3g} m in the full cloud (< min_inliers = {cfg.min_inliers})"
         # robust, and consistent for the cut at t (a scale for the checks, from the subsample's shell)
-        sigma_hat = truncated_mad_scale(np.abs(d[_even(np.flatnonzero(np.abs(d) < t), SHAPE_POINTS)]), t)
+        sigma_hat = truncated_mad_scale(abs_d[_even(on, SHAPE_POINTS)], t)
         margin = max(t, 3.5 * sigma_hat)
         # the shell: at least the noise band k sigma_hat (a t below the noise must not thin it out)
         t = max(t, min(BAND_K * sigma_hat, 2.0 * t))
@@ -230,7 +236,7 @@ class Verifier:
         if n_in < CONTRAST * outside:
             return (f"too many points just outside the shell ({outside}, for {n_in} on it): no spherical surface "
                     "stands out, the points only pass through the shell (a cylinder, plane pieces, clutter)")
-        sel = _even(np.flatnonzero(np.abs(d) < t), SHAPE_POINTS)  # the shape statistics (shares, rms, spreads)
+        sel = _even(np.flatnonzero(abs_d < t), SHAPE_POINTS)  # the shape statistics (shares, rms, spreads)
         Pt = np.take(T, sel, axis=1)  # by axis (3, k), C-contiguous: each step below loops over one coordinate
         q = Pt - (Pt.sum(axis=1) / Pt.shape[1])[:, None]
         rms_plane = np.sqrt(max(np.linalg.eigvalsh(q @ q.T / Pt.shape[1])[0], 0.0))
@@ -339,11 +345,12 @@ def _two_plane_share(P, t, trials=256):
     n = len(P)
     if n < 6:
         return 1.0
+    P = np.ascontiguousarray(P)  # (the points of the first plane search, as P[all] would copy them)
     gen = _plane_generator()
     left = np.ones(n, dtype=bool)
     held = 0
-    for _ in range(2):
-        Q = P[left]
+    for round_ in range(2):
+        Q = P if round_ == 0 else P[left]
         if len(Q) < 3:
             held += len(Q)
             break
@@ -351,9 +358,9 @@ def _two_plane_share(P, t, trials=256):
         if plane is None:
             break
         on = np.abs(Q @ plane[0] - plane[1]) < t
-        idx = np.flatnonzero(left)
-        left[idx[on]] = False
         held += int(np.count_nonzero(on))
+        if round_ == 0:
+            left[on] = False
     return held / n
 
 
