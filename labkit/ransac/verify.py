@@ -182,9 +182,9 @@ class Verifier:
         """
         band = t
         T = self._ball_sample(x, 3.0 * t)  # holds every band of the rounds (band <= 3 t)
-        d = residuals(T, x, by_axis=True)
+        ad = np.abs(residuals(T, x, by_axis=True))  # |d| (eq. 25)
         for round_ in range(3):
-            inl = np.abs(d) < band
+            inl = ad < band
             if np.count_nonzero(inl) <= S:
                 return None
             x_new = orthogonal_fit(T, x, steps=2, mask=inl, by_axis=True)  # on the inliers, without gathering them
@@ -196,10 +196,10 @@ class Verifier:
             if round_ == 2:
                 break  # (the residuals and band below only serve a next round)
             T = self._ball_sample(x, 3.0 * t)  # (the same points unless the sphere left the kept ball)
-            d = residuals(T, x, by_axis=True)
-            d_in = d[np.abs(d) < band]
-            if len(d_in) > S:
-                band = max(t, min(BAND_K * truncated_mad_scale(np.abs(d_in), band), 3.0 * t))
+            ad = np.abs(residuals(T, x, by_axis=True))
+            ad_in = ad[ad < band]
+            if len(ad_in) > S:
+                band = max(t, min(BAND_K * truncated_mad_scale(ad_in, band), 3.0 * t))
         return x
 
     def reasons(self, x, t):
