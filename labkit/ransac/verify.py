@@ -228,7 +228,7 @@ class Verifier:
         sigma_hat = truncated_mad_scale(abs_d[_even(on, SHAPE_POINTS)], t)
         margin = max(t, 3.5 * sigma_hat)
         # the shell: at least the noise band k sigma_hat (a t below the noise must not thin it out)
-        t = max(t, min(BAND_K * sigma_hat, 2.0 * t))
+        t_cut, t = t, max(t, min(BAND_K * sigma_hat, 2.0 * t))
         n_in, inside, outside = ball_tally(B, c, r, reach, t, margin)  # on the shell, inside (d < -margin), just outside
         if inside > INTERIOR_SHARE * n_in:
             return (f"{inside} points lie inside it (for {n_in} on its shell): a solid sphere hides its interior, "
@@ -236,11 +236,13 @@ class Verifier:
         if n_in < CONTRAST * outside:
             return (f"too many points just outside the shell ({outside}, for {n_in} on it): no spherical surface "
                     "stands out, the points only pass through the shell (a cylinder, plane pieces, clutter)")
-        sel = _even(np.flatnonzero(abs_d < t), SHAPE_POINTS)  # the shape statistics (shares, rms, spreads)
+        # the shape statistics (shares, rms, spreads) on an even subsample of the shell (``on`` when t is unchanged)
+        sel = _even(on if t == t_cut else np.flatnonzero(abs_d < t), SHAPE_POINTS)
         Pt = np.take(T, sel, axis=1)  # by axis (3, k), C-contiguous: each step below loops over one coordinate
         q = Pt - (Pt.sum(axis=1) / Pt.shape[1])[:, None]
         rms_plane = np.sqrt(max(np.linalg.eigvalsh(q @ q.T / Pt.shape[1])[0], 0.0))
-        rms_sphere = np.sqrt(np.mean(d[sel] ** 2))
+        d_sel = d[sel]
+        rms_sphere = np.sqrt(np.mean(np.multiply(d_sel, d_sel, out=d_sel)))
         if rms_plane < PLANE_RATIO * rms_sphere:
             return (f"the inliers are nearly flat (plane rms {rms_plane * 1e3:.3g} mm vs sphere rms "
                     f"{rms_sphere * 1e3:.3g} mm): a plane patch, not a sphere")
@@ -250,7 +252,10 @@ class Verifier:
             return (f"{planes:.0%} of its inliers lie on one or two planes: pieces of planes (a floor, a wall, "
                     "an edge) cut by the sphere, not a sphere")
         Nt = Pt - c[:, None]  # the normals from the model, not from neighbours
-        Nt /= np.sqrt(Nt[0] * Nt[0] + Nt[1] * Nt[1] + Nt[2] * Nt[2])
+        length = Nt[0] * Nt[0]
+        length += Nt[1] * Nt[1]
+        length += Nt[2] * Nt[2]
+        Nt /= np.sqrt(length, out=length)
         spread = _cap_spread(Nt, None if self.station is None else self.station - c)
         if spread < MIN_SPREAD:
             return (f"the inliers cover no cap (their normals spread over {np.degrees(np.sqrt(max(spread, 0))):.1f} deg "
