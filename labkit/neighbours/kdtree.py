@@ -348,6 +348,41 @@ class KDTree:
         self._leaves = None  # leaf node ids in leaf order (see leaf_bounds)
         self.n = len(X)
 
+    def restricted(self, keep):
+        """The tree of the input points where ``keep`` (bool per input point; equal for exact duplicates),
+        numbered as the rows of ``points[keep]``, made from this tree's nodes without a new build.
+
+        The kept points stay in their leaves (leaf order), so a leaf may be empty; the node boxes and
+        splits stay as they were: they still contain and separate the kept points (boxes not tight), and
+        every search answer is the same nearest point, except between points at exactly the same
+        distance, which a tree built anew may order differently. The coordinates are this tree's
+        (the same frame).
+        """
+        keep = np.asarray(keep, dtype=bool)
+        rep = self.representative
+        kept_rows = np.flatnonzero(keep)
+        kl = keep[self.indices]  # per distinct point, in leaf order
+        if rep is not None and not np.array_equal(kl[rep[kept_rows]], np.ones(len(kept_rows), bool)):
+            raise ValueError("keep must be equal for exact duplicates")
+        out = object.__new__(KDTree)
+        row = np.cumsum(keep) - 1  # row among the kept points of every input row
+        pos = np.cumsum(kl) - 1  # new leaf-order position of every kept distinct point
+        nodes, box, depth = self._nodes
+        bounds = np.concatenate([[0], np.cumsum(kl)])
+        nodes = nodes.copy()
+        nodes[:, 0], nodes[:, 1] = bounds[nodes[:, 0]], bounds[nodes[:, 1]]
+        out.data = np.ascontiguousarray(self.data[kl])
+        out.indices = row[self.indices[kl]].astype(np.intp, copy=False)
+        out.n = len(out.data)
+        out.n_duplicates = int(len(kept_rows) - out.n)
+        out._representative = None if rep is None else pos[rep[kept_rows]].astype(np.intp, copy=False)
+        out._identity = rep is None or out.n_duplicates == 0
+        if out.n_duplicates == 0:
+            out._representative = None  # made when first asked for (the inverse permutation)
+        out._nodes = (nodes, box, depth)
+        out._leaves = None
+        return out
+
     @property
     def representative(self):
         """Leaf-order position of the kept copy of every input point (merge only; else None)."""
