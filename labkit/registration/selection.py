@@ -281,18 +281,18 @@ def select_points(source, target, select="auto", k=20):
               f"{MAX_SCATTER:g} in {k}-neighbourhoods")
     src, tgt = _subset(source, ms), _subset(target, mt)
     _keep((src, near_s, ms), (tgt, near_t, mt))  # ICP's normals reuse the neighbourhoods that only hold selected points
-    _offer_trees([(src, tree_s, ms, source), (tgt, tree_t, mt, target)], local_origin(_xyz(tgt)))
+    _offer_trees([(src, tree_s, ms), (tgt, tree_t, mt)], local_origin(_xyz(tgt)))
     return (src, tgt, Selection("surface points", (), ns, nt, int(ms.sum()), int(mt.sum()), reason,
                                 np.flatnonzero(ms), np.flatnonzero(mt)))
 
 
 def _offer_trees(clouds, origin):
     """Offer ICP's matching the selected points' kd-trees cut from the whole clouds' (each (subset, tree,
-    mask, whole cloud)) instead of new builds: where the whole cloud's local origin is ICP's (the target's
-    selected points'), the frame of the trees; elsewhere ICP builds its own."""
-    for sub, tree, mask, whole in clouds:
-        if np.array_equal(local_origin(_xyz(whole)), origin):
-            offer_tree(_xyz(sub), origin, True, tree.restricted(mask))
+    mask)) in ICP's frame (``origin``: the local origin of the target's selected points) instead of new
+    builds (:meth:`~labkit.neighbours.kdtree.KDTree.restricted`)."""
+    for sub, tree, mask in clouds:
+        xyz = _xyz(sub)
+        offer_tree(xyz, origin, True, tree.restricted(mask, xyz - origin))
 
 
 def _keep(*clouds):
