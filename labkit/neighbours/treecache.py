@@ -70,7 +70,7 @@ def offer_tree(points: np.ndarray, origin, merge_duplicates: bool, tree) -> None
     """Hand ``tree`` (of ``points - origin``, made ahead) to the next :func:`local_tree` or :func:`take_tree`
     on this very array (a weak reference; the two latest offers are kept)."""
     try:
-        ref = weakref.ref(points)
+        ref = weakref.ref(points, _drop_dead)
     except TypeError:  # pragma: no cover - arrays support weak references
         return
     key = _key(points, origin, merge_duplicates)
@@ -132,9 +132,10 @@ class NeighbourRows:
 
 def _drop_dead(_ref) -> None:
     """Drop the entries whose array is gone (called when a kept array dies): their neighbours and
-    PCA, some 200 bytes per point, go with it instead of waiting for the next cloud. No lock: the
+    PCA, some 200 bytes per point, or their offered tree, go with it instead of waiting for the next cloud. No lock: the
     garbage collector may call this while this thread holds it; one assignment of the list."""
     _rows[:] = [e for e in _rows if e[0]() is not None]
+    _offered[:] = [e for e in _offered if e[0]() is not None]
 
 
 def keep_neighbours(points: np.ndarray, rows: NeighbourRows) -> None:
