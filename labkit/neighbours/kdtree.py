@@ -305,6 +305,31 @@ def neighbour_rows(nb, pos, indices, new, clean, k, rows):  # pragma: no cover -
                 rows[r, c] = new[indices[nb[p, c]]]
 
 
+@compiled
+def _tighten(X, nodes, box):  # pragma: no cover - compiled
+    """Boxes (lo, hi) tight about each node's points ``X[start:end]`` (empty: +inf, -inf) and every split
+    value moved to the smallest coordinate of the right child's points (the largest of the left's where
+    the right holds none): a node's children have larger ids than the node, so one backward pass."""
+    for node in range(nodes.shape[0] - 1, -1, -1):
+        left, right = nodes[node, 2], nodes[node, 3]
+        if left < 0:
+            for e in range(3):
+                box[node, e], box[node, 3 + e] = np.inf, -np.inf
+            for i in range(nodes[node, 0], nodes[node, 1]):
+                for e in range(3):
+                    box[node, e] = min(box[node, e], X[i, e])
+                    box[node, 3 + e] = max(box[node, 3 + e], X[i, e])
+            continue
+        for e in range(3):
+            box[node, e] = min(box[left, e], box[right, e])
+            box[node, 3 + e] = max(box[left, 3 + e], box[right, 3 + e])
+        d = int(box[node, 7])
+        if nodes[right, 1] > nodes[right, 0]:
+            box[node, 6] = box[right, d]
+        elif nodes[left, 1] > nodes[left, 0]:
+            box[node, 6] = box[left, 3 + d]
+
+
 _NO_IDX, _NO_CEN, _NO_C = np.empty((0, 1), np.intp), np.empty((0, 3)), np.empty((0, 3, 3))  # unused outputs
 
 
@@ -347,6 +372,47 @@ class KDTree:
         self._nodes = (nodes, box, int(depth))
         self._leaves = None  # leaf node ids in leaf order (see leaf_bounds)
         self.n = len(X)
+
+    def restricted(self, keep, points=None):
+        """The tree of the input points where ``keep`` (bool per input point; equal for exact duplicates),
+        numbered as the rows of ``points[keep]``, made from this tree's nodes without a new build.
+
+        ``points`` (optional): the kept points (``keep.sum()``, 3) in the frame the new tree is to hold
+        them in (e.g. another local origin); default: this tree's coordinates. The kept points stay in
+        their leaves (leaf order), so a leaf may be empty; every node's box is made tight about its kept
+        points and its split plane moved between its children's kept points (:func:`_tighten`). Every
+        search answer is the same nearest point as a tree built anew, except between points at exactly
+        the same distance, which that tree may order differently.
+        """
+        keep = np.asarray(keep, dtype=bool)
+        rep = self.representative
+        kept_rows = np.flatnonzero(keep)
+        kl = keep[self.indices]  # per distinct point, in leaf order
+        if rep is not None and not kl[rep[kept_rows]].all():
+            raise ValueError("keep must be equal for exact duplicates")
+        out = object.__new__(KDTree)
+        row = np.cumsum(keep) - 1  # row among the kept points of every input row
+        nodes, box, depth = self._nodes
+        bounds = np.concatenate([[0], np.cumsum(kl)])
+        nodes = nodes.copy()
+        nodes[:, 0], nodes[:, 1] = bounds[nodes[:, 0]], bounds[nodes[:, 1]]
+        out.indices = row[self.indices[kl]].astype(np.intp, copy=False)
+        if points is None:
+            out.data = np.ascontiguousarray(self.data[kl])
+        else:
+            out.data = np.ascontiguousarray(np.asarray(points, dtype=np.float64)[out.indices])
+        box = box.copy()
+        _tighten(out.data, nodes, box)
+        out.n = len(out.data)
+        out.n_duplicates = int(len(kept_rows) - out.n)
+        out._identity = out.n_duplicates == 0  # then made when first asked for (the inverse permutation)
+        out._representative = None
+        if not out._identity:
+            pos = np.cumsum(kl) - 1  # new leaf-order position of every kept distinct point
+            out._representative = pos[rep[kept_rows]].astype(np.intp, copy=False)
+        out._nodes = (nodes, box, depth)
+        out._leaves = None
+        return out
 
     @property
     def representative(self):

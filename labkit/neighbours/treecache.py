@@ -10,7 +10,10 @@ most one extra tree alive. :func:`forget` drops it.
 
 The same way, :func:`keep_neighbours` keeps the k nearest neighbours that a first pass over a cloud
 found (:class:`NeighbourRows`; ICP's point selection searches every point's neighbourhood, and
-ICP's normals would search them again) for the next step on the same array, two clouds at most.
+ICP's normals would search them again) for the next step on the same array, two clouds at most;
+and :func:`offer_tree` hands a tree made ahead (the selected points' tree cut from the whole cloud's,
+:meth:`labkit.neighbours.kdtree.KDTree.restricted`) to the next :func:`local_tree` or :func:`take_tree`
+on that array, two clouds at most, each taken once.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import numpy as np
 _lock = threading.Lock()
 _last = None  # (weak reference to the caller's array, key, tree)
 _rows = []  # up to two (weak reference to the caller's array, key, NeighbourRows)
+_offered = []  # up to two (weak reference to the caller's array, key, tree): made ahead for the next step
 
 
 def _key(points, origin, merge_duplicates):
@@ -38,6 +42,10 @@ def local_tree(points: np.ndarray, origin, merge_duplicates: bool):
         last = _last
     if last is not None and last[0]() is points and last[1] == key:
         return last[2]
+    tree = take_tree(points, origin, merge_duplicates, key)
+    if tree is not None:
+        keep_tree(points, origin, merge_duplicates, tree, key)
+        return tree
     from .kdtree import KDTree  # here, not at the top: `labkit.cli` imports this module and stays free of numba
 
     tree = KDTree(np.asarray(points, dtype=np.float64) - origin, merge_duplicates=merge_duplicates)
@@ -58,12 +66,36 @@ def keep_tree(points: np.ndarray, origin, merge_duplicates: bool, tree, key=None
         _last = (ref, key, tree)
 
 
+def offer_tree(points: np.ndarray, origin, merge_duplicates: bool, tree) -> None:
+    """Hand ``tree`` (of ``points - origin``, made ahead) to the next :func:`local_tree` or :func:`take_tree`
+    on this very array (a weak reference; the two latest offers are kept)."""
+    try:
+        ref = weakref.ref(points, _drop_dead)
+    except TypeError:  # pragma: no cover - arrays support weak references
+        return
+    key = _key(points, origin, merge_duplicates)
+    with _lock:
+        _offered[:] = [e for e in _offered if e[0]() is not None and e[0]() is not points][-1:] + [(ref, key, tree)]
+
+
+def take_tree(points: np.ndarray, origin, merge_duplicates: bool, key=None):
+    """The tree offered (:func:`offer_tree`) for this very array, origin and rule, once; else None."""
+    key = _key(points, origin, merge_duplicates) if key is None else key
+    with _lock:
+        for i, (ref, k, tree) in enumerate(_offered):
+            if ref() is points and k == key:
+                del _offered[i]
+                return tree
+    return None
+
+
 def forget() -> None:
-    """Drop the kept tree and neighbours (frees their memory)."""
+    """Drop the kept tree, the offered trees and the neighbours (frees their memory)."""
     global _last
     with _lock:
         _last = None
         _rows.clear()
+        _offered.clear()
 
 
 class NeighbourRows:
@@ -100,9 +132,10 @@ class NeighbourRows:
 
 def _drop_dead(_ref) -> None:
     """Drop the entries whose array is gone (called when a kept array dies): their neighbours and
-    PCA, some 200 bytes per point, go with it instead of waiting for the next cloud. No lock: the
+    PCA, some 200 bytes per point, or their offered tree, go with it instead of waiting for the next cloud. No lock: the
     garbage collector may call this while this thread holds it; one assignment of the list."""
     _rows[:] = [e for e in _rows if e[0]() is not None]
+    _offered[:] = [e for e in _offered if e[0]() is not None]
 
 
 def keep_neighbours(points: np.ndarray, rows: NeighbourRows) -> None:

@@ -36,7 +36,7 @@ from ..core.masks import ASPRS_NAMES, STABLE_CLASSES
 from ..core.frame import local_origin
 from ..neighbours.kdtree import neighbour_rows, unique_kept_neighbours
 from ..core.threads import side_by_side
-from ..neighbours.treecache import NeighbourRows, forget, keep_neighbours, keep_tree, local_tree
+from ..neighbours.treecache import NeighbourRows, forget, keep_neighbours, keep_tree, local_tree, offer_tree
 from .matching.local_surface import roughness
 
 __all__ = ["MAX_SCATTER", "MIN_SELECTED", "SELECT", "SMOOTH_NOISE", "ClassCheck", "Selection", "check_other_classes",
@@ -264,7 +264,7 @@ def select_points(source, target, select="auto", k=20):
     if min(ns, nt) <= 3:
         return source, target, Selection("all points", (), ns, nt, ns, nt, "all points (too few for a local surface)")
     # the two clouds side by side: one's serial steps overlap the other's work (the same numbers)
-    (ms, near_s, _), (mt, near_t, tree_t) = side_by_side((_surface_test, source, k, True),
+    (ms, near_s, tree_s), (mt, near_t, tree_t) = side_by_side((_surface_test, source, k, True),
                                                           (_surface_test, target, k, True))
     if ms.all() and mt.all():
         xyz_t = _xyz(target)
@@ -281,8 +281,18 @@ def select_points(source, target, select="auto", k=20):
               f"{MAX_SCATTER:g} in {k}-neighbourhoods")
     src, tgt = _subset(source, ms), _subset(target, mt)
     _keep((src, near_s, ms), (tgt, near_t, mt))  # ICP's normals reuse the neighbourhoods that only hold selected points
+    _offer_trees([(src, tree_s, ms), (tgt, tree_t, mt)], local_origin(_xyz(tgt)))
     return (src, tgt, Selection("surface points", (), ns, nt, int(ms.sum()), int(mt.sum()), reason,
                                 np.flatnonzero(ms), np.flatnonzero(mt)))
+
+
+def _offer_trees(clouds, origin):
+    """Offer ICP's matching the selected points' kd-trees cut from the whole clouds' (each (subset, tree,
+    mask)) in ICP's frame (``origin``: the local origin of the target's selected points) instead of new
+    builds (:meth:`~labkit.neighbours.kdtree.KDTree.restricted`)."""
+    for sub, tree, mask in clouds:
+        xyz = _xyz(sub)
+        offer_tree(xyz, origin, True, tree.restricted(mask, xyz - origin))
 
 
 def _keep(*clouds):

@@ -164,3 +164,34 @@ def test_grouped_nearest_equals_the_per_point_search_index_for_index(name, bound
         idx, d2, tie = np.empty(n, np.intp), np.empty(n), np.zeros(n, np.bool_)
         _nn_groups(tree.data, *tree._nodes, Q, leaf_groups, np.inf, idx, d2, tie, np.empty(0, np.intp), np.empty(0))
         assert tie.sum() > 10
+
+
+def test_restricted_tree_answers_as_scipy_on_the_kept_points_in_another_frame():
+    # millimetre coordinates with exact duplicates; the kept points in a frame 1 m away (another origin)
+    rng = np.random.default_rng(7)
+    P = np.round(rng.random((150_000, 3)) * [80.0, 60.0, 10.0], 3)
+    P[1000:1200] = P[:200]
+    keep = rng.random(len(P)) < 0.6
+    keep[1000:1200] = keep[:200]  # a mask equal for duplicates (as the point selection's)
+    whole = KDTree(P, merge_duplicates=True)
+    shift = np.array([1.0, -1.0, 0.0])
+    Q = P[keep] - shift
+    cut = whole.restricted(keep, Q)
+    fresh = KDTree(Q, merge_duplicates=True)
+    assert (cut.n, cut.n_duplicates) == (fresh.n, fresh.n_duplicates)
+    np.testing.assert_array_equal(cut.data[cut.representative], Q)  # every kept row maps to its point
+    q = rng.random((20_000, 3)) * [80.0, 60.0, 10.0]
+    # a merged tree lists each distinct point once: k neighbours as the tree built anew, the nearest as scipy
+    np.testing.assert_array_equal(cut.query(q, k=4, distance_upper_bound=0.4)[0],
+                                  fresh.query(q, k=4, distance_upper_bound=0.4)[0])
+    ref_d = cKDTree(Q).query(q, k=1, distance_upper_bound=0.4)[0]
+    d, _ = cut.nearest_in_groups(q, np.array([0, 7_000, 20_000]), 0.4, workers=2)
+    np.testing.assert_array_equal(d, ref_d)
+    nb = cut.knn_of_leaves(0, cut.n, 6, workers=-1)
+    ref = cKDTree(cut.data).query(cut.data, k=6)[0]
+    np.testing.assert_array_equal(np.sqrt(((cut.data[nb] - cut.data[:, None]) ** 2).sum(-1)), ref)
+    kept_copy = whole.indices[whole.representative[0]]  # row 0 or its duplicate, row 1000
+    bad = keep.copy()
+    bad[kept_copy], bad[1000 if kept_copy == 0 else 0] = False, True  # a kept row whose point is dropped
+    with pytest.raises(ValueError, match="duplicates"):
+        whole.restricted(bad)

@@ -77,3 +77,21 @@ def test_kept_neighbours_go_with_their_array():
     del pts
     gc.collect()
     assert _treecache._rows == []  # no rows of a dead array held until the next cloud comes
+
+
+def test_an_offered_tree_is_taken_once_by_its_array_and_goes_with_it():
+    treecache = _treecache
+    treecache.forget()
+    pts = np.random.default_rng(0).random((50, 3))
+    tree = object()  # any tree: the cache only hands it on
+    treecache.offer_tree(pts, np.zeros(3), True, tree)
+    assert treecache.take_tree(pts.copy(), np.zeros(3), True) is None  # another array with the same content
+    assert treecache.take_tree(pts, np.ones(3), True) is None  # another origin
+    assert treecache.local_tree(pts, np.zeros(3), True) is tree  # taken instead of a build
+    assert treecache.take_tree(pts, np.zeros(3), True) is None  # once
+    other = np.random.default_rng(1).random((50, 3))
+    treecache.offer_tree(other, np.zeros(3), True, tree)
+    del other
+    gc.collect()
+    assert treecache._offered == []  # dropped with its array
+    treecache.forget()

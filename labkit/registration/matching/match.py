@@ -39,7 +39,7 @@ from ...core.checks import as_points, as_rng, choice, positive
 from ...core.frame import local_origin, reduce
 from ...core.threads import side_by_side
 from ...neighbours.kdtree import KDTree
-from ...neighbours.treecache import kept_neighbours, local_tree
+from ...neighbours.treecache import kept_neighbours, local_tree, take_tree
 from ...core.errors import LabkitError
 from .correspondences import _CODE, MIN_SIGMA, RULES, Correspondences, _replace  # noqa: F401 - re-exported
 from .local_surface import Geometry, _leaf_geometry, _local_geometry, _on_quadric, _plane_tilt  # noqa: F401
@@ -170,7 +170,7 @@ def prepare(
     # (kept for the next step on the same target, e.g. the distances of labkit register); the source's
     # tree for its normals built beside it (the same trees as one after the other)
     tree, src_tree = side_by_side(
-        (local_tree, tgt, origin, True), (lambda: KDTree(src_l, merge_duplicates=True) if need_src_geo else None,)
+        (local_tree, tgt, origin, True), (lambda: _source_tree(src, src_l, origin) if need_src_geo else None,)
     )
     surface = _auto_surface(tree, k) if opt.surface == "auto" else opt.surface
     quadric = surface == "quadric"
@@ -233,6 +233,12 @@ def prepare(
         src_pts, idx, src_normals, sigma, rule, _TreePoints(tree, n_tgt), tree, tgt_geo, tgt_cls, settings, origin, len(src),
         None if src_cls is None else src_cls[idx], order, groups, memory,
     )  # fmt: skip
+
+
+def _source_tree(src, src_l, origin):
+    """The source's kd-tree: the one made ahead for this array (the point selection's), else built on ``src_l``."""
+    tree = take_tree(src, origin, True)
+    return KDTree(src_l, merge_duplicates=True) if tree is None else tree
 
 
 def _auto_surface(tree, k):
