@@ -13,10 +13,9 @@ import numpy as np
 from . import kernels as K
 from .inputs import candidate_pairs
 
-#: samples of the consensus profile, its reach and the fitting window, in box half-widths: on real ALS
+#: samples of the consensus profile, its reach and the mirrored window, in box half-widths: on real ALS
 #: halves the hill along a held direction falls off over about 2 m either side (a 1 m box), wider than
-#: the box, so the profile reaches beyond it; a window of 1 half-width followed the bumps of the top
-#: (rms error 0.10 m over 6 halves of two files), 1.5 did not (0.04-0.06 m)
+#: the box, so the profile reaches beyond it and the centre is sought within 1.5 half-widths of the start
 N_SAMPLES, REACH, WINDOW = 241, 3.0, 1.5
 #: chunk of translations per call of the kernel (its index buffer is chunk x pairs)
 CHUNK = 8
