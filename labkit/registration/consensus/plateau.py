@@ -69,11 +69,11 @@ def hill_centre(s, counts, window: float) -> float:
     on real ALS halves, a different place for every random half). The hill itself is made of
     plateaus of every surface patch, each centred on the true shift (a patch of slope n stays
     consistent over eps / |n . d| either side), so its centre of symmetry is the better estimate.
-    Two checks keep the start (0): the profile must have a maximum (a quadratic fitted within
-    +-``window`` of the centre opens downwards: not a straight slope or a valley), and the centre
-    must lie on the top, its consensus lower than the highest sample by no more than the counting
-    noise (3 sqrt(count), or 1 % for weight sums); otherwise the peak is sharp and the symmetry
-    is that of the broad flanks.
+    Two checks keep the start (0): the profile must have a maximum (a quadratic fitted to the
+    whole profile opens downwards: not a straight slope or a valley; a flat top with a bump near
+    the end of a window may not), and the centre must lie on the top, its consensus lower than
+    the highest sample by no more than the counting noise (3 sqrt(count), or 1 % for weight sums);
+    otherwise the peak is sharp and the symmetry is that of the broad flanks.
 
     Parameters
     ----------
@@ -109,11 +109,8 @@ def hill_centre(s, counts, window: float) -> float:
     mismatch = np.mean((np.interp(cand[:, None] + x, s, c) - np.interp(cand[:, None] - x, s, c)) ** 2, axis=1)
     best = np.flatnonzero(mismatch == mismatch.min())
     centre = float(cand[best[len(best) // 2]])  # ties (a straight slope matches nowhere better): the middle one
-    sel = np.abs(s - centre) <= window
-    if sel.sum() < 5:
-        return 0.0
-    a, b, _ = np.polyfit(s[sel] - centre, c[sel] - c[sel].mean(), 2)
-    if a >= -1e-9 * abs(b):  # no maximum here (a straight slope or a valley)
+    a, b, _ = np.polyfit(s - centre, c - c.mean(), 2)
+    if a >= -1e-9 * abs(b):  # the profile has no maximum (a straight slope or a valley)
         return 0.0
     top = float(c.max())
     noise = 3.0 * np.sqrt(max(top, 1.0)) if np.allclose(c, np.rint(c)) else 0.01 * abs(top)
