@@ -13,10 +13,9 @@ import numpy as np
 from . import kernels as K
 from .inputs import candidate_pairs
 
-#: samples of the consensus profile, its reach and the fitting window, in box half-widths: on real ALS
+#: samples of the consensus profile, its reach and the mirrored window, in box half-widths: on real ALS
 #: halves the hill along a held direction falls off over about 2 m either side (a 1 m box), wider than
-#: the box, so the profile reaches beyond it; a window of 1 half-width followed the bumps of the top
-#: (rms error 0.10 m over 6 halves of two files), 1.5 did not (0.04-0.06 m)
+#: the box, so the profile reaches beyond it and the centre is sought within 1.5 half-widths of the start
 N_SAMPLES, REACH, WINDOW = 241, 3.0, 1.5
 #: chunk of translations per call of the kernel (its index buffer is chunk x pairs)
 CHUNK = 8
@@ -54,14 +53,15 @@ def consensus_profile(pb, t, d, s, *, use_numba=None):
     return out
 
 
-def hill_centre(s, counts, window: float, max_iter: int = 50) -> float:
-    """Centre of symmetry of a consensus profile: the vertex of a quadratic fitted in a window centred on it.
+def hill_centre(s, counts, window: float) -> float:
+    """Centre of symmetry of a consensus profile: the point about which it best matches its mirror image.
 
-    Starting at s = 0, a parabola is fitted by least squares to the profile within
-    +-``window`` of the current centre and the centre moves to its vertex (at most half the
-    window per step), until it settles. A profile symmetric about s0 has its fixed point at s0
-    whatever its shape (flat top, trapezoid, many small bumps), because the fit in a window
-    symmetric about s0 is itself symmetric.
+    For each candidate centre c at least ``window`` inside the ends of ``s`` (on a grid of half
+    the sample spacing), the profile at c + x is compared with the profile at c - x for
+    0 <= x <= ``window``; the centre is the c with the least mean squared difference. A profile
+    symmetric about s0 has its best match at s0 whatever its shape (flat top, trapezoid, many
+    small bumps), and unlike the vertex of a fitted quadratic the match uses the flanks as much
+    as the top and does not depend on where the search starts.
 
     Why not the highest sample: along a direction the local planes do not determine (the ridge
     of parallel gable roofs, a flat town square), the consensus is a broad hill whose top is
@@ -69,25 +69,26 @@ def hill_centre(s, counts, window: float, max_iter: int = 50) -> float:
     on real ALS halves, a different place for every random half). The hill itself is made of
     plateaus of every surface patch, each centred on the true shift (a patch of slope n stays
     consistent over eps / |n . d| either side), so its centre of symmetry is the better estimate.
-    The centre must lie on the top, though: where its consensus is lower than the highest
-    sample by more than the counting noise (3 sqrt(count), or 1 % for weight sums), the peak is
-    sharp and the quadratic followed the broad flanks; 0 (the start) is kept.
+    Two checks keep the start (0): the profile must have a maximum (a quadratic fitted to the
+    whole profile opens downwards: not a straight slope or a valley; a flat top with a bump near
+    the end of a window may not), and the centre must lie on the top, its consensus lower than
+    the highest sample by no more than the counting noise (3 sqrt(count), or 1 % for weight sums);
+    otherwise the peak is sharp and the symmetry is that of the broad flanks.
 
     Parameters
     ----------
     s : ndarray (n,)
-        Steps (m), ascending, holding 0.
+        Steps (m), ascending, evenly spaced, holding 0.
     counts : ndarray (n,)
         Consensus at the steps.
     window : float
-        Half-width (m) of the fitting window.
-    max_iter : int
+        Half-width (m) of the mirrored part of the profile.
 
     Returns
     -------
     float
-        The centre (m), within the range of ``s``; 0 when the profile has no maximum (a valley or
-        a straight slope in every window) or the centre is off the top.
+        The centre (m); 0 when the profile has no maximum, is too short for the window, or the
+        centre is off the top.
 
     Examples
     --------
@@ -100,20 +101,17 @@ def hill_centre(s, counts, window: float, max_iter: int = 50) -> float:
     """
     s = np.asarray(s, dtype=np.float64)
     c = np.asarray(counts, dtype=np.float64)
-    centre = 0.0
-    tiny = 1e-3 * float(np.median(np.diff(s)))
-    for _ in range(max_iter):
-        sel = np.abs(s - centre) <= window
-        if sel.sum() < 5:
-            break
-        x = s[sel] - centre
-        a, b, _ = np.polyfit(x, c[sel] - c[sel].mean(), 2)
-        if a >= -1e-9 * abs(b):  # no maximum in this window (a valley or a straight slope)
-            break
-        step = float(np.clip(-b / (2 * a), -window / 2, window / 2))
-        centre = float(np.clip(centre + step, s[0], s[-1]))
-        if abs(step) < tiny:
-            break
+    h = 0.5 * float(np.median(np.diff(s)))
+    cand = np.arange(s[0] + window, s[-1] - window + h / 2, h)
+    if cand.size == 0 or s.size < 5:
+        return 0.0
+    x = np.arange(h, window + h / 2, h)
+    mismatch = np.mean((np.interp(cand[:, None] + x, s, c) - np.interp(cand[:, None] - x, s, c)) ** 2, axis=1)
+    best = np.flatnonzero(mismatch == mismatch.min())
+    centre = float(cand[best[len(best) // 2]])  # ties (a straight slope matches nowhere better): the middle one
+    a, b, _ = np.polyfit(s - centre, c - c.mean(), 2)
+    if a >= -1e-9 * abs(b):  # the profile has no maximum (a straight slope or a valley)
+        return 0.0
     top = float(c.max())
     noise = 3.0 * np.sqrt(max(top, 1.0)) if np.allclose(c, np.rint(c)) else 0.01 * abs(top)
     return centre if float(np.interp(centre, s, c)) >= top - noise else 0.0
@@ -124,8 +122,8 @@ def centre_held(t, deg, pb, center, ext, box_var, max_std, *, fixed=None, use_nu
 
     For each undetermined eigen-direction u of the refinement (the least squares keep the
     branch-and-bound maximum there), the consensus is profiled along u over 3 box half-widths
-    to either side and ``t`` moves to the hill's centre (:func:`hill_centre`, window 1.5 box
-    half-widths), clipped to the search box. Only the axes that the held directions leave with a
+    to either side and ``t`` moves to the hill's centre (:func:`hill_centre`, the profile mirrored
+    over 1.5 box half-widths), clipped to the search box. Only the axes that the held directions leave with a
     standard deviation of at least ``max_std`` move: a determined axis with a small share in u
     keeps its value exactly. The covariance is not changed: the held direction stays reported
     undetermined with the variance of the box.
