@@ -88,6 +88,15 @@ class Degeneracy(ReportMixin):
             return ()
         return tuple(n for n, ok in zip(self.names, self.parameter_determined) if not ok)
 
+    def held_effect(self, free, held):
+        """B = N_ff^-1 N_fh: how the free parameters, solved with the held ones at h0, follow a move of those.
+
+        Moving the held parameters from h0 to h moves the free ones by -B (h - h0) (eq. 5.15). ``free`` and
+        ``held`` are boolean masks over the parameters; N is rebuilt from the eigen decomposition.
+        """
+        N = (self.eigenvectors * self.eigenvalues) @ self.eigenvectors.T
+        return np.linalg.lstsq(N[np.ix_(free, free)], N[np.ix_(free, held)], rcond=None)[0]
+
     def _report(self):
         rows = []
         stds = [None] * len(self.eigenvalues) if self.direction_std is None else self.direction_std

@@ -394,8 +394,7 @@ def fill_held_axes(result, source, target, *, matched=None):
     cov = np.array(result.covariance, dtype=np.float64)
     Ch = hm.covariance[np.ix_(fill, fill)]
     if free.any():  # the ICP-determined axes were solved at the held value h0 (eq. 5.15)
-        P = (deg.eigenvectors * deg.eigenvalues) @ deg.eigenvectors.T
-        B = np.linalg.lstsq(P[np.ix_(free, free)], P[np.ix_(free, fill)], rcond=None)[0]
+        B = deg.held_effect(free, fill)
         t[free] -= B @ (hm.translation[fill] - t[fill])
         cov[np.ix_(free, fill)] = -B @ Ch
         cov[np.ix_(fill, free)] = (-B @ Ch).T

@@ -343,8 +343,7 @@ def _consistency(result, turned, classes):
 def _moved_along_first(t, shift, deg):
     """t with its first component moved by ``shift`` and the others corrected by -B shift (eq. 5.15)."""
     out = t.copy()
-    P = (deg.eigenvectors * deg.eigenvalues) @ deg.eigenvectors.T
-    B = np.linalg.lstsq(P[1:, 1:], P[1:, :1], rcond=None)[0]
+    B = deg.held_effect(np.array([False, True, True]), np.array([True, False, False]))
     out[1:] -= B[:, 0] * shift
     out[0] += shift
     return out
