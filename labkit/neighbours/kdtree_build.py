@@ -55,6 +55,7 @@ def _build(P, leafsize):  # pragma: no cover - compiled
             if v > hi[0, d]:
                 hi[0, d] = v
     cbox = np.empty((2, 6))  # boxes of the two children (lo, hi), filled while the points are moved
+    dims = np.empty(3, np.int64)
     while sp > 0:
         sp -= 1
         node, depth = stack[sp, 0], stack[sp, 1]
@@ -62,57 +63,33 @@ def _build(P, leafsize):  # pragma: no cover - compiled
         a, b = start[node], end[node]
         if b - a <= leafsize:
             continue
-        # try the dimensions from the widest down; split at the median with ties kept together
-        ext = hi[node] - lo[node]
-        dims = np.argsort(-ext)
+        # try the dimensions from the widest down (equal widths: the lower dimension first); split at the
+        # median with ties kept together
+        e0, e1, e2 = hi[node, 0] - lo[node, 0], hi[node, 1] - lo[node, 1], hi[node, 2] - lo[node, 2]
+        dims[0], dims[1], dims[2] = 0, 1, 2
+        if e1 > e0:
+            dims[0], dims[1] = 1, 0
+        if e2 > max(e0, e1):
+            dims[2], dims[1], dims[0] = dims[1], dims[0], 2
+        elif e2 > min(e0, e1):
+            dims[2], dims[1] = dims[1], 2
         split = -1
         for t in range(3):
             d = dims[t]
-            if ext[d] <= 0.0:
+            if hi[node, d] - lo[node, d] <= 0.0:
                 break
             m = b - a
             for i in range(m):
                 keys[i] = W[a + i, d]
-            v = _select(keys, m, m // 2)  # the median (keys reordered; the counts below need no order)
-            below = 0
-            for i in range(m):
-                if keys[i] < v:
-                    below += 1
-            if below == 0:  # v is the minimum: split after all points equal to v
+            v = _select(keys, m, m // 2)  # the median (keys reordered)
+            below = _partition(W, perm, wbuf, buf, a, b, d, v, cbox)
+            if below == 0:  # v is the minimum (nothing moved): split after all points equal to v
                 nxt = np.inf
                 for i in range(m):
                     if keys[i] > v and keys[i] < nxt:
                         nxt = keys[i]
                 v = nxt
-                below = 0
-                for i in range(m):
-                    if keys[i] < v:
-                        below += 1
-            # stable partition of perm[a:b] into coordinate < v and >= v
-            j0, j1 = 0, below
-            for i in range(m):
-                lower_side = W[a + i, d] < v
-                j = j0 if lower_side else j1
-                buf[j] = perm[a + i]
-                wbuf[j, 0], wbuf[j, 1], wbuf[j, 2] = W[a + i, 0], W[a + i, 1], W[a + i, 2]
-                if lower_side:
-                    j0 += 1
-                else:
-                    j1 += 1
-            for c in range(2):
-                for e in range(3):
-                    cbox[c, e] = np.inf
-                    cbox[c, 3 + e] = -np.inf
-            for i in range(m):
-                perm[a + i] = buf[i]
-                c = 0 if i < below else 1
-                for e in range(3):
-                    x = wbuf[i, e]
-                    W[a + i, e] = x
-                    if x < cbox[c, e]:
-                        cbox[c, e] = x
-                    if x > cbox[c, 3 + e]:
-                        cbox[c, 3 + e] = x
+                below = _partition(W, perm, wbuf, buf, a, b, d, v, cbox)
             split = a + below
             sval[node], sdim[node] = v, d
             break
@@ -148,6 +125,42 @@ def _build(P, leafsize):  # pragma: no cover - compiled
     nodes[:, 0], nodes[:, 1] = start[:count], end[:count]
     nodes[:, 2], nodes[:, 3] = left[:count], right[:count]
     return perm, nodes, box, depth_max, W
+
+
+@compiled
+def _partition(W, perm, wbuf, buf, a, b, d, v, cbox):  # pragma: no cover - compiled
+    """Stable partition of the points W[a:b] (and perm[a:b]) into coordinate d < v and >= v; returns the
+    number below. The points below move down in place (never past one not yet read), the others through
+    ``wbuf``/``buf`` to behind them; ``cbox`` gets the two sides' boxes (lo, hi). Nothing moves when no
+    point lies below v."""
+    for c in range(2):
+        for e in range(3):
+            cbox[c, e] = np.inf
+            cbox[c, 3 + e] = -np.inf
+    j0, j1 = a, 0
+    for i in range(a, b):
+        x0, x1, x2 = W[i, 0], W[i, 1], W[i, 2]
+        if (x0 if d == 0 else (x1 if d == 1 else x2)) < v:
+            perm[j0] = perm[i]
+            W[j0, 0], W[j0, 1], W[j0, 2] = x0, x1, x2
+            j0 += 1
+            c = 0
+        else:
+            buf[j1] = perm[i]
+            wbuf[j1, 0], wbuf[j1, 1], wbuf[j1, 2] = x0, x1, x2
+            j1 += 1
+            c = 1
+        cbox[c, 0] = min(cbox[c, 0], x0)
+        cbox[c, 1] = min(cbox[c, 1], x1)
+        cbox[c, 2] = min(cbox[c, 2], x2)
+        cbox[c, 3] = max(cbox[c, 3], x0)
+        cbox[c, 4] = max(cbox[c, 4], x1)
+        cbox[c, 5] = max(cbox[c, 5], x2)
+    if j0 > a:
+        for i in range(j1):
+            perm[j0 + i] = buf[i]
+            W[j0 + i, 0], W[j0 + i, 1], W[j0 + i, 2] = wbuf[i, 0], wbuf[i, 1], wbuf[i, 2]
+    return j0 - a
 
 
 @compiled
