@@ -175,11 +175,14 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragm
         if nodes[node, 2] < 0:
             biggest = max(biggest, nodes[node, 1] - nodes[node, 0])
     dbuf = np.empty(biggest)  # squared distances of one query to the points of one leaf
+    qx_, qy_, qz_, gaps = np.empty(most), np.empty(most), np.empty(most), np.empty(most)  # the leaf's points
     start = nodes[leaves[0], 0]
     for t in range(len(leaves)):
         leaf = leaves[t]
         a, b = nodes[leaf, 0], nodes[leaf, 1]
         m = b - a
+        for qi in range(m):
+            qx_[qi], qy_[qi], qz_[qi] = X[a + qi, 0], X[a + qi, 1], X[a + qi, 2]
         # 1. the leaf's own points
         wmax = 0.0
         for qi in range(m):
@@ -222,12 +225,15 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragm
             if child < 0:  # a leaf: scanned by the points whose k-th distance reaches its box
                 s, e = nodes[node, 0], nodes[node, 1]
                 wmax = 0.0
+                lo0_, lo1_, lo2_ = box[node, 0], box[node, 1], box[node, 2]
+                hi0_, hi1_, hi2_ = box[node, 3], box[node, 4], box[node, 5]
+                for qi in range(m):  # the gaps of all the leaf's points to this leaf's box first (vector code)
+                    gq = _gap2(lo0_, hi0_, qx_[qi], qx_[qi]) + _gap2(lo1_, hi1_, qy_[qi], qy_[qi])
+                    gaps[qi] = gq + _gap2(lo2_, hi2_, qz_[qi], qz_[qi])
                 for qi in range(m):
                     w = worst[qi]
-                    qx, qy, qz = X[a + qi, 0], X[a + qi, 1], X[a + qi, 2]
-                    gq = _gap2(box[node, 0], box[node, 3], qx, qx) + _gap2(box[node, 1], box[node, 4], qy, qy)
-                    gq += _gap2(box[node, 2], box[node, 5], qz, qz)
-                    if gq < w:
+                    qx, qy, qz = qx_[qi], qy_[qi], qz_[qi]
+                    if gaps[qi] < w:
                         for i in range(s, e):  # the distances first (no dependence between them: vector code)
                             dx, dy, dz = X[i, 0] - qx, X[i, 1] - qy, X[i, 2] - qz
                             dbuf[i - s] = dx * dx + dy * dy + dz * dz
@@ -267,12 +273,10 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragm
 
 @compiled
 def _gap2(lo, hi, a, b):  # pragma: no cover - compiled
-    """Squared gap between the intervals [lo, hi] and [a, b] (0 where they overlap)."""
-    t = lo - b
-    if t > 0.0:
-        return t * t
-    t = a - hi
-    return t * t if t > 0.0 else 0.0
+    """Squared gap between the intervals [lo, hi] and [a, b] (0 where they overlap), without branches
+    (at most one of lo - b and a - hi is positive; an empty box, lo = inf, is infinitely far)."""
+    t = max(lo - b, a - hi, 0.0)
+    return t * t
 
 
 @compiled
