@@ -79,6 +79,7 @@ def normal_information(A, P, n, N, opts):
     """
     if opts.metric == "point_to_plane":
         return N
+    n = n() if callable(n) else n  # the normals of the rows (or a function that gathers them: only needed here)
     a = np.einsum("mru,mr->mu", A, np.nan_to_num(n))  # A^T n per row
     return np.einsum("m,mu,mv->uv", P, a, a)
 

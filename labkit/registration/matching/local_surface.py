@@ -519,8 +519,9 @@ class Geometry:
         yet matched."""
         if not self.keep_tilt:
             raise LabkitError("this geometry keeps no tilt covariances (keep_tilt=False)")
-        self.at(index, need_noise=True)
-        return self._get("tilt", self.tree.representative[index])
+        pos = self.tree.representative[index]
+        self._compute(pos)  # (the normals and noise themselves are not needed here)
+        return self._get("tilt", pos)
 
     def tilt(self, index):
         """Covariance (m, 3, 3) of the random tilt of the quadric normals at the points ``index``.
