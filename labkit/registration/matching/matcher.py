@@ -130,10 +130,8 @@ class _Matcher:
         m = len(self.source)
         rule = self.source_rule.copy()
         tidx = np.full(m, -1)
-        d = np.full((m, 3), np.nan)
-        nt = np.full((m, 3), np.nan)
-        noise_t = np.full(m, np.nan)
-        angle = np.full(m, np.nan)
+        # written at the rows with a partner, NaN at the others by the last pass (_weights_planes)
+        d, nt, noise_t, angle = np.empty((m, 3)), np.empty((m, 3)), np.empty(m), np.empty(m)
         q = _rotated(self._source_q, R, t)  # the queries moved, in query order
         # (3) nearest neighbour in the target kd-tree, within max_distance
         workers = -1 if len(live) > 20000 else 1  # thread start-up dominates small queries
@@ -148,20 +146,26 @@ class _Matcher:
         geometry = self.geometry
         if uncached:
             geometry._compute(pos)  # the target points met for the first time
-        if n_found:
-            _gather_pairs(self.tree.data, q, found, rows, pos, geometry.slot, geometry._store["normals"],
-                          geometry._store["noise"], d, nt, noise_t)  # d = q_j - p_i, nt, noise_t
-        nearest_d = d
-        if opt["surface"] == "quadric" and n_found:
-            nearest_d = d.copy()  # see _numpy_call: the foot point on the quadric replaces q_j
-            geometry.foot_at_rows(j, rows, d, nt)
+        quadric = opt["surface"] == "quadric"
         gates = opt["classes"] is not None or opt["max_noise"] is not None
         normals = self.source_normals
         cosang = np.empty(n_found)
         # a target point whose neighbourhood is a point or a line has no normal; (4) gates on the target
-        # point (class, noise) and the source normal, in the order of _numpy_call
-        _normal_gates(rows, nt, rule, normals if normals is not None else nt, R, cosang, True,
-                      normals is not None and not gates, _CODE["degenerate"])
+        # point (class, noise) and the source normal, in the order of _numpy_call: with the gather where
+        # the normals are final and nothing comes between
+        fused = not quadric and not gates
+        some_normals = normals if normals is not None else nt
+        if n_found:
+            _gather_pairs(self.tree.data, q, found, rows, pos, geometry.slot, geometry._store["normals"],
+                          geometry._store["noise"], d, nt, noise_t,  # d = q_j - p_i, nt, noise_t
+                          rule, some_normals, R, cosang, fused, fused and normals is not None, _CODE["degenerate"])
+        nearest_d = d
+        if quadric and n_found:
+            nearest_d = d.copy()  # see _numpy_call: the foot point on the quadric replaces q_j
+            geometry.foot_at_rows(j, rows, d, nt)
+        if not fused:
+            _normal_gates(rows, nt, rule, some_normals, R, cosang, True, normals is not None and not gates,
+                          _CODE["degenerate"])
         if opt["classes"] is not None:
             bad = ~np.isin(self.target_class[j], opt["classes"])
             rule[rows[bad & (rule[rows] == 0)]] = _CODE["class"]
@@ -176,9 +180,9 @@ class _Matcher:
         max_angle = opt["max_angle_deg"]
         # the normal angle's gate and (unique) one source point per target point, the nearest by the
         # point-to-point distance (see _numpy_call)
-        _angle_and_duplicates(rows, j, cosang, normals is not None, np.inf if max_angle is None else float(max_angle),
+        _angle_and_duplicates(rows, pos, cosang, normals is not None, np.inf if max_angle is None else float(max_angle),
                               max_angle is not None and normals is not None, bool(opt["unique"]), nearest_d, rule,
-                              angle, len(self.target), _CODE["normal_angle"], _CODE["duplicate"])
+                              angle, self.tree.n, _CODE["normal_angle"], _CODE["duplicate"])
         # (5) weights p = 1 / (sigma_s^2 + sigma_t^2)  (eq. 5.6) and the plane distances
         noise_sigma = opt["noise_weighting"] and not (opt["class_sigma"] and self.target_class is not None)
         if noise_sigma or not n_found:
@@ -189,7 +193,7 @@ class _Matcher:
         weight, plane = np.empty(m), np.empty(m)
         xyz = np.empty((m, 3))
         _weights_planes(self.source, R, t, self.origin, rule, self.source_sigma, sigma_t, noise_sigma, MIN_SIGMA**2,
-                        nt, d, weight, plane, xyz)
+                        tidx, nt, d, noise_t, angle, weight, plane, xyz)
         return Correspondences(
             self.source_index, tidx, xyz, d, plane, angle, nt, weight, rule, self.n_source, dict(opt),
         )  # fmt: skip
@@ -389,8 +393,9 @@ if HAVE_NUMBA:
     @compiled
     def _found(dist, j, live, rep, slot, rule, tidx, code, found, pos):  # pragma: no cover - compiled
         """The queries (query order) with a partner within the gate: their positions ``found``, the leaf
-        positions ``pos`` of their target points and tidx; the others get the rule ``code`` (distance).
-        Returns their number and how many of their target points the geometry cache does not hold yet."""
+        positions ``pos`` of their target points (``rep``: the tree's representative) and tidx; the others
+        get the rule ``code`` (distance). Returns their number and how many of their target points the
+        geometry cache does not hold yet."""
         n, uncached = 0, 0
         for r in range(live.shape[0]):
             if np.isfinite(dist[r]):
@@ -404,23 +409,33 @@ if HAVE_NUMBA:
                 rule[live[r]] = code
         return n, uncached
 
+    @compiled(inline="always")  # inlined into the loops (a call per row would cost more than the row)
+    def _gate_row(n, i, nt, rule, normals, R, cosang, target, source, code):  # pragma: no cover - compiled
+        """'degenerate' where the target normal (``target``) or the source normal (``source``) of row i is
+        missing and no rule came first; with ``source`` also |R n_s . n_t| (:func:`_cos_normals`, the same sums)."""
+        if target and np.isnan(nt[i, 0]) and rule[i] == 0:
+            rule[i] = code
+        if source:
+            if np.isnan(normals[i, 0]) and rule[i] == 0:
+                rule[i] = code
+            x, y, z = normals[i, 0], normals[i, 1], normals[i, 2]
+            a0 = (x * R[0, 0] + z * R[0, 2]) + y * R[0, 1]
+            a1 = (x * R[1, 0] + z * R[1, 2]) + y * R[1, 1]
+            a2 = (x * R[2, 0] + z * R[2, 2]) + y * R[2, 1]
+            cosang[n] = abs((a0 * nt[i, 0] + a2 * nt[i, 2]) + a1 * nt[i, 1])
+
     @compiled
-    def _gather_pairs(data, q, found, rows, pos, slot, normals_buf, noise_buf, d, nt, noise):  # pragma: no cover
-        """d[i] = q_j - p_i, nt[i] and noise[i] from the geometry cache, for the rows i = ``rows`` (query order)."""
+    def _gather_pairs(data, q, found, rows, pos, slot, normals_buf, noise_buf, d, nt, noise, rule, normals, R, cosang,
+                      target, source, code):  # pragma: no cover - compiled
+        """d[i] = q_j - p_i, nt[i] and noise[i] from the geometry cache, for the rows i = ``rows`` (query order);
+        with ``target`` / ``source`` also the gates of :func:`_gate_row` on them."""
         for n in range(rows.shape[0]):
             i, r, p = rows[n], found[n], pos[n]
             s = slot[p]
             d[i, 0], d[i, 1], d[i, 2] = data[p, 0] - q[r, 0], data[p, 1] - q[r, 1], data[p, 2] - q[r, 2]
             nt[i, 0], nt[i, 1], nt[i, 2] = normals_buf[s, 0], normals_buf[s, 1], normals_buf[s, 2]
             noise[i] = noise_buf[s]
-
-    @compiled
-    def _normal_gates(rows, nt, rule, normals, R, cosang, target, source, code):  # pragma: no cover - compiled
-        """'degenerate' where the target normal (``target``) or the source normal (``source``) is missing and
-        no rule came first; with ``source`` also |R n_s . n_t| per row (:func:`_cos_normals`, the same sums)."""
-        for n in range(rows.shape[0]):
-            i = rows[n]
-            if target and np.isnan(nt[i, 0]) and rule[i] == 0:
+            if target and np.isnan(normals_buf[s, 0]) and rule[i] == 0:
                 rule[i] = code
             if source:
                 if np.isnan(normals[i, 0]) and rule[i] == 0:
@@ -429,12 +444,19 @@ if HAVE_NUMBA:
                 a0 = (x * R[0, 0] + z * R[0, 2]) + y * R[0, 1]
                 a1 = (x * R[1, 0] + z * R[1, 2]) + y * R[1, 1]
                 a2 = (x * R[2, 0] + z * R[2, 2]) + y * R[2, 1]
-                cosang[n] = abs((a0 * nt[i, 0] + a2 * nt[i, 2]) + a1 * nt[i, 1])
+                cosang[n] = abs((a0 * normals_buf[s, 0] + a2 * normals_buf[s, 2]) + a1 * normals_buf[s, 1])
 
     @compiled
-    def _angle_and_duplicates(rows, j, ang, has_angle, max_angle, gate, unique, d, rule, angle, n_target,
+    def _normal_gates(rows, nt, rule, normals, R, cosang, target, source, code):  # pragma: no cover - compiled
+        """:func:`_gate_row` on the rows ``rows``."""
+        for n in range(rows.shape[0]):
+            _gate_row(n, rows[n], nt, rule, normals, R, cosang, target, source, code)
+
+    @compiled
+    def _angle_and_duplicates(rows, pos, ang, has_angle, max_angle, gate, unique, d, rule, angle, n_target,
                               code_angle, code_duplicate):  # pragma: no cover - compiled
-        """angle[rows] = ang and its gate; then (``unique``) one source point per target point: the one with
+        """angle[rows] = ang and its gate; then (``unique``) one source point per target point (``pos``: its
+        leaf position, one per distinct target point as the input row the search answers): the one with
         the smallest |d|^2 keeps it, equal distances the lower row (:func:`_reject_duplicates`, in any order)."""
         best = np.full(n_target if unique else 0, -1, np.int64)  # the row keeping each target point so far
         best_d2 = np.empty(n_target if unique else 0)
@@ -444,9 +466,11 @@ if HAVE_NUMBA:
                 angle[i] = ang[n]
                 if gate and rule[i] == 0 and ang[n] > max_angle:
                     rule[i] = code_angle
+            else:
+                angle[i] = np.nan
             if unique and rule[i] == 0:
                 d2 = (d[i, 0] * d[i, 0] + d[i, 2] * d[i, 2]) + d[i, 1] * d[i, 1]
-                t = j[n]
+                t = pos[n]
                 b = best[t]
                 if b < 0:
                     best[t], best_d2[t] = i, d2
@@ -457,12 +481,19 @@ if HAVE_NUMBA:
                     rule[i] = code_duplicate
 
     @compiled
-    def _weights_planes(P, R, t, origin, rule, sigma_s, sigma_t, from_noise, min_var, nt, d, weight, plane,
-                        xyz):  # pragma: no cover - compiled
-        """Per row: the weight 1 / (sigma_s^2 + sigma_t^2) (0 where a rule rejected it; ``from_noise``:
-        sigma_t = max(noise, MIN_SIGMA) from the noise given as ``sigma_t``), the plane distance nt . d and the
-        moved source point in the caller's frame (R p + t + origin), as _numpy_call computes them."""
+    def _weights_planes(P, R, t, origin, rule, sigma_s, sigma_t, from_noise, min_var, tidx, nt, d, noise, angle,
+                        weight, plane, xyz):  # pragma: no cover - compiled
+        """Per row: NaN in d, nt, noise and angle where it has no partner (``tidx`` -1), the weight
+        1 / (sigma_s^2 + sigma_t^2) (0 where a rule rejected it; ``from_noise``: sigma_t = max(noise, MIN_SIGMA)
+        from the noise given as ``sigma_t``), the plane distance nt . d and the moved source point in the
+        caller's frame (R p + t + origin), as _numpy_call computes them."""
         for i in range(P.shape[0]):
+            if tidx[i] < 0:
+                for k in range(3):
+                    d[i, k] = np.nan
+                    nt[i, k] = np.nan
+                noise[i] = np.nan
+                angle[i] = np.nan
             x, y, z = P[i, 0], P[i, 1], P[i, 2]
             for k in range(3):
                 xyz[i, k] = (((x * R[k, 0] + z * R[k, 2]) + y * R[k, 1]) + t[k]) + origin[k]
