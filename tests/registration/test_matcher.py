@@ -31,7 +31,8 @@ def test_compiled_matching_steps_equal_their_numpy_route(monkeypatch):
     """ICP (rigid, every source point, plane and quadric) bitwise as with the numpy forms of the compiled steps
     of the matcher: the cached normals and noise scattered to the pairs, the foot points on the quadrics and
     their normals, the angle between the normals and the distances of the duplicate rule."""
-    from labkit.registration.closest_point import adjustment
+    from labkit.registration import consistency
+    from labkit.registration.closest_point import covariance
     from labkit.registration.matching import local_surface, matcher
 
     rng = np.random.default_rng(7)
@@ -42,7 +43,8 @@ def test_compiled_matching_steps_equal_their_numpy_route(monkeypatch):
         new = icp(source, target, **kw)
         with monkeypatch.context() as m:
             m.setattr(matcher, "HAVE_NUMBA", False)  # the matcher's numpy route (_Matcher._numpy_call)
-            m.setattr(adjustment, "have_numba", lambda: False)  # N and n by einsum
+            m.setattr(consistency, "have_numba", lambda: False)  # N and n, the cell sums by einsum
+            m.setattr(covariance, "have_numba", lambda: False)
             m.setattr(local_surface, "_scatter_cached", local_surface._scatter_cached_numpy)
             m.setattr(local_surface, "_foot_into", local_surface._foot_into_numpy)
             m.setattr(matcher, "_cos_normals", matcher._cos_normals_numpy)

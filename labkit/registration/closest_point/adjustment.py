@@ -13,11 +13,11 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
 from ...core.errors import EmptyRegionError, LabkitError
-from ...core.jit import compiled, have_numba
 from ...transforms import skew
 from .covariance import block_covariance, held_rotation_covariance
 from .information import normal_information, sandwich_precision, tilt_information
 from .weights import robust_weights
+from ..consistency import normal_equations
 from ..degeneracy import degeneracy_report
 from ..matching.correspondences import _CODE, _replace
 from ..matching.match import Correspondences  # noqa: F401
@@ -168,31 +168,6 @@ def _cleaned(corr, rows, outliers, weights):
     weight = np.zeros(len(corr))
     weight[rows] = weights
     return _replace(corr, rule=rule, weight=weight)
-
-
-def normal_equations(A, P, l):
-    """N = A^T P A and n = A^T P l (eq. 5.7) of the rows A (m, r, u), weights P (m,), observations l (m, r).
-
-    One compiled pass (the sums in the order of ``np.einsum``'s loop over the rows, (a_u p) a_v:
-    the same numbers), else numpy's einsum.
-    """
-    if not have_numba():  # pragma: no cover - depends on the environment
-        return np.einsum("mru,m,mrv->uv", A, P, A), np.einsum("mru,m,mr->u", A, P, l)
-    return compiled(_normal_equations_kernel)(A, P, l)
-
-
-def _normal_equations_kernel(A, P, l):  # pragma: no cover - compiled
-    m, r, u = A.shape
-    N = np.zeros((u, u))
-    n = np.zeros(u)
-    for i in range(m):
-        for k in range(r):
-            for a in range(u):
-                ap = A[i, k, a] * P[i]
-                for b in range(u):
-                    N[a, b] += ap * A[i, k, b]
-                n[a] += ap * l[i, k]
-    return N, n
 
 
 def solve(N, nvec, deg, N_sig=None):
