@@ -18,6 +18,7 @@ import numpy as np
 from ...neighbours.eigh3 import HAVE_NUMBA, eigh3_analytic
 from ...neighbours.kdtree import KDTree
 from ...core.errors import LabkitError
+from ...core.jit import compiled
 from ...neighbours.moments import covariances  # the shared kNN covariance kernel (compiled)
 
 if HAVE_NUMBA:
@@ -70,7 +71,9 @@ def _leaf_geometry(tree, cols, pos, k, quadric=False, eigenvalues=False, known=N
         rest = np.flatnonzero(~have)
         if len(rest):
             nb[rest] = tree.query_leaf_positions(pos[rest], k, workers=threads if len(rest) > 2000 else 1)
-        if pca_known is not None:
+        if pca_known is not None and not len(rest):
+            pca = pca_known  # every point's PCA is known (fresh arrays: nothing else holds them)
+        elif pca_known is not None:
             pca = np.empty((len(pos), 3)), np.empty((len(pos), 3, 3))
             pca[0][have], pca[1][have] = pca_known
             if len(rest):
@@ -193,11 +196,7 @@ def _geometry_rows(tree, cols, pos, nb, k, quadric, pca=None):
         lam, vecs = pca[0], pca[1].copy() if quadric else pca[1]
     with np.errstate(invalid="ignore"):
         ok = lam[:, 1] > 1e-12 * lam[:, 2]  # not a point, not a line (features._determined)
-    n = vecs[:, :, 0]
-    n = np.where(n[:, 2:3] < 0, -n, n)
-    n[~ok] = np.nan
-    noise = np.where(ok, np.sqrt(lam[:, 0]), np.nan)
-    variation = lam[:, 0] / np.maximum(lam.sum(axis=1), 1e-300)  # change of curvature l3 / sum(l)
+    n, noise, variation = _plane_rows(lam, vecs, ok)
     tangents = vecs[:, :, 1:].copy() if quadric else vecs[:, :, 1:]  # (the quadric's frame changes below)
     if quadric:
         vecs[~ok] = np.nan
@@ -208,8 +207,38 @@ def _geometry_rows(tree, cols, pos, nb, k, quadric, pca=None):
         fit = np.isfinite(sig)  # else (k < 7, degenerate fit) the plane stays
         _, n_q = _on_quadric(coef[fit], vecs[fit], np.zeros((int(fit.sum()), 3)))
         n[fit] = n_q  # the surface normal at the point itself
-        return n, np.where(fit, sig, noise), np.where(ok, variation, np.nan), lam, tangents, coef, vecs, slope
-    return n, noise, np.where(ok, variation, np.nan), lam, tangents, vecs
+        return n, np.where(fit, sig, noise), variation, lam, tangents, coef, vecs, slope
+    return n, noise, variation, lam, tangents, vecs
+
+
+def _plane_rows_numpy(lam, vecs, ok):
+    """The plane's normal (oriented up), noise sqrt(l3) and change of curvature l3 / sum(l) per row; NaN where
+    not ``ok`` (a point or a line)."""
+    n = vecs[:, :, 0]
+    n = np.where(n[:, 2:3] < 0, -n, n)
+    n[~ok] = np.nan
+    noise = np.where(ok, np.sqrt(lam[:, 0]), np.nan)
+    variation = lam[:, 0] / np.maximum(lam.sum(axis=1), 1e-300)  # change of curvature l3 / sum(l)
+    return n, noise, np.where(ok, variation, np.nan)
+
+
+def _plane_rows_kernel(lam, vecs, ok):  # pragma: no cover - compiled
+    """:func:`_plane_rows_numpy` in one pass (the same operations: sum(l) as (l1 + l2) + l3, as numpy sums a row)."""
+    m = lam.shape[0]
+    n, noise, variation = np.empty((m, 3)), np.empty(m), np.empty(m)
+    for i in range(m):
+        if not ok[i]:
+            n[i, 0] = n[i, 1] = n[i, 2] = noise[i] = variation[i] = np.nan
+            continue
+        flip = vecs[i, 2, 0] < 0
+        for c in range(3):
+            n[i, c] = -vecs[i, c, 0] if flip else vecs[i, c, 0]
+        noise[i] = np.sqrt(lam[i, 0])
+        total = (lam[i, 0] + lam[i, 1]) + lam[i, 2]
+        if total < 1e-300:
+            total = 1e-300
+        variation[i] = lam[i, 0] / total
+    return n, noise, variation
 
 
 def _plane_tilt(lam, tangents, k):
@@ -220,10 +249,36 @@ def _plane_tilt(lam, tangents, k):
     k lambda_0 / (k - 3) (notebook 04, eq. 5). ``lam`` (m, 3) ascending, already scaled by k / (k - 3)
     as in :func:`_leaf_geometry` (lam[:, 0] = sigma_n^2), ``tangents`` (m, 3, 2) the eigenvectors e_1, e_2.
     """
+    if HAVE_NUMBA:  # one pass, no (m, 3, 3) temporaries: the same operations
+        return _plane_tilt_kernel(lam, tangents, float(k - 3), k * 1e-300)
     raw = np.maximum((k - 3) * lam[:, 1:], k * 1e-300)  # k lambda_j of the unscaled covariance
     w = np.clip(lam[:, :1] / raw, 0.0, 1.0)  # tilt variance along e_1, e_2
     e1, e2 = tangents[:, :, 0], tangents[:, :, 1]
     return w[:, 0, None, None] * e1[:, :, None] * e1[:, None, :] + w[:, 1, None, None] * e2[:, :, None] * e2[:, None, :]
+
+
+def _plane_tilt_kernel_py(lam, tangents, k3, floor):  # pragma: no cover - compiled
+    """:func:`_plane_tilt` row by row: w_j = clip(l0 / max((k - 3) l_j, k 1e-300), 0, 1) and (w_1 e1 e1^T) + (w_2 e2 e2^T)."""
+    m = lam.shape[0]
+    out = np.empty((m, 3, 3))
+    for i in range(m):
+        w0, w1 = _tilt_share(lam[i, 0], k3 * lam[i, 1], floor), _tilt_share(lam[i, 0], k3 * lam[i, 2], floor)
+        for a in range(3):
+            for b in range(3):
+                out[i, a, b] = (w0 * tangents[i, a, 0]) * tangents[i, b, 0] + (w1 * tangents[i, a, 1]) * tangents[i, b, 1]
+    return out
+
+
+def _tilt_share_py(l0, raw, floor):  # pragma: no cover - compiled
+    """clip(l0 / max(raw, floor), 0, 1) with numpy's NaN rules (a NaN stays NaN)."""
+    if raw < floor:
+        raw = floor
+    x = l0 / raw
+    if x < 0.0:
+        x = 0.0
+    elif x > 1.0:
+        x = 1.0
+    return x
 
 
 def _quadric_kernel(X, nb, qpos, V, coef, sig, slope):  # pragma: no cover - compiled
@@ -415,6 +470,14 @@ def _on_quadric(coef, frame, w):
     return (hs - h)[:, None] * n, normal
 
 
+if HAVE_NUMBA:
+    _plane_rows = compiled(_plane_rows_kernel)
+    _tilt_share = compiled(_tilt_share_py, inline="always")
+    _plane_tilt_kernel = compiled(_plane_tilt_kernel_py)
+else:  # pragma: no cover - depends on the environment
+    _plane_rows = _plane_rows_numpy
+
+
 class Geometry:
     """Normals and noise of one cloud, computed on demand and cached (private).
 
@@ -458,7 +521,7 @@ class Geometry:
     def _get(self, name, pos):
         if name not in self._store:  # nothing computed yet (e.g. no pairs at all)
             return np.full((len(pos),) + self._SHAPES[name], np.nan)
-        return self._store[name][self.slot[pos]]
+        return np.take(self._store[name], self.slot[pos], axis=0)  # (a gather by index: faster than [])
 
     def _compute(self, pos):
         """Compute and cache the points ``pos`` (leaf positions) that the cache does not hold yet."""

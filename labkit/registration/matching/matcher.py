@@ -100,7 +100,7 @@ class _Matcher:
             starts = np.append(np.flatnonzero(np.r_[True, g[1:] != g[:-1]]), len(g))
         object.__setattr__(self, "_queries", (live, starts))
         # the queries' source points in query order: rotated in place of a gather of the moved points
-        object.__setattr__(self, "_source_q", None if live is None else np.ascontiguousarray(self.source[live]))
+        object.__setattr__(self, "_source_q", None if live is None else np.take(self.source, live, axis=0))
         # per query (in that order): the warm start and the memory of the search (KDTree.nearest_in_groups):
         # the leaf position of its nearest target point in the last call (-1: none), where it was last
         # searched and the squared distance of its second nearest target point then. They change no answer.
@@ -284,7 +284,7 @@ def first_search(tree, source, query_order, query_groups, R, t, max_distance):
     """The nearest target point of every query (the rows ``query_order`` of ``source`` moved by R, t), as the
     search memory of a :class:`_Matcher` (its ``search_memory``): made ahead, e.g. beside the source's
     normals, the matcher's first call at (R, t) then finds every answer already known (the same answers)."""
-    q = _rotated(source, R, t)[query_order]
+    q = _rotated(np.take(source, query_order, axis=0), R, t)  # (row by row: the same as rotating all, then taking)
     g = query_groups
     starts = np.append(np.flatnonzero(np.r_[True, g[1:] != g[:-1]]), len(g))
     warm, memory = np.full(len(q), -1, dtype=np.intp), (np.zeros((len(q), 3)), np.zeros(len(q)))
