@@ -19,8 +19,7 @@ from .information import normal_information, sandwich_precision, tilt_informatio
 from .weights import robust_weights
 from ..consistency import normal_equations
 from ..degeneracy import degeneracy_report
-from ..matching.correspondences import _CODE, _replace
-from ..matching.match import Correspondences  # noqa: F401
+from ..matching.match import Correspondences
 
 NAMES = {"translation": ("tx", "ty", "tz"), "rigid": ("rx", "ry", "rz", "tx", "ty", "tz")}
 #: A parameter with this squared share in the undetermined eigen-directions is held fixed (and reported).
@@ -82,7 +81,7 @@ def adjust(corr, R, t, opts):
     keep, factor, scale, u, centred = robust_weights(l, w, opts.reject_sigma, opts.robust)
     all_kept = bool(keep.all())
     pw = w * factor  # 0 where deleted (factor is)
-    corr = _cleaned(corr, ok_rows, None if all_kept else ok_rows[~keep], pw)
+    corr = corr.with_robust_weights(ok_rows, pw, None if all_kept else ok_rows[~keep])
     check_count(corr, opts, len(ok_rows) if all_kept else int(np.count_nonzero(keep)))
     A_all, l_all = A, l
     if all_kept:  # nothing deleted: the rows as they are (no copies)
@@ -158,18 +157,6 @@ def design(corr, R, t, opts, rows=None):
     return A, l, np.take(corr.weight, rows)
 
 
-def _cleaned(corr, rows, outliers, weights):
-    """``corr`` with the rows ``outliers`` (None: none) marked 'outlier' and the weights of the accepted
-    rows ``rows`` replaced by ``weights`` (0 elsewhere): ``corr.with_outliers(...).with_weights(...)`` in one copy."""
-    rule = corr.rule
-    if outliers is not None and len(outliers):
-        rule = rule.copy()
-        rule[outliers] = _CODE["outlier"]
-    weight = np.zeros(len(corr))
-    weight[rows] = weights
-    return _replace(corr, rule=rule, weight=weight)
-
-
 def solve(N, nvec, deg, N_sig=None):
     """Least-squares step, cofactor matrix and update; the datum is fixed when N is degenerate (eq. 5.12).
 
@@ -218,7 +205,8 @@ def solve(N, nvec, deg, N_sig=None):
 
 
 def check_count(corr, opts, n=None):
-    """Raise when fewer than ``min_correspondences`` (at least 6) rows are accepted (``n``: their number, when known)."""
+    """Raise when fewer than ``min_correspondences`` (at least 6) rows are accepted (``n``: their number,
+    when known)."""
     n = corr.n_accepted if n is None else n
     if n < max(opts.min_correspondences, 6):
         counts = ", ".join(f"{name}: {c}" for name, c in corr.rejected if c)

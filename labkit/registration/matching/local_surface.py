@@ -196,7 +196,7 @@ def _geometry_rows(tree, cols, pos, nb, k, quadric, pca=None):
         lam, vecs = pca[0], pca[1].copy() if quadric else pca[1]
     with np.errstate(invalid="ignore"):
         ok = lam[:, 1] > 1e-12 * lam[:, 2]  # not a point, not a line (features._determined)
-    n, noise, variation = _plane_rows(lam, vecs, ok)
+    n, noise, variation = (_plane_rows if HAVE_NUMBA else _plane_rows_numpy)(lam, vecs, ok)
     tangents = vecs[:, :, 1:].copy() if quadric else vecs[:, :, 1:]  # (the quadric's frame changes below)
     if quadric:
         vecs[~ok] = np.nan
@@ -222,7 +222,8 @@ def _plane_rows_numpy(lam, vecs, ok):
     return n, noise, np.where(ok, variation, np.nan)
 
 
-def _plane_rows_kernel(lam, vecs, ok):  # pragma: no cover - compiled
+@compiled
+def _plane_rows(lam, vecs, ok):  # pragma: no cover - compiled
     """:func:`_plane_rows_numpy` in one pass (the same operations: sum(l) as (l1 + l2) + l3, as numpy sums a row)."""
     m = lam.shape[0]
     n, noise, variation = np.empty((m, 3)), np.empty(m), np.empty(m)
@@ -250,26 +251,30 @@ def _plane_tilt(lam, tangents, k):
     as in :func:`_leaf_geometry` (lam[:, 0] = sigma_n^2), ``tangents`` (m, 3, 2) the eigenvectors e_1, e_2.
     """
     if HAVE_NUMBA:  # one pass, no (m, 3, 3) temporaries: the same operations
-        return _plane_tilt_kernel(lam, tangents, float(k - 3), k * 1e-300)
+        return _plane_tilt_rows(lam, tangents, float(k - 3), k * 1e-300)
     raw = np.maximum((k - 3) * lam[:, 1:], k * 1e-300)  # k lambda_j of the unscaled covariance
     w = np.clip(lam[:, :1] / raw, 0.0, 1.0)  # tilt variance along e_1, e_2
     e1, e2 = tangents[:, :, 0], tangents[:, :, 1]
     return w[:, 0, None, None] * e1[:, :, None] * e1[:, None, :] + w[:, 1, None, None] * e2[:, :, None] * e2[:, None, :]
 
 
-def _plane_tilt_kernel_py(lam, tangents, k3, floor):  # pragma: no cover - compiled
-    """:func:`_plane_tilt` row by row: w_j = clip(l0 / max((k - 3) l_j, k 1e-300), 0, 1) and (w_1 e1 e1^T) + (w_2 e2 e2^T)."""
+@compiled
+def _plane_tilt_rows(lam, tangents, k3, floor):  # pragma: no cover - compiled
+    """:func:`_plane_tilt` row by row: w_j = clip(l0 / max((k - 3) l_j, k 1e-300), 0, 1) and
+    (w_1 e1 e1^T) + (w_2 e2 e2^T), each product formed as numpy's broadcast forms it."""
     m = lam.shape[0]
     out = np.empty((m, 3, 3))
     for i in range(m):
         w0, w1 = _tilt_share(lam[i, 0], k3 * lam[i, 1], floor), _tilt_share(lam[i, 0], k3 * lam[i, 2], floor)
         for a in range(3):
             for b in range(3):
-                out[i, a, b] = (w0 * tangents[i, a, 0]) * tangents[i, b, 0] + (w1 * tangents[i, a, 1]) * tangents[i, b, 1]
+                e1, e2 = (w0 * tangents[i, a, 0]) * tangents[i, b, 0], (w1 * tangents[i, a, 1]) * tangents[i, b, 1]
+                out[i, a, b] = e1 + e2
     return out
 
 
-def _tilt_share_py(l0, raw, floor):  # pragma: no cover - compiled
+@compiled(inline="always")
+def _tilt_share(l0, raw, floor):  # pragma: no cover - compiled
     """clip(l0 / max(raw, floor), 0, 1) with numpy's NaN rules (a NaN stays NaN)."""
     if raw < floor:
         raw = floor
@@ -468,14 +473,6 @@ def _on_quadric(coef, frame, w):
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     normal = np.where(normal[:, 2:3] < 0, -normal, normal)
     return (hs - h)[:, None] * n, normal
-
-
-if HAVE_NUMBA:
-    _plane_rows = compiled(_plane_rows_kernel)
-    _tilt_share = compiled(_tilt_share_py, inline="always")
-    _plane_tilt_kernel = compiled(_plane_tilt_kernel_py)
-else:  # pragma: no cover - depends on the environment
-    _plane_rows = _plane_rows_numpy
 
 
 class Geometry:

@@ -238,7 +238,8 @@ def prepare(
 
 
 def _stable_order(keys, n_keys):
-    """``np.argsort(keys, kind="stable")`` of integers in [0, n_keys): by counting (one pass and a scatter, not a sort)."""
+    """``np.argsort(keys, kind="stable")`` of integers in [0, n_keys): by counting (one pass and a scatter, not
+    a sort)."""
     if not have_numba():  # pragma: no cover - depends on the environment
         return np.argsort(keys, kind="stable")
     return compiled(_counting_order)(np.ascontiguousarray(keys, dtype=np.int64), int(n_keys))
