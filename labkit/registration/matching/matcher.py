@@ -424,26 +424,11 @@ if HAVE_NUMBA:
                 rule[live[r]] = code
         return n, uncached
 
-    @compiled(inline="always")  # inlined into the loops (a call per row would cost more than the row)
-    def _gate_row(n, i, nt, rule, normals, R, cosang, target, source, code):  # pragma: no cover - compiled
-        """'degenerate' where the target normal (``target``) or the source normal (``source``) of row i is
-        missing and no rule came first; with ``source`` also |R n_s . n_t| (:func:`_cos_normals`, the same sums)."""
-        if target and np.isnan(nt[i, 0]) and rule[i] == 0:
-            rule[i] = code
-        if source:
-            if np.isnan(normals[i, 0]) and rule[i] == 0:
-                rule[i] = code
-            x, y, z = normals[i, 0], normals[i, 1], normals[i, 2]
-            a0 = (x * R[0, 0] + z * R[0, 2]) + y * R[0, 1]
-            a1 = (x * R[1, 0] + z * R[1, 2]) + y * R[1, 1]
-            a2 = (x * R[2, 0] + z * R[2, 2]) + y * R[2, 1]
-            cosang[n] = abs((a0 * nt[i, 0] + a2 * nt[i, 2]) + a1 * nt[i, 1])
-
     @compiled
     def _gather_pairs(data, q, found, rows, pos, slot, normals_buf, noise_buf, d, nt, noise, rule, normals, R, cosang,
                       target, source, code):  # pragma: no cover - compiled
         """d[i] = q_j - p_i, nt[i] and noise[i] from the geometry cache, for the rows i = ``rows`` (query order);
-        with ``target`` / ``source`` also the gates of :func:`_gate_row` on them."""
+        with ``target`` / ``source`` also the gates of :func:`_normal_gates` on them."""
         for n in range(rows.shape[0]):
             i, r, p = rows[n], found[n], pos[n]
             s = slot[p]
@@ -463,9 +448,21 @@ if HAVE_NUMBA:
 
     @compiled
     def _normal_gates(rows, nt, rule, normals, R, cosang, target, source, code):  # pragma: no cover - compiled
-        """:func:`_gate_row` on the rows ``rows``."""
+        """'degenerate' where the target normal (``target``) or the source normal (``source``) is missing and no
+        rule came first; with ``source`` also |R n_s . n_t| per row (:func:`_cos_normals`, the same sums)."""
         for n in range(rows.shape[0]):
-            _gate_row(n, rows[n], nt, rule, normals, R, cosang, target, source, code)
+            i = rows[n]
+            t0, t1, t2 = nt[i, 0], nt[i, 1], nt[i, 2]
+            if target and np.isnan(t0) and rule[i] == 0:
+                rule[i] = code
+            if source:
+                x, y, z = normals[i, 0], normals[i, 1], normals[i, 2]
+                if np.isnan(x) and rule[i] == 0:
+                    rule[i] = code
+                a0 = (x * R[0, 0] + z * R[0, 2]) + y * R[0, 1]
+                a1 = (x * R[1, 0] + z * R[1, 2]) + y * R[1, 1]
+                a2 = (x * R[2, 0] + z * R[2, 2]) + y * R[2, 1]
+                cosang[n] = abs((a0 * t0 + a2 * t2) + a1 * t1)
 
     @compiled
     def _angle_and_duplicates(rows, pos, ang, has_angle, max_angle, gate, unique, d, rule, angle, n_target,
