@@ -427,28 +427,27 @@ if HAVE_NUMBA:
     def _foot_into(slot, pos, rows, coef_buf, frame_buf, d, nt):  # pragma: no cover - compiled
         """:func:`_foot_into_numpy` in one pass, without gathered copies: the same arithmetic in numpy's order
         (the products of :func:`_on_quadric` left to right, its row sums over strided frame columns in
-        sequence), the same numbers to the bit."""
+        sequence), the same numbers to the bit. (The frame is read in place: a view per row costs more than the row.)"""
         for r in range(rows.shape[0]):
             i, s = rows[r], slot[pos[r]]
             a, b, c, e1, e2 = coef_buf[s, 0], coef_buf[s, 1], coef_buf[s, 2], coef_buf[s, 3], coef_buf[s, 4]
-            F = frame_buf[s]
             w0, w1, w2 = -d[i, 0], -d[i, 1], -d[i, 2]
-            u = (w0 * F[0, 2] + w1 * F[1, 2]) + w2 * F[2, 2]  # along t1
-            v = (w0 * F[0, 1] + w1 * F[1, 1]) + w2 * F[2, 1]  # along t2
-            h = (w0 * F[0, 0] + w1 * F[1, 0]) + w2 * F[2, 0]  # along n
+            u = (w0 * frame_buf[s, 0, 2] + w1 * frame_buf[s, 1, 2]) + w2 * frame_buf[s, 2, 2]  # along t1
+            v = (w0 * frame_buf[s, 0, 1] + w1 * frame_buf[s, 1, 1]) + w2 * frame_buf[s, 2, 1]  # along t2
+            h = (w0 * frame_buf[s, 0, 0] + w1 * frame_buf[s, 1, 0]) + w2 * frame_buf[s, 2, 0]  # along n
             hs = ((((a * u * u + b * u * v) + c * v * v) + e1 * u) + e2 * v) + 0.0
             gu, gv = (2 * a * u + b * v) + e1, (b * u + 2 * c * v) + e2
-            n0 = (F[0, 0] - gu * F[0, 2]) - gv * F[0, 1]
-            n1 = (F[1, 0] - gu * F[1, 2]) - gv * F[1, 1]
-            n2 = (F[2, 0] - gu * F[2, 2]) - gv * F[2, 1]
+            n0 = (frame_buf[s, 0, 0] - gu * frame_buf[s, 0, 2]) - gv * frame_buf[s, 0, 1]
+            n1 = (frame_buf[s, 1, 0] - gu * frame_buf[s, 1, 2]) - gv * frame_buf[s, 1, 1]
+            n2 = (frame_buf[s, 2, 0] - gu * frame_buf[s, 2, 2]) - gv * frame_buf[s, 2, 1]
             length = np.sqrt((n0 * n0 + n1 * n1) + n2 * n2)
             n0, n1, n2 = n0 / length, n1 / length, n2 / length
             if n2 < 0:
                 n0, n1, n2 = -n0, -n1, -n2
             o = hs - h
-            off0 = o * F[0, 0]
+            off0 = o * frame_buf[s, 0, 0]
             if np.isfinite(off0):
-                d[i, 0], d[i, 1], d[i, 2] = off0, o * F[1, 0], o * F[2, 0]
+                d[i, 0], d[i, 1], d[i, 2] = off0, o * frame_buf[s, 1, 0], o * frame_buf[s, 2, 0]
                 nt[i, 0], nt[i, 1], nt[i, 2] = n0, n1, n2
 else:  # pragma: no cover - depends on the environment
     _foot_into = _foot_into_numpy
@@ -566,12 +565,13 @@ class Geometry:
         coef[:, 5] = 0.0  # the surface through the measured q itself (see _Matcher.__call__)
         return _on_quadric(coef, self._get("frame", pos), w)
 
-    def foot_at_rows(self, index, rows, d, nt):
-        """:meth:`foot` from ``q - d[rows]`` written into ``d[rows]`` and ``nt[rows]`` where a quadric was
-        fitted (requires :meth:`at` first): one compiled pass instead of the gathered copies."""
+    def foot_at_rows(self, index, rows, d, nt, pos=None):
+        """:meth:`foot` from ``q - d[rows]`` written into ``d[rows]`` and ``nt[rows]`` where a quadric was fitted
+        (requires :meth:`at` first; ``pos``: the leaf positions of ``index``, when known): one compiled pass."""
         if "coef" not in self._store or len(rows) == 0:
             return  # no quadric computed: nothing fitted
-        _foot_into(self.slot, self.tree.representative[index], rows, self._store["coef"], self._store["frame"], d, nt)
+        pos = self.tree.representative[index] if pos is None else pos
+        _foot_into(self.slot, pos, rows, self._store["coef"], self._store["frame"], d, nt)
 
     def plane_tilt(self, index):
         """Covariance (m, 3, 3) of the random tilt of the PCA plane normals at the points ``index``

@@ -167,7 +167,7 @@ class _Matcher:
         nearest_d = d
         if quadric and n_found:
             nearest_d = d.copy()  # see _numpy_call: the foot point on the quadric replaces q_j
-            geometry.foot_at_rows(j, rows, d, nt)
+            geometry.foot_at_rows(j, rows, d, nt, pos)
         if not fused:
             _normal_gates(rows, nt, rule, some_normals, R, cosang, True, normals is not None and not gates,
                           _CODE["degenerate"])
