@@ -7,21 +7,17 @@ sampled source, exclusions); calling it with the current transformation gives th
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 
 import numpy as np
 
 from ...core.checks import positive
 from ...core.jit import compiled
-from ...core.threads import side_by_side
 from ...neighbours.eigh3 import HAVE_NUMBA
 from ...neighbours.kdtree import KDTree
 from ...core.errors import LabkitError
 from .correspondences import _CODE, MIN_SIGMA, Correspondences
 from .local_surface import Geometry
-
-_CORES = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 if HAVE_NUMBA:
     import numba
@@ -160,10 +156,9 @@ class _Matcher:
         fused = not quadric and not gates
         some_normals = normals if normals is not None else nt
         if n_found:
-            _in_halves(lambda a, b: _gather_pairs(  # d = q_j - p_i, nt, noise_t
-                self.tree.data, q, found[a:b], rows[a:b], pos[a:b], geometry.slot, geometry._store["normals"],
-                geometry._store["noise"], d, nt, noise_t, rule, some_normals, R, cosang[a:b], fused,
-                fused and normals is not None, _CODE["degenerate"]), n_found)
+            _gather_pairs(self.tree.data, q, found, rows, pos, geometry.slot, geometry._store["normals"],
+                          geometry._store["noise"], d, nt, noise_t,  # d = q_j - p_i, nt, noise_t
+                          rule, some_normals, R, cosang, fused, fused and normals is not None, _CODE["degenerate"])
         nearest_d = d
         if quadric and n_found:
             nearest_d = d.copy()  # see _numpy_call: the foot point on the quadric replaces q_j
@@ -197,9 +192,8 @@ class _Matcher:
             sigma_t[rows] = self._target_sigma(j, noise_t[rows])
         weight, plane = np.empty(m), np.empty(m)
         xyz = np.empty((m, 3))
-        _in_halves(lambda a, b: _weights_planes(
-            self.source[a:b], R, t, self.origin, rule[a:b], self.source_sigma[a:b], sigma_t[a:b], noise_sigma,
-            MIN_SIGMA**2, tidx[a:b], nt[a:b], d[a:b], noise_t[a:b], angle[a:b], weight[a:b], plane[a:b], xyz[a:b]), m)
+        _weights_planes(self.source, R, t, self.origin, rule, self.source_sigma, sigma_t, noise_sigma, MIN_SIGMA**2,
+                        tidx, nt, d, noise_t, angle, weight, plane, xyz)
         return Correspondences(
             self.source_index, tidx, xyz, d, plane, angle, nt, weight, rule, self.n_source, dict(opt),
         )  # fmt: skip
@@ -284,15 +278,6 @@ class _Matcher:
         if not opt["class_sigma"] and not opt["noise_weighting"]:
             return np.full(len(j), np.sqrt(0.5))  # unit weights: p = 1
         return np.sqrt(np.maximum(var, MIN_SIGMA**2))
-
-
-def _in_halves(run, n, least=50_000):
-    """``run(a, b)`` over the two halves of range(n) side by side (the compiled kernels release the GIL; each
-    row's numbers are computed alone: the same as ``run(0, n)``), or at once below ``least`` rows or on one core."""
-    if n < least or _CORES < 2:
-        run(0, n)
-        return
-    side_by_side((run, 0, n // 2), (run, n // 2, n))
 
 
 def first_search(tree, source, query_order, query_groups, R, t, max_distance):
