@@ -23,14 +23,14 @@ own, index for index.
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
 from ..core.jit import compiled
 from .kdtree_build import _pool
 
-
-
-_NO_WARM = np.empty(0, np.intp)
+_RUNS_PER_THREAD = 4  # runs of groups per thread: an uneven split evens out
 
 
 @compiled
@@ -44,7 +44,19 @@ def _gap2(lo, hi, a, b):  # pragma: no cover - compiled
 
 
 @compiled
-def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, idx, dist2, tie, warm, second):  # pragma: no cover
+def _still_nearest(d2, mx, my, mz, second):  # pragma: no cover - compiled
+    """True where a warm candidate at squared distance d2 is provably still the nearest point of its query.
+
+    When the query was last searched, from a place (mx, my, mz) away from where it is now, every other
+    point lay at least sqrt(second) from there, so now at least sqrt(second) - |m| from the query
+    (triangle inequality); a candidate nearer than that is the unique nearest point. The margin 1e-9
+    (relative) covers the rounding of the distances, each of which is correct to a few units in the last place.
+    """
+    return (np.sqrt(d2) + np.sqrt(mx * mx + my * my + mz * mz)) * (1.0 + 1e-9) < np.sqrt(second)
+
+
+@compiled
+def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, idx, dist2, tie, warm, at, second):  # pragma: no cover
     """Nearest row of X (leaf order) of every row of Q, squared distance < bound2.
 
     Q's rows come in groups: group g holds rows group_start[g]:group_start[g + 1]. Missing
@@ -52,40 +64,57 @@ def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, idx, dist2, tie, wa
     lies at exactly the nearest distance (the index is then the per-point search's business).
     ``warm[q]`` (a row of X, or -1; an empty array: none) is a first candidate, e.g. the nearest
     point of the previous ICP iteration: its distance bounds the walk from the start.
-    ``second`` (an empty array: not wanted) gets the squared distance of every query's second
-    nearest point (bound2 when there is none within the bound; the nearest distance at a tie): the
-    walk then prunes by that larger distance, so that no point nearer than it is missed.
+
+    ``at`` and ``second`` (with ``warm``; empty arrays: no memory) are the search memory of
+    :func:`nearest`: a row whose warm candidate is provably still its nearest point (:func:`_still_nearest`)
+    is answered without a walk; every other row of the group is searched with its second nearest
+    point (squared distance into ``second``, bound2 when there is none within the bound; the nearest
+    distance at a tie; ``at`` := the row): the walk then prunes by that larger distance, so that no
+    point nearer than it is missed. The group's box and leaf scans hold the searched rows only.
     """
     want2 = second.shape[0] > 0
+    has_warm = warm.shape[0] > 0
     stack = np.empty(2 * depth + 4, np.int64)
     lower = np.empty(2 * depth + 4)
+    longest = 0
     for g in range(group_start.shape[0] - 1):
-        a, b = group_start[g], group_start[g + 1]
-        if b <= a:
-            continue
-        lo0 = hi0 = Q[a, 0]
-        lo1 = hi1 = Q[a, 1]
-        lo2 = hi2 = Q[a, 2]
+        longest = max(longest, group_start[g + 1] - group_start[g])
+    # the searched rows of a group, their coordinates and their current nearest (w, best, tied) and
+    # second nearest (w2) squared distances, side by side while the walk runs
+    live, qc = np.empty(longest, np.int64), np.empty((longest, 3))
+    lw, lw2 = np.empty(longest), np.empty(longest)
+    lbest, ltie = np.empty(longest, np.int64), np.empty(longest, np.bool_)
+    for g in range(group_start.shape[0] - 1):
+        n = 0
+        lo0 = lo1 = lo2 = np.inf
+        hi0 = hi1 = hi2 = -np.inf
         wmax = 0.0
-        for q in range(a, b):
-            idx[q] = -1
-            dist2[q] = bound2
+        for q in range(group_start[g], group_start[g + 1]):
             tie[q] = False
-            if warm.shape[0] > 0 and warm[q] >= 0:
+            qx, qy, qz = Q[q, 0], Q[q, 1], Q[q, 2]
+            w, best = bound2, -1
+            if has_warm and warm[q] >= 0:
                 i = warm[q]
-                dx, dy, dz = X[i, 0] - Q[q, 0], X[i, 1] - Q[q, 1], X[i, 2] - Q[q, 2]
+                dx, dy, dz = X[i, 0] - qx, X[i, 1] - qy, X[i, 2] - qz
                 d2 = dx * dx + dy * dy + dz * dz
                 if d2 < bound2:
-                    dist2[q] = d2
-                    idx[q] = i
+                    w, best = d2, i
+                    if want2 and _still_nearest(d2, qx - at[q, 0], qy - at[q, 1], qz - at[q, 2], second[q]):
+                        idx[q], dist2[q] = i, d2
+                        continue
+            w2 = bound2 if want2 else w
             if want2:
-                second[q] = bound2
-                wmax = max(wmax, bound2)
-            else:
-                wmax = max(wmax, dist2[q])
-            lo0, hi0 = min(lo0, Q[q, 0]), max(hi0, Q[q, 0])
-            lo1, hi1 = min(lo1, Q[q, 1]), max(hi1, Q[q, 1])
-            lo2, hi2 = min(lo2, Q[q, 2]), max(hi2, Q[q, 2])
+                at[q, 0], at[q, 1], at[q, 2] = qx, qy, qz
+            live[n] = q
+            qc[n, 0], qc[n, 1], qc[n, 2] = qx, qy, qz
+            lw[n], lw2[n], lbest[n], ltie[n] = w, w2, best, False
+            wmax = max(wmax, w2)
+            n += 1
+            lo0, hi0 = min(lo0, qx), max(hi0, qx)
+            lo1, hi1 = min(lo1, qy), max(hi1, qy)
+            lo2, hi2 = min(lo2, qz), max(hi2, qz)
+        if n == 0:
+            continue
         sp = 1
         stack[0] = 0
         lower[0] = 0.0
@@ -102,15 +131,16 @@ def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, idx, dist2, tie, wa
             if child < 0:  # a leaf: scanned by the queries whose nearest distance reaches its box
                 s, e = nodes[node, 0], nodes[node, 1]
                 wmax = 0.0
-                for q in range(a, b):
-                    w = dist2[q]
-                    w2 = second[q] if want2 else w  # the walk's reach for this query
-                    qx, qy, qz = Q[q, 0], Q[q, 1], Q[q, 2]
-                    gq = _gap2(box[node, 0], box[node, 3], qx, qx) + _gap2(box[node, 1], box[node, 4], qy, qy)
-                    gq += _gap2(box[node, 2], box[node, 5], qz, qz)
+                b0, b1, b2 = box[node, 0], box[node, 1], box[node, 2]
+                b3, b4, b5 = box[node, 3], box[node, 4], box[node, 5]
+                for k in range(n):
+                    w = lw[k]
+                    w2 = lw2[k]  # the walk's reach for this query (w2 >= w)
+                    qx, qy, qz = qc[k, 0], qc[k, 1], qc[k, 2]
+                    gq = _gap2(b0, b3, qx, qx) + _gap2(b1, b4, qy, qy) + _gap2(b2, b5, qz, qz)
                     if gq <= w2:
-                        best = idx[q]
-                        tied = tie[q]
+                        best = lbest[k]
+                        tied = ltie[k]
                         for i in range(s, e):
                             dx, dy, dz = X[i, 0] - qx, X[i, 1] - qy, X[i, 2] - qz
                             d2 = dx * dx + dy * dy + dz * dz
@@ -125,13 +155,9 @@ def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, idx, dist2, tie, wa
                                 w2 = d2
                             elif want2 and d2 < w2 and i != best:
                                 w2 = d2
-                        dist2[q] = w
-                        idx[q] = best
-                        tie[q] = tied
-                        if want2:
-                            second[q] = w2
-                        else:
+                        if not want2:
                             w2 = w
+                        lw[k], lw2[k], lbest[k], ltie[k] = w, w2, best, tied
                     wmax = max(wmax, w2)
                 continue
             d = int(box[node, 7])
@@ -149,43 +175,38 @@ def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, idx, dist2, tie, wa
             stack[sp] = near
             lower[sp] = gap
             sp += 1
+        for k in range(n):  # the answers of the searched rows
+            q = live[k]
+            dist2[q], idx[q], tie[q] = lw[k], lbest[k], ltie[k]
+            if want2:
+                second[q] = lw2[k]
 
 
 @compiled
-def _still_nearest(X, Q, warm, at, second, bound2, idx, dist2, done):  # pragma: no cover - compiled
-    """done[q] where the warm candidate is provably still the nearest point of query q (then idx, dist2 set).
-
-    When query q was last searched from ``at[q]``, every other point lay at least sqrt(second[q]) from
-    there, so now at least sqrt(second[q]) - |Q[q] - at[q]| from Q[q] (triangle inequality); a candidate
-    nearer than that is the unique nearest point. The margin 1e-9 (relative) covers the rounding of the
-    distances, each of which is correct to a few units in the last place.
-    """
-    for q in range(Q.shape[0]):
-        done[q] = False
-        i = warm[q]
-        if i < 0:
-            continue
-        dx, dy, dz = X[i, 0] - Q[q, 0], X[i, 1] - Q[q, 1], X[i, 2] - Q[q, 2]
-        d2 = dx * dx + dy * dy + dz * dz
-        if not d2 < bound2:
-            continue
-        mx, my, mz = Q[q, 0] - at[q, 0], Q[q, 1] - at[q, 1], Q[q, 2] - at[q, 2]
-        if (np.sqrt(d2) + np.sqrt(mx * mx + my * my + mz * mz)) * (1.0 + 1e-9) < np.sqrt(second[q]):
-            idx[q] = i
-            dist2[q] = d2
-            done[q] = True
+def _answers(idx, d2, indices, n, a, b, dist, index, warm):  # pragma: no cover - compiled
+    """Rows a..b-1 as the caller wants them: distance (inf: none), input index of the nearest point (n:
+    none) and the next warm start (its leaf-order position, -1: none; an empty ``warm``: not wanted)."""
+    for q in range(a, b):
+        i = idx[q]
+        if i >= 0:
+            dist[q], index[q] = np.sqrt(d2[q]), indices[i]
+        else:
+            dist[q], index[q] = np.inf, n
+        if warm.shape[0] > 0:
+            warm[q] = i
 
 
 def nearest(tree, Q, starts, bound, threads, warm=None, memory=None):
-    """Leaf-order index and squared distance of the nearest tree point of every row of ``Q`` (squared
-    distance < bound**2; else -1 and bound**2), exactly as ``tree._run(Q, 1, bound, threads)``.
+    """Distance and input index of the nearest tree point of every row of ``Q`` (distance < bound;
+    else inf and ``tree.n``), exactly as ``tree.query(Q, 1, bound, threads)``.
 
     Rows ``starts[g]:starts[g + 1]`` form group g (searched together, :func:`_nn_groups`); groups of
     points that lie close together (a source tree's leaves) make the search fast, any grouping gives
     the same answer. Rows with a tie are answered again by the per-point kernel, which then decides
-    the index as it always did. ``warm`` (per row a leaf-order position or -1) gives a first candidate
-    of every row, e.g. its nearest point in the previous ICP iteration: an exact bound, the same
-    answer sooner (a candidate as near as the nearest point counts as a tie).
+    the index as it always did. ``warm`` (per row a leaf-order position or -1; overwritten with the
+    position of the row's nearest point, -1: none) gives a first candidate of every row, e.g. its
+    nearest point in the previous ICP iteration: an exact bound, the same answer sooner (a candidate
+    as near as the nearest point counts as a tie).
 
     ``memory`` (optional, with ``warm``): a pair (at (m, 3), second (m,)) per row, read and overwritten:
     where the row was last searched and the squared distance of its second nearest point from there
@@ -195,49 +216,64 @@ def nearest(tree, Q, starts, bound, threads, warm=None, memory=None):
     source by less than the spacing of the target: most rows are not searched again. The same answer.
     """
     Q = np.ascontiguousarray(Q, dtype=np.float64)
-    m = len(Q)
     bound2 = bound * bound if np.isfinite(bound) else np.inf
-    idx, d2 = np.empty(m, np.intp), np.empty(m)
     starts = np.ascontiguousarray(starts, dtype=np.int64)
+    given = warm
     warm = _NO_WARM if warm is None else np.ascontiguousarray(warm, dtype=np.intp)
-    if memory is None or not len(warm):
-        _search(tree, Q, starts, bound, bound2, threads, warm, _NO_SECOND, idx, d2)
-        return d2, idx
-    at, second = memory
-    done = np.empty(m, np.bool_)
-    _still_nearest(tree.data, Q, warm, at, second, bound2, idx, d2, done)
-    todo = np.flatnonzero(~done)
-    if len(todo):
-        group = np.searchsorted(starts, todo, side="right")  # rows of one group stay together
-        sub = np.append(np.flatnonzero(np.r_[True, group[1:] != group[:-1]]), len(todo)).astype(np.int64)
-        idx_t, d2_t, s2 = np.empty(len(todo), np.intp), np.empty(len(todo)), np.empty(len(todo))
-        _search(tree, Q[todo], sub, bound, bound2, threads, warm[todo], s2, idx_t, d2_t)
-        idx[todo], d2[todo] = idx_t, d2_t
-        at[todo], second[todo] = Q[todo], s2
-    return d2, idx
+    at, second = memory if memory is not None and len(warm) else (_NO_AT, _NO_SECOND)
+    dist, index = _search(tree, Q, starts, bound, bound2, threads, warm, at, second)
+    if given is not None and warm is not given:  # (a copy of another type)
+        given[:] = warm
+    return dist, index
 
 
-_NO_SECOND = np.empty(0)
+_NO_WARM, _NO_AT, _NO_SECOND = np.empty(0, np.intp), np.empty((0, 3)), np.empty(0)
 
 
-def _search(tree, Q, starts, bound, bound2, threads, warm, second, idx, d2):
-    """:func:`_nn_groups` on the threads, ties answered again by the per-point kernel (their second
-    nearest point is then as near as the nearest: no row is left out of the next search for it)."""
+def _search(tree, Q, starts, bound, bound2, threads, warm, at, second):
+    """:func:`_nn_groups` and :func:`_answers` on the threads, ties answered again by the per-point kernel
+    (their second nearest point is then as near as the nearest: no row is left out of the next search for it).
+
+    The groups are cut into runs of about equal numbers of rows, a few per thread; this thread and
+    the pool's take the next run until none is left (a search with memory leaves the work uneven)."""
     m = len(Q)
-    tie = np.zeros(m, np.bool_)
-    args = (tree.data, *tree._nodes)
+    idx, d2, tie = np.empty(m, np.intp), np.empty(m), np.zeros(m, np.bool_)
+    dist, index = np.empty(m), np.empty(m, np.intp)
+    args = (tree.data, *tree._nodes, Q)
+
+    def run(a, b):  # the groups a..b-1
+        _nn_groups(*args, starts[a:b + 1], bound2, idx, d2, tie, warm, at, second)
+        _answers(idx, d2, tree.indices, tree.n, starts[a], starts[b], dist, index, warm)
+
     threads = min(threads, max(1, m // 4000))
     if threads <= 1 or len(starts) <= 2:
-        _nn_groups(*args, Q, starts, bound2, idx, d2, tie, warm, second)
+        run(0, len(starts) - 1)
     else:
-        cut = np.unique(np.linspace(0, len(starts) - 1, threads + 1).astype(int))
-        jobs = [_pool(threads).submit(_nn_groups, *args, Q, starts[a:b + 1], bound2, idx, d2, tie, warm, second)
-                for a, b in zip(cut[:-1], cut[1:])]
+        cut = np.searchsorted(starts, np.linspace(0, m, _RUNS_PER_THREAD * threads + 1)[1:-1])
+        cut = np.unique(np.r_[0, np.minimum(cut, len(starts) - 1), len(starts) - 1])
+        runs = iter(zip(cut[:-1].tolist(), cut[1:].tolist()))
+        lock = threading.Lock()
+
+        def work():
+            while True:
+                with lock:
+                    a, b = next(runs, (0, 0))
+                if b <= a:
+                    return
+                run(a, b)
+
+        jobs = [_pool(threads - 1).submit(work) for _ in range(threads - 1)]
+        work()
         for job in jobs:
             job.result()
     redo = np.flatnonzero(tie)
     if len(redo):
         d2_r, idx_r = tree._run(Q[redo], 1, bound, 1)
-        d2[redo], idx[redo] = d2_r[:, 0], idx_r[:, 0]
+        i = idx[redo] = idx_r[:, 0]
+        dist[redo] = np.where(i >= 0, np.sqrt(d2_r[:, 0]), np.inf)
+        index[redo] = np.where(i >= 0, tree.indices[np.maximum(i, 0)], tree.n)
+        if len(warm):
+            warm[redo] = i
         if len(second):
             second[redo] = 0.0
+    return dist, index
