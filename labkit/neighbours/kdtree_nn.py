@@ -35,12 +35,9 @@ _RUNS_PER_THREAD = 4  # runs of groups per thread: an uneven split evens out
 
 @compiled
 def _gap2(lo, hi, a, b):  # pragma: no cover - compiled
-    """Squared gap between the intervals [lo, hi] and [a, b] (0 where they overlap)."""
-    t = lo - b
-    if t > 0.0:
-        return t * t
-    t = a - hi
-    return t * t if t > 0.0 else 0.0
+    """Squared gap between the intervals [lo, hi] and [a, b] (0 where they overlap), without branches."""
+    t = max(0.0, lo - b) + max(0.0, a - hi)  # (one of them is 0)
+    return t * t
 
 
 @compiled
@@ -81,7 +78,8 @@ def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, idx, dist2, tie, wa
         longest = max(longest, group_start[g + 1] - group_start[g])
     # the searched rows of a group, their coordinates and their current nearest (w, best, tied) and
     # second nearest (w2) squared distances, side by side while the walk runs
-    live, qc = np.empty(longest, np.int64), np.empty((longest, 3))
+    live, gq = np.empty(longest, np.int64), np.empty(longest)
+    qx_, qy_, qz_ = np.empty(longest), np.empty(longest), np.empty(longest)
     lw, lw2 = np.empty(longest), np.empty(longest)
     lbest, ltie = np.empty(longest, np.int64), np.empty(longest, np.bool_)
     for g in range(group_start.shape[0] - 1):
@@ -106,7 +104,7 @@ def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, idx, dist2, tie, wa
             if want2:
                 at[q, 0], at[q, 1], at[q, 2] = qx, qy, qz
             live[n] = q
-            qc[n, 0], qc[n, 1], qc[n, 2] = qx, qy, qz
+            qx_[n], qy_[n], qz_[n] = qx, qy, qz
             lw[n], lw2[n], lbest[n], ltie[n] = w, w2, best, False
             wmax = max(wmax, w2)
             n += 1
@@ -133,12 +131,16 @@ def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, idx, dist2, tie, wa
                 wmax = 0.0
                 b0, b1, b2 = box[node, 0], box[node, 1], box[node, 2]
                 b3, b4, b5 = box[node, 3], box[node, 4], box[node, 5]
+                for k in range(n):  # the gap of every row to the leaf's box (a loop without branches: SIMD)
+                    tx = max(0.0, b0 - qx_[k]) + max(0.0, qx_[k] - b3)
+                    ty = max(0.0, b1 - qy_[k]) + max(0.0, qy_[k] - b4)
+                    tz = max(0.0, b2 - qz_[k]) + max(0.0, qz_[k] - b5)
+                    gq[k] = tx * tx + ty * ty + tz * tz
                 for k in range(n):
                     w = lw[k]
                     w2 = lw2[k]  # the walk's reach for this query (w2 >= w)
-                    qx, qy, qz = qc[k, 0], qc[k, 1], qc[k, 2]
-                    gq = _gap2(b0, b3, qx, qx) + _gap2(b1, b4, qy, qy) + _gap2(b2, b5, qz, qz)
-                    if gq <= w2:
+                    if gq[k] <= w2:
+                        qx, qy, qz = qx_[k], qy_[k], qz_[k]
                         best = lbest[k]
                         tied = ltie[k]
                         for i in range(s, e):
