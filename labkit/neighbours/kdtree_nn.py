@@ -53,14 +53,28 @@ def _still_nearest(d2, mx, my, mz, second):  # pragma: no cover - compiled
 
 
 @compiled
-def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, idx, dist2, tie, warm, at, second):  # pragma: no cover
-    """Nearest row of X (leaf order) of every row of Q, squared distance < bound2.
+def _answer(q, i, d2, indices, dist, index, warm):  # pragma: no cover - compiled
+    """Row q's answer as the caller wants it: the distance (inf: none), the input index of its nearest point
+    X[i] (len(indices): none) and the next warm start (i, -1: none; an empty ``warm``: not wanted)."""
+    if i >= 0:
+        dist[q], index[q] = np.sqrt(d2), indices[i]
+    else:
+        dist[q], index[q] = np.inf, indices.shape[0]
+    if warm.shape[0] > 0:
+        warm[q] = i
+
+
+@compiled
+def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, indices, dist, index, tie, warm, at, second):  # pragma: no cover
+    """Distance and input index (``indices`` of the leaf-order row) of the nearest row of X (leaf order) of every
+    row of Q, squared distance < bound2.
 
     Q's rows come in groups: group g holds rows group_start[g]:group_start[g + 1]. Missing
-    neighbours get index -1 and distance bound2. ``tie[q]`` is set where another point
+    neighbours get distance inf and index len(X). ``tie[q]`` is set where another point
     lies at exactly the nearest distance (the index is then the per-point search's business).
     ``warm[q]`` (a row of X, or -1; an empty array: none) is a first candidate, e.g. the nearest
-    point of the previous ICP iteration: its distance bounds the walk from the start.
+    point of the previous ICP iteration: its distance bounds the walk from the start; overwritten
+    with the row of X of the nearest point (-1: none), the next call's warm start.
 
     ``at`` and ``second`` (with ``warm``; empty arrays: no memory) are the search memory of
     :func:`nearest`: a row whose warm candidate is provably still its nearest point (:func:`_still_nearest`)
@@ -79,7 +93,7 @@ def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, idx, dist2, tie, wa
     # the searched rows of a group, their coordinates and their current nearest (w, best, tied) and
     # second nearest (w2) squared distances, side by side while the walk runs
     live, gq = np.empty(longest, np.int64), np.empty(longest)
-    qx_, qy_, qz_ = np.empty(longest), np.empty(longest), np.empty(longest)
+    rx, ry, rz = np.empty(longest), np.empty(longest), np.empty(longest)
     lw, lw2 = np.empty(longest), np.empty(longest)
     lbest, ltie = np.empty(longest, np.int64), np.empty(longest, np.bool_)
     for g in range(group_start.shape[0] - 1):
@@ -98,13 +112,13 @@ def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, idx, dist2, tie, wa
                 if d2 < bound2:
                     w, best = d2, i
                     if want2 and _still_nearest(d2, qx - at[q, 0], qy - at[q, 1], qz - at[q, 2], second[q]):
-                        idx[q], dist2[q] = i, d2
+                        _answer(q, i, d2, indices, dist, index, warm)
                         continue
             w2 = bound2 if want2 else w
             if want2:
                 at[q, 0], at[q, 1], at[q, 2] = qx, qy, qz
             live[n] = q
-            qx_[n], qy_[n], qz_[n] = qx, qy, qz
+            rx[n], ry[n], rz[n] = qx, qy, qz
             lw[n], lw2[n], lbest[n], ltie[n] = w, w2, best, False
             wmax = max(wmax, w2)
             n += 1
@@ -128,23 +142,25 @@ def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, idx, dist2, tie, wa
             child = nodes[node, 2]
             if child < 0:  # a leaf: scanned by the queries whose nearest distance reaches its box
                 s, e = nodes[node, 0], nodes[node, 1]
+                leaf = X[s:e]  # (indices from 0 up: no checks for negative ones in the loop, 4 % faster)
                 wmax = 0.0
                 b0, b1, b2 = box[node, 0], box[node, 1], box[node, 2]
                 b3, b4, b5 = box[node, 3], box[node, 4], box[node, 5]
                 for k in range(n):  # the gap of every row to the leaf's box (a loop without branches: SIMD)
-                    tx = max(0.0, b0 - qx_[k]) + max(0.0, qx_[k] - b3)
-                    ty = max(0.0, b1 - qy_[k]) + max(0.0, qy_[k] - b4)
-                    tz = max(0.0, b2 - qz_[k]) + max(0.0, qz_[k] - b5)
+                    tx = max(0.0, b0 - rx[k]) + max(0.0, rx[k] - b3)
+                    ty = max(0.0, b1 - ry[k]) + max(0.0, ry[k] - b4)
+                    tz = max(0.0, b2 - rz[k]) + max(0.0, rz[k] - b5)
                     gq[k] = tx * tx + ty * ty + tz * tz
                 for k in range(n):
                     w = lw[k]
                     w2 = lw2[k]  # the walk's reach for this query (w2 >= w)
                     if gq[k] <= w2:
-                        qx, qy, qz = qx_[k], qy_[k], qz_[k]
+                        qx, qy, qz = rx[k], ry[k], rz[k]
                         best = lbest[k]
                         tied = ltie[k]
-                        for i in range(s, e):
-                            dx, dy, dz = X[i, 0] - qx, X[i, 1] - qy, X[i, 2] - qz
+                        for j in range(leaf.shape[0]):
+                            i = s + j
+                            dx, dy, dz = leaf[j, 0] - qx, leaf[j, 1] - qy, leaf[j, 2] - qz
                             d2 = dx * dx + dy * dy + dz * dz
                             if d2 < w:
                                 if want2:
@@ -155,8 +171,8 @@ def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, idx, dist2, tie, wa
                             elif d2 == w and best >= 0 and i != best:  # (the warm start met again)
                                 tied = True
                                 w2 = d2
-                            elif want2 and d2 < w2 and i != best:
-                                w2 = d2
+                            else:  # (d2 < w2 and i != best: w2 = d2, as a minimum: a shorter chain from point to point)
+                                w2 = min(w2, d2 if i != best else np.inf)
                         if not want2:
                             w2 = w
                         lw[k], lw2[k], lbest[k], ltie[k] = w, w2, best, tied
@@ -179,23 +195,10 @@ def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, idx, dist2, tie, wa
             sp += 1
         for k in range(n):  # the answers of the searched rows
             q = live[k]
-            dist2[q], idx[q], tie[q] = lw[k], lbest[k], ltie[k]
+            _answer(q, lbest[k], lw[k], indices, dist, index, warm)
+            tie[q] = ltie[k]
             if want2:
                 second[q] = lw2[k]
-
-
-@compiled
-def _answers(idx, d2, indices, n, a, b, dist, index, warm):  # pragma: no cover - compiled
-    """Rows a..b-1 as the caller wants them: distance (inf: none), input index of the nearest point (n:
-    none) and the next warm start (its leaf-order position, -1: none; an empty ``warm``: not wanted)."""
-    for q in range(a, b):
-        i = idx[q]
-        if i >= 0:
-            dist[q], index[q] = np.sqrt(d2[q]), indices[i]
-        else:
-            dist[q], index[q] = np.inf, n
-        if warm.shape[0] > 0:
-            warm[q] = i
 
 
 def nearest(tree, Q, starts, bound, threads, warm=None, memory=None):
@@ -233,19 +236,17 @@ _NO_WARM, _NO_AT, _NO_SECOND = np.empty(0, np.intp), np.empty((0, 3)), np.empty(
 
 
 def _search(tree, Q, starts, bound, bound2, threads, warm, at, second):
-    """:func:`_nn_groups` and :func:`_answers` on the threads, ties answered again by the per-point kernel
+    """:func:`_nn_groups` on the threads, ties answered again by the per-point kernel
     (their second nearest point is then as near as the nearest: no row is left out of the next search for it).
 
     The groups are cut into runs of about equal numbers of rows, a few per thread; this thread and
     the pool's take the next run until none is left (a search with memory leaves the work uneven)."""
     m = len(Q)
-    idx, d2, tie = np.empty(m, np.intp), np.empty(m), np.zeros(m, np.bool_)
-    dist, index = np.empty(m), np.empty(m, np.intp)
+    dist, index, tie = np.empty(m), np.empty(m, np.intp), np.zeros(m, np.bool_)
     args = (tree.data, *tree._nodes, Q)
 
     def run(a, b):  # the groups a..b-1
-        _nn_groups(*args, starts[a:b + 1], bound2, idx, d2, tie, warm, at, second)
-        _answers(idx, d2, tree.indices, tree.n, starts[a], starts[b], dist, index, warm)
+        _nn_groups(*args, starts[a:b + 1], bound2, tree.indices, dist, index, tie, warm, at, second)
 
     threads = min(threads, max(1, m // 4000))
     if threads <= 1 or len(starts) <= 2:
@@ -271,7 +272,7 @@ def _search(tree, Q, starts, bound, bound2, threads, warm, at, second):
     redo = np.flatnonzero(tie)
     if len(redo):
         d2_r, idx_r = tree._run(Q[redo], 1, bound, 1)
-        i = idx[redo] = idx_r[:, 0]
+        i = idx_r[:, 0]
         dist[redo] = np.where(i >= 0, np.sqrt(d2_r[:, 0]), np.inf)
         index[redo] = np.where(i >= 0, tree.indices[np.maximum(i, 0)], tree.n)
         if len(warm):
