@@ -498,11 +498,7 @@ class KDTree:
         where it was last searched (m, 3) and the squared distance of its second nearest point from
         there (m,), zeros at first; rows that provably kept their nearest point are not searched
         (see :func:`~labkit.neighbours.kdtree_nn.nearest`). The answer is the same with or without them."""
-        d2, leaf = nearest(self, q, starts, float(distance_upper_bound), _threads(workers), warm, memory)
-        if warm is not None:
-            warm[:] = leaf
-        found = leaf >= 0
-        return np.where(found, np.sqrt(d2), np.inf), np.where(found, self.indices[np.where(found, leaf, 0)], self.n)
+        return nearest(self, q, starts, float(distance_upper_bound), _threads(workers), warm, memory)
 
     def query(self, q, k: int = 1, distance_upper_bound: float = np.inf, workers: int = 1):
         """Like ``cKDTree.query``: (distance, input index); k = 1 gives 1-D arrays.

@@ -127,7 +127,7 @@ class NeighbourRows:
             return known, nb, None
         lam, vecs, at = self.pca
         first = at[rk]
-        return known, nb, (lam[first], vecs[first])
+        return known, nb, (np.take(lam, first, axis=0), np.take(vecs, first, axis=0))  # (faster than [] by index)
 
 
 def _drop_dead(_ref) -> None:

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..core.distributions import chi2_sf, f_sf
+from ..core.jit import compiled, have_numba
 from ..core.report import ReportMixin, fmt
 
 
@@ -201,19 +202,20 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
     u = A.shape[2]
     if u == 0:  # every parameter held: nothing to test
         return None
-    N_all = np.einsum("mru,m,mrv->uv", A, P, A)
-    x0 = np.linalg.lstsq(N_all, np.einsum("mru,m,mr->u", A, P, l), rcond=None)[0]  # the result's own step
+    N_all, n_all = normal_equations(A, P, l)
+    x0 = np.linalg.lstsq(N_all, n_all, rcond=None)[0]  # the result's own step
     fits = []  # each group's own fit in the directions it determines
     for g, name in enumerate(names):
         rows = labels == g
         if rows.sum() < max(min_n, 2 * u):
             continue
-        Ag, lg, Pg = A[rows], l[rows], P[rows]
-        N = np.einsum("mru,m,mrv->uv", Ag, Pg, Ag)
+        at = np.flatnonzero(rows)  # (a gather by index: several times faster than by the mask)
+        Ag, lg, Pg = np.take(A, at, axis=0), np.take(l, at, axis=0), np.take(P, at)
+        N, n = normal_equations(Ag, Pg, lg)
         lam, V = np.linalg.eigh(0.5 * (N + N.T))
         keep = lam >= rel_threshold * max(lam[-1], 1e-300)
         lam, V = lam[keep], V[:, keep]
-        y = (V.T @ np.einsum("mru,m,mr->u", Ag, Pg, lg)) / lam  # the group's own estimate of V^T x
+        y = (V.T @ n) / lam  # the group's own estimate of V^T x
         v = np.einsum("mru,u->mr", Ag, V @ y) - lg
         cell = cell_labels(cells[rows])
         B = Ag @ V
@@ -265,6 +267,31 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
                        offset_std[:, translation], between, scale=scale, denominator_dof=nu_f)
 
 
+def normal_equations(A, P, l):
+    """N = A^T P A and n = A^T P l (eq. 5.7) of the rows A (m, r, u), weights P (m,), observations l (m, r).
+
+    One compiled pass (the sums in the order of ``np.einsum``'s loop over the rows, (a_u p) a_v:
+    the same numbers), else numpy's einsum.
+    """
+    if not have_numba():  # pragma: no cover - depends on the environment
+        return np.einsum("mru,m,mrv->uv", A, P, A), np.einsum("mru,m,mr->u", A, P, l)
+    return compiled(_normal_equations_kernel)(A, P, l)
+
+
+def _normal_equations_kernel(A, P, l):  # pragma: no cover - compiled
+    m, r, u = A.shape
+    N = np.zeros((u, u))
+    n = np.zeros(u)
+    for i in range(m):
+        for k in range(r):
+            for a in range(u):
+                ap = A[i, k, a] * P[i]
+                for b in range(u):
+                    N[a, b] += ap * A[i, k, b]
+                n[a] += ap * l[i, k]
+    return N, n
+
+
 def cell_labels(cells):
     """Dense labels 0..G-1 of the cells (m, d) or (m,) of integers, numbered in lexicographic order of the cells.
 
@@ -282,8 +309,9 @@ def cell_labels(cells):
     c = np.asarray(cells).reshape(len(cells), -1).astype(np.int64, copy=False)
     if len(c) == 0:
         return np.zeros(0, dtype=np.intp)
-    lo = c.min(axis=0)
-    span = c.max(axis=0) - lo + 1
+    # per column (a reduction over axis 0 of a 2-D array is many times slower)
+    lo = np.array([c[:, col].min() for col in range(c.shape[1])], dtype=np.int64)
+    span = np.array([c[:, col].max() for col in range(c.shape[1])], dtype=np.int64) - lo + 1
     if float(np.prod(span.astype(np.float64))) >= 2.0**62:  # keys would overflow: the sort of rows
         return np.unique(c, axis=0, return_inverse=True)[1].ravel()
     key = np.zeros(len(c), dtype=np.int64)
@@ -325,8 +353,26 @@ def cell_sums(B, P, v, cell):
     residuals about the group's own estimate, ``cell`` (m,) the cell index of each row.
     """
     nc = int(cell.max()) + 1
+    if B.shape[1] == 1 and have_numba():  # one pass, no (m, k, k) products (the same sums: see _cell_sums_kernel)
+        return compiled(_cell_sums_kernel)(cell, nc, B, P, v)
     Nc = sum_by_cell(cell, np.einsum("mri,m,mrj->mij", B, P, B), nc)
     return Nc, sum_by_cell(cell, np.einsum("mri,m,mr->mi", B, P, v), nc)
+
+
+def _cell_sums_kernel(cell, nc, B, P, v):  # pragma: no cover - compiled
+    """:func:`cell_sums` for one residual per row (r = 1): each row's products (b_i p) b_j and (b_i p) v, as
+    einsum forms them, added to its cell's sums in row order from zero, as np.bincount adds them."""
+    m, _, k = B.shape
+    Nc = np.zeros((nc, k, k))
+    g = np.zeros((nc, k))
+    for i in range(m):
+        c = cell[i]
+        for a in range(k):
+            bp = B[i, 0, a] * P[i]
+            for b in range(k):
+                Nc[c, a, b] += bp * B[i, 0, b]
+            g[c, a] += bp * v[i, 0]
+    return Nc, g
 
 
 def cell_jackknife(Nc, g, cell, lam):

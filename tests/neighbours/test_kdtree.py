@@ -161,8 +161,9 @@ def test_grouped_nearest_equals_the_per_point_search_index_for_index(name, bound
         from labkit.neighbours.kdtree_nn import _nn_groups
 
         n = len(Q)
-        idx, d2, tie = np.empty(n, np.intp), np.empty(n), np.zeros(n, np.bool_)
-        _nn_groups(tree.data, *tree._nodes, Q, leaf_groups, np.inf, idx, d2, tie, np.empty(0, np.intp), np.empty(0))
+        dist, index, tie = np.empty(n), np.empty(n, np.intp), np.zeros(n, np.bool_)
+        _nn_groups(tree.data, *tree._nodes, Q, leaf_groups, np.inf, tree.indices, dist, index, tie,
+                   np.empty(0, np.intp), np.empty((0, 3)), np.empty(0))
         assert tie.sum() > 10
 
 

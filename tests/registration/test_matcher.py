@@ -1,6 +1,7 @@
 """ICP's matching step (labkit.registration.matching.matcher): the grouped nearest-neighbour search changes no result."""
 
 import numpy as np
+import pytest
 
 from labkit.neighbours.kdtree import KDTree
 from labkit.registration import icp
@@ -30,6 +31,8 @@ def test_compiled_matching_steps_equal_their_numpy_route(monkeypatch):
     """ICP (rigid, every source point, plane and quadric) bitwise as with the numpy forms of the compiled steps
     of the matcher: the cached normals and noise scattered to the pairs, the foot points on the quadrics and
     their normals, the angle between the normals and the distances of the duplicate rule."""
+    from labkit.registration import consistency
+    from labkit.registration.closest_point import covariance
     from labkit.registration.matching import local_surface, matcher
 
     rng = np.random.default_rng(7)
@@ -39,6 +42,9 @@ def test_compiled_matching_steps_equal_their_numpy_route(monkeypatch):
         kw = dict(dof="rigid", sample=None, rng=0, surface=surface, select="all")
         new = icp(source, target, **kw)
         with monkeypatch.context() as m:
+            m.setattr(matcher, "HAVE_NUMBA", False)  # the matcher's numpy route (_Matcher._numpy_call)
+            m.setattr(consistency, "have_numba", lambda: False)  # N and n, the cell sums by einsum
+            m.setattr(covariance, "have_numba", lambda: False)
             m.setattr(local_surface, "_scatter_cached", local_surface._scatter_cached_numpy)
             m.setattr(local_surface, "_foot_into", local_surface._foot_into_numpy)
             m.setattr(matcher, "_cos_normals", matcher._cos_normals_numpy)
@@ -66,3 +72,35 @@ def test_first_search_made_ahead_changes_no_correspondence():
         a, b = ahead(R, move), plain(R, move)
         for name in ("target_index", "d", "weight", "rule"):
             assert np.array_equal(getattr(a, name), getattr(b, name), equal_nan=True)
+
+
+@pytest.mark.parametrize("options", [
+    dict(),
+    dict(max_angle_deg=None),
+    dict(max_angle_deg=5.0, unique=False),
+    dict(noise_weighting=False),
+    dict(max_noise=0.0025, classes=(2, 6)),
+    dict(class_sigma={2: 0.01, 6: 0.03}, default_sigma=0.02),
+    dict(surface="quadric", max_distance=0.05),
+])
+def test_compiled_matcher_call_equals_its_numpy_route(options):
+    """_Matcher._compiled_call gives the correspondences of _Matcher._numpy_call, array for array and to the bit,
+    under every gate and weighting (classes, noise, angle, duplicates, class sigmas, quadric feet, no partner)."""
+    from labkit import PointCloud
+    from labkit.registration.matching.match import prepare
+
+    rng = np.random.default_rng(3)
+    target = np.round(wavy_surface(12_000, rng, noise=0.002), 3)
+    source = np.round(wavy_surface(5_000, rng, noise=0.002), 3) - [0.021, -0.013, 0.008]
+    target[:40] = target[40:80]  # exact duplicates in the target
+    cls = lambda n: rng.choice([2, 5, 6], n)  # noqa: E731
+    matcher = prepare(PointCloud(source, {"classification": cls(len(source))}),
+                      PointCloud(target, {"classification": cls(len(target))}), sample=None, **options)
+    R = np.array([[1.0, -0.002, 0.0], [0.002, 1.0, 0.001], [0.0, -0.001, 1.0]])
+    for t in (np.zeros(3), np.array([0.02, -0.01, 0.005])):
+        new, old = matcher._compiled_call(R, t), matcher._numpy_call(R, t)
+        assert (new.rule != 0).any() and (new.rule == 0).any()
+        for name in ("source_index", "target_index", "source_xyz", "d", "plane_distance", "normal_angle",
+                     "target_normal", "weight", "rule"):
+            a, b = getattr(new, name), getattr(old, name)
+            assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), name

@@ -17,6 +17,7 @@ from ...transforms import skew
 from .covariance import block_covariance, held_rotation_covariance
 from .information import normal_information, sandwich_precision, tilt_information
 from .weights import robust_weights
+from ..consistency import normal_equations
 from ..degeneracy import degeneracy_report
 from ..matching.match import Correspondences
 
@@ -74,23 +75,24 @@ class Adjustment:
 
 def adjust(corr, R, t, opts):
     """One weighted LS step on the current correspondences (eqs. 5.7-5.12)."""
-    check_count(corr, opts)
-    A, l, w = design(corr, R, t, opts)
+    ok_rows = np.flatnonzero(corr.rule == 0)  # the accepted rows, found once
+    check_count(corr, opts, len(ok_rows))
+    A, l, w = design(corr, R, t, opts, rows=ok_rows)
     keep, factor, scale, u, centred = robust_weights(l, w, opts.reject_sigma, opts.robust)
-    ok_rows = np.flatnonzero(corr.accepted)
-    corr = corr.with_outliers(np.isin(np.arange(len(corr)), ok_rows[~keep]))
-    weights = np.zeros(len(corr))
-    weights[ok_rows] = w * factor
-    corr = corr.with_weights(weights)
-    check_count(corr, opts)
-    P = (w * factor)[keep]
+    all_kept = bool(keep.all())
+    pw = w * factor  # 0 where deleted (factor is)
+    corr = corr.with_robust_weights(ok_rows, pw, None if all_kept else ok_rows[~keep])
+    check_count(corr, opts, len(ok_rows) if all_kept else int(np.count_nonzero(keep)))
     A_all, l_all = A, l
-    A, l = A[keep], l[keep]
-    N = np.einsum("mru,m,mrv->uv", A, P, A)  # N = A^T P A  (eq. 5.7)
-    nvec = np.einsum("mru,m,mr->u", A, P, l)  # n = A^T P l
+    if all_kept:  # nothing deleted: the rows as they are (no copies)
+        P, kept_rows = pw, ok_rows
+    else:
+        P, A, l, kept_rows = pw[keep], A[keep], l[keep], ok_rows[keep]
+    N, nvec = normal_equations(A, P, l)  # N = A^T P A, n = A^T P l  (eq. 5.7)
     names = NAMES[opts.dof]
-    N_eps = tilt_information(corr, ok_rows[keep], P, opts, R)
-    N_sig = normal_information(A, P, corr.target_normal[ok_rows[keep]], N, opts) - N_eps  # (eq. 5.12b)
+    N_eps = tilt_information(corr, kept_rows, P, opts, R)
+    normals = lambda: corr.target_normal[kept_rows]  # noqa: E731 - read only by point-to-point
+    N_sig = normal_information(A, P, normals, N, opts) - N_eps  # (eq. 5.12b)
     deg = degeneracy_report(
         sandwich_precision(N, N_sig), names, opts.rel_threshold, slice(len(names) - 3, None), share_threshold=HELD_SHARE,
         hold_first=names[:-3], sigma0=scale, max_std=opts.max_std,
@@ -134,24 +136,25 @@ def adjust(corr, R, t, opts):
     )
 
 
-def design(corr, R, t, opts):
-    """Design rows A (m, r, u), observations l (m, r) and weights of the accepted rows."""
-    ok = corr.accepted
+def design(corr, R, t, opts, rows=None):
+    """Design rows A (m, r, u), observations l (m, r) and weights of the accepted rows (``rows``: their
+    indices, when the caller has them)."""
+    rows = np.flatnonzero(corr.rule == 0) if rows is None else rows
     rigid = opts.dof == "rigid"
-    p = corr.source_xyz[ok] - opts.origin if rigid else None  # current source points, local frame (rotations)
-    d = corr.d[ok]
-    n = corr.target_normal[ok]
+    p = np.take(corr.source_xyz, rows, axis=0) - opts.origin if rigid else None  # current source points, local frame
+    n = np.take(corr.target_normal, rows, axis=0)
     if opts.metric == "point_to_plane":
-        l = np.einsum("ij,ij->i", n, d)[:, None]  # l_i = n . (q - p)  (eq. 5.2)
+        # l_i = n . (q - p)  (eq. 5.2): the matcher's plane distance, the same numbers
+        l = np.take(corr.plane_distance, rows)[:, None]
         A = n[:, None, :]
         if rigid:  # n . (omega x p) = omega . (p x n)  (eq. 5.4)
             A = np.concatenate([np.cross(p, n)[:, None, :] / opts.L, A], axis=2)
     else:
-        l = d  # three components per correspondence (eq. 5.1)
-        A = np.broadcast_to(np.eye(3), (len(d), 3, 3))
+        l = np.take(corr.d, rows, axis=0)  # three components per correspondence (eq. 5.1)
+        A = np.broadcast_to(np.eye(3), (len(l), 3, 3))
         if rigid:  # omega x p = -[p]x omega  (eq. 5.5)
             A = np.concatenate([-skew(p) / opts.L, A], axis=2)
-    return A, l, corr.weight[ok]
+    return A, l, np.take(corr.weight, rows)
 
 
 def solve(N, nvec, deg, N_sig=None):
@@ -201,8 +204,10 @@ def solve(N, nvec, deg, N_sig=None):
     return dx, Q, step
 
 
-def check_count(corr, opts):
-    n = corr.n_accepted
+def check_count(corr, opts, n=None):
+    """Raise when fewer than ``min_correspondences`` (at least 6) rows are accepted (``n``: their number,
+    when known)."""
+    n = corr.n_accepted if n is None else n
     if n < max(opts.min_correspondences, 6):
         counts = ", ".join(f"{name}: {c}" for name, c in corr.rejected if c)
         raise EmptyRegionError(

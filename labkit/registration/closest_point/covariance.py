@@ -9,6 +9,7 @@ from scipy.linalg import cho_factor, cho_solve
 
 from scipy.stats import norm, t as student_t
 
+from ...core.jit import compiled, have_numba
 from .weights import deletion_limit, psi_prime
 from ..consistency import cell_labels, sum_by_cell
 
@@ -92,12 +93,17 @@ def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, xy, N_eps, o
     cov[free, :] = cov[:, free] = np.inf
     P = w * factor
     v = np.einsum("mru,u->mr", A, dx_s) - l
-    g = np.einsum("mru,m,mr->mu", A, P, v)[keep][:, fixed]  # score of each kept correspondence
     if cell is None:
         cell = cell_labels(block_cells(xy[keep], opts.block_size))
-    G = sum_by_cell(cell, g, int(cell.max()) + 1)
-    n_cells, m = len(G), len(g)
-    if n_cells < 2 * g.shape[1]:
+    one = A.shape[1] == 1 and have_numba()  # one residual per row: the cell sums in compiled passes
+    kept, cols = np.flatnonzero(keep), np.flatnonzero(fixed)
+    if one:  # the same sums (see _cell_scores)
+        G = compiled(_cell_scores)(cell, int(cell.max()) + 1, A, P, v, kept, cols)
+    else:
+        g = np.einsum("mru,m,mr->mu", A, P, v)[keep][:, fixed]  # score of each kept correspondence
+        G = sum_by_cell(cell, g, int(cell.max()) + 1)
+    n_cells, m, k = len(G), len(kept), len(cols)
+    if n_cells < 2 * k:
         return cov  # too few cells for a sandwich: NaN, the caller falls back to the formal one
     M = np.einsum("ci,cj->ij", G, G) * n_cells / (n_cells - 1)  # small-sample factor of the cluster sandwich
     e = centred / np.maximum(np.linalg.norm(centred, axis=1, keepdims=True), 1e-300)
@@ -119,11 +125,38 @@ def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, xy, N_eps, o
     except np.linalg.LinAlgError:
         return cov
     Ji = cho_solve(c, np.eye(len(J)))
-    info = sum_by_cell(cell, (w * factor)[keep, None, None] * AA[keep][:, fixed][:, :, fixed], n_cells)
+    if one:
+        info = compiled(_cell_information)(cell, n_cells, A, P, kept, cols)
+    else:
+        info = sum_by_cell(cell, (w * factor)[keep, None, None] * AA[keep][:, fixed][:, :, fixed], n_cells)
     dof = effective_cells(info, Ji) * (n_cells - 1) / n_cells  # n_cells - 1 when all cells inform alike
     t_factor = student_t.ppf(norm.cdf(SIGMAS), np.maximum(dof, 1.0)) / SIGMAS
-    cov[np.ix_(fixed, fixed)] = Ji @ M @ Ji * (m / max(m - g.shape[1], 1)) * np.outer(t_factor, t_factor)
+    cov[np.ix_(fixed, fixed)] = Ji @ M @ Ji * (m / max(m - k, 1)) * np.outer(t_factor, t_factor)
     return cov
+
+
+def _cell_scores(cell, n_cells, A, P, v, rows, cols):  # pragma: no cover - compiled
+    """Per cell the scores (a_u p) v of its rows ``rows`` (one residual each) in the columns ``cols``: the
+    products as einsum forms them, added in row order from zero as np.bincount adds them (sum_by_cell)."""
+    G = np.zeros((n_cells, len(cols)))
+    for r in range(len(rows)):
+        i, c = rows[r], cell[r]
+        for a in range(len(cols)):
+            G[c, a] += (A[i, 0, cols[a]] * P[i]) * v[i, 0]
+    return G
+
+
+def _cell_information(cell, n_cells, A, pw, rows, cols):  # pragma: no cover - compiled
+    """Per cell the information pw (a_u a_v) of its rows ``rows`` (one residual each) in the columns ``cols``,
+    added in row order from zero (the numbers of sum_by_cell on the products)."""
+    k = len(cols)
+    info = np.zeros((n_cells, k, k))
+    for r in range(len(rows)):
+        i, c = rows[r], cell[r]
+        for a in range(k):
+            for b in range(k):
+                info[c, a, b] += pw[i] * (A[i, 0, cols[a]] * A[i, 0, cols[b]])
+    return info
 
 
 def block_cells(xy, block_size):

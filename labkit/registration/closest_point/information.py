@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...core.jit import compiled, have_numba
 from ...transforms import skew
 
 #: The tilt information of eq. (5.12b) is summed over at most this many correspondences (an even subset).
@@ -79,6 +80,7 @@ def normal_information(A, P, n, N, opts):
     """
     if opts.metric == "point_to_plane":
         return N
+    n = n() if callable(n) else n  # the normals of the rows (or a function that gathers them: only needed here)
     a = np.einsum("mru,mr->mu", A, np.nan_to_num(n))  # A^T n per row
     return np.einsum("m,mu,mv->uv", P, a, a)
 
@@ -102,12 +104,33 @@ def tilt_information(corr, rows, P, opts, R=None):
         P = P * (total / max(P.sum(), 1e-300))
     C = opts.tilt(corr.target_index[rows])  # (m, 3, 3) tilt covariance of each target normal
     if R is not None:  # the tilt the data show where it exceeds the model's (eq. 5.12c)
-        C = C + _excess(observed_tilt(corr, rows, P, opts, R), np.einsum("m,mij->ij", P, C) / P.sum())
+        excess = _excess(observed_tilt(corr, rows, P, opts, R), _weighted_sum(P, C) / P.sum())
+        if opts.dof != "rigid" and have_numba():  # sum_m P (C + excess) without the shifted copy of C
+            return compiled(_weighted_sum_kernel)(P, C, excess)
+        C = C + excess
     if opts.dof == "rigid":
         p = corr.source_xyz[rows] - opts.origin
         G = np.concatenate([skew(p) / opts.L, np.broadcast_to(np.eye(3), (len(p), 3, 3))], axis=1)
         return np.einsum("m,mai,mij,mbj->ab", P, G, C, G)
-    return np.einsum("m,mij->ij", P, C)
+    return _weighted_sum(P, C)
+
+
+def _weighted_sum(P, C):
+    """sum_m P_m C_m of the (m, 3, 3) covariances C: np.einsum("m,mij->ij"), compiled in its order (the same
+    numbers)."""
+    if not have_numba():  # pragma: no cover - depends on the environment
+        return np.einsum("m,mij->ij", P, C)
+    return compiled(_weighted_sum_kernel)(P, C, np.zeros((3, 3)))
+
+
+def _weighted_sum_kernel(P, C, X):  # pragma: no cover - compiled
+    """sum_m P_m (C_m + X), the terms added in row order (np.einsum's order), (C + X) formed first as numpy would."""
+    out = np.zeros((3, 3))
+    for i in range(P.shape[0]):
+        for a in range(3):
+            for b in range(3):
+                out[a, b] += P[i] * (C[i, a, b] + X[a, b])
+    return out
 
 
 def observed_tilt(corr, rows, P, opts, R):
@@ -123,6 +146,9 @@ def observed_tilt(corr, rows, P, opts, R):
     ns = getattr(opts.tilt, "source_normals", None)
     if ns is None or len(rows) == 0:
         return None
+    if have_numba():  # one pass over the rows, the same operations (see _observed_kernel)
+        S, ok = compiled(_observed_kernel)(ns, rows, np.ascontiguousarray(R, dtype=np.float64), corr.target_normal, P)
+        return 0.5 * S / P[ok].sum() if ok.any() else None
     a = np.einsum("ij,kj->ik", ns[rows], R)
     b = corr.target_normal[rows]
     a = a * np.sign(np.einsum("ij,ij->i", a, b))[:, None]  # normals are unsigned
@@ -131,6 +157,32 @@ def observed_tilt(corr, rows, P, opts, R):
     if not ok.any():
         return None
     return 0.5 * np.einsum("m,mi,mj->ij", P[ok], D[ok], D[ok]) / P[ok].sum()
+
+
+def _observed_kernel(ns, rows, R, tn, P):  # pragma: no cover - compiled
+    """sum P D D^T over the rows with a finite D = s R n_s - n_t (s: the sign of R n_s . n_t), and those rows: the
+    rotation and the dot product with einsum's sums, the outer products added in row order (its order too)."""
+    m = rows.shape[0]
+    S = np.zeros((3, 3))
+    ok = np.zeros(m, np.bool_)
+    D = np.empty(3)
+    for r in range(m):
+        i = rows[r]
+        x, y, z = ns[i, 0], ns[i, 1], ns[i, 2]
+        a0 = (x * R[0, 0] + z * R[0, 2]) + y * R[0, 1]
+        a1 = (x * R[1, 0] + z * R[1, 2]) + y * R[1, 1]
+        a2 = (x * R[2, 0] + z * R[2, 2]) + y * R[2, 1]
+        b0, b1, b2 = tn[i, 0], tn[i, 1], tn[i, 2]
+        dot = (a0 * b0 + a2 * b2) + a1 * b1
+        s = 1.0 if dot > 0 else (-1.0 if dot < 0 else (0.0 if dot == 0 else np.nan))  # np.sign
+        D[0], D[1], D[2] = a0 * s - b0, a1 * s - b1, a2 * s - b2
+        if np.isfinite(D[0]) and np.isfinite(D[1]) and np.isfinite(D[2]):
+            ok[r] = True
+            for u in range(3):
+                pd = P[r] * D[u]
+                for v in range(3):
+                    S[u, v] += pd * D[v]
+    return S, ok
 
 
 def _excess(observed, model):

@@ -48,7 +48,10 @@ def robust_weights(l, w, reject_sigma, robust):
     e = np.sqrt(w)[:, None] * l
     centred = e - np.median(e, axis=0)
     r = centred.shape[1]
-    size = np.linalg.norm(centred, axis=1)
+    if r == 1:  # |e|: sqrt(e^2), as np.linalg.norm forms it, without its slow reduction over a single column
+        size = np.sqrt(centred[:, 0] * centred[:, 0])
+    else:
+        size = np.linalg.norm(centred, axis=1)
     # robust scale of one component: MAD (r = 1) or the median of a chi distribution (r = 3)
     scale = np.median(size) / (np.sqrt(chi2.ppf(0.5, r)))
     scale = max(scale, 1e-12)

@@ -124,6 +124,18 @@ class Correspondences(ReportMixin):
         weight = np.where(self.accepted, np.asarray(weight, dtype=np.float64), 0.0)
         return _replace(self, weight=weight)
 
+    def with_robust_weights(self, rows, weights, outliers=None) -> "Correspondences":
+        """``with_outliers(...).with_weights(...)`` in one copy: the rows ``outliers`` (accepted rows; None: none)
+        marked 'outlier', the accepted rows ``rows`` weighted by ``weights``, 0 elsewhere (``weights`` is 0 where
+        a row of ``rows`` became an outlier)."""
+        rule = self.rule
+        if outliers is not None and len(outliers):
+            rule = rule.copy()
+            rule[outliers] = _CODE["outlier"]
+        weight = np.zeros(len(self))
+        weight[rows] = weights
+        return _replace(self, rule=rule, weight=weight)
+
     def table(self) -> np.ndarray:
         """All rows as a numpy structured array (no pandas needed)."""
         dtype = [

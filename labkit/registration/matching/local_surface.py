@@ -18,6 +18,7 @@ import numpy as np
 from ...neighbours.eigh3 import HAVE_NUMBA, eigh3_analytic
 from ...neighbours.kdtree import KDTree
 from ...core.errors import LabkitError
+from ...core.jit import compiled
 from ...neighbours.moments import covariances  # the shared kNN covariance kernel (compiled)
 
 if HAVE_NUMBA:
@@ -70,7 +71,9 @@ def _leaf_geometry(tree, cols, pos, k, quadric=False, eigenvalues=False, known=N
         rest = np.flatnonzero(~have)
         if len(rest):
             nb[rest] = tree.query_leaf_positions(pos[rest], k, workers=threads if len(rest) > 2000 else 1)
-        if pca_known is not None:
+        if pca_known is not None and not len(rest):
+            pca = pca_known  # every point's PCA is known (fresh arrays: nothing else holds them)
+        elif pca_known is not None:
             pca = np.empty((len(pos), 3)), np.empty((len(pos), 3, 3))
             pca[0][have], pca[1][have] = pca_known
             if len(rest):
@@ -193,11 +196,7 @@ def _geometry_rows(tree, cols, pos, nb, k, quadric, pca=None):
         lam, vecs = pca[0], pca[1].copy() if quadric else pca[1]
     with np.errstate(invalid="ignore"):
         ok = lam[:, 1] > 1e-12 * lam[:, 2]  # not a point, not a line (features._determined)
-    n = vecs[:, :, 0]
-    n = np.where(n[:, 2:3] < 0, -n, n)
-    n[~ok] = np.nan
-    noise = np.where(ok, np.sqrt(lam[:, 0]), np.nan)
-    variation = lam[:, 0] / np.maximum(lam.sum(axis=1), 1e-300)  # change of curvature l3 / sum(l)
+    n, noise, variation = (_plane_rows if HAVE_NUMBA else _plane_rows_numpy)(lam, vecs, ok)
     tangents = vecs[:, :, 1:].copy() if quadric else vecs[:, :, 1:]  # (the quadric's frame changes below)
     if quadric:
         vecs[~ok] = np.nan
@@ -208,8 +207,39 @@ def _geometry_rows(tree, cols, pos, nb, k, quadric, pca=None):
         fit = np.isfinite(sig)  # else (k < 7, degenerate fit) the plane stays
         _, n_q = _on_quadric(coef[fit], vecs[fit], np.zeros((int(fit.sum()), 3)))
         n[fit] = n_q  # the surface normal at the point itself
-        return n, np.where(fit, sig, noise), np.where(ok, variation, np.nan), lam, tangents, coef, vecs, slope
-    return n, noise, np.where(ok, variation, np.nan), lam, tangents, vecs
+        return n, np.where(fit, sig, noise), variation, lam, tangents, coef, vecs, slope
+    return n, noise, variation, lam, tangents, vecs
+
+
+def _plane_rows_numpy(lam, vecs, ok):
+    """The plane's normal (oriented up), noise sqrt(l3) and change of curvature l3 / sum(l) per row; NaN where
+    not ``ok`` (a point or a line)."""
+    n = vecs[:, :, 0]
+    n = np.where(n[:, 2:3] < 0, -n, n)
+    n[~ok] = np.nan
+    noise = np.where(ok, np.sqrt(lam[:, 0]), np.nan)
+    variation = lam[:, 0] / np.maximum(lam.sum(axis=1), 1e-300)  # change of curvature l3 / sum(l)
+    return n, noise, np.where(ok, variation, np.nan)
+
+
+@compiled
+def _plane_rows(lam, vecs, ok):  # pragma: no cover - compiled
+    """:func:`_plane_rows_numpy` in one pass (the same operations: sum(l) as (l1 + l2) + l3, as numpy sums a row)."""
+    m = lam.shape[0]
+    n, noise, variation = np.empty((m, 3)), np.empty(m), np.empty(m)
+    for i in range(m):
+        if not ok[i]:
+            n[i, 0] = n[i, 1] = n[i, 2] = noise[i] = variation[i] = np.nan
+            continue
+        flip = vecs[i, 2, 0] < 0
+        for c in range(3):
+            n[i, c] = -vecs[i, c, 0] if flip else vecs[i, c, 0]
+        noise[i] = np.sqrt(lam[i, 0])
+        total = (lam[i, 0] + lam[i, 1]) + lam[i, 2]
+        if total < 1e-300:
+            total = 1e-300
+        variation[i] = lam[i, 0] / total
+    return n, noise, variation
 
 
 def _plane_tilt(lam, tangents, k):
@@ -220,10 +250,40 @@ def _plane_tilt(lam, tangents, k):
     k lambda_0 / (k - 3) (notebook 04, eq. 5). ``lam`` (m, 3) ascending, already scaled by k / (k - 3)
     as in :func:`_leaf_geometry` (lam[:, 0] = sigma_n^2), ``tangents`` (m, 3, 2) the eigenvectors e_1, e_2.
     """
+    if HAVE_NUMBA:  # one pass, no (m, 3, 3) temporaries: the same operations
+        return _plane_tilt_rows(lam, tangents, float(k - 3), k * 1e-300)
     raw = np.maximum((k - 3) * lam[:, 1:], k * 1e-300)  # k lambda_j of the unscaled covariance
     w = np.clip(lam[:, :1] / raw, 0.0, 1.0)  # tilt variance along e_1, e_2
     e1, e2 = tangents[:, :, 0], tangents[:, :, 1]
     return w[:, 0, None, None] * e1[:, :, None] * e1[:, None, :] + w[:, 1, None, None] * e2[:, :, None] * e2[:, None, :]
+
+
+@compiled
+def _plane_tilt_rows(lam, tangents, k3, floor):  # pragma: no cover - compiled
+    """:func:`_plane_tilt` row by row: w_j = clip(l0 / max((k - 3) l_j, k 1e-300), 0, 1) and
+    (w_1 e1 e1^T) + (w_2 e2 e2^T), each product formed as numpy's broadcast forms it."""
+    m = lam.shape[0]
+    out = np.empty((m, 3, 3))
+    for i in range(m):
+        w0, w1 = _tilt_share(lam[i, 0], k3 * lam[i, 1], floor), _tilt_share(lam[i, 0], k3 * lam[i, 2], floor)
+        for a in range(3):
+            for b in range(3):
+                e1, e2 = (w0 * tangents[i, a, 0]) * tangents[i, b, 0], (w1 * tangents[i, a, 1]) * tangents[i, b, 1]
+                out[i, a, b] = e1 + e2
+    return out
+
+
+@compiled(inline="always")
+def _tilt_share(l0, raw, floor):  # pragma: no cover - compiled
+    """clip(l0 / max(raw, floor), 0, 1) with numpy's NaN rules (a NaN stays NaN)."""
+    if raw < floor:
+        raw = floor
+    x = l0 / raw
+    if x < 0.0:
+        x = 0.0
+    elif x > 1.0:
+        x = 1.0
+    return x
 
 
 def _quadric_kernel(X, nb, qpos, V, coef, sig, slope):  # pragma: no cover - compiled
@@ -367,28 +427,27 @@ if HAVE_NUMBA:
     def _foot_into(slot, pos, rows, coef_buf, frame_buf, d, nt):  # pragma: no cover - compiled
         """:func:`_foot_into_numpy` in one pass, without gathered copies: the same arithmetic in numpy's order
         (the products of :func:`_on_quadric` left to right, its row sums over strided frame columns in
-        sequence), the same numbers to the bit."""
+        sequence), the same numbers to the bit. (The frame is read in place: a view per row costs more than the row.)"""
         for r in range(rows.shape[0]):
             i, s = rows[r], slot[pos[r]]
             a, b, c, e1, e2 = coef_buf[s, 0], coef_buf[s, 1], coef_buf[s, 2], coef_buf[s, 3], coef_buf[s, 4]
-            F = frame_buf[s]
             w0, w1, w2 = -d[i, 0], -d[i, 1], -d[i, 2]
-            u = (w0 * F[0, 2] + w1 * F[1, 2]) + w2 * F[2, 2]  # along t1
-            v = (w0 * F[0, 1] + w1 * F[1, 1]) + w2 * F[2, 1]  # along t2
-            h = (w0 * F[0, 0] + w1 * F[1, 0]) + w2 * F[2, 0]  # along n
+            u = (w0 * frame_buf[s, 0, 2] + w1 * frame_buf[s, 1, 2]) + w2 * frame_buf[s, 2, 2]  # along t1
+            v = (w0 * frame_buf[s, 0, 1] + w1 * frame_buf[s, 1, 1]) + w2 * frame_buf[s, 2, 1]  # along t2
+            h = (w0 * frame_buf[s, 0, 0] + w1 * frame_buf[s, 1, 0]) + w2 * frame_buf[s, 2, 0]  # along n
             hs = ((((a * u * u + b * u * v) + c * v * v) + e1 * u) + e2 * v) + 0.0
             gu, gv = (2 * a * u + b * v) + e1, (b * u + 2 * c * v) + e2
-            n0 = (F[0, 0] - gu * F[0, 2]) - gv * F[0, 1]
-            n1 = (F[1, 0] - gu * F[1, 2]) - gv * F[1, 1]
-            n2 = (F[2, 0] - gu * F[2, 2]) - gv * F[2, 1]
+            n0 = (frame_buf[s, 0, 0] - gu * frame_buf[s, 0, 2]) - gv * frame_buf[s, 0, 1]
+            n1 = (frame_buf[s, 1, 0] - gu * frame_buf[s, 1, 2]) - gv * frame_buf[s, 1, 1]
+            n2 = (frame_buf[s, 2, 0] - gu * frame_buf[s, 2, 2]) - gv * frame_buf[s, 2, 1]
             length = np.sqrt((n0 * n0 + n1 * n1) + n2 * n2)
             n0, n1, n2 = n0 / length, n1 / length, n2 / length
             if n2 < 0:
                 n0, n1, n2 = -n0, -n1, -n2
             o = hs - h
-            off0 = o * F[0, 0]
+            off0 = o * frame_buf[s, 0, 0]
             if np.isfinite(off0):
-                d[i, 0], d[i, 1], d[i, 2] = off0, o * F[1, 0], o * F[2, 0]
+                d[i, 0], d[i, 1], d[i, 2] = off0, o * frame_buf[s, 1, 0], o * frame_buf[s, 2, 0]
                 nt[i, 0], nt[i, 1], nt[i, 2] = n0, n1, n2
 else:  # pragma: no cover - depends on the environment
     _foot_into = _foot_into_numpy
@@ -458,7 +517,7 @@ class Geometry:
     def _get(self, name, pos):
         if name not in self._store:  # nothing computed yet (e.g. no pairs at all)
             return np.full((len(pos),) + self._SHAPES[name], np.nan)
-        return self._store[name][self.slot[pos]]
+        return np.take(self._store[name], self.slot[pos], axis=0)  # (a gather by index: faster than [])
 
     def _compute(self, pos):
         """Compute and cache the points ``pos`` (leaf positions) that the cache does not hold yet."""
@@ -506,12 +565,13 @@ class Geometry:
         coef[:, 5] = 0.0  # the surface through the measured q itself (see _Matcher.__call__)
         return _on_quadric(coef, self._get("frame", pos), w)
 
-    def foot_at_rows(self, index, rows, d, nt):
-        """:meth:`foot` from ``q - d[rows]`` written into ``d[rows]`` and ``nt[rows]`` where a quadric was
-        fitted (requires :meth:`at` first): one compiled pass instead of the gathered copies."""
+    def foot_at_rows(self, index, rows, d, nt, pos=None):
+        """:meth:`foot` from ``q - d[rows]`` written into ``d[rows]`` and ``nt[rows]`` where a quadric was fitted
+        (requires :meth:`at` first; ``pos``: the leaf positions of ``index``, when known): one compiled pass."""
         if "coef" not in self._store or len(rows) == 0:
             return  # no quadric computed: nothing fitted
-        _foot_into(self.slot, self.tree.representative[index], rows, self._store["coef"], self._store["frame"], d, nt)
+        pos = self.tree.representative[index] if pos is None else pos
+        _foot_into(self.slot, pos, rows, self._store["coef"], self._store["frame"], d, nt)
 
     def plane_tilt(self, index):
         """Covariance (m, 3, 3) of the random tilt of the PCA plane normals at the points ``index``
@@ -519,8 +579,9 @@ class Geometry:
         yet matched."""
         if not self.keep_tilt:
             raise LabkitError("this geometry keeps no tilt covariances (keep_tilt=False)")
-        self.at(index, need_noise=True)
-        return self._get("tilt", self.tree.representative[index])
+        pos = self.tree.representative[index]
+        self._compute(pos)  # (the normals and noise themselves are not needed here)
+        return self._get("tilt", pos)
 
     def tilt(self, index):
         """Covariance (m, 3, 3) of the random tilt of the quadric normals at the points ``index``.

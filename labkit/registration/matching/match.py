@@ -37,6 +37,7 @@ import numpy as np
 
 from ...core.checks import as_points, as_rng, choice, positive
 from ...core.frame import local_origin, reduce
+from ...core.jit import compiled, have_numba
 from ...core.threads import side_by_side
 from ...neighbours.kdtree import KDTree
 from ...neighbours.treecache import kept_neighbours, local_tree, take_tree
@@ -190,8 +191,9 @@ def prepare(
     # query order: the sampled source points in the leaf order of a kd-tree over them
     src_tree = src_geo.tree if src_geo is not None else KDTree(src_l[idx])
     if src_geo is not None:
-        order = np.argsort(src_tree.representative[idx], kind="stable")
-        leaf_pos = src_tree.representative[idx][order]
+        keys = src_tree.representative[idx]
+        order = _stable_order(keys, src_tree.n)
+        leaf_pos = keys[order]
     else:
         order = np.empty(len(idx), dtype=np.intp)
         order[:] = src_tree.indices
@@ -233,6 +235,27 @@ def prepare(
         src_pts, idx, src_normals, sigma, rule, _TreePoints(tree, n_tgt), tree, tgt_geo, tgt_cls, settings, origin, len(src),
         None if src_cls is None else src_cls[idx], order, groups, memory,
     )  # fmt: skip
+
+
+def _stable_order(keys, n_keys):
+    """``np.argsort(keys, kind="stable")`` of integers in [0, n_keys): by counting (one pass and a scatter, not
+    a sort)."""
+    if not have_numba():  # pragma: no cover - depends on the environment
+        return np.argsort(keys, kind="stable")
+    return compiled(_counting_order)(np.ascontiguousarray(keys, dtype=np.int64), int(n_keys))
+
+
+def _counting_order(keys, n_keys):  # pragma: no cover - compiled
+    start = np.zeros(n_keys + 1, np.int64)
+    for i in range(keys.shape[0]):
+        start[keys[i] + 1] += 1
+    for v in range(n_keys):
+        start[v + 1] += start[v]
+    order = np.empty(keys.shape[0], np.intp)
+    for i in range(keys.shape[0]):  # rows in ascending order: equal keys keep it (stable)
+        order[start[keys[i]]] = i
+        start[keys[i]] += 1
+    return order
 
 
 def _source_tree(src, src_l, origin):

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...core.checks import positive
+from ...core.jit import compiled
 from ...neighbours.eigh3 import HAVE_NUMBA
 from ...neighbours.kdtree import KDTree
 from ...core.errors import LabkitError
@@ -98,6 +99,8 @@ class _Matcher:
             g = self.query_groups[ok]
             starts = np.append(np.flatnonzero(np.r_[True, g[1:] != g[:-1]]), len(g))
         object.__setattr__(self, "_queries", (live, starts))
+        # the queries' source points in query order: rotated in place of a gather of the moved points
+        object.__setattr__(self, "_source_q", None if live is None else np.take(self.source, live, axis=0))
         # per query (in that order): the warm start and the memory of the search (KDTree.nearest_in_groups):
         # the leaf position of its nearest target point in the last call (-1: none), where it was last
         # searched and the squared distance of its second nearest target point then. They change no answer.
@@ -112,9 +115,92 @@ class _Matcher:
 
     def __call__(self, R=None, t=None) -> Correspondences:
         """Correspondences of the source moved by p' = R p + t (local frame)."""
-        opt = self.options
         R = np.eye(3) if R is None else R
         t = np.zeros(3) if t is None else t
+        if HAVE_NUMBA and self.query_groups is not None and self.geometry.given is None:
+            return self._compiled_call(np.ascontiguousarray(R, dtype=np.float64),
+                                       np.ascontiguousarray(np.broadcast_to(t, (3,)), dtype=np.float64))
+        return self._numpy_call(R, t)
+
+    def _compiled_call(self, R, t):
+        """:meth:`_numpy_call` in a few compiled passes over the queries (in their leaf order, where the target
+        points they meet lie close together) and one over the rows: the same correspondences, number for number."""
+        opt = self.options
+        live, starts = self._queries
+        m = len(self.source)
+        rule = self.source_rule.copy()
+        tidx = np.full(m, -1)
+        # written at the rows with a partner, NaN at the others by the last pass (_weights_planes)
+        d, nt, noise_t, angle = np.empty((m, 3)), np.empty((m, 3)), np.empty(m), np.empty(m)
+        q = _rotated(self._source_q, R, t)  # the queries moved, in query order
+        # (3) nearest neighbour in the target kd-tree, within max_distance
+        workers = -1 if len(live) > 20000 else 1  # thread start-up dominates small queries
+        dist, j = self.tree.nearest_in_groups(q, starts, opt["max_distance"], workers=workers,
+                                              warm=self._warm, memory=self._memory)
+        found = np.empty(len(live), dtype=np.intp)  # positions (in query order) of the queries with a partner
+        pos = np.empty(len(live), dtype=np.intp)  # leaf position of each one's target point
+        n_found, uncached = _found(dist, j, live, self.tree.representative, self.geometry.slot, rule, tidx,
+                                   _CODE["distance"], found, pos)
+        found, pos = found[:n_found], pos[:n_found]
+        rows, j = live[found], j[found]  # the rows with a partner and their target points (query order)
+        geometry = self.geometry
+        if uncached:
+            geometry._compute(pos)  # the target points met for the first time
+        quadric = opt["surface"] == "quadric"
+        gates = opt["classes"] is not None or opt["max_noise"] is not None
+        normals = self.source_normals
+        cosang = np.empty(n_found)
+        # a target point whose neighbourhood is a point or a line has no normal; (4) gates on the target
+        # point (class, noise) and the source normal, in the order of _numpy_call: with the gather where
+        # the normals are final and nothing comes between
+        fused = not quadric and not gates
+        some_normals = normals if normals is not None else nt
+        if n_found:
+            _gather_pairs(self.tree.data, q, found, rows, pos, geometry.slot, geometry._store["normals"],
+                          geometry._store["noise"], d, nt, noise_t,  # d = q_j - p_i, nt, noise_t
+                          rule, some_normals, R, cosang, fused, fused and normals is not None, _CODE["degenerate"])
+        nearest_d = d
+        if quadric and n_found:
+            nearest_d = d.copy()  # see _numpy_call: the foot point on the quadric replaces q_j
+            geometry.foot_at_rows(j, rows, d, nt, pos)
+        if not fused:
+            _normal_gates(rows, nt, rule, some_normals, R, cosang, True, normals is not None and not gates,
+                          _CODE["degenerate"])
+        if opt["classes"] is not None:
+            bad = ~np.isin(self.target_class[j], opt["classes"])
+            rule[rows[bad & (rule[rows] == 0)]] = _CODE["class"]
+        if opt["max_noise"] is not None:
+            bad = noise_t[rows] > opt["max_noise"]
+            rule[rows[bad & (rule[rows] == 0)]] = _CODE["noise"]
+        if normals is not None and gates:
+            _normal_gates(rows, nt, rule, normals, R, cosang, False, True, _CODE["degenerate"])
+        if normals is not None:
+            np.clip(cosang, 0, 1, out=cosang)
+            np.degrees(np.arccos(cosang, out=cosang), out=cosang)  # the angles, in place
+        max_angle = opt["max_angle_deg"]
+        # the normal angle's gate and (unique) one source point per target point, the nearest by the
+        # point-to-point distance (see _numpy_call)
+        _angle_and_duplicates(rows, pos, cosang, normals is not None, np.inf if max_angle is None else float(max_angle),
+                              max_angle is not None and normals is not None, bool(opt["unique"]), nearest_d, rule,
+                              angle, self.tree.n, _CODE["normal_angle"], _CODE["duplicate"])
+        # (5) weights p = 1 / (sigma_s^2 + sigma_t^2)  (eq. 5.6) and the plane distances
+        noise_sigma = opt["noise_weighting"] and not (opt["class_sigma"] and self.target_class is not None)
+        if noise_sigma or not n_found:
+            sigma_t = noise_t  # sigma_t = max(noise_t, MIN_SIGMA), in the kernel
+        else:
+            sigma_t = np.full(m, np.nan)
+            sigma_t[rows] = self._target_sigma(j, noise_t[rows])
+        weight, plane = np.empty(m), np.empty(m)
+        xyz = np.empty((m, 3))
+        _weights_planes(self.source, R, t, self.origin, rule, self.source_sigma, sigma_t, noise_sigma, MIN_SIGMA**2,
+                        tidx, nt, d, noise_t, angle, weight, plane, xyz)
+        return Correspondences(
+            self.source_index, tidx, xyz, d, plane, angle, nt, weight, rule, self.n_source, dict(opt),
+        )  # fmt: skip
+
+    def _numpy_call(self, R, t):
+        """The correspondences step by step in numpy (without numba, or with given target normals)."""
+        opt = self.options
         p = _rotated(self.source, R, t)  # not `@`: a BLAS call per iteration (see _rotated)
         rule = self.source_rule.copy()
         live, starts = self._queries  # in leaf order: neighbouring queries in cache
@@ -198,7 +284,7 @@ def first_search(tree, source, query_order, query_groups, R, t, max_distance):
     """The nearest target point of every query (the rows ``query_order`` of ``source`` moved by R, t), as the
     search memory of a :class:`_Matcher` (its ``search_memory``): made ahead, e.g. beside the source's
     normals, the matcher's first call at (R, t) then finds every answer already known (the same answers)."""
-    q = _rotated(source, R, t)[query_order]
+    q = _rotated(np.take(source, query_order, axis=0), R, t)  # (row by row: the same as rotating all, then taking)
     g = query_groups
     starts = np.append(np.flatnonzero(np.r_[True, g[1:] != g[:-1]]), len(g))
     warm, memory = np.full(len(q), -1, dtype=np.intp), (np.zeros((len(q), 3)), np.zeros(len(q)))
@@ -299,6 +385,127 @@ if HAVE_NUMBA:
 else:  # pragma: no cover - depends on the environment
     _rotated, _differences, _dot_rows = _rotated_numpy, _differences_numpy, _dot_rows_numpy
     _cos_normals, _dot_rows_at = _cos_normals_numpy, _dot_rows_at_numpy
+
+
+if HAVE_NUMBA:
+    # the steps of _Matcher._compiled_call: each one pass, the same arithmetic as _numpy_call (no fastmath)
+
+    @compiled
+    def _found(dist, j, live, rep, slot, rule, tidx, code, found, pos):  # pragma: no cover - compiled
+        """The queries (query order) with a partner within the gate: their positions ``found``, the leaf
+        positions ``pos`` of their target points (``rep``: the tree's representative) and tidx; the others
+        get the rule ``code`` (distance). Returns their number and how many of their target points the
+        geometry cache does not hold yet."""
+        n, uncached = 0, 0
+        for r in range(live.shape[0]):
+            if np.isfinite(dist[r]):
+                p = rep[j[r]]
+                found[n], pos[n] = r, p
+                tidx[live[r]] = j[r]
+                if slot[p] < 0:
+                    uncached += 1
+                n += 1
+            else:
+                rule[live[r]] = code
+        return n, uncached
+
+    @compiled
+    def _gather_pairs(data, q, found, rows, pos, slot, normals_buf, noise_buf, d, nt, noise, rule, normals, R, cosang,
+                      target, source, code):  # pragma: no cover - compiled
+        """d[i] = q_j - p_i, nt[i] and noise[i] from the geometry cache, for the rows i = ``rows`` (query order);
+        with ``target`` / ``source`` also the gates of :func:`_normal_gates` on them."""
+        for n in range(rows.shape[0]):
+            i, r, p = rows[n], found[n], pos[n]
+            s = slot[p]
+            d[i, 0], d[i, 1], d[i, 2] = data[p, 0] - q[r, 0], data[p, 1] - q[r, 1], data[p, 2] - q[r, 2]
+            nt[i, 0], nt[i, 1], nt[i, 2] = normals_buf[s, 0], normals_buf[s, 1], normals_buf[s, 2]
+            noise[i] = noise_buf[s]
+            if target and np.isnan(normals_buf[s, 0]) and rule[i] == 0:
+                rule[i] = code
+            if source:
+                if np.isnan(normals[i, 0]) and rule[i] == 0:
+                    rule[i] = code
+                x, y, z = normals[i, 0], normals[i, 1], normals[i, 2]
+                a0 = (x * R[0, 0] + z * R[0, 2]) + y * R[0, 1]
+                a1 = (x * R[1, 0] + z * R[1, 2]) + y * R[1, 1]
+                a2 = (x * R[2, 0] + z * R[2, 2]) + y * R[2, 1]
+                cosang[n] = abs((a0 * normals_buf[s, 0] + a2 * normals_buf[s, 2]) + a1 * normals_buf[s, 1])
+
+    @compiled
+    def _normal_gates(rows, nt, rule, normals, R, cosang, target, source, code):  # pragma: no cover - compiled
+        """'degenerate' where the target normal (``target``) or the source normal (``source``) is missing and no
+        rule came first; with ``source`` also |R n_s . n_t| per row (:func:`_cos_normals`, the same sums)."""
+        for n in range(rows.shape[0]):
+            i = rows[n]
+            t0, t1, t2 = nt[i, 0], nt[i, 1], nt[i, 2]
+            if target and np.isnan(t0) and rule[i] == 0:
+                rule[i] = code
+            if source:
+                x, y, z = normals[i, 0], normals[i, 1], normals[i, 2]
+                if np.isnan(x) and rule[i] == 0:
+                    rule[i] = code
+                a0 = (x * R[0, 0] + z * R[0, 2]) + y * R[0, 1]
+                a1 = (x * R[1, 0] + z * R[1, 2]) + y * R[1, 1]
+                a2 = (x * R[2, 0] + z * R[2, 2]) + y * R[2, 1]
+                cosang[n] = abs((a0 * t0 + a2 * t2) + a1 * t1)
+
+    @compiled
+    def _angle_and_duplicates(rows, pos, ang, has_angle, max_angle, gate, unique, d, rule, angle, n_target,
+                              code_angle, code_duplicate):  # pragma: no cover - compiled
+        """angle[rows] = ang and its gate; then (``unique``) one source point per target point (``pos``: its
+        leaf position, one per distinct target point as the input row the search answers): the one with
+        the smallest |d|^2 keeps it, equal distances the lower row (:func:`_reject_duplicates`, in any order)."""
+        best = np.full(n_target if unique else 0, -1, np.int64)  # the row keeping each target point so far
+        best_d2 = np.empty(n_target if unique else 0)
+        for n in range(rows.shape[0]):
+            i = rows[n]
+            if has_angle:
+                angle[i] = ang[n]
+                if gate and rule[i] == 0 and ang[n] > max_angle:
+                    rule[i] = code_angle
+            else:
+                angle[i] = np.nan
+            if unique and rule[i] == 0:
+                d2 = (d[i, 0] * d[i, 0] + d[i, 2] * d[i, 2]) + d[i, 1] * d[i, 1]
+                t = pos[n]
+                b = best[t]
+                if b < 0:
+                    best[t], best_d2[t] = i, d2
+                elif d2 < best_d2[t] or (d2 == best_d2[t] and i < b):
+                    rule[b] = code_duplicate
+                    best[t], best_d2[t] = i, d2
+                else:
+                    rule[i] = code_duplicate
+
+    @compiled
+    def _weights_planes(P, R, t, origin, rule, sigma_s, sigma_t, from_noise, min_var, tidx, nt, d, noise, angle,
+                        weight, plane, xyz):  # pragma: no cover - compiled
+        """Per row: NaN in d, nt, noise and angle where it has no partner (``tidx`` -1), the weight
+        1 / (sigma_s^2 + sigma_t^2) (0 where a rule rejected it; ``from_noise``: sigma_t = max(noise, MIN_SIGMA)
+        from the noise given as ``sigma_t``), the plane distance nt . d and the moved source point in the
+        caller's frame (R p + t + origin), as _numpy_call computes them."""
+        for i in range(P.shape[0]):
+            if tidx[i] < 0:
+                for k in range(3):
+                    d[i, k] = np.nan
+                    nt[i, k] = np.nan
+                noise[i] = np.nan
+                angle[i] = np.nan
+            x, y, z = P[i, 0], P[i, 1], P[i, 2]
+            for k in range(3):
+                xyz[i, k] = (((x * R[k, 0] + z * R[k, 2]) + y * R[k, 1]) + t[k]) + origin[k]
+            plane[i] = (nt[i, 0] * d[i, 0] + nt[i, 2] * d[i, 2]) + nt[i, 1] * d[i, 1]
+            if rule[i] != 0:
+                weight[i] = 0.0
+                continue
+            st = sigma_t[i]
+            if from_noise:
+                v = st * st
+                if v < min_var:
+                    v = min_var
+                st = np.sqrt(v)
+            ss = sigma_s[i]
+            weight[i] = 1.0 / (ss * ss + st * st)
 
 
 def _reject_duplicates(rule, tidx, d, n_target):
