@@ -38,8 +38,8 @@ import numpy as np
 
 from ..core.jit import compiled
 from .eigh3 import HAVE_NUMBA
-from .kdtree_build import _build_two, _duplicates, _pool, _threads
-from .kdtree_nn import nearest
+from .kdtree_build import _build_two, _duplicates, _threads, in_runs
+from .kdtree_nn import _RUNS_PER_THREAD, nearest
 from .moments import covariances, knn_moments
 
 
@@ -457,17 +457,14 @@ class KDTree:
                 idx[:] = self._run(self.data[a:b], k, np.inf, 1)[1]
                 return idx
             threads = min(_threads(workers), max(1, (b - a) // _PER_THREAD))
-            cut = np.unique(np.linspace(j0, j1, threads + 1).astype(np.intp))  # runs of whole leaves
+            # runs of whole leaves, a few per thread, taken by whoever is free (see in_runs)
+            cut = np.unique(np.linspace(j0, j1, _RUNS_PER_THREAD * threads + 1).astype(np.intp))
 
             def part(u, v):
                 s, e = bounds[u] - a, bounds[v] - a
                 _knn_leaves(self.data, *self._nodes, self._leaves[u:v], k, idx[s:e], _NO_CEN, _NO_C, False)
 
-            if len(cut) <= 2:
-                part(j0, j1)
-            else:
-                for job in [_pool(len(cut) - 1).submit(part, u, v) for u, v in zip(cut[:-1], cut[1:])]:
-                    job.result()
+            in_runs(part, cut if threads > 1 else [j0, j1], threads)
         return idx
 
     def knn_moments_of_leaves(self, a: int, b: int, k: int):
@@ -527,12 +524,6 @@ class KDTree:
         if threads <= 1:
             _knn(self.data, *args, Q, k, bound2, idx, d2)
             return d2, idx
-        bounds = np.linspace(0, len(Q), threads + 1).astype(int)
-        pool = _pool(threads)
-        jobs = [
-            pool.submit(_knn, self.data, *args, Q[a:b], k, bound2, idx[a:b], d2[a:b])
-            for a, b in zip(bounds[:-1], bounds[1:])
-        ]
-        for job in jobs:
-            job.result()
+        bounds = np.linspace(0, len(Q), _RUNS_PER_THREAD * threads + 1).astype(int)
+        in_runs(lambda a, b: _knn(self.data, *args, Q[a:b], k, bound2, idx[a:b], d2[a:b]), bounds, threads)
         return d2, idx

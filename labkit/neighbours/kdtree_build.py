@@ -248,9 +248,13 @@ def _build_two(P, leafsize):
     W = np.empty((n, 3))  # both halves built in place in one array: no stacking of the results
     np.take(P, iL, axis=0, out=W[:cut])
     np.take(P, iR, axis=0, out=W[cut:])
-    pool = _pool(2)
-    jobs = [pool.submit(_build, half, leafsize) for half in (W[:cut], W[cut:])]  # private, contiguous halves
-    (pL, nL, bL, dL, _), (pR, nR, bR, dR, _) = (job.result() for job in jobs)
+    halves = [W[:cut], W[cut:]]  # private, contiguous halves, each replaced by its tree
+
+    def build(a, b):
+        halves[a] = _build(halves[a], leafsize)
+
+    in_runs(build, [0, 1, 2], 2)  # this thread builds one, a pool worker the other (if it is free)
+    (pL, nL, bL, dL, _), (pR, nR, bR, dR, _) = halves
     mL = len(nL)
     nodes = np.empty((1 + mL + len(nR), 4), np.int64)
     nodes[0] = (0, n, 1, 1 + mL)
@@ -282,6 +286,42 @@ def _pool(threads):
             if old is not None:
                 old.shutdown(wait=False)
         return _pool_state["pool"]
+
+
+def in_runs(run, cuts, threads):
+    """``run(a, b)`` for the consecutive ranges ``cuts[i]:cuts[i + 1]``, taken one after the other by this
+    thread and by up to ``threads - 1`` workers of the kept pool, each taking the next range left.
+
+    Unlike a fixed split (one part per thread, the caller waiting), the caller works too and nobody
+    waits for a late thread: where another caller keeps the pool busy (the two clouds of a
+    registration are treated side by side), this thread takes the remaining ranges itself, and a worker
+    that starts after the last range has been taken returns at once (a pool job that has not started
+    by then is cancelled, so a run may itself use the pool without a deadlock). Each range is computed
+    alone: the result does not depend on who computed which range.
+    """
+    cuts = np.asarray(cuts).tolist()
+    ranges = iter(zip(cuts[:-1], cuts[1:]))
+    lock = threading.Lock()
+
+    def work():
+        while True:
+            with lock:
+                a, b = next(ranges, (0, 0))
+            if b <= a:
+                return
+            run(a, b)
+
+    threads = min(int(threads), len(cuts) - 1)
+    if threads <= 1:
+        return work()
+    pool = _pool(threads - 1)
+    jobs = [pool.submit(work) for _ in range(threads - 1)]
+    try:
+        work()
+    finally:
+        for job in jobs:
+            if not job.cancel():
+                job.result()
 
 
 def _forget_pool():  # a forked child has none of the parent's threads: start afresh

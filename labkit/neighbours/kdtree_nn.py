@@ -30,12 +30,10 @@ own, index for index.
 
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 
 from ..core.jit import compiled
-from .kdtree_build import _pool
+from .kdtree_build import in_runs
 
 _RUNS_PER_THREAD = 4  # runs of groups per thread: an uneven split evens out
 
@@ -260,22 +258,7 @@ def _search(tree, Q, starts, bound, bound2, threads, warm, at, second):
         run(0, len(starts) - 1)
     else:
         cut = np.searchsorted(starts, np.linspace(0, m, _RUNS_PER_THREAD * threads + 1)[1:-1])
-        cut = np.unique(np.r_[0, np.minimum(cut, len(starts) - 1), len(starts) - 1])
-        runs = iter(zip(cut[:-1].tolist(), cut[1:].tolist()))
-        lock = threading.Lock()
-
-        def work():
-            while True:
-                with lock:
-                    a, b = next(runs, (0, 0))
-                if b <= a:
-                    return
-                run(a, b)
-
-        jobs = [_pool(threads).submit(work) for _ in range(threads - 1)]  # (the pool the other kernels use)
-        work()
-        for job in jobs:
-            job.result()
+        in_runs(run, np.unique(np.r_[0, np.minimum(cut, len(starts) - 1), len(starts) - 1]), threads)
     redo = np.flatnonzero(tie)
     if len(redo):
         d2_r, idx_r = tree._run(Q[redo], 1, bound, 1)

@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from ...neighbours.eigh3 import HAVE_NUMBA, eigh3_analytic
 from ...neighbours.kdtree import KDTree
+from ...neighbours.kdtree_build import in_runs
 from ...core.errors import LabkitError
 from ...core.jit import compiled
 from ...neighbours.moments import covariances  # the shared kNN covariance kernel (compiled)
@@ -160,16 +160,16 @@ def _leaf_geometry_at(tree, cols, pos, nb, k, pca):
     return out
 
 
-def _in_row_chunks(work, m, rows=50_000):
-    """``[work(a, b)]`` over consecutive row ranges, on the cores (each row's numbers are computed alone:
-    the same numbers as one call ``work(0, m)``; the compiled kernels release the GIL)."""
+def _in_row_chunks(work, m, rows=8_000):
+    """``work(a, b)`` over consecutive row ranges covering ``0..m``, on the cores: a few ranges per core,
+    taken by whichever thread is free (:func:`labkit.neighbours.kdtree_build.in_runs`). Each row's numbers
+    are computed alone: the same numbers as one call ``work(0, m)``; the compiled kernels release the GIL."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
     threads = min(cores, max(1, m // rows))
     if threads <= 1:
-        return [work(0, m)]
-    cut = np.linspace(0, m, threads + 1).astype(int)
-    with ThreadPoolExecutor(threads, "labkit-geometry") as pool:
-        return list(pool.map(work, cut[:-1], cut[1:]))
+        work(0, m)
+        return
+    in_runs(work, np.linspace(0, m, 4 * threads + 1).astype(int), threads)
 
 
 _alloc_lock = threading.Lock()
