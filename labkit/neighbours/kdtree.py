@@ -279,12 +279,29 @@ def _gap2(lo, hi, a, b):  # pragma: no cover - compiled
     return t * t
 
 
-@compiled
-def unique_kept_neighbours(X, nb, keep, k, clean):  # pragma: no cover - compiled
+def unique_kept_neighbours(X, nb, keep, k, clean):
     """clean[p]: point p and its k nearest ``nb[p, :k]`` (leaf positions, sorted, k + 1 columns) are all
     ``keep`` and the (k+1)-th is farther than the k-th (squared distances as the searches compute them),
-    so that the k nearest among the kept points are these and no others."""
-    for p in range(nb.shape[0]):
+    so that the k nearest among the kept points are these and no others. Ranges of points on the cores."""
+    n = nb.shape[0]
+    threads = min(_threads(-1), max(1, n // _PER_THREAD))
+    in_runs(lambda a, b: _unique_kept(X, nb, keep, k, clean, a, b),
+            np.linspace(0, n, _RUNS_PER_THREAD * threads + 1).astype(np.intp), threads)
+
+
+def neighbour_rows(nb, pos, indices, new, clean, k, rows):
+    """rows[r] = new[indices[nb[pos[r], :k]]] where clean[pos[r]] (a selection's rows of the neighbours),
+    ranges of rows on the cores."""
+    m = len(pos)
+    threads = min(_threads(-1), max(1, m // _PER_THREAD))
+    in_runs(lambda a, b: _neighbour_rows(nb, pos[a:b], indices, new, clean, k, rows[a:b]),
+            np.linspace(0, m, _RUNS_PER_THREAD * threads + 1).astype(np.intp), threads)
+
+
+@compiled
+def _unique_kept(X, nb, keep, k, clean, start, end):  # pragma: no cover - compiled
+    """:func:`unique_kept_neighbours` at the points ``start..end-1``."""
+    for p in range(start, end):
         ok = keep[p]
         for c in range(k):
             if not ok:
@@ -300,8 +317,8 @@ def unique_kept_neighbours(X, nb, keep, k, clean):  # pragma: no cover - compile
 
 
 @compiled
-def neighbour_rows(nb, pos, indices, new, clean, k, rows):  # pragma: no cover - compiled
-    """rows[r] = new[indices[nb[pos[r], :k]]] where clean[pos[r]] (a selection's rows of the neighbours)."""
+def _neighbour_rows(nb, pos, indices, new, clean, k, rows):  # pragma: no cover - compiled
+    """:func:`neighbour_rows` in this thread."""
     for r in range(pos.shape[0]):
         p = pos[r]
         if clean[p]:

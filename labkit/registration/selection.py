@@ -24,6 +24,7 @@ points are used and the result says so.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, replace  # noqa: F401  (replace: Examples)
 
 from scipy.stats import chi2
@@ -263,13 +264,16 @@ def select_points(source, target, select="auto", k=20):
                                   np.flatnonzero(ms), np.flatnonzero(mt)))
     if min(ns, nt) <= 3:
         return source, target, Selection("all points", (), ns, nt, ns, nt, "all points (too few for a local surface)")
-    # the two clouds side by side: one's serial steps overlap the other's work (the same numbers)
-    (ms, near_s, tree_s), (mt, near_t, tree_t) = side_by_side((_surface_test, source, k, True),
-                                                          (_surface_test, target, k, True))
+    # the two clouds side by side, each to the end of its own work (its surface test, selected points,
+    # neighbour rows for ICP and its selected points' tree): one cloud's serial steps overlap the other's
+    # work; the same numbers as one after the other
+    shared = _Shared()
+    (ms, tree_s, src, rows_s, cut_s), (mt, tree_t, tgt, rows_t, cut_t) = side_by_side(
+        (_select_one, source, k, shared, False), (_select_one, target, k, shared, True))
     if ms.all() and mt.all():
         xyz_t = _xyz(target)
         keep_tree(xyz_t, local_origin(xyz_t), True, tree_t)  # ICP's matching asks for the target's tree next
-        _keep((source, near_s, ms), (target, near_t, mt))
+        _keep_rows((source, rows_s), (target, rows_t))
         return source, target, Selection("all points", (), ns, nt, ns, nt, "all points (every neighbourhood a surface)")
     if ms.sum() < MIN_SELECTED or mt.sum() < MIN_SELECTED:
         return source, target, Selection(
@@ -279,29 +283,57 @@ def select_points(source, target, select="auto", k=20):
     reason = (f"surface points: {ms.sum():,} of {ns:,} source and {mt.sum():,} of {nt:,} target points; volume "
               f"scatter (vegetation) left out: local noise > {100 * SMOOTH_NOISE:.0f} cm and noise/sqrt(l2) > "
               f"{MAX_SCATTER:g} in {k}-neighbourhoods")
-    src, tgt = _subset(source, ms), _subset(target, mt)
-    _keep((src, near_s, ms), (tgt, near_t, mt))  # ICP's normals reuse the neighbourhoods that only hold selected points
-    _offer_trees([(src, tree_s, ms), (tgt, tree_t, mt)], local_origin(_xyz(tgt)))
+    src = _subset(source, ms) if src is None else src
+    tgt = _subset(target, mt) if tgt is None else tgt
+    _keep_rows((src, rows_s), (tgt, rows_t))  # ICP's normals reuse the neighbourhoods that only hold selected points
+    # ICP's matching takes the selected points' trees cut from the whole clouds' (in ICP's frame: the local
+    # origin of the target's selected points) instead of new builds
+    origin = local_origin(_xyz(tgt)) if shared.origin is None else shared.origin
+    for sub, tree, mask, cut in ((src, tree_s, ms, cut_s), (tgt, tree_t, mt, cut_t)):
+        xyz = _xyz(sub)
+        offer_tree(xyz, origin, True, cut if cut is not None else tree.restricted(mask, xyz - origin))
     return (src, tgt, Selection("surface points", (), ns, nt, int(ms.sum()), int(mt.sum()), reason,
                                 np.flatnonzero(ms), np.flatnonzero(mt)))
 
 
-def _offer_trees(clouds, origin):
-    """Offer ICP's matching the selected points' kd-trees cut from the whole clouds' (each (subset, tree,
-    mask)) in ICP's frame (``origin``: the local origin of the target's selected points) instead of new
-    builds (:meth:`~labkit.neighbours.kdtree.KDTree.restricted`)."""
-    for sub, tree, mask in clouds:
-        xyz = _xyz(sub)
-        offer_tree(xyz, origin, True, tree.restricted(mask, xyz - origin))
+class _Shared:
+    """What the target's thread of :func:`select_points` hands the source's once known (``ready``): its mask
+    and the local origin of its selected points (ICP's frame; None where it keeps every point or failed)."""
+
+    def __init__(self):
+        self.ready = threading.Event()
+        self.mask = self.origin = None
 
 
-def _keep(*clouds):
-    """Keep the neighbours of each (cloud, info, mask) for ICP's normals (the rows made side by side)."""
-    rows = side_by_side(*[(lambda info, mask: None if info is None else _kept_rows(info, mask), info, mask)
-                          for _, info, mask in clouds])
-    for (cloud, _, _), kept in zip(clouds, rows):
-        if kept is not None:
-            keep_neighbours(_xyz(cloud), kept)
+def _select_one(cloud, k, shared, is_target):
+    """One cloud's part of :func:`select_points`: (mask, whole cloud's tree, selected points or None where
+    every point stays, their :class:`NeighbourRows` or None, their tree cut from the whole cloud's or None).
+    All of it is made before the other cloud's mask is known, except the cut tree, which waits for the
+    origin of the target's selected points (ICP's frame; made here only where this cloud and the target
+    both leave points out, otherwise :func:`select_points` cuts it where needed)."""
+    try:
+        mask, info, tree = _surface_test(cloud, k, True)
+        sub = None if mask.all() else _subset(cloud, mask)
+        if is_target:
+            shared.mask = mask
+            shared.origin = None if sub is None else local_origin(_xyz(sub))
+    finally:
+        if is_target:
+            shared.ready.set()
+    rows = None if info is None else _kept_rows(info, mask)
+    cut = None
+    if sub is not None and mask.sum() >= MIN_SELECTED:
+        shared.ready.wait()
+        if shared.origin is not None and shared.mask.sum() >= MIN_SELECTED:
+            cut = tree.restricted(mask, _xyz(sub) - shared.origin)
+    return mask, tree, sub, rows, cut
+
+
+def _keep_rows(*clouds):
+    """Keep the neighbour rows of each (cloud, rows or None) for ICP's normals."""
+    for cloud, rows in clouds:
+        if rows is not None:
+            keep_neighbours(_xyz(cloud), rows)
 
 
 @dataclass(frozen=True, eq=False)
