@@ -155,12 +155,12 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragm
     order); the walk from the root is no longer paid per point. Row ``pos - start`` of
     ``idx`` belongs to leaf-order position ``pos``, ``start`` the first leaf's start.
 
-    With ``moments`` the neighbours are not written: row ``pos - start`` of ``cen`` and ``C``
-    gets the centroid (eq. 1) and covariance (eq. 2, divided by k) of the point's k neighbours,
+    With ``moments`` > 0, row ``pos - start`` of ``cen`` and ``C`` gets the centroid (eq. 1) and
+    covariance (eq. 2, divided by ``moments``) of the point's ``moments`` nearest neighbours (at most k),
     summed while they are in cache, in the order and arithmetic of
     :func:`labkit.neighbours.moments.covariances` (the same numbers: both call
     :func:`~labkit.neighbours.moments.knn_moments`, which sums differences to the nearest neighbour, the point
-    itself); ``idx`` is then not touched.
+    itself). The neighbours are written where ``idx`` has rows (an empty ``idx``: only the moments).
     """
     most = 1
     for t in range(len(leaves)):
@@ -261,14 +261,14 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragm
             stack[sp] = near
             lower[sp] = g
             sp += 1
-        if not moments:
+        if idx.shape[0] > 0:
             for qi in range(m):
                 for j in range(k):
                     idx[a + qi - start, j] = bi[qi, j]
-            continue
-        x, y, z = X[:, 0], X[:, 1], X[:, 2]
-        for qi in range(m):  # the shared kernel of labkit.neighbours.moments
-            knn_moments(x, y, z, bi[qi], k, cen, C, a + qi - start)
+        if moments > 0:
+            x, y, z = X[:, 0], X[:, 1], X[:, 2]
+            for qi in range(m):  # the shared kernel of labkit.neighbours.moments
+                knn_moments(x, y, z, bi[qi], moments, cen, C, a + qi - start)
 
 
 @compiled
@@ -457,32 +457,40 @@ class KDTree:
             self._leaves = leaves[np.argsort(nodes[leaves, 0], kind="stable")]
         return np.append(self._nodes[0][self._leaves, 0], self.n)
 
-    def knn_of_leaves(self, a: int, b: int, k: int, workers: int = 1):
+    def knn_of_leaves(self, a: int, b: int, k: int, workers: int = 1, moments: int = 0):
         """Leaf-order indices (b - a, k) of the k nearest tree points of the tree's points a..b-1.
 
         ``a`` and ``b`` must be leaf bounds (:attr:`leaf_bounds`); the points of a leaf are
         searched together (:func:`_knn_leaves`), sorted by distance like :meth:`query`.
         ``workers`` threads (-1: one per core) take consecutive runs of leaves (the same answer).
+        ``moments`` (at most k) > 0: also the centroids (b - a, 3) and covariances (b - a, 3, 3) of each
+        point's ``moments`` nearest, as :func:`labkit.neighbours.moments.covariances` gives them (the same
+        numbers), summed while the neighbours are in cache: returns (indices, centroids, covariances).
         """
         bounds = self.leaf_bounds
         j0, j1 = np.searchsorted(bounds, [a, b])
         if bounds[j0] != a or bounds[j1] != b:
             raise ValueError(f"{a}:{b} does not start and end at leaf bounds")
         idx = np.empty((b - a, k), dtype=np.intp)
+        moments = min(int(moments), k)
+        cen, C = (np.empty((b - a, 3)), np.empty((b - a, 3, 3))) if moments > 0 else (_NO_CEN, _NO_C)
         if b > a:
             if not HAVE_NUMBA:  # pragma: no cover - depends on the environment
                 idx[:] = self._run(self.data[a:b], k, np.inf, 1)[1]
-                return idx
+                if moments > 0:
+                    cen, C = covariances(self.data, None, idx[:, :moments], np.ascontiguousarray(self.data.T))
+                return (idx, cen, C) if moments > 0 else idx
             threads = min(_threads(workers), max(1, (b - a) // _PER_THREAD))
             # runs of whole leaves, a few per thread, taken by whoever is free (see in_runs)
             cut = np.unique(np.linspace(j0, j1, _RUNS_PER_THREAD * threads + 1).astype(np.intp))
 
             def part(u, v):
                 s, e = bounds[u] - a, bounds[v] - a
-                _knn_leaves(self.data, *self._nodes, self._leaves[u:v], k, idx[s:e], _NO_CEN, _NO_C, False)
+                _knn_leaves(self.data, *self._nodes, self._leaves[u:v], k, idx[s:e],
+                            cen[s:e] if moments else cen, C[s:e] if moments else C, moments)
 
             in_runs(part, cut if threads > 1 else [j0, j1], threads)
-        return idx
+        return (idx, cen, C) if moments > 0 else idx
 
     def knn_moments_of_leaves(self, a: int, b: int, k: int):
         """Centroids (b - a, 3) and covariances (b - a, 3, 3) of the k nearest tree points of the
@@ -497,7 +505,7 @@ class KDTree:
             raise ValueError(f"{a}:{b} does not start and end at leaf bounds")
         cen, C = np.empty((b - a, 3)), np.empty((b - a, 3, 3))
         if b > a:
-            _knn_leaves(self.data, *self._nodes, self._leaves[j0:j1], k, _NO_IDX, cen, C, True)
+            _knn_leaves(self.data, *self._nodes, self._leaves[j0:j1], k, _NO_IDX, cen, C, k)
         return cen, C
 
     def nearest_in_groups(self, q, starts, distance_upper_bound: float = np.inf, workers: int = 1, warm=None,

@@ -123,13 +123,14 @@ def roughness(tree, cols, a, b, k, decided=None, extra=0, pca=False):
     (m, 3, 3), as :func:`_leaf_geometry` would decompose these neighbourhoods again.
     """
     k = min(k, tree.n)
-    nb = tree.knn_of_leaves(a, b, min(k + extra, tree.n), workers=-1)
+    # the neighbours and their covariances from one search (summed while the neighbours are in cache)
+    nb, _, cov = tree.knn_of_leaves(a, b, min(k + extra, tree.n), workers=-1, moments=k)
     pos = np.arange(a, b)
     m = b - a
     lam, noise, vecs = np.empty((m, 3)), np.empty(m), np.empty((m, 3, 3))
 
     def plane(u, v):  # the PCA and the plane's noise of _geometry_rows (its normals and variation are not needed)
-        lam[u:v], vecs[u:v] = _pca_rows(tree, cols, nb[u:v, :k], k)
+        lam[u:v], vecs[u:v] = _pca_of(cov[u:v], k)
         with np.errstate(invalid="ignore"):
             ok = lam[u:v, 1] > 1e-12 * lam[u:v, 2]  # not a point, not a line
         noise[u:v] = np.where(ok, np.sqrt(lam[u:v, 0]), np.nan)
@@ -142,8 +143,7 @@ def roughness(tree, cols, a, b, k, decided=None, extra=0, pca=False):
         sure = todo & decided(bound, lam_1k)
         noise[sure] = bound[sure]
         todo &= ~sure
-    rows = np.flatnonzero(todo)
-    if len(rows):
+    if len(rows := np.flatnonzero(todo)):
         noise[rows] = _leaf_geometry_at(tree, cols, pos[rows], nb[rows, :k], k, (lam[rows], vecs[rows]))
     return (noise, lam_1k, nb) + (((lam, vecs),) if pca else ())
 
@@ -161,15 +161,12 @@ def _leaf_geometry_at(tree, cols, pos, nb, k, pca):
 
 
 def _in_row_chunks(work, m, rows=8_000):
-    """``work(a, b)`` over consecutive row ranges covering ``0..m``, on the cores: a few ranges per core,
-    taken by whichever thread is free (:func:`labkit.neighbours.kdtree_build.in_runs`). Each row's numbers
-    are computed alone: the same numbers as one call ``work(0, m)``; the compiled kernels release the GIL."""
+    """``work(a, b)`` over a few row ranges per core covering ``0..m``, taken by whichever thread is free
+    (:func:`labkit.neighbours.kdtree_build.in_runs`; the kernels release the GIL). Each row is computed alone:
+    the same numbers as one call ``work(0, m)``."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
     threads = min(cores, max(1, m // rows))
-    if threads <= 1:
-        work(0, m)
-        return
-    in_runs(work, np.linspace(0, m, 4 * threads + 1).astype(int), threads)
+    in_runs(work, np.linspace(0, m, 4 * threads + 1).astype(int) if threads > 1 else [0, m], threads)
 
 
 _alloc_lock = threading.Lock()
@@ -178,7 +175,10 @@ _alloc_lock = threading.Lock()
 def _pca_rows(tree, cols, nb, k):
     """Eigenvalues (m, 3), ascending and scaled by k / (k - 3), and eigenvectors (m, 3, 3) of the
     neighbourhoods ``nb``: the local PCA (notebook 04, eqs. 1-5) that :func:`_geometry_rows` starts from."""
-    _, cov = covariances(tree.data, None, nb, cols)  # the local PCA's kernel (notebook 04, eqs. 1-2)
+    return _pca_of(covariances(tree.data, None, nb, cols)[1], k)  # the local PCA's kernel (eqs. 1-2)
+
+
+def _pca_of(cov, k):  # _pca_rows from the covariances (eq. 2, divided by k; scaled in place)
     cov *= k / (k - 3) if k > 3 else np.nan  # redundancy k - 3 of the plane (eq. 5): lambda_min is sigma_n^2
     lam, vecs = eigh3_analytic(cov)  # as np.linalg.eigh (closed form), ascending: normal = eigenvector of lambda_min
     return np.clip(lam, 0, None), vecs
