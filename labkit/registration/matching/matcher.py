@@ -102,6 +102,11 @@ class _Matcher:
         # the queries' source points in query order: rotated in place of a gather of the moved points
         object.__setattr__(self, "_source_q", None if live is None else
                            np.ascontiguousarray(np.take(self.source, live, axis=0), dtype=np.float64))
+        # and their normals: read in query order by the gates (an empty array without normals or queries)
+        normals_q = np.empty((0, 3))
+        if live is not None and self.source_normals is not None:
+            normals_q = np.ascontiguousarray(np.take(self.source_normals, live, axis=0), dtype=np.float64)
+        object.__setattr__(self, "_normals_q", normals_q)
         # per query (in that order): the warm start and the memory of the search (KDTree.nearest_in_groups):
         # the leaf position of its nearest target point in the last call (-1: none), where it was last
         # searched and the squared distance of its second nearest target point then. They change no answer.
@@ -152,10 +157,10 @@ class _Matcher:
         rows = np.empty(n_found, dtype=np.intp)  # the rows with a partner (query order)
         jf = np.empty(n_found, dtype=np.intp)  # and their target points
         uncached = []  # per range: how many of its target points the geometry cache does not hold yet
-        geometry, rep = self.geometry, self.tree.representative
+        geometry = self.geometry
 
-        def write_found(a, b):
-            uncached.append(passes.found_range(dist, j, live, rep, geometry.slot, rule, tidx, _CODE["distance"],
+        def write_found(a, b):  # (the search left the leaf position of each query's answer in self._warm)
+            uncached.append(passes.found_range(dist, j, self._warm, live, geometry.slot, rule, tidx, _CODE["distance"],
                                                found, pos, rows, jf, a, b, offsets[a]))
 
         passes.in_ranges(write_found, cuts, threads)
@@ -174,7 +179,7 @@ class _Matcher:
         # point (class, noise) and the source normal, in the order of _numpy_call: with the gather where
         # the normals are final and nothing comes between
         fused = not quadric and not gates
-        some_normals = normals if has_angle else nt
+        normals_q = self._normals_q  # the source normals in query order (an empty (0, 3) array without)
         store, code = geometry._store, _CODE["degenerate"]
 
         def angles(a, b):  # the normal angles of the pairs a:b and their gate
@@ -187,12 +192,12 @@ class _Matcher:
 
         def pairs(a, b):  # the pairs a:b: their differences, normals, noise, gates and angles
             passes.gather_range(self.tree.data, q, found, rows, pos, geometry.slot, store["normals"], store["noise"],
-                                d, nt, noise_t, d2, rule, some_normals, R, cosang, fused, fused and has_angle, code, a, b)
+                                d, nt, noise_t, d2, rule, normals_q, R, cosang, fused, fused and has_angle, code, a, b)
             if quadric:  # see _numpy_call: the foot point on the quadric replaces q_j
                 geometry.foot_at_rows(None, rows[a:b], d, nt, pos[a:b])
             if not fused:
-                passes.normal_gates_range(rows, nt, rule, some_normals, R, cosang, True, has_angle and not gates,
-                                          code, a, b)
+                passes.normal_gates_range(rows, found, nt, rule, normals_q, R, cosang, True,
+                                          has_angle and not gates, code, a, b)
             if not gates:
                 angles(a, b)
 
@@ -206,7 +211,7 @@ class _Matcher:
             rule[rows[bad & (rule[rows] == 0)]] = _CODE["noise"]
         if gates:
             if has_angle:
-                passes.normal_gates_range(rows, nt, rule, normals, R, cosang, False, True, code, 0, n_found)
+                passes.normal_gates_range(rows, found, nt, rule, normals_q, R, cosang, False, True, code, 0, n_found)
             angles(0, n_found)
         if opt["unique"] and n_found:
             # one source point per target point, the nearest by the point-to-point distance (see _numpy_call):

@@ -71,9 +71,10 @@ def count_found(dist, a, b):  # pragma: no cover - compiled
 
 
 @compiled
-def found_range(dist, j, live, rep, slot, rule, tidx, code, found, pos, rows, jf, a, b, n):  # pragma: no cover
+def found_range(dist, j, at, live, slot, rule, tidx, code, found, pos, rows, jf, a, b, n):  # pragma: no cover
     """The queries a:b (query order) with a partner, written from position ``n`` on: their positions
-    ``found``, the leaf positions ``pos`` of their target points (``rep``: the tree's representative), their
+    ``found``, the leaf positions ``pos`` of their target points (``at``: per query, the search's leaf
+    position of its answer, :meth:`~labkit.neighbours.kdtree.KDTree.nearest_in_groups`' ``warm``), their
     rows ``rows`` (``live[found]``) and target points ``jf`` (``j[found]``), and tidx at their rows; the
     others get the rule ``code`` (distance). Returns how many of their target points the geometry cache
     (``slot``) does not hold yet."""
@@ -81,7 +82,7 @@ def found_range(dist, j, live, rep, slot, rule, tidx, code, found, pos, rows, jf
     for r in range(a, b):
         i = live[r]
         if np.isfinite(dist[r]):
-            p = rep[j[r]]
+            p = at[r]
             found[n], pos[n], rows[n], jf[n] = r, p, i, j[r]
             tidx[i] = j[r]
             if slot[p] < 0:
@@ -97,7 +98,8 @@ def gather_range(data, q, found, rows, pos, slot, normals_buf, noise_buf, d, nt,
                  target, source, code, a, b):  # pragma: no cover - compiled
     """For the pairs a:b: d[i] = q_j - p_i, its square length d2 (the duplicate rule's distance, before a
     quadric's foot replaces d), nt[i] and noise[i] from the geometry cache, at the rows i = ``rows``; with
-    ``target`` / ``source`` also the gates of :func:`normal_gates_range` on them."""
+    ``target`` / ``source`` also the gates of :func:`normal_gates_range` on them (``normals``: the source
+    normals in query order, read at ``found``)."""
     for n in range(a, b):
         i, r, p = rows[n], found[n], pos[n]
         s = slot[p]
@@ -110,7 +112,7 @@ def gather_range(data, q, found, rows, pos, slot, normals_buf, noise_buf, d, nt,
         if target and np.isnan(t0) and rule[i] == 0:
             rule[i] = code
         if source:
-            x, y, z = normals[i, 0], normals[i, 1], normals[i, 2]
+            x, y, z = normals[r, 0], normals[r, 1], normals[r, 2]
             if np.isnan(x) and rule[i] == 0:
                 rule[i] = code
             a0 = (x * R[0, 0] + z * R[0, 2]) + y * R[0, 1]
@@ -120,16 +122,18 @@ def gather_range(data, q, found, rows, pos, slot, normals_buf, noise_buf, d, nt,
 
 
 @compiled
-def normal_gates_range(rows, nt, rule, normals, R, cosang, target, source, code, a, b):  # pragma: no cover
-    """'degenerate' where the target normal (``target``) or the source normal (``source``) of the pairs a:b
-    is missing and no rule came first; with ``source`` also |R n_s . n_t| per pair (the same sums)."""
+def normal_gates_range(rows, found, nt, rule, normals, R, cosang, target, source, code, a, b):  # pragma: no cover
+    """'degenerate' where the target normal (``target``) or the source normal (``source``; in query order, read
+    at ``found``) of the pairs a:b is missing and no rule came first; with ``source`` also |R n_s . n_t| per
+    pair (the same sums)."""
     for n in range(a, b):
         i = rows[n]
         t0, t1, t2 = nt[i, 0], nt[i, 1], nt[i, 2]
         if target and np.isnan(t0) and rule[i] == 0:
             rule[i] = code
         if source:
-            x, y, z = normals[i, 0], normals[i, 1], normals[i, 2]
+            r = found[n]
+            x, y, z = normals[r, 0], normals[r, 1], normals[r, 2]
             if np.isnan(x) and rule[i] == 0:
                 rule[i] = code
             a0 = (x * R[0, 0] + z * R[0, 2]) + y * R[0, 1]
