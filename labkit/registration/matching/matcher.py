@@ -157,10 +157,10 @@ class _Matcher:
         rows = np.empty(n_found, dtype=np.intp)  # the rows with a partner (query order)
         jf = np.empty(n_found, dtype=np.intp)  # and their target points
         uncached = []  # per range: how many of its target points the geometry cache does not hold yet
-        geometry = self.geometry
+        geometry, rep = self.geometry, self.tree.representative
 
-        def write_found(a, b):  # (the search left the leaf position of each query's answer in self._warm)
-            uncached.append(passes.found_range(dist, j, self._warm, live, geometry.slot, rule, tidx, _CODE["distance"],
+        def write_found(a, b):
+            uncached.append(passes.found_range(dist, j, live, rep, geometry.slot, rule, tidx, _CODE["distance"],
                                                found, pos, rows, jf, a, b, offsets[a]))
 
         passes.in_ranges(write_found, cuts, threads)

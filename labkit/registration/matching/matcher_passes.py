@@ -71,10 +71,9 @@ def count_found(dist, a, b):  # pragma: no cover - compiled
 
 
 @compiled
-def found_range(dist, j, at, live, slot, rule, tidx, code, found, pos, rows, jf, a, b, n):  # pragma: no cover
+def found_range(dist, j, live, rep, slot, rule, tidx, code, found, pos, rows, jf, a, b, n):  # pragma: no cover
     """The queries a:b (query order) with a partner, written from position ``n`` on: their positions
-    ``found``, the leaf positions ``pos`` of their target points (``at``: per query, the search's leaf
-    position of its answer, :meth:`~labkit.neighbours.kdtree.KDTree.nearest_in_groups`' ``warm``), their
+    ``found``, the leaf positions ``pos`` of their target points (``rep``: the tree's representative), their
     rows ``rows`` (``live[found]``) and target points ``jf`` (``j[found]``), and tidx at their rows; the
     others get the rule ``code`` (distance). Returns how many of their target points the geometry cache
     (``slot``) does not hold yet."""
@@ -82,7 +81,7 @@ def found_range(dist, j, at, live, slot, rule, tidx, code, found, pos, rows, jf,
     for r in range(a, b):
         i = live[r]
         if np.isfinite(dist[r]):
-            p = at[r]
+            p = rep[j[r]]
             found[n], pos[n], rows[n], jf[n] = r, p, i, j[r]
             tidx[i] = j[r]
             if slot[p] < 0:
