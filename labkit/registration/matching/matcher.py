@@ -154,6 +154,7 @@ class _Matcher:
         n_found = sum(counts.values())
         found = np.empty(n_found, dtype=np.intp)  # positions (in query order) of the queries with a partner
         pos = np.empty(n_found, dtype=np.intp)  # leaf position of each one's target point
+        slots = np.empty(n_found, dtype=np.intp)  # and its place in the geometry cache (-1: not there yet)
         rows = np.empty(n_found, dtype=np.intp)  # the rows with a partner (query order)
         jf = np.empty(n_found, dtype=np.intp)  # and their target points
         uncached = []  # per range: how many of its target points the geometry cache does not hold yet
@@ -161,7 +162,7 @@ class _Matcher:
 
         def write_found(a, b):
             uncached.append(passes.found_range(dist, j, live, rep, geometry.slot, rule, tidx, _CODE["distance"],
-                                               found, pos, rows, jf, a, b, offsets[a]))
+                                               found, pos, slots, rows, jf, a, b, offsets[a]))
 
         passes.in_ranges(write_found, cuts, threads)
         j = jf
@@ -174,7 +175,7 @@ class _Matcher:
         max_angle = opt["max_angle_deg"]
         gate_angle, max_angle = max_angle is not None and has_angle, np.inf if max_angle is None else float(max_angle)
         cosang = np.empty(n_found)
-        d2 = np.empty(n_found)  # |q_j - p_i|^2: the duplicate rule keeps the nearest source point by it
+        d2 = np.empty(n_found)  # |q_j - p_i|^2: the duplicate rule keeps the nearest source point by it (-1: rejected)
         # a target point whose neighbourhood is a point or a line has no normal; (4) gates on the target
         # point (class, noise) and the source normal, in the order of _numpy_call: with the gather where
         # the normals are final and nothing comes between
@@ -188,11 +189,12 @@ class _Matcher:
                 np.clip(c, 0, 1, out=c)
                 np.degrees(np.arccos(c, out=c), out=c)  # the angles, in place
             passes.angles_range(rows, cosang, has_angle, max_angle, gate_angle, rule, angle, _CODE["normal_angle"],
-                                a, b)
+                                d2, a, b)
 
         def pairs(a, b):  # the pairs a:b: their differences, normals, noise, gates and angles
-            passes.gather_range(self.tree.data, q, found, rows, pos, geometry.slot, store["normals"], store["noise"],
-                                d, nt, noise_t, d2, rule, normals_q, R, cosang, fused, fused and has_angle, code, a, b)
+            passes.gather_range(self.tree.data, q, found, rows, pos, slots, geometry.slot, store["normals"],
+                                store["noise"], d, nt, noise_t, d2, rule, normals_q, R, cosang, fused,
+                                fused and has_angle, code, a, b)
             if quadric:  # see _numpy_call: the foot point on the quadric replaces q_j
                 geometry.foot_at_rows(None, rows[a:b], d, nt, pos[a:b])
             if not fused:

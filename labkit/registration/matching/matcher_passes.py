@@ -71,20 +71,21 @@ def count_found(dist, a, b):  # pragma: no cover - compiled
 
 
 @compiled
-def found_range(dist, j, live, rep, slot, rule, tidx, code, found, pos, rows, jf, a, b, n):  # pragma: no cover
+def found_range(dist, j, live, rep, slot, rule, tidx, code, found, pos, slots, rows, jf, a, b, n):  # pragma: no cover
     """The queries a:b (query order) with a partner, written from position ``n`` on: their positions
-    ``found``, the leaf positions ``pos`` of their target points (``rep``: the tree's representative), their
-    rows ``rows`` (``live[found]``) and target points ``jf`` (``j[found]``), and tidx at their rows; the
-    others get the rule ``code`` (distance). Returns how many of their target points the geometry cache
-    (``slot``) does not hold yet."""
+    ``found``, the leaf positions ``pos`` of their target points (``rep``: the tree's representative) and
+    these points' places ``slots`` in the geometry cache (``slot``; -1: not cached yet), their rows ``rows``
+    (``live[found]``) and target points ``jf`` (``j[found]``), and tidx at their rows; the others get the rule
+    ``code`` (distance). Returns how many of their target points the geometry cache does not hold yet."""
     uncached = 0
     for r in range(a, b):
         i = live[r]
         if np.isfinite(dist[r]):
             p = rep[j[r]]
-            found[n], pos[n], rows[n], jf[n] = r, p, i, j[r]
+            s = slot[p]
+            found[n], pos[n], slots[n], rows[n], jf[n] = r, p, s, i, j[r]
             tidx[i] = j[r]
-            if slot[p] < 0:
+            if s < 0:
                 uncached += 1
             n += 1
         else:
@@ -93,15 +94,17 @@ def found_range(dist, j, live, rep, slot, rule, tidx, code, found, pos, rows, jf
 
 
 @compiled
-def gather_range(data, q, found, rows, pos, slot, normals_buf, noise_buf, d, nt, noise, d2, rule, normals, R, cosang,
-                 target, source, code, a, b):  # pragma: no cover - compiled
+def gather_range(data, q, found, rows, pos, slots, slot, normals_buf, noise_buf, d, nt, noise, d2, rule, normals, R,
+                 cosang, target, source, code, a, b):  # pragma: no cover - compiled
     """For the pairs a:b: d[i] = q_j - p_i, its square length d2 (the duplicate rule's distance, before a
-    quadric's foot replaces d), nt[i] and noise[i] from the geometry cache, at the rows i = ``rows``; with
+    quadric's foot replaces d), nt[i] and noise[i] from the geometry cache (at ``slots``, or where ``slot``
+    has placed a point cached since), at the rows i = ``rows``; with
     ``target`` / ``source`` also the gates of :func:`normal_gates_range` on them (``normals``: the source
     normals in query order, read at ``found``)."""
     for n in range(a, b):
-        i, r, p = rows[n], found[n], pos[n]
-        s = slot[p]
+        i, r, p, s = rows[n], found[n], pos[n], slots[n]
+        if s < 0:
+            s = slot[p]
         x, y, z = data[p, 0] - q[r, 0], data[p, 1] - q[r, 1], data[p, 2] - q[r, 2]
         d[i, 0], d[i, 1], d[i, 2] = x, y, z
         d2[n] = (x * x + z * z) + y * y
@@ -142,8 +145,10 @@ def normal_gates_range(rows, found, nt, rule, normals, R, cosang, target, source
 
 
 @compiled
-def angles_range(rows, ang, has_angle, max_angle, gate, rule, angle, code, a, b):  # pragma: no cover - compiled
-    """angle[rows] = ang (NaN without source normals) and its gate (``code``) for the pairs a:b."""
+def angles_range(rows, ang, has_angle, max_angle, gate, rule, angle, code, d2, a, b):  # pragma: no cover - compiled
+    """angle[rows] = ang (NaN without source normals) and its gate (``code``) for the pairs a:b, the last gate
+    before the duplicate rule: ``d2`` of the pairs it rejected or a gate before it set to -1 (the duplicate
+    rule skips them without reading their rule)."""
     for n in range(a, b):
         i = rows[n]
         if has_angle:
@@ -152,12 +157,15 @@ def angles_range(rows, ang, has_angle, max_angle, gate, rule, angle, code, a, b)
                 rule[i] = code
         else:
             angle[i] = np.nan
+        if rule[i] != 0:
+            d2[n] = -1.0
 
 
 @compiled
 def duplicates_range(rows, pos, d2, rule, best, best_d2, lo, hi, code):  # pragma: no cover - compiled
     """One source point per target point, for the target points at the leaf positions lo:hi: of the pairs
-    not rejected yet, the one with the smallest ``d2`` keeps it, equal distances the lower row; the others
+    not rejected yet (``d2`` not -1, :func:`angles_range`), the one with the smallest ``d2`` keeps it, equal
+    distances the lower row; the others
     get the rule ``code`` (duplicate). Every pair is read, those of other target points skipped: each row
     has one target point, so a split by target points writes disjoint rows (the result does not depend on
     the order of the pairs). ``best`` / ``best_d2``: scratch of the tree's size, only lo:hi used."""
@@ -165,11 +173,9 @@ def duplicates_range(rows, pos, d2, rule, best, best_d2, lo, hi, code):  # pragm
         best[t] = -1
     for n in range(rows.shape[0]):
         t = pos[n]
-        if t < lo or t >= hi:
+        if t < lo or t >= hi or d2[n] < 0:
             continue
         i = rows[n]
-        if rule[i] != 0:
-            continue
         b = best[t]
         if b < 0:
             best[t], best_d2[t] = i, d2[n]
