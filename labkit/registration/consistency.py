@@ -140,7 +140,7 @@ class Consistency(ReportMixin):
 
 
 def group_consistency(A, l, P, labels, names, cells, *, translation, rel_threshold=1e-2, alpha=1e-3,
-                      grouping="class", min_n=30) -> Consistency | None:
+                      grouping="class", min_n=30, normal=None) -> Consistency | None:
     """Generalized Cochran Q test of one transformation for all groups (eq. 5.16).
 
     Parameters
@@ -165,6 +165,8 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
         Level of the test.
     min_n : int
         Smaller groups are not tested.
+    normal : tuple of ndarray, optional
+        ``normal_equations(A, P, l)`` when the caller has it (several groupings of the same rows).
 
     Returns
     -------
@@ -202,7 +204,7 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
     u = A.shape[2]
     if u == 0:  # every parameter held: nothing to test
         return None
-    N_all, n_all = normal_equations(A, P, l)
+    N_all, n_all = normal_equations(A, P, l) if normal is None else normal
     x0 = np.linalg.lstsq(N_all, n_all, rcond=None)[0]  # the result's own step
     fits = []  # each group's own fit in the directions it determines
     for g, name in enumerate(names):
