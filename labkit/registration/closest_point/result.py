@@ -8,8 +8,7 @@ import numpy as np
 
 from ...core.masks import STABLE_CLASSES
 from ...core.order import median
-from ...core.threads import side_by_side
-from .adjustment import NAMES, design
+from .adjustment import NAMES, _kept_side_by_side, design
 from .covariance import block_cells
 from ..consistency import cell_labels, family_level, group_consistency, normal_equations
 from ..result import RegistrationResult
@@ -27,10 +26,11 @@ def icp_result(R, t, origin, adj, history, converged, matcher, opts, runtime):
         rows = np.flatnonzero(adj.corr.accepted)
         xy = np.take(adj.corr.source_xyz, rows, axis=0)[:, :2] - opts.origin[:2]  # (by index: faster than the mask)
         cell = cell_labels(block_cells(xy, opts.block_size))
-    # the block covariance and the group test (independent) side by side
-    block, test = side_by_side(
-        (lambda: None if adj.block_cov is None else adj.block_cov(cell),),
+    # the group test and the block covariance (independent) side by side; the test here, the covariance on
+    # a worker: the test's groupings go on that worker too once it is done
+    test, block = _kept_side_by_side(
         (lambda: None if opts.consistency_alpha is None else consistency_test(adj, matcher, opts, cell, xy),),
+        (lambda: None if adj.block_cov is None else adj.block_cov(cell),),
     )
     if block is not None and np.isfinite(np.diag(block)).any():
         cov = block  # (eq. 5.13)
@@ -132,14 +132,15 @@ def consistency_test(adj, matcher, opts, cell=None, xy=None):
     normal = normal_equations(A, P, l)  # N and n of all rows: the same for every grouping
     names_free = [n for n, f in zip(NAMES[opts.dof], free) if f]
     translation = [names_free.index(n) for n in ("tx", "ty", "tz") if n in names_free]
-    tests = []
-    for labels, names, grouping in _groupings(corr, ok, xy, matcher):
-        test = group_consistency(
+
+    def tested(labels, names, grouping):
+        return group_consistency(
             A, l, P, labels, names, cells, translation=translation, rel_threshold=opts.rel_threshold,
             alpha=opts.consistency_alpha, grouping=grouping, normal=normal,
         )  # fmt: skip
-        if test is not None:
-            tests.append(test)
+
+    # the groupings' tests (independent) on the free cores
+    tests = [t for t in _kept_side_by_side(*[(tested, *g) for g in _groupings(corr, ok, xy, matcher)]) if t is not None]
     if not tests:
         return None
     tests = family_level(tests, opts.consistency_alpha)
