@@ -7,7 +7,6 @@ re-matching (:mod:`.information`) and the solution with held parameters.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -21,7 +20,6 @@ from .weights import robust_weights
 from ..consistency import normal_equations
 from ..degeneracy import degeneracy_report
 from ..matching.match import Correspondences
-from ...neighbours.kdtree_build import in_runs
 
 NAMES = {"translation": ("tx", "ty", "tz"), "rigid": ("rx", "ry", "rz", "tx", "ty", "tz")}
 #: A parameter with this squared share in the undetermined eigen-directions is held fixed (and reported).
@@ -137,29 +135,6 @@ def adjust(corr, R, t, opts):
         dx=dx, N=N, Qxx=Qxx, block_cov=block, held_cov=held_cov, sigma0=float(sigma0), rms=rms, redundancy=r,
         degeneracy=deg, corr=corr, scale=float(scale), n_deleted=int((~keep).sum()),
     )
-
-
-def _kept_side_by_side(*calls):
-    """The results of the calls ``(function, *args)``, taken by this thread and the workers of the kernels'
-    kept pool (:func:`labkit.neighbours.kdtree_build.in_runs`): whichever thread is free takes the next.
-
-    Like :func:`labkit.core.threads.side_by_side`, without starting threads (a few milliseconds each on a
-    loaded machine, as much as the pieces of ICP's last step take). Each call computes the same numbers
-    wherever it runs; an exception of one is raised here once the others have ended.
-    """
-    out = [None] * len(calls)
-
-    def run(a, b):
-        for i in range(a, b):
-            f, *args = calls[i]
-            out[i] = f(*args)
-
-    in_runs(run, np.arange(len(calls) + 1), min(len(calls), _cores()))
-    return out
-
-
-def _cores():
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def design(corr, R, t, opts, rows=None):

@@ -8,7 +8,8 @@ import numpy as np
 
 from ...core.masks import STABLE_CLASSES
 from ...core.order import median
-from .adjustment import NAMES, _kept_side_by_side, design
+from ...core.threads import side_by_side
+from .adjustment import NAMES, design
 from .covariance import block_cells
 from ..consistency import cell_labels, family_level, group_consistency, normal_equations
 from ..result import RegistrationResult
@@ -26,9 +27,8 @@ def icp_result(R, t, origin, adj, history, converged, matcher, opts, runtime):
         rows = np.flatnonzero(adj.corr.accepted)
         xy = np.take(adj.corr.source_xyz, rows, axis=0)[:, :2] - opts.origin[:2]  # (by index: faster than the mask)
         cell = cell_labels(block_cells(xy, opts.block_size))
-    # the group test and the block covariance (independent) side by side; the test here, the covariance on
-    # a worker: the test's groupings go on that worker too once it is done
-    test, block = _kept_side_by_side(
+    # the group test and the block covariance (independent) side by side; the test's groupings too
+    test, block = side_by_side(
         (lambda: None if opts.consistency_alpha is None else consistency_test(adj, matcher, opts, cell, xy),),
         (lambda: None if adj.block_cov is None else adj.block_cov(cell),),
     )
@@ -140,7 +140,7 @@ def consistency_test(adj, matcher, opts, cell=None, xy=None):
         )  # fmt: skip
 
     # the groupings' tests (independent) on the free cores
-    tests = [t for t in _kept_side_by_side(*[(tested, *g) for g in _groupings(corr, ok, xy, matcher)]) if t is not None]
+    tests = [t for t in side_by_side(*[(tested, *g) for g in _groupings(corr, ok, xy, matcher)]) if t is not None]
     if not tests:
         return None
     tests = family_level(tests, opts.consistency_alpha)
