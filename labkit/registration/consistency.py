@@ -140,7 +140,7 @@ class Consistency(ReportMixin):
 
 
 def group_consistency(A, l, P, labels, names, cells, *, translation, rel_threshold=1e-2, alpha=1e-3,
-                      grouping="class", min_n=30) -> Consistency | None:
+                      grouping="class", min_n=30, normal=None) -> Consistency | None:
     """Generalized Cochran Q test of one transformation for all groups (eq. 5.16).
 
     Parameters
@@ -165,6 +165,8 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
         Level of the test.
     min_n : int
         Smaller groups are not tested.
+    normal : tuple of ndarray, optional
+        ``normal_equations(A, P, l)`` when the caller has it (several groupings of the same rows).
 
     Returns
     -------
@@ -202,7 +204,7 @@ def group_consistency(A, l, P, labels, names, cells, *, translation, rel_thresho
     u = A.shape[2]
     if u == 0:  # every parameter held: nothing to test
         return None
-    N_all, n_all = normal_equations(A, P, l)
+    N_all, n_all = normal_equations(A, P, l) if normal is None else normal
     x0 = np.linalg.lstsq(N_all, n_all, rcond=None)[0]  # the result's own step
     fits = []  # each group's own fit in the directions it determines
     for g, name in enumerate(names):
@@ -275,7 +277,36 @@ def normal_equations(A, P, l):
     """
     if not have_numba():  # pragma: no cover - depends on the environment
         return np.einsum("mru,m,mrv->uv", A, P, A), np.einsum("mru,m,mr->u", A, P, l)
+    if A.shape[1] == 1 and A.shape[2] == 3:  # a shift from one residual per row: the sums in registers
+        return compiled(_normal_equations_shift)(A, P, l)
     return compiled(_normal_equations_kernel)(A, P, l)
+
+
+def _normal_equations_shift(A, P, l):  # pragma: no cover - compiled
+    """:func:`_normal_equations_kernel` for r = 1, u = 3: the same products added in the same order, each sum
+    kept in a variable of its own (the array's entries are stored and loaded again in every row)."""
+    n00 = n01 = n02 = n10 = n11 = n12 = n20 = n21 = n22 = 0.0
+    g0 = g1 = g2 = 0.0
+    for i in range(A.shape[0]):
+        a0, a1, a2 = A[i, 0, 0], A[i, 0, 1], A[i, 0, 2]
+        p, y = P[i], l[i, 0]
+        ap = a0 * p
+        n00 += ap * a0
+        n01 += ap * a1
+        n02 += ap * a2
+        g0 += ap * y
+        ap = a1 * p
+        n10 += ap * a0
+        n11 += ap * a1
+        n12 += ap * a2
+        g1 += ap * y
+        ap = a2 * p
+        n20 += ap * a0
+        n21 += ap * a1
+        n22 += ap * a2
+        g2 += ap * y
+    N = np.array([[n00, n01, n02], [n10, n11, n12], [n20, n21, n22]])
+    return N, np.array([g0, g1, g2])
 
 
 def _normal_equations_kernel(A, P, l):  # pragma: no cover - compiled

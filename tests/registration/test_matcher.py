@@ -83,11 +83,18 @@ def test_first_search_made_ahead_changes_no_correspondence():
     dict(class_sigma={2: 0.01, 6: 0.03}, default_sigma=0.02),
     dict(surface="quadric", max_distance=0.05),
 ])
-def test_compiled_matcher_call_equals_its_numpy_route(options):
+@pytest.mark.parametrize("in_ranges", [False, True])
+def test_compiled_matcher_call_equals_its_numpy_route(options, in_ranges, monkeypatch):
     """_Matcher._compiled_call gives the correspondences of _Matcher._numpy_call, array for array and to the bit,
-    under every gate and weighting (classes, noise, angle, duplicates, class sigmas, quadric feet, no partner)."""
+    under every gate and weighting (classes, noise, angle, duplicates, class sigmas, quadric feet, no partner),
+    in one thread and with its passes cut into ranges on two threads (as on large clouds)."""
     from labkit import PointCloud
+    from labkit.registration.matching import matcher_passes
     from labkit.registration.matching.match import prepare
+
+    if in_ranges:
+        monkeypatch.setattr(matcher_passes, "SERIAL_ROWS", 100)
+        monkeypatch.setattr(matcher_passes, "cores", lambda: 2)
 
     rng = np.random.default_rng(3)
     target = np.round(wavy_surface(12_000, rng, noise=0.002), 3)

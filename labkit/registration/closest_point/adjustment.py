@@ -87,7 +87,8 @@ def adjust(corr, R, t, opts):
     if all_kept:  # nothing deleted: the rows as they are (no copies)
         P, kept_rows = pw, ok_rows
     else:
-        P, A, l, kept_rows = pw[keep], A[keep], l[keep], ok_rows[keep]
+        at = np.flatnonzero(keep)  # the kept rows gathered by index (several times faster than by the mask)
+        P, A, l, kept_rows = np.take(pw, at), np.take(A, at, axis=0), np.take(l, at, axis=0), np.take(ok_rows, at)
     N, nvec = normal_equations(A, P, l)  # N = A^T P A, n = A^T P l  (eq. 5.7)
     names = NAMES[opts.dof]
     N_eps = tilt_information(corr, kept_rows, P, opts, R)

@@ -106,19 +106,24 @@ def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, xy, N_eps, o
     if n_cells < 2 * k:
         return cov  # too few cells for a sandwich: NaN, the caller falls back to the formal one
     M = np.einsum("ci,cj->ij", G, G) * n_cells / (n_cells - 1)  # small-sample factor of the cluster sandwich
-    e = centred / np.maximum(np.linalg.norm(centred, axis=1, keepdims=True), 1e-300)
-    Ae = np.einsum("mru,mr->mu", A, e)  # A^T e per row
-    AA = np.einsum("mru,mrv->muv", A, A)
     dpsi = psi_prime(u, opts.robust)  # factor = psi(u) / u
-    inner = factor[:, None, None] * AA + ((dpsi - factor)[:, None, None] * np.einsum("mu,mv->muv", Ae, Ae))
-    J = np.einsum("m,muv->uv", (w * keep), inner)
+    near = None
     if opts.reject_sigma is not None:  # rows crossing the deletion limit as x changes
-        r = A.shape[1]
-        limit = deletion_limit(opts.reject_sigma, r)
+        limit = deletion_limit(opts.reject_sigma, A.shape[1])
         h = 0.1 * limit
         near = np.abs(u - limit) < h
+    if one:  # J and the boundary term in one compiled pass, without the (m, u, u) arrays (see _bread_sums)
+        J, J_near = compiled(_bread_sums)(A, centred, w, keep, near if near is not None else keep, factor, dpsi)
+    else:
+        e = centred / np.maximum(np.linalg.norm(centred, axis=1, keepdims=True), 1e-300)
+        Ae = np.einsum("mru,mr->mu", A, e)  # A^T e per row
+        AA = np.einsum("mru,mrv->muv", A, A)
+        inner = factor[:, None, None] * AA + ((dpsi - factor)[:, None, None] * np.einsum("mu,mv->muv", Ae, Ae))
+        J = np.einsum("m,muv->uv", (w * keep), inner)
+        J_near = None if near is None else np.einsum("m,mu,mv->uv", w * near, Ae, Ae)
+    if near is not None:
         psi_limit = limit * (np.median(factor[keep & near]) if (keep & near).any() else 1.0)
-        J -= psi_limit / (2 * h) * np.einsum("m,mu,mv->uv", w * near, Ae, Ae)
+        J -= psi_limit / (2 * h) * J_near
     J = (J - N_eps)[np.ix_(fixed, fixed)]  # the bread: what survives re-matching (eq. 5.12b)
     try:
         c = cho_factor(0.5 * (J + J.T))
@@ -133,6 +138,29 @@ def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, xy, N_eps, o
     t_factor = student_t.ppf(norm.cdf(SIGMAS), np.maximum(dof, 1.0)) / SIGMAS
     cov[np.ix_(fixed, fixed)] = Ji @ M @ Ji * (m / max(m - k, 1)) * np.outer(t_factor, t_factor)
     return cov
+
+
+def _bread_sums(A, centred, w, keep, near, factor, dpsi):  # pragma: no cover - compiled
+    """For one residual per row: J = sum (w keep) [factor a a^T + (psi' - factor) (a e)(a e)^T] and the boundary
+    term sum (w near) (a e)(a e)^T, e = c / |c| of the centred residual c: each product formed as numpy forms
+    the arrays of :func:`block_covariance`, added in row order from zero (np.einsum's order)."""
+    m, _, p = A.shape
+    J = np.zeros((p, p))
+    Jn = np.zeros((p, p))
+    ae = np.empty(p)
+    for i in range(m):
+        c = centred[i, 0]
+        e = c / max(np.sqrt(c * c), 1e-300)
+        for a in range(p):
+            ae[a] = A[i, 0, a] * e
+        wk = w[i] * keep[i]
+        wn = w[i] * near[i]
+        f, d = factor[i], dpsi[i] - factor[i]
+        for a in range(p):
+            for b in range(p):
+                J[a, b] += wk * (f * (A[i, 0, a] * A[i, 0, b]) + d * (ae[a] * ae[b]))
+                Jn[a, b] += (wn * ae[a]) * ae[b]
+    return J, Jn
 
 
 def _cell_scores(cell, n_cells, A, P, v, rows, cols):  # pragma: no cover - compiled

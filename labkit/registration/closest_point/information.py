@@ -163,9 +163,8 @@ def _observed_kernel(ns, rows, R, tn, P):  # pragma: no cover - compiled
     """sum P D D^T over the rows with a finite D = s R n_s - n_t (s: the sign of R n_s . n_t), and those rows: the
     rotation and the dot product with einsum's sums, the outer products added in row order (its order too)."""
     m = rows.shape[0]
-    S = np.zeros((3, 3))
     ok = np.zeros(m, np.bool_)
-    D = np.empty(3)
+    s00 = s01 = s02 = s10 = s11 = s12 = s20 = s21 = s22 = 0.0  # the sums in variables (not stored every row)
     for r in range(m):
         i = rows[r]
         x, y, z = ns[i, 0], ns[i, 1], ns[i, 2]
@@ -175,14 +174,22 @@ def _observed_kernel(ns, rows, R, tn, P):  # pragma: no cover - compiled
         b0, b1, b2 = tn[i, 0], tn[i, 1], tn[i, 2]
         dot = (a0 * b0 + a2 * b2) + a1 * b1
         s = 1.0 if dot > 0 else (-1.0 if dot < 0 else (0.0 if dot == 0 else np.nan))  # np.sign
-        D[0], D[1], D[2] = a0 * s - b0, a1 * s - b1, a2 * s - b2
-        if np.isfinite(D[0]) and np.isfinite(D[1]) and np.isfinite(D[2]):
+        d0, d1, d2 = a0 * s - b0, a1 * s - b1, a2 * s - b2
+        if np.isfinite(d0) and np.isfinite(d1) and np.isfinite(d2):
             ok[r] = True
-            for u in range(3):
-                pd = P[r] * D[u]
-                for v in range(3):
-                    S[u, v] += pd * D[v]
-    return S, ok
+            pd = P[r] * d0
+            s00 += pd * d0
+            s01 += pd * d1
+            s02 += pd * d2
+            pd = P[r] * d1
+            s10 += pd * d0
+            s11 += pd * d1
+            s12 += pd * d2
+            pd = P[r] * d2
+            s20 += pd * d0
+            s21 += pd * d1
+            s22 += pd * d2
+    return np.array([[s00, s01, s02], [s10, s11, s12], [s20, s21, s22]]), ok
 
 
 def _excess(observed, model):

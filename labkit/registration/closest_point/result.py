@@ -7,10 +7,11 @@ from dataclasses import replace
 import numpy as np
 
 from ...core.masks import STABLE_CLASSES
+from ...core.order import median
 from ...core.threads import side_by_side
 from .adjustment import NAMES, design
 from .covariance import block_cells
-from ..consistency import cell_labels, family_level, group_consistency
+from ..consistency import cell_labels, family_level, group_consistency, normal_equations
 from ..result import RegistrationResult
 
 #: Groups of the consistency test by the classes (ASPRS) of a correspondence's two points, in order of
@@ -21,15 +22,15 @@ CLASS_GROUPS = (("vegetation", (3, 4, 5)), ("buildings", (6,)), ("ground/road", 
 def icp_result(R, t, origin, adj, history, converged, matcher, opts, runtime):
     deg = adj.degeneracy
     cov = adj.sigma0**2 * adj.Qxx  # (eq. 5.11)
-    cell = None  # the block cells of the final pairs (eq. 5.13), shared by the covariance and the group test
+    cell = xy = None  # the block cells of the final pairs (eq. 5.13), shared by the covariance and the group test
     if adj.block_cov is not None or opts.consistency_alpha is not None:
         rows = np.flatnonzero(adj.corr.accepted)
         xy = np.take(adj.corr.source_xyz, rows, axis=0)[:, :2] - opts.origin[:2]  # (by index: faster than the mask)
         cell = cell_labels(block_cells(xy, opts.block_size))
-    # the block covariance and the group test (independent) side by side
-    block, test = side_by_side(
+    # the group test and the block covariance (independent) side by side; the test's groupings too
+    test, block = side_by_side(
+        (lambda: None if opts.consistency_alpha is None else consistency_test(adj, matcher, opts, cell, xy),),
         (lambda: None if adj.block_cov is None else adj.block_cov(cell),),
-        (lambda: None if opts.consistency_alpha is None else consistency_test(adj, matcher, opts, cell),),
     )
     if block is not None and np.isfinite(np.diag(block)).any():
         cov = block  # (eq. 5.13)
@@ -106,7 +107,7 @@ def resolution_floor(cov, adj):
     return cov
 
 
-def consistency_test(adj, matcher, opts, cell=None):
+def consistency_test(adj, matcher, opts, cell=None, xy=None):
     """Model test of the final correspondences: one transformation for every group? (eq. 5.16)
 
     Three groupings are tested where the data allow them: by class (when both clouds carry two or more
@@ -117,25 +118,29 @@ def consistency_test(adj, matcher, opts, cell=None):
     each is tested at ``consistency_alpha`` / k (:func:`~labkit.registration.consistency.family_level`),
     so that agreeing groups are reported as disagreeing in about ``consistency_alpha`` of the cases.
     ``cell``: the block cell label of every accepted pair (:func:`~labkit.registration.consistency.cell_labels`),
-    when the caller has them (the block covariance uses the same); default: made here.
+    when the caller has them (the block covariance uses the same), and ``xy`` the accepted pairs' source
+    positions in the local frame; default: made here.
     """
     corr = adj.corr
     ok = corr.accepted
     A, l, P = design(corr, None, None, opts)
     free = adj.degeneracy.parameter_determined
     A = A[:, :, free]  # held parameters stay out of the test
-    xy = np.take(corr.source_xyz, np.flatnonzero(ok), axis=0)[:, :2] - opts.origin[:2]  # (by index: faster)
+    if xy is None:
+        xy = np.take(corr.source_xyz, np.flatnonzero(ok), axis=0)[:, :2] - opts.origin[:2]  # (by index: faster)
     cells = cell_labels(block_cells(xy, opts.block_size)) if cell is None else cell
+    normal = normal_equations(A, P, l)  # N and n of all rows: the same for every grouping
     names_free = [n for n, f in zip(NAMES[opts.dof], free) if f]
     translation = [names_free.index(n) for n in ("tx", "ty", "tz") if n in names_free]
-    tests = []
-    for labels, names, grouping in _groupings(corr, ok, xy, matcher):
-        test = group_consistency(
+
+    def tested(labels, names, grouping):
+        return group_consistency(
             A, l, P, labels, names, cells, translation=translation, rel_threshold=opts.rel_threshold,
-            alpha=opts.consistency_alpha, grouping=grouping,
+            alpha=opts.consistency_alpha, grouping=grouping, normal=normal,
         )  # fmt: skip
-        if test is not None:
-            tests.append(test)
+
+    # the groupings' tests (independent) on the free cores
+    tests = [t for t in side_by_side(*[(tested, *g) for g in _groupings(corr, ok, xy, matcher)]) if t is not None]
     if not tests:
         return None
     tests = family_level(tests, opts.consistency_alpha)
@@ -168,7 +173,7 @@ def _groupings(corr, ok, xy, matcher):
         yield (np.searchsorted(np.quantile(sigma, [1 / 3, 2 / 3]), sigma, side="right"),
                ["smooth third", "middle third", "rough third"], "local noise")
     if len(xy):
-        above = (xy > np.median(xy, axis=0)).astype(int)
+        above = (xy > [median(xy[:, 0]), median(xy[:, 1])]).astype(int)  # np.median(xy, axis=0): the same
         yield above[:, 0] + 2 * above[:, 1], ["block SW", "block SE", "block NW", "block NE"], "block"
 
 

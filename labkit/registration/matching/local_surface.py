@@ -20,6 +20,7 @@ from ...neighbours.kdtree_build import in_runs
 from ...core.errors import LabkitError
 from ...core.jit import compiled
 from ...neighbours.moments import covariances  # the shared kNN covariance kernel (compiled)
+from .quadric_tilt import quadric_tilt
 
 if HAVE_NUMBA:
     import numba
@@ -589,11 +590,7 @@ class Geometry:
         The normal n - d t1 - e t2 at q tilts by -(dd t1 + de t2) with the covariance of the
         fitted slopes (d, e) (requires :meth:`at` first; NaN where no quadric was fitted).
         """
-        pos = self.tree.representative[index]
-        T = self._get("frame", pos)[:, :, [2, 1]]  # tangents t1 (u), t2 (v)
-        vd, cde, ve = self._get("slope", pos).T
-        C = np.stack([np.stack([vd, cde], -1), np.stack([cde, ve], -1)], -2)
-        return np.einsum("mia,mab,mjb->mij", T, C, T)
+        return quadric_tilt(self._store, self.slot, self.tree.representative[index], self._get)
 
     def compute(self, index, k):
         """Normals, noise and change of curvature at ``index`` with k neighbours (no caching)."""

@@ -40,6 +40,7 @@ from ...core.frame import local_origin, reduce
 from ...core.jit import compiled, have_numba
 from ...core.threads import side_by_side
 from ...neighbours.kdtree import KDTree
+from ...neighbours.kdtree_build import in_runs
 from ...neighbours.treecache import kept_neighbours, local_tree, take_tree
 from ...core.errors import LabkitError
 from .correspondences import _CODE, MIN_SIGMA, RULES, Correspondences, _replace  # noqa: F401 - re-exported
@@ -198,7 +199,7 @@ def prepare(
         order = np.empty(len(idx), dtype=np.intp)
         order[:] = src_tree.indices
         leaf_pos = np.arange(len(idx))
-    groups = np.searchsorted(src_tree.leaf_bounds, leaf_pos, side="right")  # the source leaf of each query
+    groups = _leaf_of(src_tree.leaf_bounds, leaf_pos)  # the source leaf of each query
     settings = dict(  # the matcher's resolved form: no gate is an infinite distance, 'auto' is decided
         max_distance=np.inf if opt.max_distance is None else opt.max_distance,
         max_angle_deg=opt.max_angle_deg,
@@ -218,7 +219,7 @@ def prepare(
     if opt.classes is not None:
         _require_classes(source, "source")
         _require_classes(target, "target")
-    src_pts = src_l[idx]
+    src_pts = np.take(src_l, idx, axis=0)  # (by index: faster than the fancy index)
     normals_of_source = lambda: (None, None) if src_geo is None else src_geo.at(idx, need_noise=True)  # noqa: E731
     if start is None:
         (src_normals, src_noise), memory = normals_of_source(), None
@@ -235,6 +236,31 @@ def prepare(
         src_pts, idx, src_normals, sigma, rule, _TreePoints(tree, n_tgt), tree, tgt_geo, tgt_cls, settings, origin, len(src),
         None if src_cls is None else src_cls[idx], order, groups, memory,
     )  # fmt: skip
+
+
+def _leaf_of(bounds, pos):
+    """``np.searchsorted(bounds, pos, side="right")`` for ascending ``pos``: one walk along both (the same
+    indices); other ``pos`` by the search itself."""
+    if not have_numba():  # pragma: no cover - depends on the environment
+        return np.searchsorted(bounds, pos, side="right")
+    out, ok = compiled(_walk_right)(np.ascontiguousarray(bounds, dtype=np.int64), np.ascontiguousarray(pos, dtype=np.int64))
+    return out if ok else np.searchsorted(bounds, pos, side="right")
+
+
+def _walk_right(bounds, pos):  # pragma: no cover - compiled
+    """For each of the ascending ``pos`` the number of ``bounds`` (ascending) at or below it; False when ``pos``
+    is not ascending."""
+    out = np.empty(pos.shape[0], np.intp)
+    j = 0
+    nb = bounds.shape[0]
+    for i in range(pos.shape[0]):
+        x = pos[i]
+        if i > 0 and x < pos[i - 1]:
+            return out, False
+        while j < nb and bounds[j] <= x:
+            j += 1
+        out[i] = j
+    return out, True
 
 
 def _stable_order(keys, n_keys):
@@ -279,7 +305,13 @@ def _auto_surface(tree, k):
     if k < 10 or tree.n <= k:
         return "plane"
     step = max(1, tree.n // 2000)
-    dist = tree.query(tree.data[::step], k=k, workers=1)[0][:, -1]
+    q = tree.data[::step]
+    dist = np.empty(len(q))
+
+    def run(a, b):  # two halves side by side: too few queries for the tree's own threads, the same answers
+        dist[a:b] = tree.query(q[a:b], k=k, workers=1)[0][:, -1]
+
+    in_runs(run, [0, len(q) // 2, len(q)], 2)
     return "quadric" if float(np.median(dist)) > AUTO_QUADRIC_RADIUS else "plane"
 
 

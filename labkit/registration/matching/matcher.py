@@ -12,12 +12,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...core.checks import positive
-from ...core.jit import compiled
 from ...neighbours.eigh3 import HAVE_NUMBA
 from ...neighbours.kdtree import KDTree
 from ...core.errors import LabkitError
 from .correspondences import _CODE, MIN_SIGMA, Correspondences
 from .local_surface import Geometry
+from . import matcher_passes as passes
 
 if HAVE_NUMBA:
     import numba
@@ -100,7 +100,13 @@ class _Matcher:
             starts = np.append(np.flatnonzero(np.r_[True, g[1:] != g[:-1]]), len(g))
         object.__setattr__(self, "_queries", (live, starts))
         # the queries' source points in query order: rotated in place of a gather of the moved points
-        object.__setattr__(self, "_source_q", None if live is None else np.take(self.source, live, axis=0))
+        object.__setattr__(self, "_source_q", None if live is None else
+                           np.ascontiguousarray(np.take(self.source, live, axis=0), dtype=np.float64))
+        # and their normals: read in query order by the gates (an empty array without normals or queries)
+        normals_q = np.empty((0, 3))
+        if live is not None and self.source_normals is not None:
+            normals_q = np.ascontiguousarray(np.take(self.source_normals, live, axis=0), dtype=np.float64)
+        object.__setattr__(self, "_normals_q", normals_q)
         # per query (in that order): the warm start and the memory of the search (KDTree.nearest_in_groups):
         # the leaf position of its nearest target point in the last call (-1: none), where it was last
         # searched and the squared distance of its second nearest target point then. They change no answer.
@@ -124,65 +130,98 @@ class _Matcher:
 
     def _compiled_call(self, R, t):
         """:meth:`_numpy_call` in a few compiled passes over the queries (in their leaf order, where the target
-        points they meet lie close together) and one over the rows: the same correspondences, number for number."""
+        points they meet lie close together) and over the rows, each spread over the cores in ranges
+        (:mod:`.matcher_passes`; every range writes its own rows): the same correspondences, number for number."""
         opt = self.options
         live, starts = self._queries
-        m = len(self.source)
+        m, n_live = len(self.source), len(live)
+        threads = passes.cores() if n_live > passes.SERIAL_ROWS else 1  # thread start-up dominates small queries
         rule = self.source_rule.copy()
         tidx = np.full(m, -1)
-        # written at the rows with a partner, NaN at the others by the last pass (_weights_planes)
+        # written at the rows with a partner, NaN at the others by the last pass (weights_planes_range)
         d, nt, noise_t, angle = np.empty((m, 3)), np.empty((m, 3)), np.empty(m), np.empty(m)
-        q = _rotated(self._source_q, R, t)  # the queries moved, in query order
+        cuts = passes.range_cuts(n_live, threads)
+        q = np.empty((n_live, 3))  # the queries moved, in query order
+        passes.in_ranges(lambda a, b: passes.rotate_range(self._source_q, R, t, q, a, b), cuts, threads)
         # (3) nearest neighbour in the target kd-tree, within max_distance
-        workers = -1 if len(live) > 20000 else 1  # thread start-up dominates small queries
-        dist, j = self.tree.nearest_in_groups(q, starts, opt["max_distance"], workers=workers,
+        dist, j = self.tree.nearest_in_groups(q, starts, opt["max_distance"], workers=-1 if threads > 1 else 1,
                                               warm=self._warm, memory=self._memory)
-        found = np.empty(len(live), dtype=np.intp)  # positions (in query order) of the queries with a partner
-        pos = np.empty(len(live), dtype=np.intp)  # leaf position of each one's target point
-        n_found, uncached = _found(dist, j, live, self.tree.representative, self.geometry.slot, rule, tidx,
-                                   _CODE["distance"], found, pos)
-        found, pos = found[:n_found], pos[:n_found]
-        rows, j = live[found], j[found]  # the rows with a partner and their target points (query order)
-        geometry = self.geometry
-        if uncached:
+        # the queries with a partner, in query order: counted per range, then each range written from the
+        # sum of the counts of the ranges before it
+        counts = {}
+        passes.in_ranges(lambda a, b: counts.__setitem__(a, passes.count_found(dist, a, b)), cuts, threads)
+        offsets = dict(zip(cuts[:-1], np.cumsum([0] + [counts[a] for a in cuts[:-1]]).tolist()))
+        n_found = sum(counts.values())
+        found = np.empty(n_found, dtype=np.intp)  # positions (in query order) of the queries with a partner
+        pos = np.empty(n_found, dtype=np.intp)  # leaf position of each one's target point
+        slots = np.empty(n_found, dtype=np.intp)  # and its place in the geometry cache (-1: not there yet)
+        rows = np.empty(n_found, dtype=np.intp)  # the rows with a partner (query order)
+        jf = np.empty(n_found, dtype=np.intp)  # and their target points
+        uncached = []  # per range: how many of its target points the geometry cache does not hold yet
+        geometry, rep = self.geometry, self.tree.representative
+
+        def write_found(a, b):
+            uncached.append(passes.found_range(dist, j, live, rep, geometry.slot, rule, tidx, _CODE["distance"],
+                                               found, pos, slots, rows, jf, a, b, offsets[a]))
+
+        passes.in_ranges(write_found, cuts, threads)
+        j = jf
+        if sum(uncached):
             geometry._compute(pos)  # the target points met for the first time
         quadric = opt["surface"] == "quadric"
         gates = opt["classes"] is not None or opt["max_noise"] is not None
         normals = self.source_normals
+        has_angle = normals is not None
+        max_angle = opt["max_angle_deg"]
+        gate_angle, max_angle = max_angle is not None and has_angle, np.inf if max_angle is None else float(max_angle)
         cosang = np.empty(n_found)
+        d2 = np.empty(n_found)  # |q_j - p_i|^2: the duplicate rule keeps the nearest source point by it (-1: rejected)
         # a target point whose neighbourhood is a point or a line has no normal; (4) gates on the target
         # point (class, noise) and the source normal, in the order of _numpy_call: with the gather where
         # the normals are final and nothing comes between
         fused = not quadric and not gates
-        some_normals = normals if normals is not None else nt
+        normals_q = self._normals_q  # the source normals in query order (an empty (0, 3) array without)
+        store, code = geometry._store, _CODE["degenerate"]
+
+        def angles(a, b):  # the normal angles of the pairs a:b and their gate
+            if has_angle:
+                c = cosang[a:b]
+                np.clip(c, 0, 1, out=c)
+                np.degrees(np.arccos(c, out=c), out=c)  # the angles, in place
+            passes.angles_range(rows, cosang, has_angle, max_angle, gate_angle, rule, angle, _CODE["normal_angle"],
+                                d2, a, b)
+
+        def pairs(a, b):  # the pairs a:b: their differences, normals, noise, gates and angles
+            passes.gather_range(self.tree.data, q, found, rows, pos, slots, geometry.slot, store["normals"],
+                                store["noise"], d, nt, noise_t, d2, rule, normals_q, R, cosang, fused,
+                                fused and has_angle, code, a, b)
+            if quadric:  # see _numpy_call: the foot point on the quadric replaces q_j
+                geometry.foot_at_rows(None, rows[a:b], d, nt, pos[a:b])
+            if not fused:
+                passes.normal_gates_range(rows, found, nt, rule, normals_q, R, cosang, True,
+                                          has_angle and not gates, code, a, b)
+            if not gates:
+                angles(a, b)
+
         if n_found:
-            _gather_pairs(self.tree.data, q, found, rows, pos, geometry.slot, geometry._store["normals"],
-                          geometry._store["noise"], d, nt, noise_t,  # d = q_j - p_i, nt, noise_t
-                          rule, some_normals, R, cosang, fused, fused and normals is not None, _CODE["degenerate"])
-        nearest_d = d
-        if quadric and n_found:
-            nearest_d = d.copy()  # see _numpy_call: the foot point on the quadric replaces q_j
-            geometry.foot_at_rows(j, rows, d, nt, pos)
-        if not fused:
-            _normal_gates(rows, nt, rule, some_normals, R, cosang, True, normals is not None and not gates,
-                          _CODE["degenerate"])
+            passes.in_ranges(pairs, passes.range_cuts(n_found, threads), threads)
         if opt["classes"] is not None:
             bad = ~np.isin(self.target_class[j], opt["classes"])
             rule[rows[bad & (rule[rows] == 0)]] = _CODE["class"]
         if opt["max_noise"] is not None:
             bad = noise_t[rows] > opt["max_noise"]
             rule[rows[bad & (rule[rows] == 0)]] = _CODE["noise"]
-        if normals is not None and gates:
-            _normal_gates(rows, nt, rule, normals, R, cosang, False, True, _CODE["degenerate"])
-        if normals is not None:
-            np.clip(cosang, 0, 1, out=cosang)
-            np.degrees(np.arccos(cosang, out=cosang), out=cosang)  # the angles, in place
-        max_angle = opt["max_angle_deg"]
-        # the normal angle's gate and (unique) one source point per target point, the nearest by the
-        # point-to-point distance (see _numpy_call)
-        _angle_and_duplicates(rows, pos, cosang, normals is not None, np.inf if max_angle is None else float(max_angle),
-                              max_angle is not None and normals is not None, bool(opt["unique"]), nearest_d, rule,
-                              angle, self.tree.n, _CODE["normal_angle"], _CODE["duplicate"])
+        if gates:
+            if has_angle:
+                passes.normal_gates_range(rows, found, nt, rule, normals_q, R, cosang, False, True, code, 0, n_found)
+            angles(0, n_found)
+        if opt["unique"] and n_found:
+            # one source point per target point, the nearest by the point-to-point distance (see _numpy_call):
+            # split by target points (each pass reads every pair and writes the rows of its own target points)
+            best, best_d2 = np.empty(self.tree.n, np.int64), np.empty(self.tree.n)
+            passes.in_ranges(lambda lo, hi: passes.duplicates_range(rows, pos, d2, rule, best, best_d2, lo, hi,
+                                                                    _CODE["duplicate"]),
+                             passes.range_cuts(self.tree.n, threads, per_thread=1), threads)
         # (5) weights p = 1 / (sigma_s^2 + sigma_t^2)  (eq. 5.6) and the plane distances
         noise_sigma = opt["noise_weighting"] and not (opt["class_sigma"] and self.target_class is not None)
         if noise_sigma or not n_found:
@@ -192,8 +231,12 @@ class _Matcher:
             sigma_t[rows] = self._target_sigma(j, noise_t[rows])
         weight, plane = np.empty(m), np.empty(m)
         xyz = np.empty((m, 3))
-        _weights_planes(self.source, R, t, self.origin, rule, self.source_sigma, sigma_t, noise_sigma, MIN_SIGMA**2,
-                        tidx, nt, d, noise_t, angle, weight, plane, xyz)
+
+        def weights_planes(a, b):
+            passes.weights_planes_range(self.source, R, t, self.origin, rule, self.source_sigma, sigma_t, noise_sigma,
+                                        MIN_SIGMA**2, tidx, nt, d, noise_t, angle, weight, plane, xyz, a, b)
+
+        passes.in_ranges(weights_planes, passes.range_cuts(m, threads), threads)
         return Correspondences(
             self.source_index, tidx, xyz, d, plane, angle, nt, weight, rule, self.n_source, dict(opt),
         )  # fmt: skip
@@ -385,127 +428,6 @@ if HAVE_NUMBA:
 else:  # pragma: no cover - depends on the environment
     _rotated, _differences, _dot_rows = _rotated_numpy, _differences_numpy, _dot_rows_numpy
     _cos_normals, _dot_rows_at = _cos_normals_numpy, _dot_rows_at_numpy
-
-
-if HAVE_NUMBA:
-    # the steps of _Matcher._compiled_call: each one pass, the same arithmetic as _numpy_call (no fastmath)
-
-    @compiled
-    def _found(dist, j, live, rep, slot, rule, tidx, code, found, pos):  # pragma: no cover - compiled
-        """The queries (query order) with a partner within the gate: their positions ``found``, the leaf
-        positions ``pos`` of their target points (``rep``: the tree's representative) and tidx; the others
-        get the rule ``code`` (distance). Returns their number and how many of their target points the
-        geometry cache does not hold yet."""
-        n, uncached = 0, 0
-        for r in range(live.shape[0]):
-            if np.isfinite(dist[r]):
-                p = rep[j[r]]
-                found[n], pos[n] = r, p
-                tidx[live[r]] = j[r]
-                if slot[p] < 0:
-                    uncached += 1
-                n += 1
-            else:
-                rule[live[r]] = code
-        return n, uncached
-
-    @compiled
-    def _gather_pairs(data, q, found, rows, pos, slot, normals_buf, noise_buf, d, nt, noise, rule, normals, R, cosang,
-                      target, source, code):  # pragma: no cover - compiled
-        """d[i] = q_j - p_i, nt[i] and noise[i] from the geometry cache, for the rows i = ``rows`` (query order);
-        with ``target`` / ``source`` also the gates of :func:`_normal_gates` on them."""
-        for n in range(rows.shape[0]):
-            i, r, p = rows[n], found[n], pos[n]
-            s = slot[p]
-            d[i, 0], d[i, 1], d[i, 2] = data[p, 0] - q[r, 0], data[p, 1] - q[r, 1], data[p, 2] - q[r, 2]
-            nt[i, 0], nt[i, 1], nt[i, 2] = normals_buf[s, 0], normals_buf[s, 1], normals_buf[s, 2]
-            noise[i] = noise_buf[s]
-            if target and np.isnan(normals_buf[s, 0]) and rule[i] == 0:
-                rule[i] = code
-            if source:
-                if np.isnan(normals[i, 0]) and rule[i] == 0:
-                    rule[i] = code
-                x, y, z = normals[i, 0], normals[i, 1], normals[i, 2]
-                a0 = (x * R[0, 0] + z * R[0, 2]) + y * R[0, 1]
-                a1 = (x * R[1, 0] + z * R[1, 2]) + y * R[1, 1]
-                a2 = (x * R[2, 0] + z * R[2, 2]) + y * R[2, 1]
-                cosang[n] = abs((a0 * normals_buf[s, 0] + a2 * normals_buf[s, 2]) + a1 * normals_buf[s, 1])
-
-    @compiled
-    def _normal_gates(rows, nt, rule, normals, R, cosang, target, source, code):  # pragma: no cover - compiled
-        """'degenerate' where the target normal (``target``) or the source normal (``source``) is missing and no
-        rule came first; with ``source`` also |R n_s . n_t| per row (:func:`_cos_normals`, the same sums)."""
-        for n in range(rows.shape[0]):
-            i = rows[n]
-            t0, t1, t2 = nt[i, 0], nt[i, 1], nt[i, 2]
-            if target and np.isnan(t0) and rule[i] == 0:
-                rule[i] = code
-            if source:
-                x, y, z = normals[i, 0], normals[i, 1], normals[i, 2]
-                if np.isnan(x) and rule[i] == 0:
-                    rule[i] = code
-                a0 = (x * R[0, 0] + z * R[0, 2]) + y * R[0, 1]
-                a1 = (x * R[1, 0] + z * R[1, 2]) + y * R[1, 1]
-                a2 = (x * R[2, 0] + z * R[2, 2]) + y * R[2, 1]
-                cosang[n] = abs((a0 * t0 + a2 * t2) + a1 * t1)
-
-    @compiled
-    def _angle_and_duplicates(rows, pos, ang, has_angle, max_angle, gate, unique, d, rule, angle, n_target,
-                              code_angle, code_duplicate):  # pragma: no cover - compiled
-        """angle[rows] = ang and its gate; then (``unique``) one source point per target point (``pos``: its
-        leaf position, one per distinct target point as the input row the search answers): the one with
-        the smallest |d|^2 keeps it, equal distances the lower row (:func:`_reject_duplicates`, in any order)."""
-        best = np.full(n_target if unique else 0, -1, np.int64)  # the row keeping each target point so far
-        best_d2 = np.empty(n_target if unique else 0)
-        for n in range(rows.shape[0]):
-            i = rows[n]
-            if has_angle:
-                angle[i] = ang[n]
-                if gate and rule[i] == 0 and ang[n] > max_angle:
-                    rule[i] = code_angle
-            else:
-                angle[i] = np.nan
-            if unique and rule[i] == 0:
-                d2 = (d[i, 0] * d[i, 0] + d[i, 2] * d[i, 2]) + d[i, 1] * d[i, 1]
-                t = pos[n]
-                b = best[t]
-                if b < 0:
-                    best[t], best_d2[t] = i, d2
-                elif d2 < best_d2[t] or (d2 == best_d2[t] and i < b):
-                    rule[b] = code_duplicate
-                    best[t], best_d2[t] = i, d2
-                else:
-                    rule[i] = code_duplicate
-
-    @compiled
-    def _weights_planes(P, R, t, origin, rule, sigma_s, sigma_t, from_noise, min_var, tidx, nt, d, noise, angle,
-                        weight, plane, xyz):  # pragma: no cover - compiled
-        """Per row: NaN in d, nt, noise and angle where it has no partner (``tidx`` -1), the weight
-        1 / (sigma_s^2 + sigma_t^2) (0 where a rule rejected it; ``from_noise``: sigma_t = max(noise, MIN_SIGMA)
-        from the noise given as ``sigma_t``), the plane distance nt . d and the moved source point in the
-        caller's frame (R p + t + origin), as _numpy_call computes them."""
-        for i in range(P.shape[0]):
-            if tidx[i] < 0:
-                for k in range(3):
-                    d[i, k] = np.nan
-                    nt[i, k] = np.nan
-                noise[i] = np.nan
-                angle[i] = np.nan
-            x, y, z = P[i, 0], P[i, 1], P[i, 2]
-            for k in range(3):
-                xyz[i, k] = (((x * R[k, 0] + z * R[k, 2]) + y * R[k, 1]) + t[k]) + origin[k]
-            plane[i] = (nt[i, 0] * d[i, 0] + nt[i, 2] * d[i, 2]) + nt[i, 1] * d[i, 1]
-            if rule[i] != 0:
-                weight[i] = 0.0
-                continue
-            st = sigma_t[i]
-            if from_noise:
-                v = st * st
-                if v < min_var:
-                    v = min_var
-                st = np.sqrt(v)
-            ss = sigma_s[i]
-            weight[i] = 1.0 / (ss * ss + st * st)
 
 
 def _reject_duplicates(rule, tidx, d, n_target):
