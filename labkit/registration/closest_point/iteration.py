@@ -82,10 +82,16 @@ def cycle_period(history, atol, longest=10):
     """Period p if the state repeats the one p iterations ago within ``atol`` (nearest neighbours
     can alternate between a few sets), else 0."""
     x = history[-1]
+    t, r, atol_r = x.translation.tolist(), x.rotation_deg.tolist(), float(np.degrees(atol) / 100)
     for p in range(2, longest + 1):
         if len(history) > p:
             y = history[-1 - p]
-            same_t = np.allclose(x.translation, y.translation, rtol=0, atol=atol)
-            if same_t and np.allclose(x.rotation_deg, y.rotation_deg, rtol=0, atol=np.degrees(atol) / 100):
+            if _close(t, y.translation.tolist(), atol) and _close(r, y.rotation_deg.tolist(), atol_r):
                 return p
     return 0
+
+
+def _close(a, b, atol):
+    """``np.allclose(a, b, rtol=0, atol=atol)`` of two short lists of floats, without its array overhead (equal
+    infinities are close, NaN is not)."""
+    return all(abs(p - q) <= atol or p == q for p, q in zip(a, b))
