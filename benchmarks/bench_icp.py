@@ -72,82 +72,35 @@ Findings behind the defaults of ``icp`` (its docstring gives the method, these t
   takes its variance from the pairs used, so the stated precision stays honest (Monte Carlo spread /
   stated in tests/test_icp_sampling.py).
 
-Measured 2026-12-02 with ``--keep 0.5 --halves-only`` (2 shared cores, load 11.6 at the start and 16-17
-after the rows: two other heavy benchmarks ran beside it; only the ratios within a row mean much):
+Every point (``--keep 0.5 --halves-only``: 262,000 vs 262,000 TLS points, 174,000 vs 175,000 ALS points;
+below 300,000 source points the default uses every point, and ``select='auto'`` keeps the surface points:
+103,914 and 105,272 pairs). Three runs on 2026-12-03 on an idle machine (load 0.4-1.1), best of 3 each,
+CPU s of the process in brackets (Open3D's threads count there too); the estimates are bit-identical
+to those before the speed work of that day:
 
-===================  ===============  =======================  ===========  =======
-pair                 points src/tgt   labkit icp (every point)  Open3D       ratio
-===================  ===============  =======================  ===========  =======
-tls halves           261,806/261,655  38.70                    10.50        3.68
-als halves           174,322/174,605  23.14 (plane 17.83)      21.51        1.08 (0.83)
-===================  ===============  =======================  ===========  =======
+===================  ============================  ====================  ===================
+pair                 labkit icp (every point)      Open3D                labkit / Open3D
+===================  ============================  ====================  ===================
+tls halves           0.82, 0.87, 0.85 (1.44-1.49)  0.71, 0.72, 0.76      1.16, 1.21, 1.12
+als halves           0.65, 0.65, 0.65 (1.13-1.15)  1.44, 1.50, 1.47      0.45, 0.43, 0.45
+als, plane           0.44, 0.46, 0.45 (0.75-0.81)  1.44, 1.50, 1.47      0.30, 0.31, 0.31
+===================  ============================  ====================  ===================
 
-Below 300,000 source points the default uses every point (``select='auto'`` keeps the surface
-points: 103,914 and 105,267 pairs). About half of labkit's time on the TLS halves is that surface
-selection (a local PCA and a local quadric, each with its own k-neighbour search, on both clouds).
-
-The surface selection now takes both terms from one k-neighbour search per cloud (the same masks,
-matrices and covariances to the bit on both pairs). Two runs of ``--keep 0.5 --halves-only
---repeats 2`` on 2026-12-02, before and after (load 5-10; the other jobs on the machine moved
-Open3D's own time by 1.7x between runs, so only the ratios mean much):
-
-===================  =====================  =======  ====================  =======  ============
-pair                 before: labkit icp     Open3D   after: labkit icp     Open3D   ratio b / a
-===================  =====================  =======  ====================  =======  ============
-tls halves           19.24                  5.50     11.09                 3.28     3.50 / 3.38
-als halves           16.60 (plane 10.88)    17.87    10.75 (plane 7.30)    9.97     0.93 / 1.08
-===================  =====================  =======  ====================  =======  ============
-
-The selection alone (both clouds, one process each, load 8-10): TLS halves 13.5 s before, 7.2 s
-after; ALS halves 5.8 s, 3.5 s. ICP still searches the neighbourhoods of the selected points again
-for its own normals (the selection's are of the whole cloud): the remaining gap on the TLS halves.
-
-ICP's normals now reuse the selection's neighbourhoods (a selected point whose unique k nearest
-are all selected is not searched again: on the TLS halves 23,000 of 248,000 source and about 17,000
-target points are), the selection fits its local quadric only where the bound the plane's
-residuals set on the quadric's noise leaves the test open (22,000 of 262,000 TLS points), and its
-neighbour search runs leaf by leaf on the cores. The same masks, matrices (to the bit) and
-covariances (within 1e-25) on both pairs. Two runs of ``--keep 0.5 --halves-only`` on
-2026-12-02, one after the other (best of 3, CPU s of the process in brackets: Open3D's threads count
-there too; load 10-13 from other jobs, so only the ratios within a run mean much):
-
-===================  =========================  =============  ============================
-pair                 labkit icp (every point)   Open3D         labkit / Open3D (wall, CPU)
-===================  =========================  =============  ============================
-before (main):
-tls halves           19.90 (5.43)               7.62 (1.90)    2.61, 2.86
-als halves           15.14 (4.02)               14.26 (4.64)   1.06, 0.87
-als, plane           10.19 (3.09)               14.26 (4.64)   0.71, 0.67
-after:
-tls halves           9.91 (3.38)                5.49 (2.14)    1.81, 1.58
-als halves           10.08 (3.38)               15.25 (4.08)   0.66, 0.83
-als, plane           8.51 (2.39)                15.25 (4.08)   0.56, 0.59
-===================  =========================  =============  ============================
-
-On the TLS halves labkit is still about 1.6-1.8 times Open3D: the remaining work is the selection
-(two whole-cloud k-neighbour searches and kd-trees, about 1.6 CPU s), which Open3D does not do,
-four kd-tree builds (whole and selected clouds) and the per-iteration numpy work of the matcher.
-
-With three steps of the matching compiled (the cached target normals and noise scattered to the pairs,
-the angle between the normals, the duplicate rule's distances; bitwise the numpy route) and the
-selection's neighbour indices no longer copied: ``--keep 0.5 --halves-only`` on 2026-12-02 07:02 UTC
-(load 6.3-6.5; best of 3, CPU s in brackets; the same estimates as the runs before to 0.01 mm):
-
-===================  =========================  =============  ============================
-pair                 labkit icp (every point)   Open3D         labkit / Open3D (wall, CPU)
-===================  =========================  =============  ============================
-tls halves           6.80 (3.41)                3.73 (1.92)    1.82, 1.78
-als halves           8.07 (3.20)                8.32 (4.09)    0.97, 0.78
-als, plane           4.93 (2.20)                8.32 (4.09)    0.59, 0.54
-===================  =========================  =============  ============================
-
-The compiled steps take about 14 ms CPU off each matching of the TLS halves' 248,000 pairs (128 -> 114
-ms, one process, the two routes alternating): about 0.1 s per call, less than the run-to-run spread.
-Where labkit's CPU goes on the TLS halves (four runs, load 5-8): the selection 1.3-2.0 s (about 60 % of
-it the 21 nearest neighbours of every point of both whole clouds, 15 % their two kd-trees), the matching
-1.0-1.4 s over 8 iterations (half of it the nearest-point search), prepare 0.4-0.5 s, adjustment 0.25 s,
-result 0.26 s. Open3D's whole run costs what labkit's selection alone does: parity on this pair needs
-the selection's neighbourhoods to serve ICP's normals and noise directly, not only its neighbour rows.
+(The same day before: TLS 1.02 s against 0.78 s, 1.31.) Where the time goes on the TLS halves (one run,
+0.83 s, 1.72 cores busy on average): the surface selection of both whole clouds 0.43 s (their kd-trees,
+the 21 nearest neighbours of every point with the covariances summed in the search, the PCA, the local
+quadric where the plane's bound leaves the test open), the source's normals and the first search
+0.11 s, eight iterations 0.25 s (each matching step's passes in ranges on both cores, the nearest-point
+search answering most rows from its memory once converged), the result 0.03 s. Open3D does half of the
+neighbourhood work (the target's normals, 0.22 s) and spends 0.55 s in eleven iterations. labkit's
+selection is per cloud at parity with Open3D's normals (0.22-0.29 s vs 0.22 s for the 262,000 points,
+CPU 0.39-0.46 s vs 0.40 s), so on this pair it must make up a second cloud's neighbourhoods (the
+source's normals and noise, which weight the pairs and gate their angles) with faster iterations; it is
+10-20 % short of that. The selection's two clouds now run side by side to the end of each one's work,
+and the kernels share their ranges with the calling thread (``labkit.neighbours.kdtree_build.in_runs``):
+what is left is the k-neighbour kernel itself (about 1 us per point, 60 % of the selection's CPU), the
+nearest-point searches of the first iterations after the 0.41 m start (about 0.25 s CPU in all) and the
+single-core stretches between the steps.
 
 Run:  python benchmarks/bench_icp.py [--quick] [--realdata PATH] [--repeats N]
 """
