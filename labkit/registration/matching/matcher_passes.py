@@ -111,16 +111,24 @@ def gather_range(data, q, found, rows, pos, slots, slot, normals_buf, noise_buf,
         t0, t1, t2 = normals_buf[s, 0], normals_buf[s, 1], normals_buf[s, 2]
         nt[i, 0], nt[i, 1], nt[i, 2] = t0, t1, t2
         noise[i] = noise_buf[s]
-        if target and np.isnan(t0) and rule[i] == 0:
+        _gates(i, r, n, t0, t1, t2, rule, normals, R, cosang, target, source, code)
+
+
+@compiled
+def _gates(i, r, n, t0, t1, t2, rule, normals, R, cosang, target, source, code):  # pragma: no cover - compiled
+    """Row i's 'degenerate' rule where its target normal (t0, t1, t2; with ``target``) or its source normal (row
+    r of ``normals``, with ``source``) is missing and no rule came first; with ``source`` also |R n_s . n_t|
+    into ``cosang[n]``."""
+    if target and np.isnan(t0) and rule[i] == 0:
+        rule[i] = code
+    if source:
+        x, y, z = normals[r, 0], normals[r, 1], normals[r, 2]
+        if np.isnan(x) and rule[i] == 0:
             rule[i] = code
-        if source:
-            x, y, z = normals[r, 0], normals[r, 1], normals[r, 2]
-            if np.isnan(x) and rule[i] == 0:
-                rule[i] = code
-            a0 = (x * R[0, 0] + z * R[0, 2]) + y * R[0, 1]
-            a1 = (x * R[1, 0] + z * R[1, 2]) + y * R[1, 1]
-            a2 = (x * R[2, 0] + z * R[2, 2]) + y * R[2, 1]
-            cosang[n] = abs((a0 * t0 + a2 * t2) + a1 * t1)
+        a0 = (x * R[0, 0] + z * R[0, 2]) + y * R[0, 1]
+        a1 = (x * R[1, 0] + z * R[1, 2]) + y * R[1, 1]
+        a2 = (x * R[2, 0] + z * R[2, 2]) + y * R[2, 1]
+        cosang[n] = abs((a0 * t0 + a2 * t2) + a1 * t1)
 
 
 @compiled
@@ -130,18 +138,7 @@ def normal_gates_range(rows, found, nt, rule, normals, R, cosang, target, source
     pair (the same sums)."""
     for n in range(a, b):
         i = rows[n]
-        t0, t1, t2 = nt[i, 0], nt[i, 1], nt[i, 2]
-        if target and np.isnan(t0) and rule[i] == 0:
-            rule[i] = code
-        if source:
-            r = found[n]
-            x, y, z = normals[r, 0], normals[r, 1], normals[r, 2]
-            if np.isnan(x) and rule[i] == 0:
-                rule[i] = code
-            a0 = (x * R[0, 0] + z * R[0, 2]) + y * R[0, 1]
-            a1 = (x * R[1, 0] + z * R[1, 2]) + y * R[1, 1]
-            a2 = (x * R[2, 0] + z * R[2, 2]) + y * R[2, 1]
-            cosang[n] = abs((a0 * t0 + a2 * t2) + a1 * t1)
+        _gates(i, found[n], n, nt[i, 0], nt[i, 1], nt[i, 2], rule, normals, R, cosang, target, source, code)
 
 
 @compiled
