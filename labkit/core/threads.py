@@ -10,9 +10,21 @@ larger array operations; every call computes the same numbers as alone.
 
 from __future__ import annotations
 
+import os
 from concurrent.futures import ThreadPoolExecutor
 
-__all__ = ["side_by_side"]
+__all__ = ["cores", "side_by_side"]
+
+
+def cores():
+    """The cores this process may run on (its CPU affinity where the system has one).
+
+    Examples
+    --------
+    >>> cores() >= 1
+    True
+    """
+    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
 
 
 def side_by_side(*calls):

@@ -13,6 +13,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from ..core.jit import compiled
+from ..core.threads import cores
 from .eigh3 import HAVE_NUMBA
 
 
@@ -336,5 +337,5 @@ if hasattr(os, "register_at_fork"):
 
 def _threads(workers):
     if workers == -1:
-        return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+        return cores()
     return max(1, int(workers))

@@ -9,7 +9,6 @@ Used by :mod:`labkit.registration.matching`.
 
 from __future__ import annotations
 
-import os
 import threading
 
 import numpy as np
@@ -19,6 +18,7 @@ from ...neighbours.kdtree import KDTree
 from ...neighbours.kdtree_build import in_runs
 from ...core.errors import LabkitError
 from ...core.jit import compiled
+from ...core.threads import cores
 from ...neighbours.moments import covariances  # the shared kNN covariance kernel (compiled)
 from .quadric_tilt import quadric_tilt
 
@@ -165,8 +165,7 @@ def _in_row_chunks(work, m, rows=8_000):
     """``work(a, b)`` over a few row ranges per core covering ``0..m``, taken by whichever thread is free
     (:func:`labkit.neighbours.kdtree_build.in_runs`; the kernels release the GIL). Each row is computed alone:
     the same numbers as one call ``work(0, m)``."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    threads = min(cores, max(1, m // rows))
+    threads = min(cores(), max(1, m // rows))
     in_runs(work, np.linspace(0, m, 4 * threads + 1).astype(int) if threads > 1 else [0, m], threads)
 
 

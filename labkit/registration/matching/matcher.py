@@ -18,6 +18,7 @@ from ...core.errors import LabkitError
 from .correspondences import _CODE, MIN_SIGMA, Correspondences
 from .local_surface import Geometry
 from . import matcher_passes as passes
+from ...neighbours.kdtree_build import in_runs
 
 if HAVE_NUMBA:
     import numba
@@ -142,14 +143,14 @@ class _Matcher:
         d, nt, noise_t, angle = np.empty((m, 3)), np.empty((m, 3)), np.empty(m), np.empty(m)
         cuts = passes.range_cuts(n_live, threads)
         q = np.empty((n_live, 3))  # the queries moved, in query order
-        passes.in_ranges(lambda a, b: passes.rotate_range(self._source_q, R, t, q, a, b), cuts, threads)
+        in_runs(lambda a, b: passes.rotate_range(self._source_q, R, t, q, a, b), cuts, threads)
         # (3) nearest neighbour in the target kd-tree, within max_distance
         dist, j = self.tree.nearest_in_groups(q, starts, opt["max_distance"], workers=-1 if threads > 1 else 1,
                                               warm=self._warm, memory=self._memory)
         # the queries with a partner, in query order: counted per range, then each range written from the
         # sum of the counts of the ranges before it
         counts = {}
-        passes.in_ranges(lambda a, b: counts.__setitem__(a, passes.count_found(dist, a, b)), cuts, threads)
+        in_runs(lambda a, b: counts.__setitem__(a, passes.count_found(dist, a, b)), cuts, threads)
         offsets = dict(zip(cuts[:-1], np.cumsum([0] + [counts[a] for a in cuts[:-1]]).tolist()))
         n_found = sum(counts.values())
         found = np.empty(n_found, dtype=np.intp)  # positions (in query order) of the queries with a partner
@@ -164,7 +165,7 @@ class _Matcher:
             uncached.append(passes.found_range(dist, j, live, rep, geometry.slot, rule, tidx, _CODE["distance"],
                                                found, pos, slots, rows, jf, a, b, offsets[a]))
 
-        passes.in_ranges(write_found, cuts, threads)
+        in_runs(write_found, cuts, threads)
         j = jf
         if sum(uncached):
             geometry._compute(pos)  # the target points met for the first time
@@ -204,7 +205,7 @@ class _Matcher:
                 angles(a, b)
 
         if n_found:
-            passes.in_ranges(pairs, passes.range_cuts(n_found, threads), threads)
+            in_runs(pairs, passes.range_cuts(n_found, threads), threads)
         if opt["classes"] is not None:
             bad = ~np.isin(self.target_class[j], opt["classes"])
             rule[rows[bad & (rule[rows] == 0)]] = _CODE["class"]
@@ -219,7 +220,7 @@ class _Matcher:
             # one source point per target point, the nearest by the point-to-point distance (see _numpy_call):
             # split by target points (each pass reads every pair and writes the rows of its own target points)
             best, best_d2 = np.empty(self.tree.n, np.int64), np.empty(self.tree.n)
-            passes.in_ranges(lambda lo, hi: passes.duplicates_range(rows, pos, d2, rule, best, best_d2, lo, hi,
+            in_runs(lambda lo, hi: passes.duplicates_range(rows, pos, d2, rule, best, best_d2, lo, hi,
                                                                     _CODE["duplicate"]),
                              passes.range_cuts(self.tree.n, threads, per_thread=1), threads)
         # (5) weights p = 1 / (sigma_s^2 + sigma_t^2)  (eq. 5.6) and the plane distances
@@ -236,7 +237,7 @@ class _Matcher:
             passes.weights_planes_range(self.source, R, t, self.origin, rule, self.source_sigma, sigma_t, noise_sigma,
                                         MIN_SIGMA**2, tidx, nt, d, noise_t, angle, weight, plane, xyz, a, b)
 
-        passes.in_ranges(weights_planes, passes.range_cuts(m, threads), threads)
+        in_runs(weights_planes, passes.range_cuts(m, threads), threads)
         return Correspondences(
             self.source_index, tidx, xyz, d, plane, angle, nt, weight, rule, self.n_source, dict(opt),
         )  # fmt: skip

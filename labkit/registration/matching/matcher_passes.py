@@ -1,26 +1,19 @@
 """The compiled passes of one matching step, each over a range of its rows (private).
 
 :meth:`labkit.registration.matching.matcher._Matcher._compiled_call` runs them over consecutive ranges
-on the cores (:func:`in_ranges`): every pass writes disjoint rows, so the numbers do not depend on the
+on the cores (:func:`labkit.neighbours.kdtree_build.in_runs`): every pass writes disjoint rows, so the numbers do not depend on the
 ranges nor on who computed which. The arithmetic is that of ``_Matcher._numpy_call`` (no fastmath).
 """
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
 from ...core.jit import compiled
-from ...neighbours.kdtree_build import in_runs
+from ...core.threads import cores  # noqa: F401  (the matcher's thread count)
 
 #: Rows below which one thread does a pass alone (waking a worker costs more than it saves).
 SERIAL_ROWS = 20_000
-
-
-def cores():
-    """The cores this process may run on."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def range_cuts(n, threads, per_thread=4):
@@ -29,26 +22,6 @@ def range_cuts(n, threads, per_thread=4):
     if threads <= 1 or n < SERIAL_ROWS:
         return [0, n]
     return np.linspace(0, n, per_thread * threads + 1).astype(np.int64).tolist()
-
-
-def in_ranges(run, cuts, threads):
-    """``run(a, b)`` for the ranges ``cuts[i]:cuts[i + 1]``, taken by whichever of ``threads`` threads is free
-    (:func:`labkit.neighbours.kdtree_build.in_runs`); one call in this thread for one range.
-
-    Parameters
-    ----------
-    run : callable
-        ``run(a, b)`` computes the rows ``a:b`` alone.
-    cuts : list of int
-        Ascending bounds (:func:`range_cuts`).
-    threads : int
-        Threads to use (this one included).
-    """
-    if len(cuts) <= 2 or threads <= 1:
-        for a, b in zip(cuts[:-1], cuts[1:]):
-            run(a, b)
-        return
-    in_runs(run, cuts, threads)
 
 
 @compiled
