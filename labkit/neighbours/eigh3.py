@@ -27,12 +27,12 @@ from __future__ import annotations
 
 import itertools
 import math
-import os
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from ..core.jit import compiled, have_numba
+from ..core.threads import cores
 
 HAVE_NUMBA = have_numba()  # numba compiles the kernels; without it np.linalg.eigh does the work
 
@@ -374,7 +374,7 @@ def eigh3_analytic(C):
 def _run(C, lam, V, workers):
     """The kernel on the whole stack, or on one contiguous slice per thread."""
     if workers == -1:
-        threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        threads = cores()
     else:
         threads = max(1, int(workers))
     threads = min(threads, len(C) // _PER_THREAD)

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import itertools
 import numbers
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -47,6 +46,7 @@ from .kdtree import KDTree
 from .moments import covariances, masked_covariances
 from ..core.report import ReportMixin, fmt
 from ..core.errors import LabkitError
+from ..core.threads import cores
 
 
 __all__ = [
@@ -407,7 +407,7 @@ def run_moment_chunks(plan, k, chunk_size, work, step=None) -> None:
 
 
 def _n_threads():
-    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+    return cores()
 
 
 def _run_jobs(plan, bounds, threads, job, step):
