@@ -301,7 +301,7 @@ def in_runs(run, cuts, threads):
     alone: the result does not depend on who computed which range.
     """
     cuts = np.asarray(cuts).tolist()
-    ranges = iter(zip(cuts[:-1], cuts[1:]))
+    ranges = iter([(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a])  # (empty ranges skipped)
     lock = threading.Lock()
 
     def work():

@@ -23,6 +23,10 @@ import weakref
 
 import numpy as np
 
+from ..core.jit import compiled, have_numba
+from ..core.threads import cores
+from .kdtree_build import in_runs
+
 _lock = threading.Lock()
 _last = None  # (weak reference to the caller's array, key, tree)
 _rows = []  # up to two (weak reference to the caller's array, key, NeighbourRows)
@@ -128,6 +132,56 @@ class NeighbourRows:
         lam, vecs, at = self.pca
         first = at[rk]
         return known, nb, (np.take(lam, first, axis=0), np.take(vecs, first, axis=0))  # (faster than [] by index)
+
+    def gather(self, tree, pos, nb=None, lam=None, vecs=None):
+        """:meth:`at` written in place: where the neighbours of the points ``pos`` are known (m,) bool is
+        returned, and there row i of ``nb`` (m, k) gets their neighbours (leaf positions) and rows i of
+        ``lam`` (m, 3) and ``vecs`` (m, 3, 3) their kept PCA (each optional; the PCA needs ``pca``). The
+        other rows are left as they are. One compiled pass in ranges on the cores instead of a gather
+        into new arrays and a scatter of those into the caller's."""
+        pos = np.asarray(pos, dtype=np.intp)
+        want_pca = lam is not None and self.pca is not None
+        if not have_numba():  # pragma: no cover - depends on the environment
+            have, nb_known, *pca = self.at(tree, pos, pca=want_pca, neighbours=nb is not None)
+            if nb is not None:
+                nb[have] = nb_known
+            if want_pca:
+                lam[have], vecs[have] = pca[0]
+            return have
+        have = np.empty(len(pos), dtype=bool)
+        rep = tree.representative if nb is not None else _NO_INDEX
+        src_lam, src_vecs, at = self.pca if want_pca else (_NO_LAM, _NO_VECS, _NO_INDEX)
+        args = (tree.indices, pos, self.known, self.rows, rep, at, src_lam, src_vecs,
+                _NO_NB if nb is None else nb, _NO_LAM if not want_pca else lam, _NO_VECS if not want_pca else vecs, have)
+        kernel = compiled(_gather_rows)
+        threads = min(cores(), max(1, len(pos) // 20_000))
+        in_runs(lambda a, b: kernel(*args, a, b), np.linspace(0, len(pos), 4 * threads + 1).astype(np.intp) if threads > 1
+                else [0, len(pos)], threads)
+        return have
+
+
+_NO_INDEX, _NO_NB = np.empty(0, np.intp), np.empty((0, 0), np.intp)
+_NO_LAM, _NO_VECS = np.empty((0, 3)), np.empty((0, 3, 3))
+
+
+def _gather_rows(indices, pos, known, rows, rep, at, lam, vecs, nb, lam_out, vecs_out, have, a, b):  # pragma: no cover
+    """:meth:`NeighbourRows.gather` at the points ``a..b-1`` (compiled on first use)."""
+    want_nb, want_pca = nb.shape[0] > 0, lam_out.shape[0] > 0
+    for i in range(a, b):
+        row = indices[pos[i]]
+        ok = known[row]
+        have[i] = ok
+        if not ok:
+            continue
+        if want_nb:
+            for c in range(rows.shape[1]):
+                nb[i, c] = rep[rows[row, c]]
+        if want_pca:
+            r = at[row]
+            for c in range(3):
+                lam_out[i, c] = lam[r, c]
+                for d in range(3):
+                    vecs_out[i, c, d] = vecs[r, c, d]
 
 
 def _drop_dead(_ref) -> None:

@@ -44,3 +44,16 @@ def test_nested_use_of_the_pool_finishes():
     worker.join(30)
     assert done.is_set(), "in_runs nested in in_runs did not finish"
     assert (out == 1).all()
+
+
+@pytest.mark.parametrize("threads", [1, 2, 4])
+def test_empty_ranges_are_skipped_not_taken_for_the_end(threads):
+    seen, lock = [], threading.Lock()
+
+    def run(a, b):
+        with lock:
+            seen.append((a, b))
+
+    in_runs(run, np.linspace(0, 1, 5).astype(int), threads)  # [0, 0, 0, 0, 1]: only the last range holds rows
+    in_runs(run, [0, 3, 3, 7], threads)
+    assert sorted(seen) == [(0, 1), (0, 3), (3, 7)]

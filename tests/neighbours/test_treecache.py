@@ -95,3 +95,31 @@ def test_an_offered_tree_is_taken_once_by_its_array_and_goes_with_it():
     gc.collect()
     assert treecache._offered == []  # dropped with its array
     treecache.forget()
+
+
+@pytest.mark.parametrize("m", [1, 7, 50_000])
+@pytest.mark.parametrize("with_pca", [True, False])
+def test_gather_writes_what_at_returns_where_the_neighbours_are_known(m, with_pca):
+    from labkit.neighbours.kdtree import KDTree
+    from labkit.neighbours.treecache import NeighbourRows
+
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(0, 10, (60_000, 3))
+    pts[1] = pts[0]  # an exact duplicate: merged in the tree
+    tree = KDTree(pts, merge_duplicates=True)
+    k = 5
+    rows = rng.integers(0, len(pts), (len(pts), k)).astype(np.int32)
+    known = rng.random(len(pts)) < 0.8
+    pca = (rng.random((tree.n, 3)), rng.random((tree.n, 3, 3)), tree.representative.copy()) if with_pca else None
+    nr = NeighbourRows(rows, known, k, pca)
+    pos = np.sort(rng.choice(tree.n, m, replace=False))
+    nb, lam, vecs = np.full((m, k), -7), np.full((m, 3), -7.0), np.full((m, 3, 3), -7.0)
+    have = nr.gather(tree, pos, nb, lam, vecs)
+    ref_have, ref_nb, *ref_pca = nr.at(tree, pos, pca=with_pca)
+    assert (have == ref_have).all()
+    assert (nb[have] == ref_nb).all() and (nb[~have] == -7).all()
+    if with_pca:
+        assert (lam[have] == ref_pca[0][0]).all() and (vecs[have] == ref_pca[0][1]).all()
+        assert (lam[~have] == -7).all()
+    else:  # nothing kept to gather: the PCA rows stay as they were
+        assert (lam == -7).all() and (vecs == -7).all()

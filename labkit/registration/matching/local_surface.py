@@ -65,20 +65,16 @@ def _leaf_geometry(tree, cols, pos, k, quadric=False, eigenvalues=False, known=N
     pca = None
     if known is not None and known.k == k:
         # the plane needs no neighbours where their PCA is known; the quadric fits them
-        have, nb_known, pca_known = known.at(tree, pos, pca=True, neighbours=quadric or known.pca is None)
         nb = np.empty((len(pos), k), dtype=np.intp)
-        if nb_known is not None:
-            nb[have] = nb_known
-        rest = np.flatnonzero(~have)
+        pca = None if known.pca is None else (np.empty((len(pos), 3)), np.empty((len(pos), 3, 3)))
+        rest = np.flatnonzero(~known.gather(tree, pos, nb if quadric or pca is None else None, *(pca or ())))
         if len(rest):
             nb[rest] = tree.query_leaf_positions(pos[rest], k, workers=threads if len(rest) > 2000 else 1)
-        if pca_known is not None and not len(rest):
-            pca = pca_known  # every point's PCA is known (fresh arrays: nothing else holds them)
-        elif pca_known is not None:
-            pca = np.empty((len(pos), 3)), np.empty((len(pos), 3, 3))
-            pca[0][have], pca[1][have] = pca_known
-            if len(rest):
-                pca[0][rest], pca[1][rest] = _pca_rows(tree, cols, nb[rest], k)
+        if pca is not None and len(rest):
+            def rest_pca(u, v):  # (rows alone: the same numbers in any ranges)
+                pca[0][rest[u:v]], pca[1][rest[u:v]] = _pca_rows(tree, cols, nb[rest[u:v]], k)
+
+            _in_row_chunks(rest_pca, len(rest))
     else:
         nb = tree.query_leaf_positions(pos, k, workers=threads)
     m = len(pos)
