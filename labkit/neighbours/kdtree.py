@@ -144,7 +144,7 @@ def _knn(X, nodes, box, depth, Q, k, bound2, idx, dist2):  # pragma: no cover - 
 
 
 @compiled
-def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragma: no cover - compiled
+def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments, tie):  # pragma: no cover - compiled
     """k nearest tree points of every point of the given leaves (self-queries, leaf order).
 
     The points of one leaf are searched together: first among themselves, then the
@@ -161,6 +161,11 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragm
     :func:`labkit.neighbours.moments.covariances` (the same numbers: both call
     :func:`~labkit.neighbours.moments.knn_moments`, which sums differences to the nearest neighbour, the point
     itself). The neighbours are written where ``idx`` has rows (an empty ``idx``: only the moments).
+
+    Where ``tie`` has rows, row ``pos - start`` tells whether another point lies at exactly the k-th
+    distance (the k nearest are then not unique): a candidate at the current k-th distance, or the one a
+    nearer candidate pushes out when the k-th distance stays. Nodes and leaves at exactly the k-th
+    distance are therefore visited (the same neighbours: what they hold is never nearer).
     """
     most = 1
     for t in range(len(leaves)):
@@ -168,6 +173,7 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragm
     bd = np.empty((most, k))
     bi = np.empty((most, k), np.int64)
     worst = np.empty(most)
+    ties = np.zeros(most, np.bool_)
     stack = np.empty(2 * depth + 4, np.int64)
     lower = np.empty(2 * depth + 4)  # lower bound of the squared box-to-box distance of each stacked node
     biggest = 1
@@ -175,6 +181,7 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragm
         if nodes[node, 2] < 0:
             biggest = max(biggest, nodes[node, 1] - nodes[node, 0])
     dbuf = np.empty(biggest)  # squared distances of one query to the points of one leaf
+    cand = np.empty(biggest + 1, np.int64)  # the points of one leaf within a query's k-th distance
     qx_, qy_, qz_, gaps = np.empty(most), np.empty(most), np.empty(most), np.empty(most)  # the leaf's points
     start = nodes[leaves[0], 0]
     for t in range(len(leaves)):
@@ -183,28 +190,34 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragm
         m = b - a
         for qi in range(m):
             qx_[qi], qy_[qi], qz_[qi] = X[a + qi, 0], X[a + qi, 1], X[a + qi, 2]
-        # 1. the leaf's own points
+        # 1. the leaf's own points: each one's place among them by (distance, position), counted
+        # without branches; the k first of that order make the list (as inserting them one by one would)
         wmax = 0.0
         for qi in range(m):
             for j in range(k):
                 bd[qi, j] = np.inf
                 bi[qi, j] = -1
             qx, qy, qz = X[a + qi, 0], X[a + qi, 1], X[a + qi, 2]
-            w = np.inf
-            filled = 0
-            for i in range(a, b):  # the distances first (vector code), then the list in the same order
+            for i in range(a, b):  # the distances first (vector code)
                 dx, dy, dz = X[i, 0] - qx, X[i, 1] - qy, X[i, 2] - qz
                 dbuf[i - a] = dx * dx + dy * dy + dz * dz
-            for i in range(a, b):
-                d2 = dbuf[i - a]
-                if filled < k:  # still filling: shift only the entries found so far
-                    _insert(bd[qi], bi[qi], d2, i, filled + 1)
-                    filled += 1
-                    if filled == k:
-                        w = bd[qi, k - 1]
-                elif d2 < w:
-                    _insert(bd[qi], bi[qi], d2, i, k)
-                    w = bd[qi, k - 1]
+            for i in range(m):
+                di = dbuf[i]
+                r = 0
+                for j in range(i):
+                    r += dbuf[j] <= di
+                for j in range(i + 1, m):
+                    r += dbuf[j] < di
+                if r < k:
+                    bd[qi, r] = di
+                    bi[qi, r] = a + i
+            w = bd[qi, k - 1]
+            at_w = 0  # the leaf's points at the k-th distance that did not make the list: a tie
+            for i in range(m):
+                at_w += dbuf[i] == w
+            for j in range(k):
+                at_w -= bd[qi, j] == w
+            ties[qi] = at_w > 0
             worst[qi] = w
             wmax = max(wmax, w)
         # 2. one walk for the leaf: nodes nearer to its box than the largest k-th distance
@@ -215,11 +228,11 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragm
         while sp > 0:
             sp -= 1
             node = stack[sp]
-            if lower[sp] >= wmax or node == leaf:
+            if lower[sp] > wmax or node == leaf:
                 continue
             g = _gap2(box[node, 0], box[node, 3], lo0, hi0) + _gap2(box[node, 1], box[node, 4], lo1, hi1)
             g += _gap2(box[node, 2], box[node, 5], lo2, hi2)
-            if g >= wmax:
+            if g > wmax:
                 continue
             child = nodes[node, 2]
             if child < 0:  # a leaf: scanned by the points whose k-th distance reaches its box
@@ -233,15 +246,23 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragm
                 for qi in range(m):
                     w = worst[qi]
                     qx, qy, qz = qx_[qi], qy_[qi], qz_[qi]
-                    if gaps[qi] < w:
+                    if gaps[qi] <= w:
                         for i in range(s, e):  # the distances first (no dependence between them: vector code)
                             dx, dy, dz = X[i, 0] - qx, X[i, 1] - qy, X[i, 2] - qz
                             dbuf[i - s] = dx * dx + dy * dy + dz * dz
-                        for i in range(s, e):  # then the list, in the same order as before
+                        c = 0
+                        for i in range(s, e):  # the points within the k-th distance, without branches
+                            cand[c] = i
+                            c += dbuf[i - s] <= w
+                        for j in range(c):  # then the list, in the same order as before
+                            i = cand[j]
                             d2 = dbuf[i - s]
                             if d2 < w:
                                 _insert(bd[qi], bi[qi], d2, i, k)
-                                w = bd[qi, k - 1]
+                                before, w = w, bd[qi, k - 1]
+                                ties[qi] = w == before < np.inf  # the point pushed out lies at the new k-th distance
+                            elif d2 == w:
+                                ties[qi] = True
                         worst[qi] = w
                     wmax = max(wmax, w)
                 continue
@@ -254,7 +275,7 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragm
             else:
                 near, other, cut = nodes[node, 3], child, lo_d - v
             far = max(g, cut * cut) if cut > 0.0 else g
-            if far < wmax:
+            if far <= wmax:
                 stack[sp] = other
                 lower[sp] = far
                 sp += 1
@@ -265,6 +286,9 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments):  # pragm
             for qi in range(m):
                 for j in range(k):
                     idx[a + qi - start, j] = bi[qi, j]
+        if tie.shape[0] > 0:
+            for qi in range(m):
+                tie[a + qi - start] = ties[qi]
         if moments > 0:
             x, y, z = X[:, 0], X[:, 1], X[:, 2]
             for qi in range(m):  # the shared kernel of labkit.neighbours.moments
@@ -279,14 +303,14 @@ def _gap2(lo, hi, a, b):  # pragma: no cover - compiled
     return t * t
 
 
-def unique_kept_neighbours(X, nb, keep, k, clean):
-    """clean[p]: point p and its k nearest ``nb[p, :k]`` (leaf positions, sorted, k + 1 columns) are all
-    ``keep`` and the (k+1)-th is farther than the k-th (squared distances as the searches compute them),
-    so that the k nearest among the kept points are these and no others. Ranges of points on the cores."""
+def unique_kept_neighbours(nb, keep, tie, clean):
+    """clean[p]: point p and its k nearest ``nb[p]`` (leaf positions) are all ``keep`` and no other point
+    lies at the k-th distance (``tie[p]`` False, :meth:`KDTree.knn_of_leaves`), so that the k nearest among
+    the kept points are these and no others. Ranges of points on the cores."""
     n = nb.shape[0]
     threads = min(_threads(-1), max(1, n // _PER_THREAD))
-    in_runs(lambda a, b: _unique_kept(X, nb, keep, k, clean, a, b),
-            np.linspace(0, n, _RUNS_PER_THREAD * threads + 1).astype(np.intp), threads)
+    in_runs(lambda a, b: _unique_kept(nb, keep, tie, clean, a, b),
+            np.linspace(0, n, _RUNS_PER_THREAD * threads + 1).astype(np.intp) if threads > 1 else [0, n], threads)
 
 
 def neighbour_rows(nb, pos, indices, new, clean, k, rows):
@@ -299,20 +323,14 @@ def neighbour_rows(nb, pos, indices, new, clean, k, rows):
 
 
 @compiled
-def _unique_kept(X, nb, keep, k, clean, start, end):  # pragma: no cover - compiled
+def _unique_kept(nb, keep, tie, clean, start, end):  # pragma: no cover - compiled
     """:func:`unique_kept_neighbours` at the points ``start..end-1``."""
     for p in range(start, end):
-        ok = keep[p]
-        for c in range(k):
+        ok = keep[p] and not tie[p]
+        for c in range(nb.shape[1]):
             if not ok:
                 break
             ok = keep[nb[p, c]]
-        if ok:
-            a, b = nb[p, k - 1], nb[p, k]
-            dx, dy, dz = X[a, 0] - X[p, 0], X[a, 1] - X[p, 1], X[a, 2] - X[p, 2]
-            da = dx * dx + dy * dy + dz * dz
-            dx, dy, dz = X[b, 0] - X[p, 0], X[b, 1] - X[p, 1], X[b, 2] - X[p, 2]
-            ok = da < dx * dx + dy * dy + dz * dz
         clean[p] = ok
 
 
@@ -352,6 +370,7 @@ def _tighten(X, nodes, box):  # pragma: no cover - compiled
 
 
 _NO_IDX, _NO_CEN, _NO_C = np.empty((0, 1), np.intp), np.empty((0, 3)), np.empty((0, 3, 3))  # unused outputs
+_NO_TIE = np.empty(0, np.bool_)
 
 
 class KDTree:
@@ -457,7 +476,7 @@ class KDTree:
             self._leaves = leaves[np.argsort(nodes[leaves, 0], kind="stable")]
         return np.append(self._nodes[0][self._leaves, 0], self.n)
 
-    def knn_of_leaves(self, a: int, b: int, k: int, workers: int = 1, moments: int = 0):
+    def knn_of_leaves(self, a: int, b: int, k: int, workers: int = 1, moments: int = 0, ties: bool = False):
         """Leaf-order indices (b - a, k) of the k nearest tree points of the tree's points a..b-1.
 
         ``a`` and ``b`` must be leaf bounds (:attr:`leaf_bounds`); the points of a leaf are
@@ -466,6 +485,8 @@ class KDTree:
         ``moments`` (at most k) > 0: also the centroids (b - a, 3) and covariances (b - a, 3, 3) of each
         point's ``moments`` nearest, as :func:`labkit.neighbours.moments.covariances` gives them (the same
         numbers), summed while the neighbours are in cache: returns (indices, centroids, covariances).
+        ``ties``: last also (b - a,) bool, True where another point lies at exactly the k-th distance (the
+        k nearest are not unique; what the (k+1)-th neighbour would tell, without searching for it).
         """
         bounds = self.leaf_bounds
         j0, j1 = np.searchsorted(bounds, [a, b])
@@ -474,12 +495,16 @@ class KDTree:
         idx = np.empty((b - a, k), dtype=np.intp)
         moments = min(int(moments), k)
         cen, C = (np.empty((b - a, 3)), np.empty((b - a, 3, 3))) if moments > 0 else (_NO_CEN, _NO_C)
-        if b > a:
-            if not HAVE_NUMBA:  # pragma: no cover - depends on the environment
-                idx[:] = self._run(self.data[a:b], k, np.inf, 1)[1]
-                if moments > 0:
-                    cen, C = covariances(self.data, None, idx[:, :moments], np.ascontiguousarray(self.data.T))
-                return (idx, cen, C) if moments > 0 else idx
+        tie = np.zeros(b - a, dtype=bool) if ties else _NO_TIE
+        if b > a and not HAVE_NUMBA:  # pragma: no cover - depends on the environment
+            more = min(k + int(ties), self.n)
+            d2, nb = self._run(self.data[a:b], more, np.inf, 1)
+            idx[:] = nb[:, :k]
+            if more > k:
+                tie[:] = d2[:, k] == d2[:, k - 1]
+            if moments > 0:
+                cen, C = covariances(self.data, None, idx[:, :moments], np.ascontiguousarray(self.data.T))
+        elif b > a:
             threads = min(_threads(workers), max(1, (b - a) // _PER_THREAD))
             # runs of whole leaves, a few per thread, taken by whoever is free (see in_runs)
             cut = np.unique(np.linspace(j0, j1, _RUNS_PER_THREAD * threads + 1).astype(np.intp))
@@ -487,10 +512,11 @@ class KDTree:
             def part(u, v):
                 s, e = bounds[u] - a, bounds[v] - a
                 _knn_leaves(self.data, *self._nodes, self._leaves[u:v], k, idx[s:e],
-                            cen[s:e] if moments else cen, C[s:e] if moments else C, moments)
+                            cen[s:e] if moments else cen, C[s:e] if moments else C, moments, tie[s:e] if ties else tie)
 
             in_runs(part, cut if threads > 1 else [j0, j1], threads)
-        return (idx, cen, C) if moments > 0 else idx
+        out = (idx,) + ((cen, C) if moments > 0 else ()) + ((tie,) if ties else ())
+        return out if len(out) > 1 else idx
 
     def knn_moments_of_leaves(self, a: int, b: int, k: int):
         """Centroids (b - a, 3) and covariances (b - a, 3, 3) of the k nearest tree points of the
@@ -505,7 +531,7 @@ class KDTree:
             raise ValueError(f"{a}:{b} does not start and end at leaf bounds")
         cen, C = np.empty((b - a, 3)), np.empty((b - a, 3, 3))
         if b > a:
-            _knn_leaves(self.data, *self._nodes, self._leaves[j0:j1], k, _NO_IDX, cen, C, k)
+            _knn_leaves(self.data, *self._nodes, self._leaves[j0:j1], k, _NO_IDX, cen, C, k, _NO_TIE)
         return cen, C
 
     def nearest_in_groups(self, q, starts, distance_upper_bound: float = np.inf, workers: int = 1, warm=None,

@@ -157,24 +157,25 @@ def _surface_test(points, k, neighbours=False):
     tree = local_tree(xyz, local_origin(xyz), merge_duplicates=True)
     cols = np.ascontiguousarray(tree.data.T)
     k = min(k, tree.n)
-    extra = int(neighbours and len(xyz) <= KEEP_NEIGHBOURS and k < tree.n)  # one more: is the k-th unique?
+    kept = neighbours and len(xyz) <= KEEP_NEIGHBOURS and k < tree.n  # (k = n: no (k+1)-th, nothing to reuse)
     keep = np.empty(tree.n, dtype=bool)  # per distinct point, in leaf order
     leaves = tree.leaf_bounds
     cut = np.unique(leaves[np.searchsorted(leaves, np.arange(0, tree.n, CHUNK))].tolist() + [tree.n])
-    nbs, lams, vecs = [], [], []
+    nbs, ties, lams, vecs = [], [], [], []
     for a, b in zip(cut[:-1], cut[1:]):  # chunks of whole leaves
-        keep[a:b], nb, pca = _surface_rows(tree, cols, a, b, k, extra)
-        if extra:
-            nbs.append(nb)
+        keep[a:b], nb, pca = _surface_rows(tree, cols, a, b, k, kept)
+        if kept:
+            nbs.append(nb[0])
+            ties.append(nb[1])
             lams.append(pca[0])
             vecs.append(pca[1])
-    if not extra:
+    if not kept:
         return keep[tree.representative], None, tree
-    one = len(nbs) == 1  # one chunk (most clouds): no copy of (n, k + 1) indices
-    nb = nbs[0] if one else np.concatenate(nbs)
+    one = len(nbs) == 1  # one chunk (most clouds): no copy of (n, k) indices
+    nb, tie = (nbs[0], ties[0]) if one else (np.concatenate(nbs), np.concatenate(ties))
     pca = (lams[0], vecs[0]) if one else (np.concatenate(lams), np.concatenate(vecs))
     clean = np.empty(tree.n, dtype=bool)  # the same k nearest among the kept points
-    unique_kept_neighbours(tree.data, nb, keep, k, clean)
+    unique_kept_neighbours(nb, keep, tie, clean)
     return keep[tree.representative], (tree, nb, clean, k, pca), tree
 
 
@@ -194,10 +195,11 @@ def _is_surface(noise, lam):
         return (noise <= SMOOTH_NOISE) | (noise / np.sqrt(lam[:, 1]) <= MAX_SCATTER)
 
 
-def _surface_rows(tree, cols, a, b, k, extra=0):
+def _surface_rows(tree, cols, a, b, k, ties=False):
     """The surface test of :func:`surface_mask` at the tree's distinct points ``a..b-1`` (leaf bounds), and
-    their k + ``extra`` neighbours and their PCA (:func:`~labkit.registration.matching.local_surface.roughness`)."""
-    noise, lam, nb, pca = roughness(tree, cols, a, b, k, decided=_is_surface, extra=extra, pca=True)  # l3, l2, l1
+    their k neighbours (with ``ties``: and the search's tie flags) and their PCA
+    (:func:`~labkit.registration.matching.local_surface.roughness`)."""
+    noise, lam, nb, pca = roughness(tree, cols, a, b, k, decided=_is_surface, ties=ties, pca=True)  # l3, l2, l1
     # the spread about a local quadric: a curved surface (sparse hills, a sphere) is no volume
     noise = np.where(np.isfinite(noise), noise, np.sqrt(lam[:, 0]))
     with np.errstate(invalid="ignore"):

@@ -196,3 +196,23 @@ def test_restricted_tree_answers_as_scipy_on_the_kept_points_in_another_frame():
     bad[kept_copy], bad[1000 if kept_copy == 0 else 0] = False, True  # a kept row whose point is dropped
     with pytest.raises(ValueError, match="duplicates"):
         whole.restricted(bad)
+
+
+@pytest.mark.parametrize("spacing", [1.0, 0.37])
+def test_tie_flags_say_where_the_kth_distance_is_shared(spacing):
+    # integer coordinates (as LAS stores them) make equal distances common: the flag must agree with the
+    # (k+1)-th neighbour of a search one longer, and the k neighbours must not change for it
+    rng = np.random.default_rng(5)
+    pts = rng.integers(0, 40, (6000, 3)).astype(float) * spacing
+    pts[:, 2] *= 0.1  # flat-ish: many neighbours at the same few distances
+    tree = KDTree(pts, merge_duplicates=True)
+    k = 12
+    nb, cen, C, tie = tree.knn_of_leaves(0, tree.n, k, workers=-1, moments=k, ties=True)
+    longer = tree.knn_of_leaves(0, tree.n, k + 1)
+    X, p = tree.data, np.arange(tree.n)
+    d2 = lambda c: (X[c, 0] - X[p, 0]) ** 2 + (X[c, 1] - X[p, 1]) ** 2 + (X[c, 2] - X[p, 2]) ** 2  # noqa: E731
+    assert np.array_equal(nb, longer[:, :k])
+    assert np.array_equal(tie, d2(longer[:, k]) == d2(longer[:, k - 1]))
+    assert 0.05 < tie.mean() < 0.95  # both answers occur
+    c2, C2 = tree.knn_moments_of_leaves(0, tree.n, k)
+    assert np.array_equal(cen, c2) and np.array_equal(C, C2)

@@ -100,7 +100,7 @@ def _leaf_geometry(tree, cols, pos, k, quadric=False, eigenvalues=False, known=N
     return (n, noise, variation, *fit, *([lam] if eigenvalues else []), tilt)
 
 
-def roughness(tree, cols, a, b, k, decided=None, extra=0, pca=False):
+def roughness(tree, cols, a, b, k, decided=None, ties=False, pca=False):
     """Noise about the local quadric and the PCA eigenvalues at the tree's distinct points ``a..b-1``.
 
     One k-nearest-neighbour search for both, leaf by leaf on the cores (``a``, ``b``: leaf bounds,
@@ -115,13 +115,14 @@ def roughness(tree, cols, a, b, k, decided=None, extra=0, pca=False):
     bound: the quadric contains the constant height along the PCA normal, whose residual sum is
     k l3, so sigma_q^2 = RSS / (k - 6) <= k l3 / (k - 6) (and the plane's k l3 / (k - 3) is smaller),
     widened by 1e-6 against rounding. ``decided`` must be monotone: true for a noise means true for
-    any smaller one. ``extra`` more neighbours are searched and returned (not used for the noise).
+    any smaller one. With ``ties`` the neighbours come with the search's tie flags (m,) (another point at
+    exactly the k-th distance, :meth:`~labkit.neighbours.kdtree.KDTree.knn_of_leaves`), as (neighbours, ties).
     With ``pca`` the PCA itself comes last: eigenvalues (m, 3) scaled by k / (k - 3) and eigenvectors
     (m, 3, 3), as :func:`_leaf_geometry` would decompose these neighbourhoods again.
     """
     k = min(k, tree.n)
     # the neighbours and their covariances from one search (summed while the neighbours are in cache)
-    nb, _, cov = tree.knn_of_leaves(a, b, min(k + extra, tree.n), workers=-1, moments=k)
+    nb, _, cov, *tie = tree.knn_of_leaves(a, b, k, workers=-1, moments=k, ties=ties)
     pos = np.arange(a, b)
     m = b - a
     lam, noise, vecs = np.empty((m, 3)), np.empty(m), np.empty((m, 3, 3))
@@ -141,8 +142,8 @@ def roughness(tree, cols, a, b, k, decided=None, extra=0, pca=False):
         noise[sure] = bound[sure]
         todo &= ~sure
     if len(rows := np.flatnonzero(todo)):
-        noise[rows] = _leaf_geometry_at(tree, cols, pos[rows], nb[rows, :k], k, (lam[rows], vecs[rows]))
-    return (noise, lam_1k, nb) + (((lam, vecs),) if pca else ())
+        noise[rows] = _leaf_geometry_at(tree, cols, pos[rows], nb[rows], k, (lam[rows], vecs[rows]))
+    return (noise, lam_1k, (nb, tie[0]) if ties else nb) + (((lam, vecs),) if pca else ())
 
 
 def _leaf_geometry_at(tree, cols, pos, nb, k, pca):
