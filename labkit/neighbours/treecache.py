@@ -110,11 +110,22 @@ class NeighbourRows:
     they are the cloud's unique k nearest (no other point at the k-th distance). ``pca`` (optional):
     the local PCA of those neighbourhoods, eigenvalues (N, 3) and eigenvectors (N, 3, 3)
     (:func:`labkit.registration.matching.local_surface._pca_rows`) of the first pass's points, and
-    the position (n,) of every row among them; read where ``known``.
+    the position (n,) of every row among them; read where ``known``. ``rows`` may be a function that
+    makes them: it is called on the first use (ICP's plane reads only the kept PCA and never asks).
     """
 
-    def __init__(self, rows: np.ndarray, known: np.ndarray, k: int, pca=None):
-        self.rows, self.known, self.k, self.pca = rows, known, int(k), pca
+    def __init__(self, rows, known: np.ndarray, k: int, pca=None):
+        self._rows, self.known, self.k, self.pca = rows, known, int(k), pca
+        self._lock = threading.Lock()
+
+    @property
+    def rows(self) -> np.ndarray:
+        """The neighbours (n, k) as rows of the cloud (made on the first use where given as a function)."""
+        if callable(self._rows):
+            with self._lock:
+                if callable(self._rows):
+                    self._rows = self._rows()
+        return self._rows
 
     def at(self, tree, pos, pca=False, neighbours=True):
         """For the points ``pos`` (leaf positions) of ``tree`` (a kd-tree of the same cloud, duplicates
@@ -151,7 +162,7 @@ class NeighbourRows:
         have = np.empty(len(pos), dtype=bool)
         rep = tree.representative if nb is not None else _NO_INDEX
         src_lam, src_vecs, at = self.pca if want_pca else (_NO_LAM, _NO_VECS, _NO_INDEX)
-        args = (tree.indices, pos, self.known, self.rows, rep, at, src_lam, src_vecs,
+        args = (tree.indices, pos, self.known, _NO_ROWS if nb is None else self.rows, rep, at, src_lam, src_vecs,
                 _NO_NB if nb is None else nb, _NO_LAM if not want_pca else lam, _NO_VECS if not want_pca else vecs, have)
         kernel = compiled(_gather_rows)
         threads = min(cores(), max(1, len(pos) // 20_000))
@@ -160,7 +171,7 @@ class NeighbourRows:
         return have
 
 
-_NO_INDEX, _NO_NB = np.empty(0, np.intp), np.empty((0, 0), np.intp)
+_NO_INDEX, _NO_NB, _NO_ROWS = np.empty(0, np.intp), np.empty((0, 0), np.intp), np.empty((0, 0), np.int32)
 _NO_LAM, _NO_VECS = np.empty((0, 3)), np.empty((0, 3, 3))
 
 

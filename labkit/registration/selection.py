@@ -180,12 +180,17 @@ def _surface_test(points, k, neighbours=False):
 
 
 def _kept_rows(info, mask):
-    """The neighbours of ``_surface_test`` as rows of the selected points ``mask`` (:class:`NeighbourRows`)."""
+    """The neighbours of ``_surface_test`` as rows of the selected points ``mask`` (:class:`NeighbourRows`; the
+    rows are made when first asked for: ICP's local plane needs only the kept PCA)."""
     tree, nb, clean, k, (lam, vecs) = info
-    new = np.cumsum(mask) - 1  # row among the selected points of every input row
     pos = tree.representative[np.flatnonzero(mask)]
-    rows = np.zeros((len(pos), k), dtype=np.int32 if len(pos) < 2**31 else np.int64)
-    neighbour_rows(nb, pos, tree.indices, new, clean, k, rows)
+
+    def rows():
+        new = np.cumsum(mask) - 1  # row among the selected points of every input row
+        out = np.zeros((len(pos), k), dtype=np.int32 if len(pos) < 2**31 else np.int64)
+        neighbour_rows(nb, pos, tree.indices, new, clean, k, out)
+        return out
+
     return NeighbourRows(rows, clean[pos], k, (lam, vecs, pos))  # the PCA of every distinct point, and where
 
 
