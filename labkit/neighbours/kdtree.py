@@ -535,7 +535,7 @@ class KDTree:
         return cen, C
 
     def nearest_in_groups(self, q, starts, distance_upper_bound: float = np.inf, workers: int = 1, warm=None,
-                          memory=None, diff=None):
+                          memory=None):
         """As ``query(q, k=1, ...)`` (the same distances and indices, ties included), the rows
         ``starts[g]:starts[g + 1]`` of ``q`` searched together (:func:`labkit.neighbours.kdtree_nn.nearest`):
         fast when each group lies close together (e.g. the leaves of a tree over the queries).
@@ -545,9 +545,8 @@ class KDTree:
         start of the next call (ICP's next iteration). ``memory`` (optional, with ``warm``): per row
         where it was last searched (m, 3) and the squared distance of its second nearest point from
         there (m,), zeros at first; rows that provably kept their nearest point are not searched
-        (see :func:`~labkit.neighbours.kdtree_nn.nearest`). The answer is the same with or without them.
-        ``diff`` (optional, (m, 3)): written with ``self.data[nearest] - q`` where a row has a nearest point."""
-        return nearest(self, q, starts, float(distance_upper_bound), _threads(workers), warm, memory, diff)
+        (see :func:`~labkit.neighbours.kdtree_nn.nearest`). The answer is the same with or without them."""
+        return nearest(self, q, starts, float(distance_upper_bound), _threads(workers), warm, memory)
 
     def query(self, q, k: int = 1, distance_upper_bound: float = np.inf, workers: int = 1):
         """Like ``cKDTree.query``: (distance, input index); k = 1 gives 1-D arrays.

@@ -58,14 +58,11 @@ def _still_nearest(d2, mx, my, mz, second):  # pragma: no cover - compiled
 
 
 @compiled
-def _answer(q, i, d2, indices, dist, index, warm, X, Q, diff):  # pragma: no cover - compiled
+def _answer(q, i, d2, indices, dist, index, warm):  # pragma: no cover - compiled
     """Row q's answer as the caller wants it: the distance (inf: none), the input index of its nearest point
-    X[i] (len(indices): none), the next warm start (i, -1: none; an empty ``warm``: not wanted) and
-    X[i] - Q[q] into ``diff[q]`` (where found; an empty ``diff``: not wanted), while X[i] is in cache."""
+    X[i] (len(indices): none) and the next warm start (i, -1: none; an empty ``warm``: not wanted)."""
     if i >= 0:
         dist[q], index[q] = np.sqrt(d2), indices[i]
-        if diff.shape[0] > 0:
-            diff[q, 0], diff[q, 1], diff[q, 2] = X[i, 0] - Q[q, 0], X[i, 1] - Q[q, 1], X[i, 2] - Q[q, 2]
     else:
         dist[q], index[q] = np.inf, indices.shape[0]
     if warm.shape[0] > 0:
@@ -73,8 +70,7 @@ def _answer(q, i, d2, indices, dist, index, warm, X, Q, diff):  # pragma: no cov
 
 
 @compiled
-def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, indices, dist, index, tie, warm, at, second,
-               diff):  # pragma: no cover
+def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, indices, dist, index, tie, warm, at, second):  # pragma: no cover
     """Distance and input index (``indices`` of the leaf-order row) of the nearest row of X (leaf order) of every
     row of Q, squared distance < bound2.
 
@@ -91,7 +87,6 @@ def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, indices, dist, inde
     point (squared distance into ``second``, bound2 when there is none within the bound; the nearest
     distance at a tie; ``at`` := the row): the walk then prunes by that larger distance, so that no
     point nearer than it is missed. The group's box and leaf scans hold the searched rows only.
-    ``diff`` (m, 3) (an empty array: not wanted) gets X[nearest] - Q[q] of every row with a nearest point.
     """
     want2 = second.shape[0] > 0
     has_warm = warm.shape[0] > 0
@@ -122,7 +117,7 @@ def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, indices, dist, inde
                 if d2 < bound2:
                     w, best = d2, i
                     if want2 and _still_nearest(d2, qx - at[q, 0], qy - at[q, 1], qz - at[q, 2], second[q]):
-                        _answer(q, i, d2, indices, dist, index, warm, X, Q, diff)
+                        _answer(q, i, d2, indices, dist, index, warm)
                         continue
             w2 = bound2 if want2 else w
             if want2:
@@ -205,13 +200,13 @@ def _nn_groups(X, nodes, box, depth, Q, group_start, bound2, indices, dist, inde
             sp += 1
         for k in range(n):  # the answers of the searched rows
             q = live[k]
-            _answer(q, lbest[k], lw[k], indices, dist, index, warm, X, Q, diff)
+            _answer(q, lbest[k], lw[k], indices, dist, index, warm)
             tie[q] = ltie[k]
             if want2:
                 second[q] = lw2[k]
 
 
-def nearest(tree, Q, starts, bound, threads, warm=None, memory=None, diff=None):
+def nearest(tree, Q, starts, bound, threads, warm=None, memory=None):
     """Distance and input index of the nearest tree point of every row of ``Q`` (distance < bound;
     else inf and ``tree.n``), exactly as ``tree.query(Q, 1, bound, threads)``.
 
@@ -229,10 +224,6 @@ def nearest(tree, Q, starts, bound, threads, warm=None, memory=None, diff=None):
     since then (:func:`_still_nearest`) is answered without a search; the others are searched (with
     their second nearest point, the memory of the next call). ICP's later iterations move the
     source by less than the spacing of the target: most rows are not searched again. The same answer.
-
-    ``diff`` (optional, (m, 3)): written with the nearest point minus the row (``tree.data[i] - Q[q]``, the
-    same subtraction a caller would make) where there is one, while that point is in cache (a caller's
-    later gather of the nearest points would wait on memory for each).
     """
     Q = np.ascontiguousarray(Q, dtype=np.float64)
     bound2 = bound * bound if np.isfinite(bound) else np.inf
@@ -240,16 +231,16 @@ def nearest(tree, Q, starts, bound, threads, warm=None, memory=None, diff=None):
     given = warm
     warm = _NO_WARM if warm is None else np.ascontiguousarray(warm, dtype=np.intp)
     at, second = memory if memory is not None and len(warm) else (_NO_AT, _NO_SECOND)
-    dist, index = _search(tree, Q, starts, bound, bound2, threads, warm, at, second, _NO_DIFF if diff is None else diff)
+    dist, index = _search(tree, Q, starts, bound, bound2, threads, warm, at, second)
     if given is not None and warm is not given:  # (a copy of another type)
         given[:] = warm
     return dist, index
 
 
-_NO_WARM, _NO_AT, _NO_SECOND, _NO_DIFF = np.empty(0, np.intp), np.empty((0, 3)), np.empty(0), np.empty((0, 3))
+_NO_WARM, _NO_AT, _NO_SECOND = np.empty(0, np.intp), np.empty((0, 3)), np.empty(0)
 
 
-def _search(tree, Q, starts, bound, bound2, threads, warm, at, second, diff):
+def _search(tree, Q, starts, bound, bound2, threads, warm, at, second):
     """:func:`_nn_groups` on the threads, ties answered again by the per-point kernel
     (their second nearest point is then as near as the nearest: no row is left out of the next search for it).
 
@@ -260,7 +251,7 @@ def _search(tree, Q, starts, bound, bound2, threads, warm, at, second, diff):
     args = (tree.data, *tree._nodes, Q)
 
     def run(a, b):  # the groups a..b-1
-        _nn_groups(*args, starts[a:b + 1], bound2, tree.indices, dist, index, tie, warm, at, second, diff)
+        _nn_groups(*args, starts[a:b + 1], bound2, tree.indices, dist, index, tie, warm, at, second)
 
     threads = min(threads, max(1, m // 4000))
     if threads <= 1 or len(starts) <= 2:
@@ -278,6 +269,4 @@ def _search(tree, Q, starts, bound, bound2, threads, warm, at, second, diff):
             warm[redo] = i
         if len(second):
             second[redo] = 0.0
-        if len(diff) and (i >= 0).any():
-            diff[redo[i >= 0]] = tree.data[i[i >= 0]] - Q[redo[i >= 0]]
     return dist, index

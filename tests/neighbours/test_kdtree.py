@@ -153,11 +153,8 @@ def test_grouped_nearest_equals_the_per_point_search_index_for_index(name, bound
         Qs = Q + step * np.array([0.6, -0.8, 0.0]) if name != "ties" else np.round(Q + step, 1)
         d0, i0 = tree.query(Qs, k=1, distance_upper_bound=bound)
         before = memory[0].copy()
-        diff = np.full((len(Qs), 3), np.nan)
-        d, i = tree.nearest_in_groups(Qs, leaf_groups, bound, workers=2, warm=warm, memory=memory, diff=diff)
+        d, i = tree.nearest_in_groups(Qs, leaf_groups, bound, workers=2, warm=warm, memory=memory)
         assert np.array_equal(d, d0) and np.array_equal(i, i0)
-        found = warm >= 0  # (the nearest point's leaf position): its difference as a caller would compute it
-        assert np.array_equal(diff[found], tree.data[warm[found]] - Qs[found]) and np.isnan(diff[~found]).all()
         skipped += int((memory[0] == before).all(axis=1).sum()) if step < 0.3 else 0
     assert skipped > (i0 < tree.n).sum()  # over the four small steps, more than once per row with a nearest point
     if name == "ties":  # the case the fallback is for: equally near target points
@@ -166,7 +163,7 @@ def test_grouped_nearest_equals_the_per_point_search_index_for_index(name, bound
         n = len(Q)
         dist, index, tie = np.empty(n), np.empty(n, np.intp), np.zeros(n, np.bool_)
         _nn_groups(tree.data, *tree._nodes, Q, leaf_groups, np.inf, tree.indices, dist, index, tie,
-                   np.empty(0, np.intp), np.empty((0, 3)), np.empty(0), np.empty((0, 3)))
+                   np.empty(0, np.intp), np.empty((0, 3)), np.empty(0))
         assert tie.sum() > 10
 
 

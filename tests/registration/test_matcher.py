@@ -17,12 +17,8 @@ def test_icp_with_grouped_search_equals_the_per_point_search(monkeypatch):
     kw = dict(dof="rigid", sample=None, rng=0, covariance="formal", consistency_alpha=None)
     new = icp(source, target, **kw)
 
-    def per_point(self, q, starts, distance_upper_bound=np.inf, workers=1, warm=None, memory=None, diff=None):
-        d, i = self.query(q, k=1, distance_upper_bound=distance_upper_bound, workers=workers)
-        if diff is not None:  # the nearest point minus the query, as the grouped search writes it
-            found = i < self.n
-            diff[found] = self.data[self.representative[i[found]]] - q[found]
-        return d, i
+    def per_point(self, q, starts, distance_upper_bound=np.inf, workers=1, warm=None, memory=None):
+        return self.query(q, k=1, distance_upper_bound=distance_upper_bound, workers=workers)
 
     monkeypatch.setattr(KDTree, "nearest_in_groups", per_point)
     old = icp(source, target, **kw)

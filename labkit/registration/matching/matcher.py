@@ -145,9 +145,8 @@ class _Matcher:
         q = np.empty((n_live, 3))  # the queries moved, in query order
         in_runs(lambda a, b: passes.rotate_range(self._source_q, R, t, q, a, b), cuts, threads)
         # (3) nearest neighbour in the target kd-tree, within max_distance
-        diff = np.empty((n_live, 3))  # target point minus query, in query order (the search writes it)
         dist, j = self.tree.nearest_in_groups(q, starts, opt["max_distance"], workers=-1 if threads > 1 else 1,
-                                              warm=self._warm, memory=self._memory, diff=diff)
+                                              warm=self._warm, memory=self._memory)
         # the queries with a partner, in query order: counted per range, then each range written from the
         # sum of the counts of the ranges before it
         counts = {}
@@ -194,7 +193,7 @@ class _Matcher:
                                 d2, a, b)
 
         def pairs(a, b):  # the pairs a:b: their differences, normals, noise, gates and angles
-            passes.gather_range(diff, found, rows, pos, slots, geometry.slot, store["normals"],
+            passes.gather_range(self.tree.data, q, found, rows, pos, slots, geometry.slot, store["normals"],
                                 store["noise"], d, nt, noise_t, d2, rule, normals_q, R, cosang, fused,
                                 fused and has_angle, code, a, b)
             if quadric:  # see _numpy_call: the foot point on the quadric replaces q_j

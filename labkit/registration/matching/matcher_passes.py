@@ -67,10 +67,9 @@ def found_range(dist, j, live, rep, slot, rule, tidx, code, found, pos, slots, r
 
 
 @compiled
-def gather_range(diff, found, rows, pos, slots, slot, normals_buf, noise_buf, d, nt, noise, d2, rule, normals, R,
+def gather_range(data, q, found, rows, pos, slots, slot, normals_buf, noise_buf, d, nt, noise, d2, rule, normals, R,
                  cosang, target, source, code, a, b):  # pragma: no cover - compiled
-    """For the pairs a:b: d[i] = q_j - p_i (``diff`` in query order, as the search wrote it while q_j was in
-    cache, read at ``found``), its square length d2 (the duplicate rule's distance, before a
+    """For the pairs a:b: d[i] = q_j - p_i, its square length d2 (the duplicate rule's distance, before a
     quadric's foot replaces d), nt[i] and noise[i] from the geometry cache (at ``slots``, or where ``slot``
     has placed a point cached since), at the rows i = ``rows``; with
     ``target`` / ``source`` also the gates of :func:`normal_gates_range` on them (``normals``: the source
@@ -79,7 +78,7 @@ def gather_range(diff, found, rows, pos, slots, slot, normals_buf, noise_buf, d,
         i, r, p, s = rows[n], found[n], pos[n], slots[n]
         if s < 0:
             s = slot[p]
-        x, y, z = diff[r, 0], diff[r, 1], diff[r, 2]
+        x, y, z = data[p, 0] - q[r, 0], data[p, 1] - q[r, 1], data[p, 2] - q[r, 2]
         d[i, 0], d[i, 1], d[i, 2] = x, y, z
         d2[n] = (x * x + z * z) + y * y
         t0, t1, t2 = normals_buf[s, 0], normals_buf[s, 1], normals_buf[s, 2]
