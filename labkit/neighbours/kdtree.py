@@ -47,7 +47,7 @@ LEAFSIZE = 24  # measured on the real TLS scan: self-kNN (k = 20) 10-25 % faster
 _PER_THREAD = 4000  # queries per thread at least; below, one thread is faster than starting more
 
 
-@compiled
+@compiled(inline="always")  # (inlined by numba into the search loops that call it)
 def _insert(bd, bi, d2, i, k):  # pragma: no cover - compiled
     """Insert (d2, i) into the ascending list bd/bi of length k (the last entry drops out)."""
     j = k - 1
@@ -295,7 +295,7 @@ def _knn_leaves(X, nodes, box, depth, leaves, k, idx, cen, C, moments, tie):  # 
                 knn_moments(x, y, z, bi[qi], moments, cen, C, a + qi - start)
 
 
-@compiled
+@compiled(inline="always")  # (inlined by numba into the search loops that call it)
 def _gap2(lo, hi, a, b):  # pragma: no cover - compiled
     """Squared gap between the intervals [lo, hi] and [a, b] (0 where they overlap), without branches
     (at most one of lo - b and a - hi is positive; an empty box, lo = inf, is infinitely far)."""

@@ -39,14 +39,14 @@ _RUNS_PER_THREAD = 12  # runs of groups per thread: an uneven split evens out (1
 # searched side by side on a shared pool, end closer together than with 4 or 8; 24 costs more than it evens)
 
 
-@compiled
+@compiled(inline="always")  # (inlined by numba into the search loops that call it)
 def _gap2(lo, hi, a, b):  # pragma: no cover - compiled
     """Squared gap between the intervals [lo, hi] and [a, b] (0 where they overlap), without branches."""
     t = max(0.0, lo - b) + max(0.0, a - hi)  # (one of them is 0)
     return t * t
 
 
-@compiled
+@compiled(inline="always")  # (inlined by numba into the search loops that call it)
 def _still_nearest(d2, mx, my, mz, second):  # pragma: no cover - compiled
     """True where a warm candidate at squared distance d2 is provably still the nearest point of its query.
 
@@ -58,7 +58,7 @@ def _still_nearest(d2, mx, my, mz, second):  # pragma: no cover - compiled
     return (np.sqrt(d2) + np.sqrt(mx * mx + my * my + mz * mz)) * (1.0 + 1e-9) < np.sqrt(second)
 
 
-@compiled
+@compiled(inline="always")  # (inlined by numba into the search loops that call it)
 def _answer(q, i, d2, indices, dist, index, warm):  # pragma: no cover - compiled
     """Row q's answer as the caller wants it: the distance (inf: none), the input index of its nearest point
     X[i] (len(indices): none) and the next warm start (i, -1: none; an empty ``warm``: not wanted)."""

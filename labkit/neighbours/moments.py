@@ -68,7 +68,7 @@ def covariances(local, counts, flat, cols=None):
     return cen, C
 
 
-@compiled
+@compiled(inline="always")  # (inlined by numba into the search loops that call it)
 def knn_moments(x, y, z, ids, k, cen, C, r):  # pragma: no cover - compiled
     """Row ``r`` of ``cen`` and ``C``: centroid (eq. 1) and mean outer product of the deviations (eq. 2) of the
     points ``ids[:k]`` of the coordinate columns x, y, z, in two passes (no temporaries).
