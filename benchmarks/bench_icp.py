@@ -74,33 +74,32 @@ Findings behind the defaults of ``icp`` (its docstring gives the method, these t
 
 Every point (``--keep 0.5 --halves-only``: 262,000 vs 262,000 TLS points, 174,000 vs 175,000 ALS points;
 below 300,000 source points the default uses every point, and ``select='auto'`` keeps the surface points:
-103,914 and 105,272 pairs). Three runs on 2026-12-03 on an idle machine (load 0.4-1.1), best of 3 each,
-CPU s of the process in brackets (Open3D's threads count there too); the estimates are bit-identical
-to those before the speed work of that day:
+103,914 and 105,272 pairs). Three runs on 2026-12-03 at 08:28 (load 1.2-1.5, the machine some 15 % slower
+than in the early morning: Open3D took 0.71-0.76 s then), best of 3 each, CPU s of the process in brackets
+(Open3D's threads count there too); the estimates are bit-identical to those before the speed work:
 
 ===================  ============================  ====================  ===================
 pair                 labkit icp (every point)      Open3D                labkit / Open3D
 ===================  ============================  ====================  ===================
-tls halves           0.82, 0.87, 0.85 (1.44-1.49)  0.71, 0.72, 0.76      1.16, 1.21, 1.12
-als halves           0.65, 0.65, 0.65 (1.13-1.15)  1.44, 1.50, 1.47      0.45, 0.43, 0.45
-als, plane           0.44, 0.46, 0.45 (0.75-0.81)  1.44, 1.50, 1.47      0.30, 0.31, 0.31
+tls halves           1.05, 0.94, 1.05 (1.68-1.86)  0.89, 0.83, 0.98      1.18, 1.12, 1.07
+als halves           0.83, 0.81, 0.95 (1.43-1.65)  1.69, 1.63, 2.27      0.49, 0.50, 0.42
+als, plane           0.53, 0.50, 0.64 (0.87-1.10)  1.69, 1.63, 2.27      0.32, 0.31, 0.28
 ===================  ============================  ====================  ===================
 
-(The same day before: TLS 1.02 s against 0.78 s, 1.31.) Where the time goes on the TLS halves (one run,
-0.83 s, 1.72 cores busy on average): the surface selection of both whole clouds 0.43 s (their kd-trees,
-the 21 nearest neighbours of every point with the covariances summed in the search, the PCA, the local
-quadric where the plane's bound leaves the test open), the source's normals and the first search
-0.11 s, eight iterations 0.25 s (each matching step's passes in ranges on both cores, the nearest-point
-search answering most rows from its memory once converged), the result 0.03 s. Open3D does half of the
-neighbourhood work (the target's normals, 0.22 s) and spends 0.55 s in eleven iterations. labkit's
-selection is per cloud at parity with Open3D's normals (0.22-0.29 s vs 0.22 s for the 262,000 points,
-CPU 0.39-0.46 s vs 0.40 s), so on this pair it must make up a second cloud's neighbourhoods (the
-source's normals and noise, which weight the pairs and gate their angles) with faster iterations; it is
-10-20 % short of that. The selection's two clouds now run side by side to the end of each one's work,
-and the kernels share their ranges with the calling thread (``labkit.neighbours.kdtree_build.in_runs``):
-what is left is the k-neighbour kernel itself (about 1 us per point, 60 % of the selection's CPU), the
-nearest-point searches of the first iterations after the 0.41 m start (about 0.25 s CPU in all) and the
-single-core stretches between the steps.
+(The same morning before that day's second round of speed work: TLS 1.27, 1.27, 1.27, 1.31.) Where the
+time goes on the TLS halves (median of 9 runs per phase, 2 cores, wall / CPU ms): the surface selection of
+both whole clouds 480 / 900 (their kd-trees, the 20 nearest neighbours of every point with the
+covariances summed and ties at the 20th distance flagged in the search, the PCA, the local quadric where
+the plane's bound leaves the test open), ICP's preparation (the source's normals from the kept PCA, the
+target's at the first pairs, the first search from the 0.41 m start) 130 / 220, nine matching steps and
+eight adjustments 350 / 600, the result 24 / 33. On one core the whole takes 1.62-1.79 s against
+Open3D's 1.55-1.62 s: the work is about at par (labkit's selection makes the neighbourhoods of both
+clouds, 0.84-0.90 s, and its eight iterations on the surface points cost less than Open3D's eleven on
+every point), so the wall time is decided by how well the two cores are used: 1.75-1.79 cores for
+labkit, 1.86-1.87 for Open3D in the runs above. What is left: the k-neighbour kernel (about
+1 us per point, 60 % of the selection, bound by its list insertions), the nearest-point searches after
+the large first steps (about 0.25 s of CPU in all) and the single-core stretches between the steps
+(each adjustment about 5 ms, the end of the second cloud's selection).
 
 Run:  python benchmarks/bench_icp.py [--quick] [--realdata PATH] [--repeats N]
 """
