@@ -310,7 +310,7 @@ def unique_kept_neighbours(nb, keep, tie, clean):
     n = nb.shape[0]
     threads = min(_threads(-1), max(1, n // _PER_THREAD))
     in_runs(lambda a, b: _unique_kept(nb, keep, tie, clean, a, b),
-            np.linspace(0, n, _RUNS_PER_THREAD * threads + 1).astype(np.intp) if threads > 1 else [0, n], threads)
+            np.linspace(0, n, _RUNS_PER_THREAD * threads + 1).astype(np.intp), threads)
 
 
 def neighbour_rows(nb, pos, indices, new, clean, k, rows):

@@ -166,8 +166,7 @@ class NeighbourRows:
                 _NO_NB if nb is None else nb, _NO_LAM if not want_pca else lam, _NO_VECS if not want_pca else vecs, have)
         kernel = compiled(_gather_rows)
         threads = min(cores(), max(1, len(pos) // 20_000))
-        in_runs(lambda a, b: kernel(*args, a, b), np.linspace(0, len(pos), 4 * threads + 1).astype(np.intp) if threads > 1
-                else [0, len(pos)], threads)
+        in_runs(lambda a, b: kernel(*args, a, b), np.linspace(0, len(pos), 4 * threads + 1).astype(np.intp), threads)
         return have
 
 

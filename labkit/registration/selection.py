@@ -157,7 +157,7 @@ def _surface_test(points, k, neighbours=False):
     tree = local_tree(xyz, local_origin(xyz), merge_duplicates=True)
     cols = np.ascontiguousarray(tree.data.T)
     k = min(k, tree.n)
-    kept = neighbours and len(xyz) <= KEEP_NEIGHBOURS and k < tree.n  # (k = n: no (k+1)-th, nothing to reuse)
+    kept = neighbours and len(xyz) <= KEEP_NEIGHBOURS and k < tree.n  # (k = n: every neighbourhood is the whole cloud)
     keep = np.empty(tree.n, dtype=bool)  # per distinct point, in leaf order
     leaves = tree.leaf_bounds
     cut = np.unique(leaves[np.searchsorted(leaves, np.arange(0, tree.n, CHUNK))].tolist() + [tree.n])
