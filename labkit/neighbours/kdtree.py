@@ -73,6 +73,12 @@ def _knn(X, nodes, box, depth, Q, k, bound2, idx, dist2):  # pragma: no cover - 
     lower = np.empty(2 * depth + 4)  # lower bound of the squared distance to each stacked node
     bd = np.empty(k)
     bi = np.empty(k, np.int64)
+    biggest = 1
+    for node in range(nodes.shape[0]):
+        if nodes[node, 2] < 0:
+            biggest = max(biggest, nodes[node, 1] - nodes[node, 0])
+    dbuf = np.empty(biggest)  # squared distances of the query to the points of one leaf
+    cand = np.empty(biggest + 1, np.int64)  # the points of one leaf nearer than the k-th
     for q in range(Q.shape[0]):
         qx, qy, qz = Q[q, 0], Q[q, 1], Q[q, 2]
         for j in range(k):
@@ -87,36 +93,24 @@ def _knn(X, nodes, box, depth, Q, k, bound2, idx, dist2):  # pragma: no cover - 
             node = stack[sp]
             if lower[sp] >= worst:  # pruned by a split plane: the node's memory is not touched
                 continue
-            # squared distance from q to the node's box
-            g = 0.0
-            t = box[node, 0] - qx
-            if t > 0.0:
-                g += t * t
-            else:
-                t = qx - box[node, 3]
-                if t > 0.0:
-                    g += t * t
-            t = box[node, 1] - qy
-            if t > 0.0:
-                g += t * t
-            else:
-                t = qy - box[node, 4]
-                if t > 0.0:
-                    g += t * t
-            t = box[node, 2] - qz
-            if t > 0.0:
-                g += t * t
-            else:
-                t = qz - box[node, 5]
-                if t > 0.0:
-                    g += t * t
+            # squared distance from q to the node's box (without branches)
+            g = _gap2(box[node, 0], box[node, 3], qx, qx) + _gap2(box[node, 1], box[node, 4], qy, qy)
+            g += _gap2(box[node, 2], box[node, 5], qz, qz)
             if g >= worst:
                 continue
             l = nodes[node, 2]
             if l < 0:
-                for i in range(nodes[node, 0], nodes[node, 1]):
+                s, e = nodes[node, 0], nodes[node, 1]
+                for i in range(s, e):  # the distances first (no dependence between them: vector code)
                     dx, dy, dz = X[i, 0] - qx, X[i, 1] - qy, X[i, 2] - qz
-                    d2 = dx * dx + dy * dy + dz * dz
+                    dbuf[i - s] = dx * dx + dy * dy + dz * dz
+                c = 0
+                for i in range(s, e):  # the points nearer than the k-th, without branches
+                    cand[c] = i
+                    c += dbuf[i - s] < worst
+                for j in range(c):  # then the list, in the order of the leaf (the same list as one by one)
+                    i = cand[j]
+                    d2 = dbuf[i - s]
                     if d2 < worst:
                         _insert(bd, bi, d2, i, k)
                         worst = bd[k - 1]
