@@ -74,32 +74,35 @@ Findings behind the defaults of ``icp`` (its docstring gives the method, these t
 
 Every point (``--keep 0.5 --halves-only``: 262,000 vs 262,000 TLS points, 174,000 vs 175,000 ALS points;
 below 300,000 source points the default uses every point, and ``select='auto'`` keeps the surface points:
-103,914 and 105,272 pairs). Three runs on 2026-12-03 at 08:28 (load 1.2-1.5, the machine some 15 % slower
-than in the early morning: Open3D took 0.71-0.76 s then), best of 3 each, CPU s of the process in brackets
-(Open3D's threads count there too); the estimates are bit-identical to those before the speed work:
+103,914 and 105,272 pairs). Three runs on 2026-12-03 at 10:20 (load 1.1-1.7), best of 3 each, CPU s of the
+process in brackets (Open3D's threads count there too); the estimates are bit-identical to those before
+the speed work:
 
 ===================  ============================  ====================  ===================
 pair                 labkit icp (every point)      Open3D                labkit / Open3D
 ===================  ============================  ====================  ===================
-tls halves           1.05, 0.94, 1.05 (1.68-1.86)  0.89, 0.83, 0.98      1.18, 1.12, 1.07
-als halves           0.83, 0.81, 0.95 (1.43-1.65)  1.69, 1.63, 2.27      0.49, 0.50, 0.42
-als, plane           0.53, 0.50, 0.64 (0.87-1.10)  1.69, 1.63, 2.27      0.32, 0.31, 0.28
+tls halves           1.01, 1.05, 0.90 (1.61-1.86)  0.93, 0.98, 0.83      1.09, 1.08, 1.09
+als halves           0.80, 0.79, 0.72 (1.24-1.40)  1.74, 1.71, 1.65      0.46, 0.46, 0.44
+als, plane           0.51, 0.50, 0.49 (0.84-0.89)  1.74, 1.71, 1.65      0.29, 0.29, 0.30
 ===================  ============================  ====================  ===================
 
-(The same morning before that day's second round of speed work: TLS 1.27, 1.27, 1.27, 1.31.) Where the
-time goes on the TLS halves (median of 9 runs per phase, 2 cores, wall / CPU ms): the surface selection of
-both whole clouds 480 / 900 (their kd-trees, the 20 nearest neighbours of every point with the
-covariances summed and ties at the 20th distance flagged in the search, the PCA, the local quadric where
-the plane's bound leaves the test open), ICP's preparation (the source's normals from the kept PCA, the
-target's at the first pairs, the first search from the 0.41 m start) 130 / 220, nine matching steps and
-eight adjustments 350 / 600, the result 24 / 33. On one core the whole takes 1.62-1.79 s against
-Open3D's 1.55-1.62 s: the work is about at par (labkit's selection makes the neighbourhoods of both
-clouds, 0.84-0.90 s, and its eight iterations on the surface points cost less than Open3D's eleven on
-every point), so the wall time is decided by how well the two cores are used: 1.75-1.79 cores for
-labkit, 1.86-1.87 for Open3D in the runs above. What is left: the k-neighbour kernel (about
-1 us per point, 60 % of the selection, bound by its list insertions), the nearest-point searches after
-the large first steps (about 0.25 s of CPU in all) and the single-core stretches between the steps
-(each adjustment about 5 ms, the end of the second cloud's selection).
+(The same morning: TLS 1.07-1.18 at 08:28, 1.27-1.31 before that day's speed work.) Where the time goes
+on the TLS halves (median of 15 runs per phase, 2 cores, wall / CPU ms): the surface selection of both
+whole clouds 460 / 860 (their kd-trees, the 20 nearest neighbours of every point with the covariances
+summed and ties at the 20th distance flagged in the search, the PCA, the local quadric where the plane's
+bound leaves the test open), ICP's preparation (the source's normals from the kept PCA, the target's at
+the first pairs, the first search from the 0.41 m start) 119 / 200, nine matching steps and eight
+adjustments 281 / 473, the result 24 / 31. On one core labkit now takes less than Open3D (best of 12
+runs 1.45-1.46 s, median 1.55-1.59 s, against Open3D's best 1.55-1.56 s, median 1.57-1.62 s): labkit's
+selection makes the neighbourhoods of both clouds, and its eight iterations on the surface points cost
+less than Open3D's eleven on every point. The wall time is decided by how well the two cores are used:
+about 1.75 cores for labkit, 1.86-1.90 for Open3D. Sampled from outside the process (per-thread CPU every
+millisecond), the selection runs at 1.9 cores, the matching steps' searches at about 1.9, and the rest of
+the iterations at 1.0-1.6: each adjustment (about 4.5 ms on one core: the gathers of the accepted rows,
+two medians, the tilt information of eq. 5.12b from a strided subset whose rows miss the cache) and the
+target normals computed for the points met for the first time (the re-search of the rows whose neighbours
+the selection dropped, about 40,000 of them in all at 1.6 us each). What is left for the TLS row is
+there: the single-core stretches of the iterations, not the amount of work.
 
 Run:  python benchmarks/bench_icp.py [--quick] [--realdata PATH] [--repeats N]
 """
