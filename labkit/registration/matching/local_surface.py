@@ -479,8 +479,8 @@ class Geometry:
     The cache holds one entry per distinct point (leaf position of the kd-tree, exact
     duplicates merged) for the whole ICP call: the target does not move, so no point
     is computed twice. Storage is compact: a slot per computed point (``slot``, -1 for
-    none) into buffers whose memory is mapped as the points actually used fill them, so that a
-    10-million-point target whose ICP touches 300,000 points holds 300,000 normals, not 10 million.
+    none) into buffers that grow with the points actually used, so that a 10-million-point
+    target whose ICP touches 300,000 points holds 300,000 normals, not 10 million.
     ``n_computed`` counts the points whose geometry was computed (tests use it).
     """
 
@@ -495,17 +495,18 @@ class Geometry:
         self._store = {}  # name -> buffer (capacity, ...), rows 0..n_computed-1 used
 
     def _grow(self, values):
-        """Append the rows of each named array to its buffer. A buffer has a row for every distinct point of the
-        tree from the start: ``np.empty`` only reserves the memory and the system maps the pages as they are
-        written (the rows fill from the front), so a large target whose ICP meets few points still holds few,
-        and no buffer is ever copied into a bigger one (the doubling copies took 14 ms of one core per ICP
-        run on the TLS halves)."""
+        """Append the rows of each named array to its buffer (doubling the capacity when full)."""
         n_new = len(next(iter(values.values())))
         for name, v in values.items():
             buf = self._store.get(name)
-            if buf is None:
-                self._store[name] = buf = np.empty((self.tree.n,) + v.shape[1:], dtype=v.dtype)
-            buf[self.n_computed : self.n_computed + n_new] = v
+            need = self.n_computed + n_new
+            if buf is None or len(buf) < need:
+                cap = max(need, 2 * (0 if buf is None else len(buf)), 1024)
+                bigger = np.empty((cap,) + v.shape[1:], dtype=v.dtype)
+                if buf is not None:
+                    bigger[: self.n_computed] = buf[: self.n_computed]
+                self._store[name] = buf = bigger
+            buf[self.n_computed : need] = v
         self.n_computed += n_new
 
     _SHAPES = dict(normals=(3,), noise=(), coef=(6,), frame=(3, 3), slope=(3,), tilt=(3, 3))
