@@ -74,26 +74,26 @@ Findings behind the defaults of ``icp`` (its docstring gives the method, these t
 
 Every point (``--keep 0.5 --halves-only``: 262,000 vs 262,000 TLS points, 174,000 vs 175,000 ALS points;
 below 300,000 source points the default uses every point, and ``select='auto'`` keeps the surface points:
-103,914 and 105,272 pairs). Three runs on 2026-12-03 at 10:20 (load 1.1-1.7), best of 3 each, CPU s of the
+103,914 and 105,272 pairs). Three runs on 2026-12-03 at 10:55 (load 1.0-1.7), best of 3 each, CPU s of the
 process in brackets (Open3D's threads count there too); the estimates are bit-identical to those before
 the speed work:
 
 ===================  ============================  ====================  ===================
 pair                 labkit icp (every point)      Open3D                labkit / Open3D
 ===================  ============================  ====================  ===================
-tls halves           1.01, 1.05, 0.90 (1.61-1.86)  0.93, 0.98, 0.83      1.09, 1.08, 1.09
-als halves           0.80, 0.79, 0.72 (1.24-1.40)  1.74, 1.71, 1.65      0.46, 0.46, 0.44
-als, plane           0.51, 0.50, 0.49 (0.84-0.89)  1.74, 1.71, 1.65      0.29, 0.29, 0.30
+tls halves           1.02, 0.92, 0.87 (1.55-1.78)  0.93, 0.82, 0.83      1.10, 1.12, 1.04
+als halves           0.80, 0.81, 0.71 (1.27-1.40)  1.72, 1.69, 1.61      0.47, 0.48, 0.44
+als, plane           0.55, 0.51, 0.47 (0.82-0.93)  1.72, 1.69, 1.61      0.32, 0.30, 0.29
 ===================  ============================  ====================  ===================
 
 (The same morning: TLS 1.07-1.18 at 08:28, 1.27-1.31 before that day's speed work.) Where the time goes
-on the TLS halves (median of 15 runs per phase, 2 cores, wall / CPU ms): the surface selection of both
-whole clouds 460 / 860 (their kd-trees, the 20 nearest neighbours of every point with the covariances
+on the TLS halves (median of 15 runs per phase in two sittings, 2 cores, wall / CPU ms): the surface
+selection of both whole clouds 460-469 / 860-876 (their kd-trees, the 20 nearest neighbours of every point with the covariances
 summed and ties at the 20th distance flagged in the search, the PCA, the local quadric where the plane's
 bound leaves the test open), ICP's preparation (the source's normals from the kept PCA, the target's at
-the first pairs, the first search from the 0.41 m start) 119 / 200, nine matching steps and eight
-adjustments 281 / 473, the result 24 / 31. On one core labkit now takes less than Open3D (best of 12
-runs 1.45-1.46 s, median 1.55-1.59 s, against Open3D's best 1.55-1.56 s, median 1.57-1.62 s): labkit's
+the first pairs, the first search from the 0.41 m start) 119-137 / 200-242, nine matching steps and
+eight adjustments 281-292 / 473-487, the result 23-24 / 31. On one core labkit now takes less than Open3D (best of 12
+runs 1.46 s in two sittings, median 1.52-1.55 s, against Open3D's best 1.57-1.60 s, median 1.66-1.69 s): labkit's
 selection makes the neighbourhoods of both clouds, and its eight iterations on the surface points cost
 less than Open3D's eleven on every point. The wall time is decided by how well the two cores are used:
 about 1.75 cores for labkit, 1.86-1.90 for Open3D. Sampled from outside the process (per-thread CPU every
