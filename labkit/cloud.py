@@ -24,6 +24,7 @@ import numpy as np
 
 from .core.checks import as_points
 from .core.errors import LabkitError
+from .core.frame import extent
 from .core.units import Units, UnitsError, units_from_crs_text
 
 
@@ -206,4 +207,4 @@ class PointCloud:
         """Array [[xmin, ymin, zmin], [xmax, ymax, zmax]]."""
         if len(self) == 0:
             raise LabkitError("an empty cloud has no bounds")
-        return np.vstack([self.xyz.min(axis=0), self.xyz.max(axis=0)])
+        return np.vstack(extent(self.xyz))

@@ -34,7 +34,7 @@ from scipy.spatial import cKDTree
 
 from ..core.checks import as_points, choice, count
 from ..core.crs import check_same_crs
-from ..core.frame import local_origin, reduce
+from ..core.frame import extent, local_origin, reduce
 from ..core.report import ReportMixin
 from ..neighbours.treecache import local_tree
 from ..core.errors import DegenerateGeometryError, EmptyRegionError, LabkitError
@@ -51,7 +51,7 @@ def as_matrix(transform) -> np.ndarray:
 def check_overlap(source, target, *, name: str = "source and target") -> None:
     """Raise :class:`EmptyRegionError` unless some source points lie inside the target's xy extent."""
     src, tgt = as_points(source, name="source"), as_points(target, name="target")
-    lo, hi = _extent(tgt[:, :2])
+    lo, hi = extent(tgt[:, :2])
 
     def inside(p):
         return ((p[:, :2] >= lo) & (p[:, :2] <= hi)).all(axis=1).any()
@@ -59,18 +59,11 @@ def check_overlap(source, target, *, name: str = "source and target") -> None:
     # an even subset inside is enough (a large cloud is not passed in full); else every point is looked at
     if inside(src[:: max(1, len(src) // 10_000)]) or inside(src):
         return
-    s_lo, s_hi = _extent(src[:, :2])
+    s_lo, s_hi = extent(src[:, :2])
     raise EmptyRegionError(
         f"{name} do not overlap: source spans x {s_lo[0]:.1f}..{s_hi[0]:.1f}, y {s_lo[1]:.1f}..{s_hi[1]:.1f}; "
         f"target spans x {lo[0]:.1f}..{hi[0]:.1f}, y {lo[1]:.1f}..{hi[1]:.1f}"
     )
-
-
-def _extent(points):
-    """Smallest and largest value of every column (column by column: ten times faster than
-    ``min(axis=0)`` on an (n, 3) array)."""
-    cols = range(points.shape[1])
-    return (np.array([np.min(points[:, c]) for c in cols]), np.array([np.max(points[:, c]) for c in cols]))
 
 
 def cloud_to_cloud(source, target, transform=None) -> np.ndarray:
@@ -416,7 +409,7 @@ GROUP = 24
 def _spatial_order(points, per_cell=GROUP):
     """Order of the points by cubic cells holding about ``per_cell`` points each (on a surface),
     and the start of every cell's run in that order (then ``len(points)``)."""
-    lo, hi = _extent(points)
+    lo, hi = extent(points)
     ext = np.sort(hi - lo)[::-1]
     h = max(float(np.sqrt(ext[0] * max(ext[1], 1e-9) * per_cell / max(len(points), 1))), 1e-6)
     cell = np.floor((points - lo) / h).astype(np.int64)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..core.frame import extent
 from ..neighbours.eigh3 import HAVE_NUMBA
 
 if HAVE_NUMBA:
@@ -39,9 +40,8 @@ class VoxelGrid:
     """Points sorted by voxel: ``points[start[j]:start[j + 1]]`` lie in the voxel of key ``keys[j]``."""
 
     def __init__(self, local: np.ndarray, cell: float):
-        if len(local):  # column by column: about 10x faster than min(axis=0) on an (n, 3) array
-            low = np.array([local[:, a].min() for a in range(3)])
-            high = np.array([local[:, a].max() for a in range(3)])
+        if len(local):
+            low, high = extent(local)
         else:
             low, high = np.zeros(3), np.zeros(3)
         while np.prod([int(s // cell) + 4 for s in high - low], dtype=object) > 2**62:  # keys must fit int64

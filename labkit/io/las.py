@@ -12,6 +12,7 @@ from ..core.report import ReportMixin, fmt
 from ..core.units import decide_units, parse_wkt
 from ..core.units import Units, UnitsError
 from ..core.errors import CloudFileError, EmptyRegionError, LabkitError
+from ..core.frame import extent
 from ..core.progress import progress_steps
 from .chunks import ChunkCollector
 from .common import LAS_SUFFIXES, existing_file, require_classification
@@ -80,7 +81,8 @@ def read_las(path: Path, flt: ReadFilter, keep, chunk_size: int, progress, units
                 cls = np.asarray(points["classification"]) if flt.classes is not None else None
                 mask = flt.mask(xyz, cls)
                 if mask is not None and m:  # the extent of the points themselves (header bounds may be wrong)
-                    lo, hi = np.minimum(lo, xyz.min(axis=0)), np.maximum(hi, xyz.max(axis=0))
+                    lo_m, hi_m = extent(xyz)
+                    lo, hi = np.minimum(lo, lo_m), np.maximum(hi, hi_m)
                 sel = slice(None) if mask is None else mask
                 gather.add(xyz if mask is None else xyz[sel], {d: np.asarray(points[d])[sel] for d in names})
                 step(m)

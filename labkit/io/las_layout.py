@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..core.frame import extent
 from .common import INT32_MAX
 
 _CRS_VLRS = ("GeoKeyDirectoryVlr", "GeoDoubleParamsVlr", "GeoAsciiParamsVlr", "WktCoordinateSystemVlr")
@@ -90,5 +91,5 @@ class LasLayout:
         """The file's offsets when the coordinates still fit the int32 range with them, else None."""
         if len(xyz) == 0:
             return self.offsets
-        q = (np.vstack([xyz.min(axis=0), xyz.max(axis=0)]) - self.offsets) / np.asarray(scales)
+        q = (np.vstack(extent(xyz)) - self.offsets) / np.asarray(scales)
         return self.offsets if np.abs(q).max() <= 0.9 * INT32_MAX else None

@@ -9,6 +9,7 @@ import numpy as np
 
 from ..core.units import Units
 from ..core.errors import LabkitError
+from ..core.frame import extent
 from ..core.progress import progress_steps
 from .common import INT32_MAX, STANDARD_DTYPES
 from .las import _las_xyz, las_units, laz_backend, to_metres
@@ -23,7 +24,7 @@ def _las_offsets(xyz: np.ndarray, scales=None) -> np.ndarray:
     """
     if len(xyz) == 0:
         return np.zeros(3)
-    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    lo, hi = extent(xyz)
     offsets = np.floor(lo / 1000.0) * 1000.0
     if scales is not None:
         tight = (hi - offsets) / np.asarray(scales) > 0.9 * INT32_MAX
@@ -162,7 +163,7 @@ def _check_int32_range(xyz: np.ndarray, offsets, scales) -> None:
     """Raise if the LAS integers ``round((x - offset) / scale)`` would leave the int32 range."""
     if len(xyz) == 0:
         return
-    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    lo, hi = extent(xyz)
     q = np.rint((np.vstack([lo, hi]) - np.asarray(offsets)) / np.asarray(scales))
     if np.abs(q).max() > INT32_MAX:
         raise LabkitError(

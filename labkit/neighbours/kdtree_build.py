@@ -12,6 +12,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from ..core.frame import extent
 from ..core.jit import compiled
 from ..core.threads import cores
 from .eigh3 import HAVE_NUMBA
@@ -234,7 +235,7 @@ def _build_two(P, leafsize):
     n = len(P)
     if n < 100_000 or _threads(-1) < 2 or not HAVE_NUMBA:
         return _build(np.array(P, np.float64, order="C"), leafsize)  # private, writeable copy
-    lo, hi = P.min(axis=0), P.max(axis=0)
+    lo, hi = extent(P)
     d = int(np.argmax(hi - lo))
     keys = P[:, d]
     v = np.partition(keys, n // 2)[n // 2]

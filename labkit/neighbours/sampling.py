@@ -15,6 +15,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.errors import LabkitError
+from ..core.frame import extent
 
 __all__ = ["even_subset", "flat_keys", "median_spacing", "voxel_sample", "voxel_thin"]
 
@@ -28,7 +29,7 @@ def flat_keys(cells: np.ndarray) -> np.ndarray:
     >>> flat_keys(np.array([[0, 0, 0], [1, 2, 0], [0, 0, 0]])).tolist()
     [0, 5, 0]
     """
-    dims = cells.max(axis=0) + 1
+    dims = extent(cells)[1] + 1
     if np.prod(dims.astype(float)) >= 2.0**62:
         # too many cells for one int64: fall back to row-wise unique
         return np.unique(cells, axis=0, return_inverse=True)[1].ravel()
@@ -50,7 +51,7 @@ def voxel_thin(xyz, size: float, *, keep: str = "centre", origin=None) -> np.nda
     >>> voxel_thin(xyz, 1.0, origin=np.zeros(3)).tolist(), voxel_thin(xyz, 1.0, keep="first").tolist()
     ([1, 2], [0, 2])
     """
-    lo = xyz.min(axis=0) if origin is None else origin
+    lo = extent(xyz)[0] if origin is None else origin
     cells = np.floor((xyz - lo) / size).astype(np.int64)
     key = flat_keys(cells)
     if keep == "first":
@@ -85,8 +86,8 @@ def even_subset(xyz, n: int) -> np.ndarray:
     xyz = np.asarray(xyz, dtype=np.float64)
     if len(xyz) <= n:
         return np.arange(len(xyz))
-    lo_xyz = xyz.min(axis=0)
-    span = float(np.ptp(xyz, axis=0).max()) or 1.0
+    lo_xyz, hi_xyz = extent(xyz)
+    span = float((hi_xyz - lo_xyz).max()) or 1.0
     lo, hi = span / n ** (1 / 3) / 8, span  # few voxels at hi; too many at lo (a surface fills n^(2/3) of n^3)
     best = None
     for _ in range(30):
@@ -181,7 +182,7 @@ def auto_sample(points, geometry, m, rng):
     """
     n = len(points)
     sub = points[rng.choice(n, min(n, 1_000_000), replace=False)] if n > 1_000_000 else points
-    lo, hi = points.min(axis=0), points.max(axis=0)
+    lo, hi = extent(points)
     ext = np.sort(hi - lo)[::-1]
     h = max(float(np.sqrt(ext[0] * max(ext[1], 1e-9) / (2 * m))), 1e-6)  # a horizontal surface's guess
     for _ in range(2):  # the subset has >= 2 points per voxel at this size: nearly all voxels occupied

@@ -10,6 +10,7 @@ import numpy as np
 from ..core.checks import as_points, count, non_negative, positive
 from ..cloud import PointCloud
 from ..core.errors import LabkitError
+from ..core.frame import extent
 from ..io import LAS_SUFFIXES, write_cloud
 
 __all__ = ["MAX_TILES", "Tile", "tile_grid", "write_tiles"]
@@ -134,7 +135,7 @@ def write_tiles(cloud, folder, size: float = 100.0, *, prefix: str = "tile", suf
     xyz = as_points(cloud, name="cloud to cut into tiles")
     cloud = cloud if isinstance(cloud, PointCloud) else PointCloud(xyz)
     paths = []
-    for tile in tile_grid(np.r_[xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)], size, max_tiles=max_tiles):
+    for tile in tile_grid(np.r_[extent(xyz[:, :2])], size, max_tiles=max_tiles):
         inside = tile.contains(xyz)
         if inside.any():
             x0, y0 = tile.bounds[:2]

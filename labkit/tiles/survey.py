@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.checks import as_points
+from ..core.frame import extent
 from ..core.errors import CloudFileError, EmptyRegionError, LabkitError
 from ..io import LAS_SUFFIXES, cloud_files, cloud_info, read_cloud
 from ..io.many import header_factors
@@ -124,7 +125,7 @@ def _bounds_of(data, name: str) -> np.ndarray:
     if len(data) == 0:
         raise EmptyRegionError(f"the {name} survey has no points (after the class filter, if any)")
     xyz = as_points(data, name=f"{name} survey")
-    return np.r_[xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)]
+    return np.r_[extent(xyz[:, :2])]
 
 
 def _for_tile(data, tile: Tile):
