@@ -94,6 +94,8 @@ class _Matcher:
         # the queries (the sampled source points the source rules leave) in leaf order, and their groups:
         # the same in every call, as are the source rules
         ok = self.source_rule[self.query_order] == 0 if self.query_order is not None else None
+        if ok is not None and ok.all():  # no source rule (no classes, no noise limit): every row a query, no copies
+            ok = slice(None)
         live = None if ok is None else self.query_order[ok]
         starts = None
         if self.query_groups is not None:
