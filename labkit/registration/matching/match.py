@@ -67,6 +67,8 @@ AUTO_QUADRIC_RADIUS = 1.0
 #: about :data:`AUTO_PAIRS` points (one per voxel, then normal-space balance, see :func:`auto_sample`).
 AUTO_LIMIT = 300_000
 AUTO_PAIRS = 100_000
+#: Queries per target point from which ICP computes the target's normals at every point up front.
+WHOLE_TARGET = 0.5
 
 
 def _sample(points, geometry, spec, rng):
@@ -227,7 +229,10 @@ def prepare(
         def ahead():
             found = first_search(tree, src_pts, order, groups, *start, settings["max_distance"])
             if tgt_geo.given is None:  # the target's normals at those points: the first call finds them cached
-                tgt_geo.at_positions(found[0][found[0] >= 0])
+                # where the queries are about as many as the target's points, later steps meet most of them:
+                # all at once here, in leaf order (cheaper than in the few batches of the first steps)
+                whole = len(src_pts) >= WHOLE_TARGET * tree.n
+                tgt_geo.at_positions(np.arange(tree.n) if whole else found[0][found[0] >= 0])
             return found
 
         (src_normals, src_noise), memory = side_by_side((normals_of_source,), (ahead,))
