@@ -24,7 +24,7 @@ import numpy as np
 
 from .core.checks import as_points
 from .core.errors import LabkitError
-from .core.frame import extent
+from .core.arrays import extent, rows
 from .core.units import Units, UnitsError, units_from_crs_text
 
 
@@ -184,8 +184,8 @@ class PointCloud:
     def subset(self, mask_or_index) -> "PointCloud":
         """A new cloud with the selected points (boolean mask or integer index)."""
         sel = np.asarray(mask_or_index)
-        attrs = {k: v[sel] for k, v in self.attributes.items()}
-        return PointCloud(self.xyz[sel], attrs, crs=self.crs, name=self.name, units=self.units,
+        attrs = {k: rows(v, sel) for k, v in self.attributes.items()}
+        return PointCloud(rows(self.xyz, sel), attrs, crs=self.crs, name=self.name, units=self.units,
                           layout=self.layout)
 
     def with_xyz(self, xyz) -> "PointCloud":

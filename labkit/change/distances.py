@@ -34,7 +34,8 @@ from scipy.spatial import cKDTree
 
 from ..core.checks import as_points, choice, count
 from ..core.crs import check_same_crs
-from ..core.frame import extent, local_origin, reduce
+from ..core.arrays import extent
+from ..core.frame import local_origin, reduce
 from ..core.report import ReportMixin
 from ..neighbours.treecache import local_tree
 from ..core.errors import DegenerateGeometryError, EmptyRegionError, LabkitError

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..core.frame import extent
+from ..core.arrays import extent
 from ..neighbours.eigh3 import HAVE_NUMBA
 
 if HAVE_NUMBA:

@@ -55,24 +55,6 @@ def _sums_kernel():
     return _SUMS[0]
 
 
-def extent(points) -> tuple[np.ndarray, np.ndarray]:
-    """The smallest and the largest value of every column of ``points`` (m, d): the box of a cloud.
-
-    Column by column: numpy's ``min(axis=0)`` on a row-major (m, 3) array runs its inner loop over
-    the three values of a row, measured 20-25 times slower (12.6 against 0.5 ms for 262,000 points).
-    The same values (a minimum is exact); an empty array raises as ``min`` does.
-
-    Examples
-    --------
-    >>> lo, hi = extent(np.array([[1.0, 5.0, -2.0], [3.0, 4.0, 0.5]]))
-    >>> lo.tolist(), hi.tolist()
-    ([1.0, 4.0, -2.0], [3.0, 5.0, 0.5])
-    """
-    points = np.asarray(points)
-    cols = range(points.shape[1])
-    return np.array([points[:, c].min() for c in cols]), np.array([points[:, c].max() for c in cols])
-
-
 def reduce(points: np.ndarray, origin: np.ndarray) -> np.ndarray:
     """Return ``points - origin`` as a new array (the input is never modified)."""
     return np.asarray(points, dtype=np.float64) - origin

@@ -12,7 +12,7 @@ from ..core.report import ReportMixin, fmt
 from ..core.units import decide_units, parse_wkt
 from ..core.units import Units, UnitsError
 from ..core.errors import CloudFileError, EmptyRegionError, LabkitError
-from ..core.frame import extent
+from ..core.arrays import extent
 from ..core.progress import progress_steps
 from .chunks import ChunkCollector
 from .common import LAS_SUFFIXES, existing_file, require_classification

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.frame import extent
+from ..core.arrays import extent
 from .common import INT32_MAX
 
 _CRS_VLRS = ("GeoKeyDirectoryVlr", "GeoDoubleParamsVlr", "GeoAsciiParamsVlr", "WktCoordinateSystemVlr")

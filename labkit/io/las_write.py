@@ -9,7 +9,7 @@ import numpy as np
 
 from ..core.units import Units
 from ..core.errors import LabkitError
-from ..core.frame import extent
+from ..core.arrays import extent
 from ..core.progress import progress_steps
 from .common import INT32_MAX, STANDARD_DTYPES
 from .las import _las_xyz, las_units, laz_backend, to_metres

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..core.arrays import rows
 from ..core.jit import compiled
 from .eigh3 import HAVE_NUMBA
 from .kdtree_build import _build_two, _duplicates, _threads, in_runs
@@ -432,9 +433,9 @@ class KDTree:
         nodes[:, 0], nodes[:, 1] = bounds[nodes[:, 0]], bounds[nodes[:, 1]]
         out.indices = row[self.indices[kl]].astype(np.intp, copy=False)
         if points is None:
-            out.data = np.ascontiguousarray(self.data[kl])
+            out.data = np.ascontiguousarray(rows(self.data, kl))
         else:
-            out.data = np.ascontiguousarray(np.asarray(points, dtype=np.float64)[out.indices])
+            out.data = np.ascontiguousarray(rows(np.asarray(points, dtype=np.float64), out.indices))
         box = box.copy()
         _tighten(out.data, nodes, box)
         out.n = len(out.data)

@@ -12,7 +12,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from ..core.frame import extent
+from ..core.arrays import extent
 from ..core.jit import compiled
 from ..core.threads import cores
 from .eigh3 import HAVE_NUMBA

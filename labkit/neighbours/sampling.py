@@ -15,7 +15,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.errors import LabkitError
-from ..core.frame import extent
+from ..core.arrays import extent
 
 __all__ = ["even_subset", "flat_keys", "median_spacing", "voxel_sample", "voxel_thin"]
 

@@ -31,6 +31,7 @@ from scipy.stats import chi2
 
 import numpy as np
 
+from ..core.arrays import rows
 from ..core.checks import as_points, choice
 from ..core.errors import LabkitError
 from ..core.masks import ASPRS_NAMES, STABLE_CLASSES
@@ -118,7 +119,7 @@ def _xyz(cloud):
 
 
 def _subset(cloud, mask):
-    return cloud.subset(mask) if hasattr(cloud, "subset") else _xyz(cloud)[mask]
+    return cloud.subset(mask) if hasattr(cloud, "subset") else rows(_xyz(cloud), mask)
 
 
 def surface_mask(points, k=20):

@@ -10,7 +10,7 @@ import numpy as np
 from ..core.checks import as_points, count, non_negative, positive
 from ..cloud import PointCloud
 from ..core.errors import LabkitError
-from ..core.frame import extent
+from ..core.arrays import extent
 from ..io import LAS_SUFFIXES, write_cloud
 
 __all__ = ["MAX_TILES", "Tile", "tile_grid", "write_tiles"]

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.checks import as_points
-from ..core.frame import extent
+from ..core.arrays import extent
 from ..core.errors import CloudFileError, EmptyRegionError, LabkitError
 from ..io import LAS_SUFFIXES, cloud_files, cloud_info, read_cloud
 from ..io.many import header_factors
