@@ -500,6 +500,9 @@ class Geometry:
         for name, v in values.items():
             buf = self._store.get(name)
             need = self.n_computed + n_new
+            if buf is None and self.n_computed == 0 and v.flags.c_contiguous and v.base is None:
+                self._store[name] = v  # the first rows as they came (a whole cloud at once: no copy)
+                continue
             if buf is None or len(buf) < need:
                 cap = max(need, 2 * (0 if buf is None else len(buf)), 1024)
                 bigger = np.empty((cap,) + v.shape[1:], dtype=v.dtype)
