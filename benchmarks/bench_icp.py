@@ -74,35 +74,38 @@ Findings behind the defaults of ``icp`` (its docstring gives the method, these t
 
 Every point (``--keep 0.5 --halves-only``: 262,000 vs 262,000 TLS points, 174,000 vs 175,000 ALS points;
 below 300,000 source points the default uses every point, and ``select='auto'`` keeps the surface points:
-103,914 and 105,272 pairs). Three runs on 2026-12-03 at 10:55 (load 1.0-1.7), best of 3 each, CPU s of the
+103,914 and 105,272 pairs). Three runs on 2026-12-03 at 12:16 (load 0.3-1.6), best of 3 each, CPU s of the
 process in brackets (Open3D's threads count there too); the estimates are bit-identical to those before
 the speed work:
 
 ===================  ============================  ====================  ===================
 pair                 labkit icp (every point)      Open3D                labkit / Open3D
 ===================  ============================  ====================  ===================
-tls halves           1.02, 0.92, 0.87 (1.55-1.78)  0.93, 0.82, 0.83      1.10, 1.12, 1.04
-als halves           0.80, 0.81, 0.71 (1.27-1.40)  1.72, 1.69, 1.61      0.47, 0.48, 0.44
-als, plane           0.55, 0.51, 0.47 (0.82-0.93)  1.72, 1.69, 1.61      0.32, 0.30, 0.29
+tls halves           0.83, 0.86, 1.04 (1.49-1.85)  0.83, 0.89, 1.03      1.01, 0.97, 1.00
+als halves           0.72, 0.90, 0.84 (1.26-1.55)  1.77, 1.95, 1.88      0.41, 0.46, 0.45
+als, plane           0.50, 0.49, 0.52 (0.84-0.90)  1.77, 1.95, 1.88      0.28, 0.25, 0.28
 ===================  ============================  ====================  ===================
 
-(The same morning: TLS 1.07-1.18 at 08:28, 1.27-1.31 before that day's speed work.) Where the time goes
-on the TLS halves (median of 15 runs per phase in two sittings, 2 cores, wall / CPU ms): the surface
-selection of both whole clouds 460-469 / 860-876 (their kd-trees, the 20 nearest neighbours of every point with the covariances
-summed and ties at the 20th distance flagged in the search, the PCA, the local quadric where the plane's
-bound leaves the test open), ICP's preparation (the source's normals from the kept PCA, the target's at
-the first pairs, the first search from the 0.41 m start) 119-137 / 200-242, nine matching steps and
-eight adjustments 281-292 / 473-487, the result 23-24 / 31. On one core labkit now takes less than Open3D (best of 12
-runs 1.46 s in two sittings, median 1.52-1.55 s, against Open3D's best 1.57-1.60 s, median 1.66-1.69 s): labkit's
-selection makes the neighbourhoods of both clouds, and its eight iterations on the surface points cost
-less than Open3D's eleven on every point. The wall time is decided by how well the two cores are used:
-about 1.75 cores for labkit, 1.86-1.90 for Open3D. Sampled from outside the process (per-thread CPU every
-millisecond), the selection runs at 1.9 cores, the matching steps' searches at about 1.9, and the rest of
-the iterations at 1.0-1.6: each adjustment (about 4.5 ms on one core: the gathers of the accepted rows,
-two medians, the tilt information of eq. 5.12b from a strided subset whose rows miss the cache) and the
-target normals computed for the points met for the first time (the re-search of the rows whose neighbours
-the selection dropped, about 40,000 of them in all at 1.6 us each). What is left for the TLS row is
-there: the single-core stretches of the iterations, not the amount of work.
+(The same day: TLS 1.04-1.12 at 10:55, 1.07-1.18 at 08:28, 1.27-1.31 before that day's speed work. This
+VM's speed drifts by 10-20 % within an hour: both libraries took about 0.83 s at 12:16 and 1.03 s a
+minute later; compare within a row.) What changed since 10:55, the same numbers throughout: where the
+source queries are at least half as many as the target's points, ICP computes the target's normals at
+every point in one batch beside the source's (later steps meet most of them; in a few batches inside the
+first matching steps they had cost 108 ms of CPU for 198,000 points, in one batch 92 ms for all 248,000),
+which took the iterations from 277 to 223 ms (medians, 2 cores); the kd-tree's box is taken column by
+column (numpy's ``min(axis=0)`` on an (n, 3) array: 12.6 against 0.5 ms) and the rows of a mask or an index
+by ``np.compress`` / ``np.take`` (``labkit.core.arrays``). Where the time goes on the TLS halves (one sitting,
+medians of 9 runs, 2 cores, wall / CPU ms): the surface selection of both whole clouds 424 / 797 (their
+kd-trees, the 20 nearest neighbours of every point with the covariances summed and ties at the 20th distance
+flagged in the search, the PCA, the local quadric where the plane's bound leaves the test open), ICP's
+preparation (the normals of both selected clouds from the kept PCA, the first search from the 0.41 m
+start) 132 / 232, eight matching steps and eight adjustments 223 / 384, the result 20 / 29. Pinned to one
+core, in one process taking turns (12:19): labkit best 1.56 s, median 1.71 s; Open3D best 1.64 s, median
+1.83 s. labkit does less work; on two cores it uses them less fully (about 1.8 cores against Open3D's 1.9):
+each adjustment runs on one core (about 5 ms: the gathers of the accepted rows, two medians, the tilt
+information of eq. 5.12b), and the ends of the two clouds' selection do not meet. The early matching
+steps are what they are: a query 4-13 cm off the surface scans 40-52 target points (33 near the end), at
+0.2-0.3 us per query, as counted in the search kernel.
 
 Run:  python benchmarks/bench_icp.py [--quick] [--realdata PATH] [--repeats N]
 """

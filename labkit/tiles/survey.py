@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.checks import as_points
-from ..core.arrays import extent
+from ..core.arrays import extent, rows
 from ..core.errors import CloudFileError, EmptyRegionError, LabkitError
 from ..io import LAS_SUFFIXES, cloud_files, cloud_info, read_cloud
 from ..io.many import header_factors
@@ -134,7 +134,7 @@ def _for_tile(data, tile: Tile):
         return data.for_tile(tile)
     xyz = as_points(data, name="survey cloud")
     mask = tile.contains(xyz)
-    return data.subset(mask) if hasattr(data, "subset") else xyz[mask]
+    return data.subset(mask) if hasattr(data, "subset") else rows(xyz, mask)
 
 
 def _cut_all(data, tiles: tuple) -> list:
@@ -165,8 +165,8 @@ def _cut_all(data, tiles: tuple) -> list:
         pos = np.searchsorted(uniq, keys)
         hit = [p for p, k in zip(pos, keys) if p < len(uniq) and uniq[p] == k]
         idx = np.concatenate([order[bounds[p]:bounds[p + 1]] for p in hit]) if hit else np.zeros(0, int)
-        idx = np.sort(idx[t.contains(xyz[idx])])  # the points in their original order
-        out.append(data.subset(idx) if hasattr(data, "subset") else xyz[idx])
+        idx = np.sort(idx[t.contains(rows(xyz, idx))])  # the points in their original order
+        out.append(data.subset(idx) if hasattr(data, "subset") else rows(xyz, idx))
     return out
 
 
