@@ -57,20 +57,25 @@ def test_compiled_matching_steps_equal_their_numpy_route(monkeypatch):
                                   equal_nan=name != "target_index" and name != "rule"), name
 
 
-def test_first_search_made_ahead_changes_no_correspondence():
+@pytest.mark.parametrize("n_source, surface", [(8_000, "plane"), (12_000, "plane"), (12_000, "quadric")])
+def test_first_search_made_ahead_changes_no_correspondence(n_source, surface):
     """prepare(start=(R, t)) searches the first call's nearest target points beside the source's normals:
-    the first and later calls give the same correspondences as a matcher that searches them itself."""
-    from labkit.registration.matching.match import prepare
+    the first and later calls give the same correspondences as a matcher that searches them itself. The
+    target's normals come at the points found (a source of fewer queries than half the target's points) or
+    at every target point at once (at least half as many): the same numbers either way."""
+    from labkit.registration.matching.match import WHOLE_TARGET, prepare
 
     rng = np.random.default_rng(11)
     target = np.round(wavy_surface(20_000, rng, noise=0.002), 3)
-    source = np.round(wavy_surface(8_000, rng, noise=0.002), 3) - [0.021, -0.013, 0.008]
+    source = np.round(wavy_surface(n_source, rng, noise=0.002), 3) - [0.021, -0.013, 0.008]
     R, t = np.eye(3), np.array([0.02, -0.01, 0.01])
-    ahead, plain = prepare(source, target, start=(R, t)), prepare(source, target)
+    ahead, plain = prepare(source, target, start=(R, t), surface=surface), prepare(source, target, surface=surface)
     assert ahead.search_memory is not None and plain.search_memory is None
+    whole = n_source >= WHOLE_TARGET * ahead.tree.n
+    assert (ahead.geometry.n_computed == ahead.tree.n) == whole and plain.geometry.n_computed == 0
     for move in (t, t + 0.001, t + 1e-6):
         a, b = ahead(R, move), plain(R, move)
-        for name in ("target_index", "d", "weight", "rule"):
+        for name in ("target_index", "d", "target_normal", "weight", "rule"):
             assert np.array_equal(getattr(a, name), getattr(b, name), equal_nan=True)
 
 
