@@ -38,6 +38,15 @@ and 10,639,153 target points (generated and written once, 171 s under load, reus
     Open3D normals + ICP           1.7      235   -0.191, -0.293, +0.041
     labkit / Open3D = 1.28
 
+Measured 2026-12-03 12:54 (``--skip-tls``, load 0.3-1.9), and that morning's code right after it (without Open3D):
+
+    step                       time (s)  CPU (s)  peak MB  shift error (mm)        stated std (mm)
+    labkit register               54.3     78.1     3640  -0.25, -0.34, +0.11     0.36, 0.35, 0.13
+    labkit icp (clouds in memory)  32.7     70.2     3914  -0.44, +0.17, +0.05     0.36, 0.36, 0.13
+    Open3D normals + ICP         169.9    325.3     2414  -371, +42, -4352 (normals alone 62.0 s)
+    labkit register / Open3D normals+ICP = 0.32 wall, 0.24 CPU
+    that morning: register 64.9 s (CPU 91.5 s, 3702 MB), icp 34.0 s (CPU 69.7 s, 3888 MB), the same shifts
+
 Measured 2026-12-02 (``--skip-tls``; load 10-17, other heavy jobs and two other benchmarks beside it):
 
     step                       time (s)  peak MB  shift error (mm)         stated std (mm)
