@@ -12,7 +12,7 @@ from ..core.report import ReportMixin, fmt
 from ..core.units import decide_units, parse_wkt
 from ..core.units import Units, UnitsError
 from ..core.errors import CloudFileError, EmptyRegionError, LabkitError
-from ..core.arrays import extent
+from ..core.arrays import extent, rows
 from ..core.progress import progress_steps
 from .chunks import ChunkCollector
 from .common import LAS_SUFFIXES, existing_file, require_classification
@@ -84,7 +84,7 @@ def read_las(path: Path, flt: ReadFilter, keep, chunk_size: int, progress, units
                     lo_m, hi_m = extent(xyz)
                     lo, hi = np.minimum(lo, lo_m), np.maximum(hi, hi_m)
                 sel = slice(None) if mask is None else mask
-                gather.add(xyz if mask is None else xyz[sel], {d: np.asarray(points[d])[sel] for d in names})
+                gather.add(xyz if mask is None else rows(xyz, mask), {d: np.asarray(points[d])[sel] for d in names})
                 step(m)
         if seen != total:
             raise CloudFileError(f"{path} is truncated: the header announces {total} points, the file holds {seen}")

@@ -15,7 +15,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.errors import LabkitError
-from ..core.arrays import extent
+from ..core.arrays import extent, rows
 
 __all__ = ["even_subset", "flat_keys", "median_spacing", "voxel_sample", "voxel_thin"]
 
@@ -181,7 +181,7 @@ def auto_sample(points, geometry, m, rng):
     variance from the residuals of the pairs actually used, whatever their number.
     """
     n = len(points)
-    sub = points[rng.choice(n, min(n, 1_000_000), replace=False)] if n > 1_000_000 else points
+    sub = rows(points, rng.choice(n, min(n, 1_000_000), replace=False)) if n > 1_000_000 else points
     lo, hi = extent(points)
     ext = np.sort(hi - lo)[::-1]
     h = max(float(np.sqrt(ext[0] * max(ext[1], 1e-9) / (2 * m))), 1e-6)  # a horizontal surface's guess
