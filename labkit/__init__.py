@@ -27,7 +27,7 @@ _EXPORTS = {
     "PointCloud": "labkit.cloud",
     "read_cloud": "labkit.io",
     "write_cloud": "labkit.io",
-    # sphere (issues 2, 3)
+    # sphere
     "gauss_helmert_model": "labkit.sphere.ghm",
     "SphereFit": "labkit.sphere.fit",
     "ransac_sphere": "labkit.ransac",
@@ -44,7 +44,7 @@ _EXPORTS = {
     "compose": "labkit.transforms",
     "invert": "labkit.transforms",
     "apply_transform": "labkit.transforms",
-    # registration (issues 5, 6)
+    # registration
     "RegistrationResult": "labkit.registration",
     "match": "labkit.registration",
     "MatchOptions": "labkit.registration",
