@@ -207,14 +207,18 @@ def shift_mm(T, c):
 
 def best_of(repeats, runs):
     """Per method the fastest of ``repeats`` runs, the methods taking turns (a load that comes and goes
-    on a shared machine then meets all of them); the results of the runs are the same (deterministic)."""
+    on a shared machine then meets all of them; every other round in the reverse order, so that no method
+    always runs right after the same one), and every run's wall time per method (rounds x methods); the
+    results of the runs are the same (deterministic)."""
     best = [None] * len(runs)
-    for _ in range(repeats):
-        for i, run in enumerate(runs):
-            out = run()
+    times = np.empty((repeats, len(runs)))
+    for r in range(repeats):
+        for i in range(len(runs)) if r % 2 == 0 else reversed(range(len(runs))):
+            out = runs[i]()
+            times[r, i] = out[0]
             if best[i] is None or out[0] < best[i][0]:
                 best[i] = out
-    return best
+    return best, times
 
 
 def warm_up(o3d):
@@ -247,7 +251,8 @@ def main(argv=None):
         return
     warm_up(o3d)
     print(f"{os.cpu_count()} CPU(s), load average {os.getloadavg()}; every time is the best of {args.repeats} "
-          "wall-clock runs, the methods taking turns (shared machine: compare within a row)")
+          "wall-clock runs, the methods taking turns (shared machine: compare within a row); the ratios also "
+          "per round (the runs next to each other)")
     head = f"{'pair':18s} {'points src/tgt':>16s} {'method':14s} {'time s':>7s} {'dX mm':>8s} {'dY mm':>8s} {'dZ mm':>8s}"
     print(head + "   (error vs the known shift; for pairs without one: the estimated shift; CPU s of that run)")
     for name, src, tgt, truth, note in pairs(root, args.quick, args.keep):
@@ -264,7 +269,7 @@ def main(argv=None):
         runs = [lambda kw=kw: run_labkit(src, tgt, **kw) for _, kw in variants]
         if o3d is not None:
             runs.append(lambda: run_open3d(src, tgt, o3d))
-        timed = best_of(args.repeats, runs)
+        timed, times = best_of(args.repeats, runs)
         for (label, kw), (t, T, res, cpu) in zip(variants, timed):
             print(f"{name if not kw else '':18s} {n if not kw else '':>16s} {label:14s} {t:7.2f} "
                   + " ".join(f"{v:8.2f}" for v in shift_mm(T, c) - ref) + f"   CPU {cpu:.2f}")
@@ -277,8 +282,10 @@ def main(argv=None):
             t, T, _, cpu = timed[-1]
             print(f"{'':18s} {'':16s} {'open3d p2pl':14s} {t:7.2f} " + " ".join(f"{v:8.2f}" for v in shift_mm(T, c) - ref)
                   + f"   CPU {cpu:.2f}")
-            for (label, kw), (t_l, _, _, _) in zip(variants, timed):
-                print(f"{'':18s} {'':16s} {'  ratio':14s} {t_l / t:7.2f}   ({label} / open3d)")
+            for i, ((label, kw), (t_l, _, _, _)) in enumerate(zip(variants, timed)):
+                q = times[:, i] / times[:, -1]  # each round's labkit run against the Open3D run next to it
+                print(f"{'':18s} {'':16s} {'  ratio':14s} {t_l / t:7.2f}   ({label} / open3d; per round: median "
+                      f"{np.median(q):.2f}, {np.min(q):.2f}-{np.max(q):.2f}, below 1 in {np.sum(q < 1)} of {len(q)})")
         print(f"{'':18s} load average after the row: {os.getloadavg()[0]:.1f}")
         if note:
             print(f"{'':18s} note: {note}")
