@@ -107,6 +107,24 @@ information of eq. 5.12b), and the ends of the two clouds' selection do not meet
 steps are what they are: a query 4-13 cm off the surface scans 40-52 target points (33 near the end), at
 0.2-0.3 us per query, as counted in the search kernel.
 
+The same afternoon (``--repeats 9``, the ratio of every round's two runs beside the best-of ratio):
+Open3D had become faster and labkit had not; best of 9 labkit 0.93 and 0.93 s against Open3D's 0.78 and
+0.82 s (1.20x, 1.14x), the rounds' ratios median 1.21 and 1.14 (0.92-2.58, 3 of 18 rounds below 1); 15
+more rounds in one process: median 1.12, quartiles 1.02-1.23. Best-of-3 ratios had ranged over 0.97-1.39
+within that afternoon, hence the per-round column. ALS halves: 0.42x and 0.48x, every round below 1.
+
+Where labkit's CPU goes in the timed runs (``perf``, 1999 Hz, the samples after the warm-up): the
+k-neighbour kernel of the surface selection 31 %, the matching's nearest-point kernel 17 %, the kernel
+zeroing fresh pages 6 %, the per-point k-neighbour search of the points whose kept neighbourhood held a
+left-out point (23,000 per cloud) 5 %, the gathers of the matching 4 %, the kd-tree builds 4 %, the
+3x3 eigen-decompositions 4 %. Tried and not kept: glibc's malloc told to keep freed memory
+(``mallopt`` M_TRIM_THRESHOLD 256 MB, M_MMAP_THRESHOLD 32 MB) and the helper threads of
+``labkit.core.threads`` kept between calls cut the page faults per call from 10,000-20,000 to 2,500-4,500,
+but not the time (base faster in 3 of 5 alternating rounds: the zeroing is mostly the first call's and
+the import's, 2-6 % of a warm call); a single malloc arena (M_ARENA_MAX 1) was faster for labkit but made
+Open3D about 3 % slower in the same process, a cost imposed on every other library; leaf sizes 16,
+32, 40 and 48 for the selection's k-neighbour search (24 stays fastest).
+
 Run:  python benchmarks/bench_icp.py [--quick] [--realdata PATH] [--repeats N]
 """
 
