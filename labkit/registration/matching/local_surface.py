@@ -64,15 +64,18 @@ def _leaf_geometry(tree, cols, pos, k, quadric=False, eigenvalues=False, known=N
     threads = -1 if len(pos) > 2000 else 1  # threads cost more than they save on small queries
     pca = None
     if known is not None and known.k == k:
-        # the plane needs no neighbours where their PCA is known; the quadric fits them
-        nb = np.empty((len(pos), k), dtype=np.intp)
+        # the plane needs no neighbours where their PCA is known (only those of the rows searched again,
+        # kept apart: no (m, k) array for a few rows); the quadric fits them
         pca = None if known.pca is None else (np.empty((len(pos), 3)), np.empty((len(pos), 3, 3)))
-        rest = np.flatnonzero(~known.gather(tree, pos, nb if quadric or pca is None else None, *(pca or ())))
+        nb = np.empty((len(pos), k), dtype=np.intp) if quadric or pca is None else None
+        rest = np.flatnonzero(~known.gather(tree, pos, nb, *(pca or ())))
         if len(rest):
-            nb[rest] = tree.query_leaf_positions(pos[rest], k, workers=threads if len(rest) > 2000 else 1)
+            found = tree.query_leaf_positions(pos[rest], k, workers=threads if len(rest) > 2000 else 1)
+            if nb is not None:
+                nb[rest] = found
         if pca is not None and len(rest):
             def rest_pca(u, v):  # (rows alone: the same numbers in any ranges)
-                pca[0][rest[u:v]], pca[1][rest[u:v]] = _pca_rows(tree, cols, nb[rest[u:v]], k)
+                pca[0][rest[u:v]], pca[1][rest[u:v]] = _pca_rows(tree, cols, found[u:v], k)
 
             _in_row_chunks(rest_pca, len(rest))
     else:
@@ -82,7 +85,7 @@ def _leaf_geometry(tree, cols, pos, k, quadric=False, eigenvalues=False, known=N
     out = [None] * len(shapes)  # written in place by the row chunks: no second copy of large results
 
     def work(a, b):
-        part = _geometry_rows(tree, cols, pos[a:b], nb[a:b], k, quadric,
+        part = _geometry_rows(tree, cols, pos[a:b], None if nb is None else nb[a:b], k, quadric,
                               None if pca is None else (pca[0][a:b], pca[1][a:b]))[: len(shapes)]
         if a == 0 and b == m:
             out[:] = part
@@ -186,7 +189,7 @@ def _geometry_rows(tree, cols, pos, nb, k, quadric, pca=None):
     normal, noise, variation, eigenvalues, tangents (and coefficients, frame, slope covariance), and
     the eigenvectors last. ``pca``: (eigenvalues, eigenvectors) of these rows from :func:`_pca_rows`,
     when a first pass computed them (the covariances depend only on differences of the coordinates:
-    the same numbers in any frame)."""
+    the same numbers in any frame); the plane then reads no neighbours (``nb`` may be None)."""
     if pca is None:
         lam, vecs = _pca_rows(tree, cols, nb, k)
     else:  # the quadric's frame changes the eigenvectors in place below
