@@ -471,7 +471,8 @@ class KDTree:
             self._leaves = leaves[np.argsort(nodes[leaves, 0], kind="stable")]
         return np.append(self._nodes[0][self._leaves, 0], self.n)
 
-    def knn_of_leaves(self, a: int, b: int, k: int, workers: int = 1, moments: int = 0, ties: bool = False):
+    def knn_of_leaves(self, a: int, b: int, k: int, workers: int = 1, moments: int = 0, ties: bool = False,
+                      dtype=np.intp):
         """Leaf-order indices (b - a, k) of the k nearest tree points of the tree's points a..b-1.
 
         ``a`` and ``b`` must be leaf bounds (:attr:`leaf_bounds`); the points of a leaf are
@@ -482,12 +483,13 @@ class KDTree:
         numbers), summed while the neighbours are in cache: returns (indices, centroids, covariances).
         ``ties``: last also (b - a,) bool, True where another point lies at exactly the k-th distance (the
         k nearest are not unique; what the (k+1)-th neighbour would tell, without searching for it).
+        ``dtype``: of the indices (np.int32 halves the memory of neighbourhoods kept for later, n < 2^31).
         """
         bounds = self.leaf_bounds
         j0, j1 = np.searchsorted(bounds, [a, b])
         if bounds[j0] != a or bounds[j1] != b:
             raise ValueError(f"{a}:{b} does not start and end at leaf bounds")
-        idx = np.empty((b - a, k), dtype=np.intp)
+        idx = np.empty((b - a, k), dtype=dtype)
         moments = min(int(moments), k)
         cen, C = (np.empty((b - a, 3)), np.empty((b - a, 3, 3))) if moments > 0 else (_NO_CEN, _NO_C)
         tie = np.zeros(b - a, dtype=bool) if ties else _NO_TIE

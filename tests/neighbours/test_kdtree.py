@@ -97,6 +97,8 @@ def test_leaf_moments_equal_neighbours_then_covariances(name, monkeypatch):
     monkeypatch.setattr(kdtree, "_PER_THREAD", 50)  # threads even on these small clouds
     for workers in (2, 3, -1):  # consecutive runs of leaves on threads: the same answer
         assert np.array_equal(tree.knn_of_leaves(a, b, 20, workers=workers), nb)
+    small = tree.knn_of_leaves(a, b, 20, workers=-1, dtype=np.int32)  # the same indices in half the memory
+    assert small.dtype == np.int32 and np.array_equal(small, nb)
     d, i = cKDTree(tree.data).query(tree.data[a:b], k=20)
     np.testing.assert_allclose(np.sort(((tree.data[nb] - tree.data[a:b, None]) ** 2).sum(-1), axis=1), d**2,
                                rtol=1e-12, atol=1e-15)  # the k nearest, checked by scipy

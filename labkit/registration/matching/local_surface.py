@@ -124,8 +124,9 @@ def roughness(tree, cols, a, b, k, decided=None, ties=False, pca=False):
     (m, 3, 3), as :func:`_leaf_geometry` would decompose these neighbourhoods again.
     """
     k = min(k, tree.n)
-    # the neighbours and their covariances from one search (summed while the neighbours are in cache)
-    nb, _, cov, *tie = tree.knn_of_leaves(a, b, k, workers=-1, moments=k, ties=ties)
+    # the neighbours (int32: half the memory, the selection keeps them for ICP) and covariances, one search
+    nb, _, cov, *tie = tree.knn_of_leaves(a, b, k, workers=-1, moments=k, ties=ties,
+                                          dtype=np.int32 if tree.n < 2**31 else np.intp)
     pos = np.arange(a, b)
     m = b - a
     lam, noise, vecs = np.empty((m, 3)), np.empty(m), np.empty((m, 3, 3))
