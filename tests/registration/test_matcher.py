@@ -116,3 +116,34 @@ def test_compiled_matcher_call_equals_its_numpy_route(options, in_ranges, monkey
                      "target_normal", "weight", "rule"):
             a, b = getattr(new, name), getattr(old, name)
             assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), name
+
+
+def test_work_arrays_kept_between_calls_change_no_result():
+    """The matcher keeps its work arrays from one call to the next (no new memory per iteration): a call's
+    correspondences stay as they were after later calls (none of them is a work array), and every call
+    gives what a new matcher gives at the same transformation, also where fewer pairs are found than before."""
+    import copy
+
+    from labkit.registration.matching.match import prepare
+
+    rng = np.random.default_rng(11)
+    target = np.round(wavy_surface(12_000, rng, noise=0.002), 3)
+    source = np.round(wavy_surface(5_000, rng, noise=0.002), 3) - [0.021, -0.013, 0.008]
+    kw = dict(sample=None, max_distance=0.05)
+    names = ("source_index", "target_index", "source_xyz", "d", "plane_distance", "normal_angle",
+             "target_normal", "weight", "rule")
+    moves = [np.zeros(3), np.array([0.04, -0.03, 0.02]), np.array([0.021, -0.013, 0.008])]  # the second: fewer pairs
+    kept = prepare(source, target, **kw)
+    first = kept(np.eye(3), moves[0])
+    before = copy.deepcopy([getattr(first, n) for n in names])
+    counts = []
+    for t in moves:
+        got, fresh = kept(np.eye(3), t), prepare(source, target, **kw)(np.eye(3), t)
+        counts.append(int((got.rule == 0).sum()))
+        for name in names:
+            a, b = getattr(got, name), getattr(fresh, name)
+            assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), name
+            assert not any(np.shares_memory(a, w) for w in kept._work.values()), name
+    assert counts[1] < counts[0] and kept._work  # the work arrays were kept, and reused for fewer rows
+    for a, b in zip([getattr(first, n) for n in names], before):
+        assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f")

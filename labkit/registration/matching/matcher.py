@@ -121,6 +121,17 @@ class _Matcher:
         else:
             object.__setattr__(self, "_warm", np.full(n, -1, dtype=np.intp))
             object.__setattr__(self, "_memory", (np.zeros((n, 3)), np.zeros(n)))
+        object.__setattr__(self, "_work", {})  # the work arrays of the calls (_scratch)
+
+    def _scratch(self, name, n, shape=(), dtype=np.float64):
+        """The first ``n`` rows of a work array of the calls, kept between them (ICP calls the matcher one
+        iteration after the other, as the warm starts above already require): the same memory in every
+        iteration instead of 20-30 MB of new pages, zeroed by the system on first touch. What a call returns
+        is never one of these."""
+        buf = self._work.get(name)
+        if buf is None or len(buf) < n or buf.shape[1:] != shape or buf.dtype != dtype:
+            buf = self._work[name] = np.empty((n,) + shape, dtype)
+        return buf[:n]
 
     def __call__(self, R=None, t=None) -> Correspondences:
         """Correspondences of the source moved by p' = R p + t (local frame)."""
@@ -144,7 +155,7 @@ class _Matcher:
         # written at the rows with a partner, NaN at the others by the last pass (weights_planes_range)
         d, nt, noise_t, angle = np.empty((m, 3)), np.empty((m, 3)), np.empty(m), np.empty(m)
         cuts = passes.range_cuts(n_live, threads)
-        q = np.empty((n_live, 3))  # the queries moved, in query order
+        q = self._scratch("q", n_live, (3,))  # the queries moved, in query order
         in_runs(lambda a, b: passes.rotate_range(self._source_q, R, t, q, a, b), cuts, threads)
         # (3) nearest neighbour in the target kd-tree, within max_distance
         dist, j = self.tree.nearest_in_groups(q, starts, opt["max_distance"], workers=-1 if threads > 1 else 1,
@@ -155,11 +166,11 @@ class _Matcher:
         in_runs(lambda a, b: counts.__setitem__(a, passes.count_found(dist, a, b)), cuts, threads)
         offsets = dict(zip(cuts[:-1], np.cumsum([0] + [counts[a] for a in cuts[:-1]]).tolist()))
         n_found = sum(counts.values())
-        found = np.empty(n_found, dtype=np.intp)  # positions (in query order) of the queries with a partner
-        pos = np.empty(n_found, dtype=np.intp)  # leaf position of each one's target point
-        slots = np.empty(n_found, dtype=np.intp)  # and its place in the geometry cache (-1: not there yet)
-        rows = np.empty(n_found, dtype=np.intp)  # the rows with a partner (query order)
-        jf = np.empty(n_found, dtype=np.intp)  # and their target points
+        found = self._scratch("found", n_found, dtype=np.intp)  # positions (query order) of queries with a partner
+        pos = self._scratch("pos", n_found, dtype=np.intp)  # leaf position of each one's target point
+        slots = self._scratch("slots", n_found, dtype=np.intp)  # and its place in the geometry cache (-1: not yet)
+        rows = self._scratch("rows", n_found, dtype=np.intp)  # the rows with a partner (query order)
+        jf = self._scratch("jf", n_found, dtype=np.intp)  # and their target points
         uncached = []  # per range: how many of its target points the geometry cache does not hold yet
         geometry, rep = self.geometry, self.tree.representative
 
@@ -177,8 +188,8 @@ class _Matcher:
         has_angle = normals is not None
         max_angle = opt["max_angle_deg"]
         gate_angle, max_angle = max_angle is not None and has_angle, np.inf if max_angle is None else float(max_angle)
-        cosang = np.empty(n_found)
-        d2 = np.empty(n_found)  # |q_j - p_i|^2: the duplicate rule keeps the nearest source point by it (-1: rejected)
+        cosang = self._scratch("cosang", n_found)
+        d2 = self._scratch("d2", n_found)  # |q_j - p_i|^2: the duplicate rule keeps the nearest source point by it (-1: rejected)
         # a target point whose neighbourhood is a point or a line has no normal; (4) gates on the target
         # point (class, noise) and the source normal, in the order of _numpy_call: with the gather where
         # the normals are final and nothing comes between
@@ -221,7 +232,8 @@ class _Matcher:
         if opt["unique"] and n_found:
             # one source point per target point, the nearest by the point-to-point distance (see _numpy_call):
             # split by target points (each pass reads every pair and writes the rows of its own target points)
-            best, best_d2 = np.empty(self.tree.n, np.int64), np.empty(self.tree.n)
+            best = self._scratch("best", self.tree.n, dtype=np.int64)
+            best_d2 = self._scratch("best_d2", self.tree.n)
             in_runs(lambda lo, hi: passes.duplicates_range(rows, pos, d2, rule, best, best_d2, lo, hi,
                                                                     _CODE["duplicate"]),
                              passes.range_cuts(self.tree.n, threads, per_thread=1), threads)
