@@ -112,6 +112,14 @@ Open3D had become faster and labkit had not; best of 9 labkit 0.93 and 0.93 s ag
 0.82 s (1.20x, 1.14x), the rounds' ratios median 1.21 and 1.14 (0.92-2.58, 3 of 18 rounds below 1); 15
 more rounds in one process: median 1.12, quartiles 1.02-1.23. Best-of-3 ratios had ranged over 0.97-1.39
 within that afternoon, hence the per-round column. ALS halves: 0.42x and 0.48x, every round below 1.
+Then labkit's working memory was cut (the same digests): the plane from the kept PCA no longer holds an
+(m, k) neighbour array of every point for the 23,000 points per cloud searched again, the selection's
+neighbours are int32, and the matcher keeps its work arrays between iterations (traced peak of one call
+410 -> 307 MB; Open3D's whole run adds about 33 MB to its process). In alternating processes each step
+was faster in 3-4 of 4 rounds, by 3-5 % each (medians). Six runs from 15:28 (load 1.6-1.9): 0.97x, 0.99x,
+1.04x, 0.92x, 0.93x, 0.96x, rounds below 1 in 5-7 of 9; that morning's code in the same window 1.00x.
+The machine's phases move the ratio by more than that: the margin is a few percent, not one that
+holds in every phase.
 
 Where labkit's CPU goes in the timed runs (``perf``, 1999 Hz, the samples after the warm-up): the
 k-neighbour kernel of the surface selection 31 %, the matching's nearest-point kernel 17 %, the kernel
