@@ -136,6 +136,7 @@ def test_work_arrays_kept_between_calls_change_no_result():
     kept = prepare(source, target, **kw)
     first = kept(np.eye(3), moves[0])
     before = copy.deepcopy([getattr(first, n) for n in names])
+    work = dict(kept._work)
     counts = []
     for t in moves:
         got, fresh = kept(np.eye(3), t), prepare(source, target, **kw)(np.eye(3), t)
@@ -144,6 +145,7 @@ def test_work_arrays_kept_between_calls_change_no_result():
             a, b = getattr(got, name), getattr(fresh, name)
             assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), name
             assert not any(np.shares_memory(a, w) for w in kept._work.values()), name
-    assert counts[1] < counts[0] and kept._work  # the work arrays were kept, and reused for fewer rows
+    assert counts[1] < counts[0] < counts[2]  # fewer pairs, then more than at first
+    assert kept._work.keys() == work.keys() and all(kept._work[n] is w for n, w in work.items())  # the same memory
     for a, b in zip([getattr(first, n) for n in names], before):
         assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f")

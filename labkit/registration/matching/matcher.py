@@ -123,14 +123,15 @@ class _Matcher:
             object.__setattr__(self, "_memory", (np.zeros((n, 3)), np.zeros(n)))
         object.__setattr__(self, "_work", {})  # the work arrays of the calls (_scratch)
 
-    def _scratch(self, name, n, shape=(), dtype=np.float64):
+    def _scratch(self, name, n, shape=(), dtype=np.float64, most=0):
         """The first ``n`` rows of a work array of the calls, kept between them (ICP calls the matcher one
         iteration after the other, as the warm starts above already require): the same memory in every
-        iteration instead of 20-30 MB of new pages, zeroed by the system on first touch. What a call returns
-        is never one of these."""
+        iteration instead of 20-30 MB of new pages, zeroed by the system on first touch. ``most``: the rows
+        any call can need (made at once, also when a later call needs more than this one). What a call
+        returns is never one of these."""
         buf = self._work.get(name)
         if buf is None or len(buf) < n or buf.shape[1:] != shape or buf.dtype != dtype:
-            buf = self._work[name] = np.empty((n,) + shape, dtype)
+            buf = self._work[name] = np.empty((max(n, most),) + shape, dtype)
         return buf[:n]
 
     def __call__(self, R=None, t=None) -> Correspondences:
@@ -166,11 +167,10 @@ class _Matcher:
         in_runs(lambda a, b: counts.__setitem__(a, passes.count_found(dist, a, b)), cuts, threads)
         offsets = dict(zip(cuts[:-1], np.cumsum([0] + [counts[a] for a in cuts[:-1]]).tolist()))
         n_found = sum(counts.values())
-        found = self._scratch("found", n_found, dtype=np.intp)  # positions (query order) of queries with a partner
-        pos = self._scratch("pos", n_found, dtype=np.intp)  # leaf position of each one's target point
-        slots = self._scratch("slots", n_found, dtype=np.intp)  # and its place in the geometry cache (-1: not yet)
-        rows = self._scratch("rows", n_found, dtype=np.intp)  # the rows with a partner (query order)
-        jf = self._scratch("jf", n_found, dtype=np.intp)  # and their target points
+        # per query with a partner (query order): its position, the leaf position of its target point and that
+        # point's place in the geometry cache (-1: not there yet), its row and its target point
+        found, pos, slots, rows, jf = (self._scratch(name, n_found, dtype=np.intp, most=n_live)
+                                       for name in ("found", "pos", "slots", "rows", "jf"))
         uncached = []  # per range: how many of its target points the geometry cache does not hold yet
         geometry, rep = self.geometry, self.tree.representative
 
@@ -188,8 +188,9 @@ class _Matcher:
         has_angle = normals is not None
         max_angle = opt["max_angle_deg"]
         gate_angle, max_angle = max_angle is not None and has_angle, np.inf if max_angle is None else float(max_angle)
-        cosang = self._scratch("cosang", n_found)
-        d2 = self._scratch("d2", n_found)  # |q_j - p_i|^2: the duplicate rule keeps the nearest source point by it (-1: rejected)
+        cosang = self._scratch("cosang", n_found, most=n_live)
+        # |q_j - p_i|^2: the duplicate rule keeps the nearest source point by it (-1: rejected)
+        d2 = self._scratch("d2", n_found, most=n_live)
         # a target point whose neighbourhood is a point or a line has no normal; (4) gates on the target
         # point (class, noise) and the source normal, in the order of _numpy_call: with the gather where
         # the normals are final and nothing comes between
