@@ -117,7 +117,8 @@ Then labkit's working memory was cut (the same digests): the plane from the kept
 neighbours are int32, and the matcher keeps its work arrays between iterations (traced peak of one call
 410 -> 307 MB; Open3D's whole run adds about 33 MB to its process). In alternating processes each step
 was faster in 3-4 of 4 rounds, by 3-5 % each (medians). Six runs from 15:28 (load 1.6-1.9): 0.97x, 0.99x,
-1.04x, 0.92x, 0.93x, 0.96x, rounds below 1 in 5-7 of 9; that morning's code in the same window 1.00x.
+1.04x, 0.92x, 0.93x, 0.96x, rounds below 1 in 5-7 of 9; that morning's code in the same window 1.00x;
+the final code at 15:54: 1.08x and 0.91x, the rounds' medians 0.95 and 0.97 (6 and 5 of 9 below 1).
 The machine's phases move the ratio by more than that: the margin is a few percent, not one that
 holds in every phase.
 
