@@ -9,9 +9,11 @@ from __future__ import annotations
 import importlib
 
 from .core.lazy import lazy_attribute
+from .core.memory import keep_freed_memory
 from .core.numba_cache import ensure_cache_dir
 
 ensure_cache_dir()  # before any compiled kernel is defined: numba must find a writable cache folder
+keep_freed_memory()  # freed work arrays reused by the next call, not handed back to the system (core/memory.py)
 
 __version__ = "0.1.0"
 
