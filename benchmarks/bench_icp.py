@@ -134,6 +134,20 @@ the import's, 2-6 % of a warm call); a single malloc arena (M_ARENA_MAX 1) was f
 Open3D about 3 % slower in the same process, a cost imposed on every other library; leaf sizes 16,
 32, 40 and 48 for the selection's k-neighbour search (24 stays fastest).
 
+One source of this VM's phases, found later that day: the host takes back the guest's free memory (pages
+free for about two seconds), and using such pages again costs the host's page faults (100 MB: 8 ms when
+freed a moment before, 390-700 ms after 2-8 s at one time, 21 ms at another). Open3D's run touches no
+new page after its first (0 page faults per call, ``getrusage``); labkit's freed 300-400 MB per call and
+paid 3,000-22,000 faults and 40-370 ms of system time per call when the rounds took turns with Open3D.
+Since then ``import labkit`` keeps up to 256 MB of freed memory in the process (``labkit.core.memory``):
+20-2,800 faults and 2-120 ms per call in the same alternation, the same estimates (``bench_memory.py``).
+Not a cause: the wake-up of sleeping worker threads (a pool whose idle workers spin for 5 ms, as OpenMP's
+do, was as fast: median 1.00 s against 1.02 s in 10 rounds) and the threads of ``side_by_side``
+kept between calls (more page faults in their arenas, not fewer). Three runs at 17:15-17:42 (load
+0.9-1.7), best of 9: TLS 0.84x, 1.07x, 0.95x Open3D, the rounds' medians 0.90x, 1.05x, 1.00x (7, 2 and
+3 of 9 below 1); ALS 0.41x and 0.43x, plane 0.24x and 0.27x, every round below 1. The TLS row is at
+parity, not ahead by a margin that holds in every phase of this machine.
+
 Run:  python benchmarks/bench_icp.py [--quick] [--realdata PATH] [--repeats N]
 """
 

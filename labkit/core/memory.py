@@ -7,7 +7,8 @@ larger arrays separately (``M_MMAP_THRESHOLD``). Handing pages back is cheap; ta
 not always: the kernel zeroes every page on first touch, and on a virtual machine whose host reclaims
 the guest's free memory (free page reporting: pages free for about two seconds go back to the host)
 the host must supply each page again. Measured on this project's 2-core VM: 100 MB of new pages took
-8 ms when freed a moment before and 390-700 ms when freed two or more seconds before. A registration
+8 ms when freed a moment before and 390-700 ms when freed two or more seconds before (at another time
+21 ms: how much the host takes back varies with its own load; ``benchmarks/bench_memory.py``). A registration
 of the real TLS halves (262,000 points each) paid 7,500 page faults and 150 ms of system time per call
 that way, 2.5 s after the last one; with the freed memory kept, 300 faults and 9 ms.
 
