@@ -15,7 +15,7 @@ Examples
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import betaincc, chdtrc, chdtri, fdtrc, fdtri, gammaincinv, ndtri, stdtrit
+from scipy.special import betaincc, chdtrc, chdtri, fdtrc, fdtri, gammaincinv, ndtr, ndtri, stdtrit
 
 
 def chi2_sf(x, dof):
@@ -51,6 +51,16 @@ def t_ppf(p, dof):
 def beta_sf(x, a, b):
     """P(X > x) for X ~ Beta(a, b): ``scipy.stats.beta.sf(x, a, b)``."""
     return betaincc(a, b, np.clip(x, 0.0, 1.0))  # 1 below the support, 0 above it
+
+
+def norm_cdf(x):
+    """P(X <= x) for X ~ N(0, 1): ``scipy.stats.norm.cdf(x)``."""
+    return ndtr(x)
+
+
+def norm_sf(x):
+    """P(X > x) for X ~ N(0, 1): ``scipy.stats.norm.sf(x)``."""
+    return ndtr(-np.asarray(x, dtype=np.float64))
 
 
 def norm_ppf(p):

@@ -27,12 +27,11 @@ from __future__ import annotations
 import threading
 from dataclasses import dataclass, replace  # noqa: F401  (replace: Examples)
 
-from scipy.stats import chi2
-
 import numpy as np
 
 from ..core.arrays import rows
 from ..core.checks import as_points, choice
+from ..core.distributions import chi2_sf
 from ..core.errors import LabkitError
 from ..core.masks import ASPRS_NAMES, STABLE_CLASSES
 from ..core.frame import local_origin
@@ -478,5 +477,5 @@ def check_other_classes(source, target, result, selection, register, *, alpha=1e
         T = float(d[both] @ np.linalg.solve(cov, d[both]))
         dof = int(both.sum())
         out.append(ClassCheck(code, name, int(ms.sum()), int(mt.sum()), np.where(both, d, np.nan),
-                              np.where(both, np.sqrt(var), np.nan), T, dof, float(chi2.sf(T, dof)), float(alpha)))
+                              np.where(both, np.sqrt(var), np.nan), T, dof, float(chi2_sf(T, dof)), float(alpha)))
     return tuple(out)

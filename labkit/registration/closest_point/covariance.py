@@ -7,8 +7,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
-from scipy.stats import norm, t as student_t
-
+from ...core.distributions import norm_cdf, t_ppf
 from ...core.jit import compiled, have_numba
 from .weights import deletion_limit, psi_prime
 from ..consistency import cell_labels, sum_by_cell
@@ -33,7 +32,7 @@ def few_clusters_factor(n_cells, sigmas=SIGMAS):
     """
     if n_cells < 3:
         return np.inf
-    return float(student_t.ppf(norm.cdf(sigmas), n_cells - 1) / sigmas)
+    return float(t_ppf(norm_cdf(sigmas), n_cells - 1) / sigmas)
 
 
 def effective_cells(info, Ji):
@@ -135,7 +134,7 @@ def block_covariance(A, l, w, u, centred, keep, factor, dx_s, free, xy, N_eps, o
     else:
         info = sum_by_cell(cell, (w * factor)[keep, None, None] * AA[keep][:, fixed][:, :, fixed], n_cells)
     dof = effective_cells(info, Ji) * (n_cells - 1) / n_cells  # n_cells - 1 when all cells inform alike
-    t_factor = student_t.ppf(norm.cdf(SIGMAS), np.maximum(dof, 1.0)) / SIGMAS
+    t_factor = t_ppf(norm_cdf(SIGMAS), np.maximum(dof, 1.0)) / SIGMAS
     cov[np.ix_(fixed, fixed)] = Ji @ M @ Ji * (m / max(m - k, 1)) * np.outer(t_factor, t_factor)
     return cov
 

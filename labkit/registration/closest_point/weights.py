@@ -10,8 +10,7 @@ from __future__ import annotations
 from functools import lru_cache
 
 import numpy as np
-from scipy.stats import chi2, norm
-
+from ...core.distributions import chi2_ppf, norm_sf
 from ...core.order import median
 
 HUBER_C, TUKEY_C = 1.345, 4.685  # 95 % efficiency under normal errors
@@ -21,15 +20,15 @@ HUBER_C, TUKEY_C = 1.345, 4.685  # 95 % efficiency under normal errors
 def deletion_limit(reject_sigma, r):
     """Limit on |u| of an r-component standardized residual: ``reject_sigma`` sigma, two-sided (eq. 5.8).
 
-    Kept per (reject_sigma, r): scipy's quantile costs a few hundred microseconds a call, every iteration.
+    Kept per (reject_sigma, r): the quantile costs microseconds a call, every iteration.
     """
-    return np.sqrt(chi2.ppf(1 - 2 * norm.sf(reject_sigma), r))
+    return np.sqrt(chi2_ppf(1 - 2 * norm_sf(reject_sigma), r))
 
 
 @lru_cache(maxsize=8)
 def _median_chi(r):
-    """The median of the chi distribution with r degrees of freedom (kept: scipy's quantile is slow)."""
-    return np.sqrt(chi2.ppf(0.5, r))
+    """The median of the chi distribution with r degrees of freedom (kept per r)."""
+    return np.sqrt(chi2_ppf(0.5, r))
 
 
 def robust_weights(l, w, reject_sigma, robust):
