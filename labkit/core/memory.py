@@ -35,13 +35,8 @@ _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # mallopt parameters (malloc.h)
 _state = {"applied": None}
 
 
-def keep_freed_memory(keep: int = KEEP) -> bool:
-    """Tell glibc's malloc to keep up to ``keep`` bytes of freed heap for reuse (module docstring).
-
-    Parameters
-    ----------
-    keep : int
-        Bytes of free memory at the top of the heap that stay in the process.
+def keep_freed_memory() -> bool:
+    """Tell glibc's malloc to keep up to :data:`KEEP` bytes of freed heap for reuse (module docstring).
 
     Returns
     -------
@@ -66,8 +61,8 @@ def keep_freed_memory(keep: int = KEEP) -> bool:
             mallopt = ctypes.CDLL("libc.so.6").mallopt
             mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
             # the mmap threshold first: the trim threshold's call alone would freeze it at 128 KB
-            ok = mallopt(_M_MMAP_THRESHOLD, MMAP) == 1 and mallopt(_M_TRIM_THRESHOLD, int(keep)) == 1
+            ok = mallopt(_M_MMAP_THRESHOLD, MMAP) == 1 and mallopt(_M_TRIM_THRESHOLD, KEEP) == 1
         except (OSError, AttributeError):  # pragma: no cover - a glibc without mallopt
-            ok = False
+            pass
     _state["applied"] = ok
     return ok

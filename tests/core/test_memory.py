@@ -40,11 +40,9 @@ def test_freed_arrays_stay_resident_for_reuse_and_go_back_when_switched_off():
     assert KEEP >= 150 << 20
 
 
-def test_switch_off_and_repeated_calls():
-    os.environ["LABKIT_KEEP_FREED_MEMORY"] = "0"
-    try:
-        assert keep_freed_memory() is False
-    finally:
-        del os.environ["LABKIT_KEEP_FREED_MEMORY"]
+def test_switch_off_and_repeated_calls(monkeypatch):
+    monkeypatch.setenv("LABKIT_KEEP_FREED_MEMORY", "0")
+    assert keep_freed_memory() is False
+    monkeypatch.delenv("LABKIT_KEEP_FREED_MEMORY")
     assert keep_freed_memory() is GLIBC  # set at import where glibc is there; the same answer again
     assert keep_freed_memory() is GLIBC

@@ -10,6 +10,7 @@ from __future__ import annotations
 from functools import lru_cache
 
 import numpy as np
+
 from ...core.distributions import chi2_ppf, norm_sf
 from ...core.order import median
 
