@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..core.arrays import extent
+from ..core.frame import load_origin_kernel
 from ..neighbours.eigh3 import HAVE_NUMBA
 
 if HAVE_NUMBA:
@@ -30,6 +31,14 @@ if HAVE_NUMBA:
 else:  # pragma: no cover - the kd-tree route in _change_search is used instead
     _njit = _serial = _inline = None
     _prange = range
+
+load_origin_kernel()  # M3C2's first call reduces the clouds to a local origin (numba is loaded above)
+
+# the types the callers pass the serial kernels (writeable C-contiguous arrays): loaded below at import
+_GRID = "float64[:, ::1], int64[::1], int64[::1], float64[::1], int64[::1], float64"  # points, keys, start, lo, dims, cell
+_SORT_SIGNATURE = "Tuple((float64[:, ::1], int64[::1], int64[::1]))(float64[:, ::1], float64[::1], float64, int64[::1], int64)"
+_CYLINDER_SIGNATURE = f"void({_GRID}, float64[:, ::1], float64[:, ::1], float64, float64, int64[::1], float64[::1], float64[::1])"
+_BALL_SIGNATURE = f"void({_GRID}, float64[:, ::1], float64, int64[::1], float64[:, ::1], float64[:, :, ::1])"
 
 PARALLEL_FROM = 50_000  # core points; below, one thread (measured: starting the OpenMP team on a loaded
 #                         2-core machine cost 30-60 ms against 0.5 ms of work for 829 cores)
@@ -109,6 +118,13 @@ if HAVE_NUMBA:
 
 
 if HAVE_NUMBA:
+
+    @_inline
+    def _span(c, e, lo, cell, n):
+        """Voxel index range [a, b] covering c - e .. c + e, clipped to 0 .. n - 1."""
+        a = int(np.floor((c - e - lo) / cell))
+        b = int(np.floor((c + e - lo) / cell))
+        return max(a, 0), min(b, n - 1)
 
     @_inline
     def _cylinder_one(pts, keys, start, lo, dims, cell, cores, normals, radius, depth, i):
@@ -207,12 +223,14 @@ if HAVE_NUMBA:
         for i in _prange(cores.shape[0]):
             _ball_one(pts, keys, start, lo, dims, cell, cores, radius, i, count, first, second)
 
-    @_inline
-    def _span(c, e, lo, cell, n):
-        """Voxel index range [a, b] covering c - e .. c + e, clipped to 0 .. n - 1."""
-        a = int(np.floor((c - e - lo) / cell))
-        b = int(np.floor((c + e - lo) / cell))
-        return max(a, 0), min(b, n - 1)
+
+if HAVE_NUMBA:
+    # the serial kernels of a first call loaded from numba's disk cache now, when this module is imported, not
+    # during the first call of a fresh process (5-8 ms each on this machine: ``bench_m3c2.py --first-call``);
+    # other argument types (e.g. read-only arrays) still compile on demand
+    for _f, _signature in ((_counting_sort, _SORT_SIGNATURE), (_cylinder_serial, _CYLINDER_SIGNATURE),
+                           (_ball_serial, _BALL_SIGNATURE)):
+        _f.compile(_signature)
 
 
 def _kernel(m, serial, parallel):

@@ -55,6 +55,27 @@ def _sums_kernel():
     return _SUMS[0]
 
 
+#: The types :func:`local_origin` calls the kernel with for a writeable C-contiguous (n, 3) array and a stride.
+_SUMS_SIGNATURE = "Tuple((float64[::1], int64))(float64[:, ::1], int64)"
+
+
+def load_origin_kernel():
+    """Load the compiled pass of :func:`local_origin` now, where numba is loaded (else do nothing).
+
+    A module whose first call in a fresh process should not wait for numba's disk cache (M3C2's voxel
+    grid) calls this when it is imported; the kernel is the same either way.
+
+    Examples
+    --------
+    >>> load_origin_kernel()
+    >>> local_origin(np.array([[0.4, 1.6, 2.0], [1.6, 2.4, 2.0]])).tolist()
+    [1.0, 2.0, 2.0]
+    """
+    kernel = _sums_kernel()
+    if kernel is not None and hasattr(kernel, "compile"):  # (other types, e.g. read-only arrays, compile on demand)
+        kernel.compile(_SUMS_SIGNATURE)
+
+
 def reduce(points: np.ndarray, origin: np.ndarray) -> np.ndarray:
     """Return ``points - origin`` as a new array (the input is never modified)."""
     return np.asarray(points, dtype=np.float64) - origin

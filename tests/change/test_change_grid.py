@@ -68,3 +68,25 @@ def test_counting_sort_gives_the_comparison_sort_grid_bitwise(cell, monkeypatch)
     for a in ("points", "keys", "start", "lo", "dims"):
         assert np.array_equal(getattr(counted, a), getattr(sorted_, a)), a
     assert counted.cell == sorted_.cell
+
+
+def test_first_call_kernels_are_loaded_at_import_and_read_only_input_still_works():
+    """Importing the grid loads the serial kernels (and local_origin's) for the types M3C2 passes, so a fresh
+    process's first call does not wait for numba's cache; other types, e.g. read-only arrays of a file, still
+    compile on demand."""
+    import subprocess
+    import sys
+
+    code = (
+        "import numpy as np\n"
+        "from labkit.change import grid as g\n"
+        "from labkit.core import frame\n"
+        "kernels = (g._counting_sort, g._cylinder_serial, g._ball_serial, frame._sums_kernel())\n"
+        "print([len(k.signatures) for k in kernels])\n"
+        "pts = np.random.default_rng(0).uniform(0, 10, (2000, 3))\n"
+        "pts.setflags(write=False)\n"
+        "print(frame.local_origin(pts).tolist(), len(g.VoxelGrid(pts, 0.5).keys) > 0)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split("\n")
+    assert out[0] == "[1, 1, 1, 1]"  # loaded before any call
+    assert out[1] == "[5.0, 5.0, 5.0] True"  # a read-only cloud: compiled on demand, the same origin
