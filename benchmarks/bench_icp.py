@@ -155,6 +155,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -262,6 +265,31 @@ def best_of(repeats, runs):
     return best, times
 
 
+class BusyProcesses:
+    """``n`` other processes that each keep a core busy (a busy loop at normal priority), paused except inside
+    ``with``: the runs then compete with another job for the cores, as on a shared machine."""
+
+    def __init__(self, n):
+        self.procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
+        self._send(signal.SIGSTOP)
+
+    def _send(self, sig):
+        for p in self.procs:
+            os.kill(p.pid, sig)
+
+    def __enter__(self):
+        self._send(signal.SIGCONT)
+        return self
+
+    def __exit__(self, *exc):
+        self._send(signal.SIGSTOP)
+
+    def close(self):
+        for p in self.procs:
+            p.kill()
+            p.wait()
+
+
 def warm_up(o3d):
     """Compile (numba) and load both libraries once, outside the timings."""
     rng = np.random.default_rng(0)
@@ -280,6 +308,8 @@ def main(argv=None):
     ap.add_argument("--keep", type=float, default=None,
                     help="share of the halves' points kept (0.5: about 260,000 TLS points each; default 1, --quick 0.25)")
     ap.add_argument("--halves-only", action="store_true", help="only the TLS and ALS halves")
+    ap.add_argument("--load", type=int, default=0,
+                    help="run every row a second time beside this many busy processes (another job on the cores)")
     args = ap.parse_args(argv)
     try:
         import open3d as o3d
@@ -291,6 +321,15 @@ def main(argv=None):
         print("skipped: real development data not found (set LABKIT_REALDATA or --realdata)")
         return
     warm_up(o3d)
+    busy = BusyProcesses(args.load) if args.load > 0 and hasattr(signal, "SIGSTOP") else None
+    try:
+        _rows(args, root, o3d, busy)
+    finally:
+        if busy is not None:
+            busy.close()
+
+
+def _rows(args, root, o3d, busy):
     print(f"{os.cpu_count()} CPU(s), load average {os.getloadavg()}; every time is the best of {args.repeats} "
           "wall-clock runs, the methods taking turns (shared machine: compare within a row); the ratios also "
           "per round (the runs next to each other)")
@@ -327,6 +366,17 @@ def main(argv=None):
                 q = times[:, i] / times[:, -1]  # each round's labkit run against the Open3D run next to it
                 print(f"{'':18s} {'':16s} {'  ratio':14s} {t_l / t:7.2f}   ({label} / open3d; per round: median "
                       f"{np.median(q):.2f}, {np.min(q):.2f}-{np.max(q):.2f}, below 1 in {np.sum(q < 1)} of {len(q)})")
+        if busy is not None:  # the same runs beside other jobs: the same estimates, the times under load
+            with busy:
+                loaded, times_l = best_of(args.repeats, runs)
+            same = all(np.array_equal(a[1], b[1]) for a, b in zip(timed, loaded))
+            for i, (label, kw) in enumerate(variants):
+                line = f"{'':18s} {'':16s} {'  under load':14s} {loaded[i][0]:7.2f}   ({label}, {args.load} busy process(es) beside"
+                if o3d is not None:
+                    q = times_l[:, i] / times_l[:, -1]
+                    line += (f"; open3d {loaded[-1][0]:.2f} s, ratio {loaded[i][0] / loaded[-1][0]:.2f}, per round: median "
+                             f"{np.median(q):.2f}, below 1 in {np.sum(q < 1)} of {len(q)}")
+                print(line + ")" + ("" if same else "   NOTE: the estimates differ from the runs without load"))
         print(f"{'':18s} load average after the row: {os.getloadavg()[0]:.1f}")
         if note:
             print(f"{'':18s} note: {note}")

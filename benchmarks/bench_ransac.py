@@ -46,6 +46,7 @@ one seed); the ``seeds`` column says how many. Run: ``python benchmarks/bench_ra
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import random
 import time
@@ -117,6 +118,22 @@ def run_skimage(points, seed, threshold=THRESHOLD, max_trials=100_000):
     return np.append(model.center, model.radius), -1
 
 
+#: The peers and the module each needs (the ``bench`` extra installs them).
+PEER_MODULES = {"pyransac3d": "pyransac3d", "skimage": "skimage"}
+
+
+def installed(methods):
+    """``methods`` without the peers whose module is not installed (each named once: a table without it)."""
+    out = {}
+    for name, fn in methods.items():
+        module = PEER_MODULES.get(name)
+        if module is not None and importlib.util.find_spec(module) is None:
+            print(f"skipped: {name} ({module} is not installed; pip install -e '.[bench]')")
+            continue
+        out[name] = fn
+    return out
+
+
 # ----------------------------------------------------------------- harness
 def evaluate(x, truth):
     if x is None or not np.all(np.isfinite(x)):
@@ -169,7 +186,7 @@ def real_table(args):
         "pyransac3d": lambda pts, rr: run_pyransac3d(pts, 0, None, threshold=0.02, cap=args.peer_trials)[0],
         "skimage": lambda pts, rr: run_skimage(pts, 0, threshold=0.02, max_trials=args.peer_trials)[0],
     }
-    methods = {name: fn for name, fn in methods.items() if name == "labkit" or name in args.methods}
+    methods = installed({name: fn for name, fn in methods.items() if name == "labkit" or name in args.methods})
     print(f"\n# 16-beam scans: real (data/real/spheres) and synthetic rooms; t = 20 mm; "
           f"peers {args.peer_trials} hypotheses; load average {os.getloadavg()[0]:.1f}\n")
     print("| scan | points | method | found right | time (s) | centre err (mm) | radius err (mm) | peer time / labkit |")
@@ -205,7 +222,7 @@ def speed_table(args):
         "pyransac3d": lambda pts, ratio: run_pyransac3d(pts, 0, ratio)[0],
         "skimage": lambda pts, ratio: run_skimage(pts, 0)[0],
     }
-    methods = {name: fn for name, fn in methods.items() if name == "labkit" or name in args.methods}
+    methods = installed({name: fn for name, fn in methods.items() if name == "labkit" or name in args.methods})
     print(f"# RANSAC speed, best of 3 with the methods taking turns ({os.cpu_count()} CPUs); threshold "
           f"{THRESHOLD * 1e3:.0f} mm, p = 0.99; pyransac3d gets N of eq. 27 for the true outlier ratio\n")
     print("| n | outlier ratio | method | runs | right | best wall (s) | its CPU (s) | peer / labkit (wall) | "
@@ -244,7 +261,8 @@ def tripod_table(args):
         "pyransac3d": lambda pts, seed, ratio: run_pyransac3d(pts, seed, ratio),
         "skimage": lambda pts, seed, ratio: run_skimage(pts, seed),
     }
-    peers = {"pyransac3d", "skimage"}
+    methods = installed(methods)
+    peers = {"pyransac3d", "skimage"} & set(methods)
     print(f"# RANSAC sphere benchmark ({os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} at start)")
     print(f"threshold {THRESHOLD * 1e3:.0f} mm, success = centre and radius within {TOLERANCE * 1e3:.0f} mm\n")
     header = ("| n | outlier ratio | method | seeds | success | median time (s) | "
@@ -270,9 +288,9 @@ def tripod_table(args):
                     dc, dr, ok = evaluate(x, scene.sphere)
                     times.append(dt), dcs.append(dc), drs.append(dr), oks.append(ok)
                 rows[name] = (len(times), np.mean(oks), np.median(times), np.nanmedian(dcs) * 1e3, np.nanmedian(drs) * 1e3)
-            fastest_peer = min(rows[p][2] for p in peers)
+            fastest_peer = min((rows[p][2] for p in peers), default=None)
             for name, (k, succ, t, dc, dr) in rows.items():
-                speed = f"{fastest_peer / t:.1f}x" if name not in peers else ""
+                speed = f"{fastest_peer / t:.1f}x" if name not in peers and fastest_peer is not None else ""
                 # the target's comparison: the fastest peer whose success rate is at least this method's
                 equal = [rows[p][2] for p in peers if rows[p][1] >= succ]
                 fair = (f"{min(equal) / t:.1f}x" if equal else "no peer as reliable") if name not in peers else ""
