@@ -148,7 +148,26 @@ kept between calls (more page faults in their arenas, not fewer). Three runs at 
 3 of 9 below 1); ALS 0.41x and 0.43x, plane 0.24x and 0.27x, every round below 1. The TLS row is at
 parity, not ahead by a margin that holds in every phase of this machine.
 
-Run:  python benchmarks/bench_icp.py [--quick] [--realdata PATH] [--repeats N]
+The same code on a freshly started machine of the same kind that evening (both libraries about 1.6 times
+slower than that afternoon): TLS 0.92x, 0.85x and 1.05x best of 9, the rounds' medians 0.88, 0.86 and
+0.87 (8, 8 and 7 of 9 below 1; the 1.05x run came right after ``bench_tiles`` at load 4, from one fast
+Open3D run); ALS 0.35x-0.37x, plane 0.23x-0.24x. Per call (wall / CPU ms, medians of 7): the selection
+750 / 1418, the preparation 227 / 403, eight matchings 366 / 644 (their nearest-point searches 228 / 449),
+eight adjustments 78 / 78, the result 50 / 74. labkit spends 2.45-2.6 CPU s per call against Open3D's
+2.7-2.9 s but keeps fewer cores busy while it runs (1.67 against 1.79: the run time of every thread read
+from /proc each millisecond), in its serial steps (the adjustments, the result) and at the ends of its
+parallel ones. Beside another job (``--load 1``: one busy process at normal priority during a second set of
+rounds): TLS labkit 1.54 s, Open3D 1.87 s, 0.82x (the rounds' median 0.82, 8 of 9 below 1; the same
+sitting without it 0.87x, median 0.88), ALS 0.32x, plane 0.21x; switched on in every other round of one
+process: 2.01 against 2.52 s (0.77x, without it 0.88x); at nice 19 it made both 4 % slower (0.93x). Measured and not a cause: the wake-up of an idle
+virtual CPU (65-83 us median, up to 4 ms, two threads passing a token; with the guest's halt polling set
+to 200 us it fell to 7 us and labkit's time stayed the same), Python's thread switch interval (5, 0.5 and
+0.1 ms: the same), the second nearest point in the early searches (it saves 9-16 ms of CPU where the
+queries move far, and costs as much in the next search), gathering the found pairs in the pass that
+writes them (no faster), one thread per cloud in the selection (no faster), numba's numpy error model in
+the k-neighbour kernel and a branch-free rank count in its first stage (2 % and less).
+
+Run:  python benchmarks/bench_icp.py [--quick] [--realdata PATH] [--repeats N] [--keep SHARE] [--halves-only] [--load N]
 """
 
 from __future__ import annotations
@@ -369,14 +388,15 @@ def _rows(args, root, o3d, busy):
         if busy is not None:  # the same runs beside other jobs: the same estimates, the times under load
             with busy:
                 loaded, times_l = best_of(args.repeats, runs)
-            same = all(np.array_equal(a[1], b[1]) for a, b in zip(timed, loaded))
+            # labkit's estimates are deterministic (Open3D's parallel sums may differ in the last bits)
+            same = all(np.array_equal(a[1], b[1]) for a, b in zip(timed[:len(variants)], loaded[:len(variants)]))
             for i, (label, kw) in enumerate(variants):
                 line = f"{'':18s} {'':16s} {'  under load':14s} {loaded[i][0]:7.2f}   ({label}, {args.load} busy process(es) beside"
                 if o3d is not None:
                     q = times_l[:, i] / times_l[:, -1]
                     line += (f"; open3d {loaded[-1][0]:.2f} s, ratio {loaded[i][0] / loaded[-1][0]:.2f}, per round: median "
                              f"{np.median(q):.2f}, below 1 in {np.sum(q < 1)} of {len(q)}")
-                print(line + ")" + ("" if same else "   NOTE: the estimates differ from the runs without load"))
+                print(line + ")" + ("" if same else "   NOTE: labkit's estimates differ from the runs without load"))
         print(f"{'':18s} load average after the row: {os.getloadavg()[0]:.1f}")
         if note:
             print(f"{'':18s} note: {note}")
