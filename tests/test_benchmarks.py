@@ -2,7 +2,6 @@
 processes of ``bench_icp.py --load`` run only inside ``with``."""
 
 import importlib.util
-import os
 import sys
 import time
 from pathlib import Path
@@ -36,7 +35,6 @@ def _state(pid):
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_busy_processes_run_only_inside_with():
-    pytest.importorskip("numpy")
     bench = _load("bench_icp")
     busy = bench.BusyProcesses(1)
     pid = busy.procs[0].pid
@@ -50,5 +48,4 @@ def test_busy_processes_run_only_inside_with():
         assert _state(pid) == "T"
     finally:
         busy.close()
-    assert busy.procs[0].poll() is not None  # ended
-    assert not os.path.exists(f"/proc/{pid}/stat") or _state(pid) in ("Z", "X")
+    assert busy.procs[0].poll() is not None  # ended and reaped
